@@ -1,0 +1,79 @@
+"""Thin Hydra shell shared by every stage: config location, resolvers, one-line errors.
+
+Each stage module does::
+
+    @stage_main("simulate")
+    def main(cfg): return run(cfg)
+
+`run(cfg) -> dict` holds the work and is what tests call with a composed config.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import sys
+from pathlib import Path
+
+import hydra
+from omegaconf import DictConfig, OmegaConf
+
+from pipeline.errors import PipelineError
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+CONF_DIR = REPO_ROOT / "conf"
+
+
+def _register_resolvers() -> None:
+    if not OmegaConf.has_resolver("repo_root"):
+        OmegaConf.register_new_resolver("repo_root", lambda: str(REPO_ROOT))
+
+
+_register_resolvers()
+
+
+def report_error(err: BaseException) -> None:
+    """Print one clear line for a user error."""
+    print(f"error: {err}", file=sys.stderr)
+
+
+def stage_main(config_name: str):
+    """Decorator: Hydra entry point whose user errors become one line on stderr and exit code 2."""
+
+    def wrap(task):
+        @functools.wraps(task)
+        def guarded(cfg: DictConfig):
+            try:
+                return task(cfg)
+            except PipelineError as err:
+                report_error(err)
+                sys.exit(2)
+
+        main = hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name=config_name)(guarded)
+
+        @functools.wraps(task)
+        def entry():
+            # Hydra prints its own one-line message for unknown config options; keep it short.
+            os.environ.setdefault("HYDRA_FULL_ERROR", "0")
+            return main()
+
+        return entry
+
+    return wrap
+
+
+def compose(config_name: str, overrides: list[str] | None = None) -> DictConfig:
+    """Compose a stage config outside of `@hydra.main` (tests, notebooks, the paper DAG).
+
+    `hydra:` interpolations are not available here, so `paths.output_dir` must be overridden
+    (or the caller sets it) before use.
+    """
+    from hydra import compose as _compose
+    from hydra import initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(version_base="1.3", config_dir=str(CONF_DIR)):
+        cfg = _compose(config_name=config_name, overrides=overrides or [], return_hydra_config=False)
+    GlobalHydra.instance().clear()
+    return cfg
