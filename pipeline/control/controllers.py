@@ -1,0 +1,228 @@
+"""Batched feedback laws: the hybrid controller (SPEC §3.3) and the smooth/CBF baselines (SPEC §3.4).
+
+Every controller maps perceived positions `m` `(N, 2)` to velocities `u` `(N, 2)`; per-agent state (the mode
+`q` and event counters) lives in the object and is (re)initialised by `reset`. No NaN or infinite velocity
+is ever returned.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from pipeline.control.covering import wedge_axes, wedge_coords
+from pipeline.control.potentials import both_potentials_frame, potential_and_grad, smooth_potential_grad
+from pipeline.control.scene import Scene
+from pipeline.errors import ConfigError
+
+_SQRT1_2 = math.sqrt(0.5)
+
+
+def _positive(value, field: str, allow_none: bool = False) -> float | None:
+    if value is None and allow_none:
+        return None
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ConfigError(field, f"must be a number, got {value!r}") from None
+    if not math.isfinite(v) or v <= 0:
+        raise ConfigError(field, f"must be > 0{' (or null for no limit)' if allow_none else ''}, got {value!r}")
+    return v
+
+
+def saturate(u: np.ndarray, u_max: float | None) -> np.ndarray:
+    """Scale rows of `u` down to norm `u_max` (the vehicle's speed limit); `None` = no limit."""
+    if u_max is None:
+        return u
+    norm = np.hypot(u[:, 0], u[:, 1])
+    scale = np.minimum(1.0, u_max / np.maximum(norm, 1e-300))
+    return u * scale[:, None]
+
+
+class Controller:
+    """Common interface: `reset(m0, target)`, `__call__(m, target) -> u`, event counters."""
+
+    name = "controller"
+    hybrid = False
+
+    def __init__(self, scene: Scene, k: float = 1.0, u_max: float | None = 10.0, push_speed: float | None = None):
+        if not isinstance(scene, Scene):
+            raise TypeError("scene must be a pipeline.control.Scene")
+        self.scene = scene
+        self.k = _positive(k, "controller.k")
+        self.u_max = _positive(u_max, "controller.u_max", allow_none=True)
+        # speed used to leave a set the controller cannot be in (u_max, or 10 units/s without a limit)
+        self.push_speed = self.u_max if push_speed is None and self.u_max is not None else (push_speed or 10.0)
+        self.jumps = np.zeros(0, dtype=np.int64)
+        self.pushouts = np.zeros(0, dtype=np.int64)
+        self.q = np.ones(0, dtype=np.int8)
+
+    def reset(self, m0: np.ndarray, target=None) -> None:
+        n = len(m0)
+        self.jumps = np.zeros(n, dtype=np.int64)
+        self.pushouts = np.zeros(n, dtype=np.int64)
+        self.q = np.ones(n, dtype=np.int8)
+
+    def __call__(self, m: np.ndarray, target=None) -> np.ndarray:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def _finalise(self, u: np.ndarray, bad: np.ndarray, fallback: np.ndarray) -> np.ndarray:
+        """Replace rows that cannot be evaluated by `fallback * push_speed`, count them, saturate."""
+        bad = bad | ~np.isfinite(u).all(axis=1)
+        if bad.any():
+            u[bad] = fallback[bad] * self.push_speed
+            self.pushouts[bad] += 1
+        return saturate(u, self.u_max)
+
+
+class HybridController(Controller):
+    """The perception-based hybrid controller of the paper (Eqs. for C_{p,q}, D_{p,q}; SPEC §3.3).
+
+    Flow while `V_q(m) <= chi V_{3-q}(m)` with `u = -k ∇V_q(m)`; jump `q -> 3 - q` when
+    `V_q(m) >= (chi - lam) V_{3-q}(m)` (jumps take priority in the overlap; at most one jump per sample).
+    Sampled-data rules: `m ∉ O_q, m ∈ O_{3-q}` jumps (V_q = inf); `m` in neither set (inside the diamond)
+    does not jump and pushes out of `W_q` along its outward normal at `push_speed`, counted in
+    `pushouts`. At `V_q(m) = 0` (the target itself) there is no jump, which rules out Zeno at `p_T`.
+    """
+
+    name = "hybrid"
+    hybrid = True
+
+    def __init__(self, scene: Scene, k: float = 1.0, chi: float = 1.1, lam: float = 0.09,
+                 u_max: float | None = 10.0, push_speed: float | None = None, **_ignored):
+        super().__init__(scene, k=k, u_max=u_max, push_speed=push_speed)
+        try:
+            chi, lam = float(chi), float(lam)
+        except (TypeError, ValueError):
+            raise ConfigError("controller.chi", f"chi and lam must be numbers, got {chi!r}, {lam!r}") from None
+        if not (math.isfinite(chi) and chi > 1):
+            raise ConfigError("controller.chi", f"must be > 1 (hysteresis), got {chi!r}")
+        if not (0 < lam < chi - 1):
+            raise ConfigError("controller.lam", f"must be in (0, chi - 1) = (0, {chi - 1:.6g}), got {lam!r}")
+        self.chi, self.lam = chi, lam
+        self._axes = {q: wedge_axes(scene, q) for q in (1, 2)}
+
+    def reset(self, m0: np.ndarray, target=None) -> None:
+        """Initial mode: the one with the smaller `V_q` at the first measurement (ties: the side of `b`)."""
+        super().reset(m0, target)
+        m0 = np.asarray(m0, dtype=float)
+        V1, _ = potential_and_grad(self.scene, 1, m0, target)
+        V2, _ = potential_and_grad(self.scene, 2, m0, target)
+        _, b = self.scene.to_frame(m0)
+        q = np.where(V1 < V2, 1, np.where(V2 < V1, 2, np.where(b < 0, 1, 2)))
+        self.q = q.astype(np.int8)
+
+    def __call__(self, m: np.ndarray, target=None) -> np.ndarray:
+        m = np.asarray(m, dtype=float)
+        if len(self.q) != len(m):
+            self.reset(m, target)
+        sc = self.scene
+        rx, ry = m[:, 0] - sc.p_0[0], m[:, 1] - sc.p_0[1]
+        a = rx * sc.e_a[0] + ry * sc.e_a[1]
+        b = rx * sc.e_b[0] + ry * sc.e_b[1]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            V1, V2, ga1, gb1, ga2, gb2 = both_potentials_frame(sc, a, b, target)
+            is1 = self.q == 1
+            Vq = np.where(is1, V1, V2)
+            Vo = np.where(is1, V2, V1)
+            jump = (Vq > 0) & np.isfinite(Vo) & (Vq >= (self.chi - self.lam) * Vo)
+            if jump.any():
+                self.q = np.where(jump, 3 - self.q, self.q).astype(np.int8)
+                self.jumps += jump
+                is1 = self.q == 1
+                Vq = np.where(is1, V1, V2)
+            ua = -self.k * np.where(is1, ga1, ga2)
+            ub = -self.k * np.where(is1, gb1, gb2)
+        bad = ~(np.isfinite(Vq) & np.isfinite(ua) & np.isfinite(ub))
+        if bad.any():
+            # m inside W_q (hence in the diamond): leave W_q along the outward normal of its nearest face
+            i = np.flatnonzero(bad)
+            sigma = np.where(self.q[i] == 1, 1.0, -1.0)
+            bp = sc.c + sigma * b[i]
+            nearest_u = (bp + a[i]) <= (bp - a[i])  # u <= v: cross the u = 0 face
+            ua[i] = np.where(nearest_u, -_SQRT1_2, _SQRT1_2) * self.push_speed
+            ub[i] = -sigma * _SQRT1_2 * self.push_speed
+            self.pushouts[i] += 1
+        if self.u_max is not None:
+            norm = np.hypot(ua, ub)
+            scale = np.minimum(1.0, self.u_max / np.maximum(norm, 1e-300))
+            ua, ub = ua * scale, ub * scale
+        return np.stack([ua * sc.e_a[0] + ub * sc.e_b[0], ua * sc.e_a[1] + ub * sc.e_b[1]], axis=1)
+
+    def _exit_direction(self, m: np.ndarray, q: np.ndarray) -> np.ndarray:
+        """Unit outward normal of `W_q` at the nearest face, for points inside `W_q` (world frame)."""
+        out = np.empty_like(m)
+        for mode in (1, 2):
+            sel = q == mode
+            if not sel.any():
+                continue
+            u, v = wedge_coords(self.scene, mode, m[sel])
+            du, dv = self._axes[mode]
+            out[sel] = np.where((u <= v)[:, None], -du, -dv)
+        return out
+
+    @property
+    def modes(self) -> np.ndarray:
+        return self.q
+
+
+class SmoothController(Controller):
+    """Gradient flow of `V_s = |p - p_T|^2 + B(dist(p, D_2r)^2 / l_B^2)` (SPEC §3.4): the smooth baseline.
+
+    Proposition 1: the ray behind the obstacle holds a saddle (the set K), so arbitrarily small errors stall it.
+    """
+
+    name = "smooth"
+
+    def __call__(self, m: np.ndarray, target=None) -> np.ndarray:
+        m = np.asarray(m, dtype=float)
+        if len(self.jumps) != len(m):
+            self.reset(m, target)
+        u = -self.k * smooth_potential_grad(self.scene, m, target)
+        inside = ~np.isfinite(u).all(axis=1)
+        return self._finalise(u, inside, _radial(self.scene, m))
+
+
+class CBFController(Controller):
+    """CBF safety filter (SPEC §3.4): `u = argmin |u - u_nom|^2 s.t. ∇h·u >= -alpha h` in closed form.
+
+    `u_nom = -k (p - p_T)`, `h(p) = |p - p_0|^2 - (2r)^2`. Continuous, hence also subject to Proposition 1.
+    """
+
+    name = "cbf"
+
+    def __init__(self, scene: Scene, k: float = 1.0, alpha: float = 1.0, u_max: float | None = 10.0,
+                 push_speed: float | None = None, **_ignored):
+        super().__init__(scene, k=k, u_max=u_max, push_speed=push_speed)
+        self.alpha = _positive(alpha, "controller.alpha")
+
+    def __call__(self, m: np.ndarray, target=None) -> np.ndarray:
+        m = np.asarray(m, dtype=float)
+        if len(self.jumps) != len(m):
+            self.reset(m, target)
+        tgt = self.scene.p_T if target is None else np.asarray(target, dtype=float)
+        u_nom = -self.k * (m - tgt)
+        rel = m - self.scene.p_0
+        h = np.einsum("ij,ij->i", rel, rel) - (2.0 * self.scene.obstacle_radius) ** 2
+        gh = 2.0 * rel
+        gg = np.einsum("ij,ij->i", gh, gh)
+        slack = np.einsum("ij,ij->i", gh, u_nom) + self.alpha * h
+        active = slack < 0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            corr = np.where(active, -slack / gg, 0.0)
+            u = u_nom + corr[:, None] * gh
+        return self._finalise(u, gg <= 0, _radial(self.scene, m))
+
+
+def _radial(scene: Scene, m: np.ndarray) -> np.ndarray:
+    """Unit vectors from the obstacle centre (e_b at the centre itself)."""
+    rel = m - scene.p_0
+    norm = np.hypot(rel[:, 0], rel[:, 1])
+    out = np.tile(scene.e_b, (len(m), 1))
+    ok = norm > 0
+    out[ok] = rel[ok] / norm[ok, None]
+    return out
+
+
+CONTROLLERS = {"hybrid": HybridController, "smooth": SmoothController, "cbf": CBFController}

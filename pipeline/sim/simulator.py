@@ -1,0 +1,242 @@
+"""Batched sampled-data simulation of N vehicles `p_dot = u` under a feedback law (SPEC §1, §3.3).
+
+Each camera frame (every `camera_period`, a multiple of `dt`) a vehicle gets a new measurement with
+probability `1 - p_fail` (else the controller holds the last estimate); the controller is evaluated on
+the perceived positions and its velocity is held until the next frame (zero-order hold). The state is
+integrated with explicit Euler steps of `dt`. Each agent's hybrid arc `(t, j, p, q, m, u)` is recorded
+every `record_every` steps, and each agent ends with a termination cause in the spirit of the Hybrid
+Equations Toolbox: reached the target, collision, non-finite state, or the horizon.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import pandas as pd
+
+from pipeline.control.controllers import Controller
+from pipeline.control.scene import Scene
+from pipeline.errors import ConfigError
+from pipeline.sim.disturbances import Disturbance, NoDisturbance
+
+TERMINATIONS = ("horizon", "target", "collision", "non_finite")
+HORIZON, TARGET, COLLISION, NON_FINITE = range(4)
+
+# measure(p_true (n, 2), idx (n,), frame, rng) -> perceived positions (n, 2), before the disturbance
+Measure = Callable[[np.ndarray, np.ndarray, int, np.random.Generator], np.ndarray]
+# target_fn(t, frame, p_true (n, 2), idx (n,), rng) -> perceived (moving) targets (n, 2)
+TargetFn = Callable[[float, int, np.ndarray, np.ndarray, np.random.Generator], np.ndarray]
+
+
+def true_state(p: np.ndarray, idx: np.ndarray, frame: int, rng: np.random.Generator) -> np.ndarray:
+    """Measurement without a camera: the true position (a disturbance is added on top)."""
+    return p.copy()
+
+
+@dataclass
+class SimResult:
+    """Hybrid arcs and per-agent metrics of one batched run."""
+
+    controller: str
+    x0: np.ndarray  # (N, 2)
+    t: np.ndarray  # (T,)
+    p: np.ndarray  # (T, N, 2) true positions
+    m: np.ndarray  # (T, N, 2) perceived positions
+    u: np.ndarray  # (T, N, 2) velocities
+    q: np.ndarray  # (T, N) modes (1 for non-hybrid controllers)
+    j: np.ndarray  # (T, N) jump counters
+    target: np.ndarray | None  # (T, N, 2) perceived targets, moving-target runs only
+    metrics: dict = field(default_factory=dict)  # name -> (N,) arrays
+
+    def metrics_frame(self) -> pd.DataFrame:
+        """One row per agent: the columns of `metrics.csv`."""
+        df = pd.DataFrame({"controller": self.controller, "x0": self.x0[:, 0], "y0": self.x0[:, 1]})
+        for k, v in self.metrics.items():
+            df[k] = v
+        return df
+
+    def save_npz(self, path) -> None:
+        arrays = {k: getattr(self, k) for k in ("x0", "t", "p", "m", "u", "q", "j")}
+        if self.target is not None:
+            arrays["target"] = self.target
+        np.savez_compressed(path, **arrays, termination=np.asarray(self.metrics["termination"]))
+
+
+def check_timing(dt: float, horizon: float, camera_period: float | None) -> int:
+    """Validate the time grid; return the number of steps per camera frame."""
+    if not (isinstance(dt, int | float) and math.isfinite(dt) and dt > 0):
+        raise ConfigError("sim.dt", f"must be > 0, got {dt!r}")
+    if not (isinstance(horizon, int | float) and math.isfinite(horizon) and horizon >= dt):
+        raise ConfigError("sim.horizon", f"must be >= sim.dt = {dt}, got {horizon!r}")
+    if camera_period is None:
+        return 1
+    every = round(camera_period / dt)
+    if every < 1 or abs(every * dt - camera_period) > 1e-9 * max(1.0, camera_period):
+        raise ConfigError("camera.period", f"must be a positive multiple of sim.dt = {dt}, got {camera_period!r}")
+    return every
+
+
+def simulate(
+    scene: Scene,
+    controller: Controller,
+    x0: np.ndarray,
+    *,
+    dt: float = 0.01,
+    horizon: float = 30.0,
+    delta: float = 1.0,
+    camera_period: float | None = None,
+    p_fail: float = 0.0,
+    disturbance: Disturbance | None = None,
+    measure: Measure | None = None,
+    target_fn: TargetFn | None = None,
+    seed: int | np.random.Generator = 0,
+    record_every: int = 10,
+    record: bool = True,
+    stop_on_success: bool = True,
+    progress: bool = False,
+) -> SimResult:
+    """Simulate all agents of `x0` `(N, 2)` at once; see the module docstring.
+
+    The first frame is always delivered (a vehicle starts with an estimate). Success: `|p - p_T| <= delta`
+    within the horizon without ever entering the obstacle; collision: `|p - p_0| < r` at any step.
+    """
+    every = check_timing(dt, horizon, camera_period)
+    if not (0.0 <= float(p_fail) < 1.0):
+        raise ConfigError("camera.p_fail", f"must be in [0, 1), got {p_fail!r}")
+    if not delta > 0:
+        raise ConfigError("sim.delta", f"must be > 0, got {delta!r}")
+    if not (isinstance(record_every, int) and record_every >= 1):
+        raise ConfigError("sim.record_every", f"must be an integer >= 1, got {record_every!r}")
+    x0 = np.asarray(x0, dtype=float)
+    if x0.ndim != 2 or x0.shape[1] != 2 or len(x0) == 0:
+        raise ConfigError("init.points", f"initial conditions must be a non-empty (N, 2) array, got shape {x0.shape}")
+    rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+    disturbance = disturbance or NoDisturbance()
+    measure = measure or true_state
+    n = len(x0)
+    n_steps = int(round(horizon / dt))
+    all_idx = np.arange(n)
+    r, p0, pT = scene.obstacle_radius, scene.p_0, scene.p_T
+
+    def perceive(p_sub, idx, frame):
+        return measure(p_sub, idx, frame, rng) + disturbance(p_sub, frame, rng, scene)
+
+    p = x0.copy()
+    m = perceive(p, all_idx, 0)
+    target = None if target_fn is None else np.asarray(target_fn(0.0, 0, p, all_idx, rng), dtype=float)
+    controller.reset(m, target)
+    u = np.zeros_like(p)
+
+    active = np.ones(n, dtype=bool)
+    term = np.full(n, HORIZON, dtype=np.int8)
+    t_hit = np.full(n, np.nan)
+    r2, delta2 = r * r, delta * delta
+    px, py = p[:, 0], p[:, 1]  # views: integrating them updates p
+    min_d2 = (px - p0[0]) ** 2 + (py - p0[1]) ** 2
+    collided = min_d2 < r2
+    path = np.zeros(n)
+    speed_dt = dpx = dpy = np.zeros(n)
+
+    n_rec = n_steps // record_every + 1 if record else 1
+    rec = {
+        "t": np.zeros(n_rec), "p": np.zeros((n_rec, n, 2)), "m": np.zeros((n_rec, n, 2)),
+        "u": np.zeros((n_rec, n, 2)), "q": np.ones((n_rec, n), dtype=np.int8), "j": np.zeros((n_rec, n), dtype=np.int32),
+    }
+    rec_target = np.zeros((n_rec, n, 2)) if (record and target is not None) else None
+    k_rec = 0
+
+    def store(t):
+        nonlocal k_rec
+        rec["t"][k_rec] = t
+        rec["p"][k_rec], rec["m"][k_rec], rec["u"][k_rec] = p, m, u
+        rec["q"][k_rec], rec["j"][k_rec] = controller.q if controller.q.shape == (n,) else 1, controller.jumps
+        if rec_target is not None:
+            rec_target[k_rec] = target
+        k_rec += 1
+
+    # initial collision (started inside the obstacle) ends the run for that agent
+    term[collided] = COLLISION
+    active &= ~collided
+    t = 0.0
+    if record:
+        store(0.0)
+
+    steps = range(n_steps)
+    if progress:
+        from tqdm import tqdm
+
+        steps = tqdm(steps, desc=f"simulate {controller.name}", unit="step", leave=False)
+    for step in steps:
+        if step % every == 0:
+            frame = step // every
+            if frame > 0:
+                fresh = active & (rng.random(n) >= p_fail) if p_fail > 0 else active
+                if fresh.all():
+                    m = perceive(p, all_idx, frame)
+                    if target_fn is not None:
+                        target = np.asarray(target_fn(step * dt, frame, p, all_idx, rng), dtype=float)
+                elif fresh.any():
+                    idx = np.flatnonzero(fresh)
+                    m = m.copy()
+                    m[idx] = perceive(p[idx], idx, frame)
+                    if target_fn is not None:
+                        target = target.copy()
+                        target[idx] = target_fn(step * dt, frame, p[idx], idx, rng)
+            u = controller(m, target)
+            u[~active] = 0.0
+            speed_dt = dt * np.hypot(u[:, 0], u[:, 1])  # u is held until the next frame
+            dpx, dpy = dt * u[:, 0], dt * u[:, 1]
+        px += dpx
+        py += dpy
+        path += speed_dt
+        rx, ry = px - p0[0], py - p0[1]
+        d2 = rx * rx + ry * ry
+        np.minimum(min_d2, d2, out=min_d2)
+        t = (step + 1) * dt
+        hit_obstacle = d2 < r2
+        if hit_obstacle.any():
+            hit_obstacle &= active
+            term[hit_obstacle] = COLLISION
+            collided |= hit_obstacle
+            active &= ~hit_obstacle
+        ex, ey = px - pT[0], py - pT[1]
+        reached = (ex * ex + ey * ey) <= delta2
+        if reached.any():
+            reached &= active & np.isnan(t_hit)
+            t_hit[reached] = t
+            if stop_on_success:
+                term[reached] = TARGET
+                active &= ~reached
+        if step % every == every - 1:
+            bad = active & ~np.isfinite(p).all(axis=1)
+            if bad.any():
+                term[bad] = NON_FINITE
+                active &= ~bad
+        if record and (step + 1) % record_every == 0:
+            store(t)
+        if not active.any():
+            break
+    if not record or (k_rec < n_rec and rec["t"][k_rec - 1] != t):
+        store(t)  # the final state (the only one recorded when record=False)
+    k = k_rec
+    success = ~np.isnan(t_hit) & ~collided
+    if not stop_on_success:
+        term[success & (term == HORIZON)] = TARGET
+    metrics = {
+        "success": success,
+        "collision": collided,
+        "time_to_target": t_hit,
+        "min_clearance": np.sqrt(min_d2) - r,
+        "jumps": controller.jumps.copy(),
+        "pushouts": controller.pushouts.copy(),
+        "path_length": path,
+        "final_error": np.hypot(p[:, 0] - pT[0], p[:, 1] - pT[1]),
+        "termination": np.asarray(TERMINATIONS)[term],
+    }
+    return SimResult(
+        controller=controller.name, x0=x0, t=rec["t"][:k], p=rec["p"][:k], m=rec["m"][:k], u=rec["u"][:k],
+        q=rec["q"][:k], j=rec["j"][:k], target=None if rec_target is None else rec_target[:k], metrics=metrics,
+    )
