@@ -1,0 +1,54 @@
+"""Shared drawing helpers: the scene (arena, obstacle, diamond, target) on a matplotlib axis."""
+
+from __future__ import annotations
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.patches import Circle, Polygon  # noqa: E402
+
+from pipeline.control import Scene, diamond_vertices  # noqa: E402
+
+
+def draw_scene(ax, scene: Scene, arena=((-50, 50), (-30, 30)), *, diamond: bool = True, margin_disc: bool = False):
+    """Obstacle N (grey), diamond W_1 ∩ W_2 (dashed), target (star), arena bounds."""
+    ax.add_patch(Circle(scene.p_0, scene.obstacle_radius, color="0.35", zorder=3, label="obstacle N"))
+    if margin_disc:
+        ax.add_patch(Circle(scene.p_0, 2 * scene.obstacle_radius, fill=False, ls=":", color="0.4", zorder=3))
+    if diamond:
+        ax.add_patch(Polygon(diamond_vertices(scene), closed=True, fill=False, ls="--", color="k", lw=1, zorder=3,
+                             label="diamond W1∩W2"))
+    ax.plot(*scene.p_T, marker="*", ms=14, color="gold", mec="k", zorder=5, ls="none", label="target")
+    (x0, x1), (y0, y1) = arena
+    ax.set_xlim(x0, x1)
+    ax.set_ylim(y0, y1)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x")
+    ax.set_ylabel("y")
+    return ax
+
+
+def save(fig, path_stem, formats=("png",), dpi=150) -> list[str]:
+    """Save a figure as `<stem>.<fmt>` for each format; returns the paths."""
+    out = []
+    for fmt in formats:
+        path = f"{path_stem}.{fmt}"
+        fig.savefig(path, dpi=dpi, bbox_inches="tight")
+        out.append(path)
+    plt.close(fig)
+    return out
+
+
+def trajectory_figure(scene: Scene, p: np.ndarray, success: np.ndarray | None = None, title: str = "", arena=None):
+    """Trajectories `(T, N, 2)` over the scene; failures in red."""
+    fig, ax = plt.subplots(figsize=(8, 5))
+    draw_scene(ax, scene, arena or ((-50, 50), (-30, 30)))
+    n = p.shape[1]
+    for i in range(n):
+        ok = True if success is None else bool(success[i])
+        ax.plot(p[:, i, 0], p[:, i, 1], lw=0.8 if n > 20 else 1.5, color="tab:blue" if ok else "tab:red", alpha=0.8)
+        ax.plot(*p[0, i], "o", ms=3, color="k")
+    ax.set_title(title)
+    return fig
