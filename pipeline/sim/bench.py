@@ -1,0 +1,49 @@
+"""Benchmark: batched hybrid simulator vs a per-agent Python loop of the same controller (issue 2 §6)."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from pipeline.control import HybridController, Scene, in_diamond
+from pipeline.sim import simulate
+
+
+def _agents(scene: Scene, n: int, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    pts = rng.uniform([-48, -28], [48, 28], size=(2 * n, 2))
+    return pts[~in_diamond(scene, pts)][:n]
+
+
+def _rate(scene, x0, steps, period, repeat=2) -> float:
+    best = np.inf
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        simulate(scene, HybridController(scene), x0, dt=0.01, horizon=steps * 0.01, camera_period=period,
+                 record=False, stop_on_success=False)
+        best = min(best, time.perf_counter() - t0)
+    return len(x0) * steps / best
+
+
+def bench(quick: bool = False) -> list[dict]:
+    scene = Scene(target=(40.0, 0.0))
+    n, steps, n_loop, loop_steps = (1000, 20, 5, 20) if quick else (10_000, 200, 20, 200)
+    x0 = _agents(scene, n)
+    rows = []
+    for period, label in ((0.01, "controller every step"), (0.05, "camera 20 Hz (default)")):
+        batched = _rate(scene, x0, steps, period)
+        t0 = time.perf_counter()
+        for i in range(n_loop):  # the same controller and simulator, one agent at a time
+            simulate(scene, HybridController(scene), x0[i : i + 1], dt=0.01, horizon=loop_steps * 0.01,
+                     camera_period=period, record=False, stop_on_success=False)
+        loop = n_loop * loop_steps / (time.perf_counter() - t0)
+        rows += [
+            {"section": "simulator", "case": f"batched N={n}, {label}", "value": batched / 1e6, "unit": "M agent-steps/s",
+             "note": "target >= 20 M/s"},
+            {"section": "simulator", "case": f"per-agent loop, {label}", "value": loop / 1e6, "unit": "M agent-steps/s",
+             "note": ""},
+            {"section": "simulator", "case": f"batched / loop, {label}", "value": batched / loop, "unit": "x",
+             "note": "target >= 100x"},
+        ]
+    return rows
