@@ -121,34 +121,56 @@ class HybridController(Controller):
         rx, ry = m[:, 0] - sc.p_0[0], m[:, 1] - sc.p_0[1]
         a = rx * sc.e_a[0] + ry * sc.e_a[1]
         b = rx * sc.e_b[0] + ry * sc.e_b[1]
-        with np.errstate(invalid="ignore", divide="ignore"):
-            V1, V2, ga1, gb1, ga2, gb2 = both_potentials_frame(sc, a, b, target)
-            is1 = self.q == 1
-            Vq = np.where(is1, V1, V2)
-            Vo = np.where(is1, V2, V1)
-            jump = (Vq > 0) & np.isfinite(Vo) & (Vq >= (self.chi - self.lam) * Vo)
-            if jump.any():
-                self.q = np.where(jump, 3 - self.q, self.q).astype(np.int8)
-                self.jumps += jump
-                is1 = self.q == 1
-                Vq = np.where(is1, V1, V2)
-            ua = -self.k * np.where(is1, ga1, ga2)
-            ub = -self.k * np.where(is1, gb1, gb2)
-        bad = ~(np.isfinite(Vq) & np.isfinite(ua) & np.isfinite(ub))
-        if bad.any():
-            # m inside W_q (hence in the diamond): leave W_q along the outward normal of its nearest face
-            i = np.flatnonzero(bad)
-            sigma = np.where(self.q[i] == 1, 1.0, -1.0)
-            bp = sc.c + sigma * b[i]
-            nearest_u = (bp + a[i]) <= (bp - a[i])  # u <= v: cross the u = 0 face
-            ua[i] = np.where(nearest_u, -_SQRT1_2, _SQRT1_2) * self.push_speed
-            ub[i] = -sigma * _SQRT1_2 * self.push_speed
-            self.pushouts[i] += 1
+        if target is None:
+            at, bt = sc._target_frame
+        else:
+            at, bt = sc.to_frame(np.broadcast_to(np.asarray(target, dtype=float), m.shape))
+        # Far from both wedges the barriers vanish, V_1 = V_2 = |p - p_T|^2: no jump, pure attraction.
+        ua = (-2.0 * sc.phi_weight * self.k) * (a - at)
+        ub = (-2.0 * sc.phi_weight * self.k) * (b - bt)
+        # Only agents near (or inside) the wedge W_q of their own mode can jump or feel a barrier: with
+        # d_q >= reach^2, V_q = |p - p_T|^2 <= V_{3-q}. The test below is a superset of {d_q < reach^2}.
+        lim = -math.sqrt(2.0) * sc.barrier_reach
+        sigma_b = np.where(self.q == 1, b, -b)
+        near = np.flatnonzero(sc.c - np.abs(a) + sigma_b > lim)
+        if near.size:
+            self._near(near, a[near], b[near], target if target is None or np.ndim(target) == 1
+                       else np.asarray(target, dtype=float)[near], ua, ub)
         if self.u_max is not None:
             norm = np.hypot(ua, ub)
             scale = np.minimum(1.0, self.u_max / np.maximum(norm, 1e-300))
             ua, ub = ua * scale, ub * scale
         return np.stack([ua * sc.e_a[0] + ub * sc.e_b[0], ua * sc.e_a[1] + ub * sc.e_b[1]], axis=1)
+
+    def _near(self, idx, a, b, target, ua, ub) -> None:
+        """Jump logic and flow for agents `idx` near a wedge; writes their velocities into `ua, ub`."""
+        sc = self.scene
+        q = self.q[idx]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            V1, V2, ga1, gb1, ga2, gb2 = both_potentials_frame(sc, a, b, target)
+            is1 = q == 1
+            Vq = np.where(is1, V1, V2)
+            Vo = np.where(is1, V2, V1)
+            jump = (Vq > 0) & np.isfinite(Vo) & (Vq >= (self.chi - self.lam) * Vo)
+            if jump.any():
+                q = np.where(jump, 3 - q, q).astype(np.int8)
+                self.q[idx] = q
+                self.jumps[idx] += jump
+                is1 = q == 1
+                Vq = np.where(is1, V1, V2)
+            va = -self.k * np.where(is1, ga1, ga2)
+            vb = -self.k * np.where(is1, gb1, gb2)
+        bad = ~(np.isfinite(Vq) & np.isfinite(va) & np.isfinite(vb))
+        if bad.any():
+            # m inside W_q (hence in the diamond): leave W_q along the outward normal of its nearest face
+            sigma = np.where(q[bad] == 1, 1.0, -1.0)
+            bp = sc.c + sigma * b[bad]
+            nearest_u = (bp + a[bad]) <= (bp - a[bad])  # u <= v: cross the u = 0 face
+            va[bad] = np.where(nearest_u, -_SQRT1_2, _SQRT1_2) * self.push_speed
+            vb[bad] = -sigma * _SQRT1_2 * self.push_speed
+            self.pushouts[idx[bad]] += 1
+        ua[idx] = va
+        ub[idx] = vb
 
     def _exit_direction(self, m: np.ndarray, q: np.ndarray) -> np.ndarray:
         """Unit outward normal of `W_q` at the nearest face, for points inside `W_q` (world frame)."""
