@@ -121,8 +121,11 @@ def simulate(
     all_idx = np.arange(n)
     r, p0, pT = scene.obstacle_radius, scene.p_0, scene.p_T
 
+    exact = type(disturbance) is NoDisturbance
+
     def perceive(p_sub, idx, frame):
-        return measure(p_sub, idx, frame, rng) + disturbance(p_sub, frame, rng, scene)
+        m_sub = measure(p_sub, idx, frame, rng)
+        return m_sub if exact else m_sub + disturbance(p_sub, frame, rng, scene)
 
     p = x0.copy()
     m = perceive(p, all_idx, 0)
@@ -186,7 +189,8 @@ def simulate(
                         target = target.copy()
                         target[idx] = target_fn(step * dt, frame, p[idx], idx, rng)
             u = controller(m, target)
-            u[~active] = 0.0
+            if not active.all():
+                u[~active] = 0.0
             speed_dt = dt * np.hypot(u[:, 0], u[:, 1])  # u is held until the next frame
             dpx, dpy = dt * u[:, 0], dt * u[:, 1]
         px += dpx
@@ -196,21 +200,21 @@ def simulate(
         d2 = rx * rx + ry * ry
         np.minimum(min_d2, d2, out=min_d2)
         t = (step + 1) * dt
-        hit_obstacle = d2 < r2
-        if hit_obstacle.any():
-            hit_obstacle &= active
+        ex, ey = px - pT[0], py - pT[1]
+        e2 = ex * ex + ey * ey
+        events = (d2 < r2) | (e2 <= delta2)
+        events &= active
+        if events.any():  # rare: handle collisions and arrivals in detail
+            hit_obstacle = events & (d2 < r2)
             term[hit_obstacle] = COLLISION
             collided |= hit_obstacle
             active &= ~hit_obstacle
-        ex, ey = px - pT[0], py - pT[1]
-        reached = (ex * ex + ey * ey) <= delta2
-        if reached.any():
-            reached &= active & np.isnan(t_hit)
+            reached = events & ~hit_obstacle & (e2 <= delta2) & np.isnan(t_hit)
             t_hit[reached] = t
             if stop_on_success:
                 term[reached] = TARGET
                 active &= ~reached
-        if step % every == every - 1:
+        if step % every == every - 1 and not np.isfinite(d2.sum()):
             bad = active & ~np.isfinite(p).all(axis=1)
             if bad.any():
                 term[bad] = NON_FINITE
