@@ -1,0 +1,246 @@
+"""Tracked, content-addressed stage outputs (datasets, models, error maps).
+
+A tracked output lives in ``<root>/<name>-<id>/`` where ``id`` is a short hash of everything that
+determines its bytes (the resolved recipe minus volatile keys, the input ids, the code version).
+Inside, ``manifest.json`` records the id, the recipe, the inputs, the package version and git commit,
+the creation time and the sha256 and size of every file.
+
+Writes are atomic: :func:`tracked_output` yields a temporary folder next to the final one and renames it
+only when the body finished without an exception, after writing the manifest. A folder without a valid
+manifest is never taken for a finished output.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as _dt
+import hashlib
+import json
+import os
+import shutil
+import subprocess
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+from typing import Any
+
+from pipeline.errors import DatasetError, PipelineError
+
+MANIFEST = "manifest.json"
+ID_LEN = 10
+_TMP_PREFIX = ".tmp-"
+
+
+# ----------------------------------------------------------------------------------------- hashing
+def canonical_json(obj: Any) -> str:
+    """Deterministic JSON (sorted keys, no whitespace) of plain containers."""
+    return json.dumps(obj, sort_keys=True, separators=(",", ":"), default=str)
+
+
+def content_id(*parts: Any) -> str:
+    """Short sha256 of the canonical JSON of `parts`."""
+    return hashlib.sha256(canonical_json(list(parts)).encode()).hexdigest()[:ID_LEN]
+
+
+def sha256_file(path: Path, chunk: int = 1 << 22) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(chunk):
+            h.update(block)
+    return h.hexdigest()
+
+
+def strip_keys(recipe: Mapping, volatile: tuple[str, ...]) -> dict:
+    """Copy of a nested mapping without the `volatile` keys (at any depth)."""
+    out = {}
+    for k, v in recipe.items():
+        if k in volatile:
+            continue
+        out[k] = strip_keys(v, volatile) if isinstance(v, Mapping) else v
+    return out
+
+
+def code_version(*packages: str) -> str:
+    """Hash of the source files of the given sub-packages/modules of `pipeline` (e.g. "render").
+
+    Changing the rendering code changes dataset ids; changing unrelated code does not.
+    """
+    root = Path(__file__).resolve().parent
+    h = hashlib.sha256()
+    for pkg in sorted(packages):
+        target = root / pkg
+        if target.is_dir():
+            files = sorted(target.rglob("*.py"))
+        elif target.with_suffix(".py").is_file():
+            files = [target.with_suffix(".py")]
+        else:
+            raise ValueError(f"code_version: no module pipeline/{pkg}")
+        for f in files:
+            h.update(str(f.relative_to(root)).encode())
+            h.update(f.read_bytes())
+    return h.hexdigest()[:ID_LEN]
+
+
+def git_commit() -> str | None:
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=Path(__file__).resolve().parents[1],
+            capture_output=True, text=True, timeout=5, check=False,
+        )
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return out.stdout.strip() or None
+
+
+def package_version() -> str:
+    try:
+        from importlib.metadata import version
+
+        return version("hycontrol-vision")
+    except Exception:  # noqa: BLE001 - not installed (running from a source tree)
+        from pipeline import __version__
+
+        return __version__
+
+
+# ---------------------------------------------------------------------------------------- manifest
+def file_table(folder: Path) -> dict[str, dict]:
+    files = {}
+    for f in sorted(folder.rglob("*")):
+        if f.is_file() and f.name != MANIFEST:
+            files[f.relative_to(folder).as_posix()] = {"sha256": sha256_file(f), "size": f.stat().st_size}
+    return files
+
+
+def write_manifest(folder: Path, meta: Mapping) -> dict:
+    manifest = {
+        **meta,
+        "package_version": package_version(),
+        "git_commit": git_commit(),
+        "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+        "files": file_table(folder),
+    }
+    (folder / MANIFEST).write_text(json.dumps(manifest, indent=2, sort_keys=True, default=str) + "\n")
+    return manifest
+
+
+def read_manifest(folder: Path) -> dict:
+    path = Path(folder) / MANIFEST
+    try:
+        return json.loads(path.read_text())
+    except FileNotFoundError:
+        raise DatasetError(f"{folder}: no {MANIFEST} (incomplete or not a tracked output)") from None
+    except json.JSONDecodeError as err:
+        raise DatasetError(f"{path}: unreadable manifest ({err.msg})") from None
+
+
+def verify(folder: Path, *, full: bool = True) -> list[str]:
+    """Problems of a tracked folder, one line each (empty list: all good).
+
+    `full=False` checks presence and sizes only (cheap; used to decide whether to skip a stage).
+    """
+    folder = Path(folder)
+    try:
+        manifest = read_manifest(folder)
+    except DatasetError as err:
+        return [str(err)]
+    problems = []
+    for rel, info in sorted(manifest.get("files", {}).items()):
+        path = folder / rel
+        if not path.is_file():
+            problems.append(f"{path}: missing")
+            continue
+        size = path.stat().st_size
+        if size != info["size"]:
+            problems.append(f"{path}: size {size} != {info['size']} in manifest (truncated or altered)")
+        elif full and sha256_file(path) != info["sha256"]:
+            problems.append(f"{path}: sha256 mismatch (altered)")
+    expected = folder.name.rsplit("-", 1)[-1]
+    if manifest.get("id") != expected:
+        problems.append(f"{folder}: manifest id {manifest.get('id')!r} != folder id {expected!r}")
+    return problems
+
+
+def is_complete(folder: Path) -> bool:
+    return Path(folder).is_dir() and not verify(folder, full=False)
+
+
+# -------------------------------------------------------------------------------------- resolution
+def entries(root: Path, name: str | None = None) -> list[Path]:
+    """Finished tracked folders under `root` (optionally of one name), newest first."""
+    root = Path(root)
+    if not root.is_dir():
+        return []
+    out = []
+    for d in root.iterdir():
+        if not d.is_dir() or d.name.startswith(_TMP_PREFIX) or not (d / MANIFEST).is_file():
+            continue
+        if name is not None and d.name.rsplit("-", 1)[0] != name:
+            continue
+        out.append(d)
+
+    def created(d: Path) -> str:
+        try:
+            return read_manifest(d).get("created", "")
+        except PipelineError:
+            return ""
+
+    return sorted(out, key=lambda d: (created(d), d.stat().st_mtime), reverse=True)
+
+
+def resolve(root: Path, ref: str | os.PathLike, *, kind: str = "output") -> Path:
+    """A tracked folder from a name (latest), an id, `name-id`, or a path."""
+    ref_s = str(ref)
+    p = Path(ref_s)
+    if p.is_dir() and (p / MANIFEST).is_file():
+        return p
+    all_entries = entries(root)
+    for d in all_entries:  # exact folder name or id
+        if d.name == ref_s or d.name.rsplit("-", 1)[-1] == ref_s:
+            return d
+    named = [d for d in all_entries if d.name.rsplit("-", 1)[0] == ref_s]
+    if named:
+        return named[0]
+    known = sorted({d.name.rsplit("-", 1)[0] for d in all_entries})
+    hint = f"known: {', '.join(known)}" if known else f"none under {root}; run its stage first"
+    raise DatasetError(f"unknown {kind} {ref_s!r} ({hint})")
+
+
+# ----------------------------------------------------------------------------------------- writing
+@contextlib.contextmanager
+def tracked_output(root: Path, name: str, id_: str, meta: Mapping) -> Iterator[Path]:
+    """Yield a temporary folder; on success write the manifest and rename it to `<root>/<name>-<id>`.
+
+    On any exception (including KeyboardInterrupt) the temporary folder is removed and nothing appears
+    under the final name. An existing final folder is replaced only after the new one is complete.
+    """
+    root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
+    final = root / f"{name}-{id_}"
+    tmp = root / f"{_TMP_PREFIX}{name}-{id_}-{os.getpid()}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir()
+    try:
+        yield tmp
+        write_manifest(tmp, {"id": id_, "name": name, **meta})
+        if final.exists():
+            old = root / f"{_TMP_PREFIX}old-{name}-{id_}-{os.getpid()}"
+            final.rename(old)
+            tmp.rename(final)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            tmp.rename(final)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def to_plain(obj: Any) -> Any:
+    """OmegaConf containers -> plain Python (for hashing and manifests)."""
+    try:
+        from omegaconf import DictConfig, ListConfig, OmegaConf
+
+        if isinstance(obj, DictConfig | ListConfig):
+            return OmegaConf.to_container(obj, resolve=True)
+    except ImportError:  # pragma: no cover
+        pass
+    return obj
