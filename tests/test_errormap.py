@@ -163,20 +163,39 @@ def test_error_field_batches_and_overlap_are_exact():
 
 # ------------------------------------------------------------------------------ stage (synthetic)
 class StubCamera:
-    """'Images' are the positions themselves; an occlusion object adds seeded noise of its `sigma`."""
+    """'Images' are the positions themselves; an occlusion object adds seeded noise of its `sigma`
+    (a fresh draw per image, or the `clouds` offsets when given, like `Camera.render(..., clouds=)`)."""
 
     arena = ARENA
+    shape = (60, 100)
 
-    def render(self, points, occlusion=None, rng=None):
+    def render(self, points, occlusion=None, rng=None, clouds=None):
         pts = np.asarray(points, dtype=float).copy()
-        if occlusion is not None and occlusion.sigma > 0:
+        if clouds is not None:
+            return pts + clouds.offset
+        if occlusion is not None and occlusion.active:
             pts = pts + rng.normal(0.0, occlusion.sigma, pts.shape)
         return pts
+
+
+class StubClouds:
+    def __init__(self, offset):
+        self.offset = offset
+
+    def __len__(self):
+        return len(self.offset)
+
+    def __getitem__(self, key):
+        return StubClouds(self.offset[key])
 
 
 class StubOcclusion:
     def __init__(self, sigma):
         self.sigma = sigma
+        self.active = sigma > 0
+
+    def sample(self, n, rng, shape):
+        return StubClouds(rng.normal(0.0, self.sigma, (n, 2)))
 
 
 class StubMap:
@@ -314,12 +333,20 @@ def test_random_levels_use_k_draws_deterministically(tmp_path):
     again = run(_cfg(tmp_path, "occlusion_levels=[none,heavy]", "draws=2", "force=true"),
                 perception_map=pmap, occlusions=occ, dataset=StubDataset(samples))
     assert np.array_equal(again["fields"]["F_heavy"], F)
+    assert lv["heavy"]["L_p99"] > 0.5  # independent clouds: F jumps between neighbours
+    # shared clouds: one field per draw at every point -> F is constant within a draw, L = 0
+    shared = run(_cfg(tmp_path, "occlusion_levels=[heavy]", "draws=3", "clouds=shared"),
+                 perception_map=pmap, occlusions=occ, dataset=StubDataset(samples))
+    Fs = shared["fields"]["F_heavy"]
+    assert Fs.shape[0] == 3 and shared["summary"]["levels"]["heavy"]["L_max"] == pytest.approx(0, abs=1e-9)
+    assert np.allclose(Fs, Fs[:, :1, :1]) and not np.allclose(Fs[0], Fs[1])
 
 
 # ----------------------------------------------------------------------------------------- bad input
 @pytest.mark.parametrize("override,field", [("grid.step=0", "grid.step"), ("grid.step=-1", "grid.step"),
                                             ("coverage.lipschitz=median", "coverage.lipschitz"),
-                                            ("draws=0", "draws"), ("occlusion_levels=[]", "occlusion_levels")])
+                                            ("draws=0", "draws"), ("occlusion_levels=[]", "occlusion_levels"),
+                                            ("clouds=sometimes", "clouds"), ("coverage.r_cov=0", "coverage.r_cov")])
 def test_bad_config_raises_config_error(tmp_path, override, field):
     with pytest.raises(ConfigError) as err:
         run(_cfg(tmp_path, override), perception_map=StubMap(lambda p: 0 * p), occlusions={"none": None},

@@ -87,6 +87,10 @@ def validate(cfg) -> dict:
         eps_c_arr = np.array([np.nan])
     if not np.all(np.isfinite(eps_c_arr)) or np.any(eps_c_arr < 0):
         raise ConfigError("dean.eps_C", f"must be a list of numbers >= 0, got {eps_c!r}")
+    clouds = get("clouds", "independent")
+    if clouds not in ("independent", "shared"):
+        raise ConfigError("clouds", f"must be independent (a fresh cloud draw per image) or shared (one per draw), "
+                                    f"got {clouds!r}")
     formats = _plain(get("formats", ["png"]))
     if not formats or not all(f in ("png", "pdf", "svg") for f in formats):
         raise ConfigError("formats", f"must be a non-empty list of png/pdf/svg, got {formats!r}")
@@ -107,7 +111,7 @@ def _load_map(ref, models_dir):
 def _load_occlusion(name: str):
     from pipeline.render import load_occlusion
 
-    return load_occlusion(name)
+    return load_occlusion(name, field="occlusion_levels")
 
 
 def _open_dataset(ref, datasets_dir):
@@ -135,21 +139,22 @@ def _images_of(result) -> Any:
     return getattr(result, "images", result)
 
 
-def _render_fn(camera, occlusion):
-    def render(points: np.ndarray, rng: np.random.Generator | None):
-        return _images_of(camera.render(points, occlusion=occlusion, rng=rng))
+def _render_fn(camera, occlusion, shared=None):
+    """`render(points, rng)` for core.error_field; `shared`: one cloud sample shown in every image."""
+    if shared is not None:
+        def render(points: np.ndarray, rng: np.random.Generator | None):
+            clouds = shared[np.zeros(len(points), dtype=np.intp)]
+            return _images_of(camera.render(points, occlusion=occlusion, clouds=clouds))
+    else:
+        def render(points: np.ndarray, rng: np.random.Generator | None):
+            return _images_of(camera.render(points, occlusion=occlusion, rng=rng))
 
     return render
 
 
 def _is_deterministic(name: str, occlusion) -> bool:
-    if occlusion is None or name == "none":
-        return True
-    for attr in ("count", "n_blobs", "max_blobs"):
-        val = getattr(occlusion, attr, None)
-        if isinstance(val, int | float) and val == 0:
-            return True
-    return False
+    """No random draws in the images: level `none`, no object, or an inactive Occlusion."""
+    return occlusion is None or name == "none" or not getattr(occlusion, "active", True)
 
 
 def _train_samples(dataset, predict, n_max, batch, seed, progress):
@@ -204,6 +209,7 @@ def run_one(cfg: DictConfig, *, perception_map=None, camera=None, occlusions: Ma
     pmap = perception_map if perception_map is not None else _load_map(cfg.model, cfg.paths.models_dir)
     camera = camera if camera is not None else pmap.camera()
     occ = dict(occlusions) if occlusions is not None else {name: _load_occlusion(name) for name in levels}
+    shared_clouds = settings.get("clouds", "independent") == "shared"
     missing = [lv for lv in levels if lv not in occ]
     if missing:
         raise ConfigError("occlusion_levels", f"no occlusion object for {missing}")
@@ -245,15 +251,17 @@ def run_one(cfg: DictConfig, *, perception_map=None, camera=None, occlusions: Ma
 
     results, fields = {}, {"x": xs, "y": ys, "operational": operational.reshape(shape), "nearest": near.reshape(shape)}
     for li, level in enumerate(levels):
-        k = 1 if _is_deterministic(level, occ[level]) else int(settings["draws"])
-        render = _render_fn(camera, occ[level])
+        random = not _is_deterministic(level, occ[level])
+        k = int(settings["draws"]) if random else 1
         t1 = time.perf_counter()
-        F = np.stack([
-            core.error_field(pmap.predict, render, points, batch=batch,
-                             rng=np.random.default_rng([int(settings["seed"]), li, d]), progress=progress,
-                             desc=f"error map [{level}{f' {d + 1}/{k}' if k > 1 else ''}]")
-            for d in range(k)
-        ])  # (K, N, 2)
+        draws = []
+        for d in range(k):
+            rng = np.random.default_rng([int(settings["seed"]), li, d])
+            shared = occ[level].sample(1, rng, tuple(camera.shape)) if random and shared_clouds else None
+            draws.append(core.error_field(pmap.predict, _render_fn(camera, occ[level], shared), points,
+                                          batch=batch, rng=rng, progress=progress,
+                                          desc=f"error map [{level}{f' {d + 1}/{k}' if k > 1 else ''}]"))
+        F = np.stack(draws)  # (K, N, 2)
         seconds = time.perf_counter() - t1
         results[level] = analyse_level(F, points, shape, operational, samples, sample_err, near, scene,
                                        settings)
@@ -266,6 +274,11 @@ def run_one(cfg: DictConfig, *, perception_map=None, camera=None, occlusions: Ma
               f"p95 {r['p95']:.3g}, max {r['max']:.3g}; L {r['L_max']:.3g} (p99 {r['L_p99']:.3g}); "
               f"covered for eps >= {_fmt_eps(r['eps_cover'])}; {r['points_per_s']:.0f} points/s")
 
+    marks = eps_marks(settings, [fields[f"eps_min_{lv}"].ravel()[operational] for lv in levels])
+    for lv in levels:
+        em = fields[f"eps_min_{lv}"].ravel()[operational]
+        results[lv]["coverage_at"] = {f"{m:g}": float(core.coverage_curve(em, [m])[0]) for m in marks}
+    settings = {**settings, "coverage": {**settings["coverage"], "eps_marks": marks}}
     center = _dean_center(settings["dean"].get("center", "origin"), scene)
     train_summary = {**core.error_stats(sample_err), "seconds": t_train,
                      "dean": _jsonable(core.dean_fit(sample_err_vec, samples, center, settings["dean"]["eps_C"]))}
@@ -278,6 +291,7 @@ def run_one(cfg: DictConfig, *, perception_map=None, camera=None, occlusions: Ma
                  "n_points": int(len(points)), "n_operational": int(operational.sum()),
                  "arena": [list(a) for a in arena]},
         "r_cov": settings["coverage"]["r_cov"],
+        "eps_marks": marks,
         "lipschitz_used": settings["coverage"]["lipschitz"],
         "dean_center": [float(c) for c in center],
         "train_samples": train_summary,
@@ -320,7 +334,7 @@ def analyse_level(F: np.ndarray, points: np.ndarray, shape: tuple[int, int], ope
     r_cov = settings["coverage"]["r_cov"]
     eps_min = core.coverage_eps_min(points, samples, sample_err, L, r_cov)
     eps_op = eps_min[operational]
-    reachable = core.coverage_eps_min(points[operational], samples, np.zeros(len(samples)), 0.0, r_cov)
+    reachable = near[operational] <= (np.inf if r_cov is None else r_cov)
     eps_values = settings["coverage"].get("eps")
     eps_values = core.eps_sweep(eps_op) if eps_values is None else np.asarray(eps_values, dtype=float)
     eps_values = np.unique(np.concatenate([eps_values, np.asarray(settings["coverage"].get("eps_marks") or [])]))
@@ -342,7 +356,7 @@ def analyse_level(F: np.ndarray, points: np.ndarray, shape: tuple[int, int], ope
         "eps_cover_95": core.smallest_covering_eps(eps_op, 0.95),
         "eps_cover_50": core.smallest_covering_eps(eps_op, 0.5),
         "eps_uniform": float(worst[operational].max()) if operational.any() else math.nan,
-        "reachable": float(np.isfinite(reachable).mean()) if reachable.size else math.nan,
+        "reachable": float(reachable.mean()) if reachable.size else math.nan,
         "bound_holds": float(bound_ok.mean()) if bound_ok.size else math.nan,
         "coverage": {"eps": eps_values, "fraction": core.coverage_curve(eps_op, eps_values)},
         "dean": dean,
@@ -353,9 +367,24 @@ def analyse_level(F: np.ndarray, points: np.ndarray, shape: tuple[int, int], ope
 
 
 def _distance_edges(dist: np.ndarray, bins: int) -> np.ndarray:
+    """Equal-count bins (quantiles) of the distances: every bin holds about the same number of points."""
     finite = dist[np.isfinite(dist)]
-    top = float(finite.max()) if finite.size else 1.0
-    return np.linspace(0.0, top if top > 0 else 1.0, bins + 1)
+    if finite.size == 0:
+        return np.linspace(0.0, 1.0, bins + 1)
+    edges = np.unique(np.quantile(finite, np.linspace(0, 1, bins + 1)))
+    return edges if len(edges) > 1 else np.array([edges[0], edges[0] + 1.0])
+
+
+def eps_marks(settings: Mapping, eps_min_op: list[np.ndarray]) -> list[float]:
+    """The ε values whose covered sets are drawn: `coverage.eps_marks`, else the 50/90/99 % coverage
+    thresholds of all levels pooled, rounded to 2 significant digits."""
+    marks = settings["coverage"].get("eps_marks")
+    if marks:
+        return sorted(float(m) for m in marks)
+    pooled = np.concatenate([e[np.isfinite(e)] for e in eps_min_op]) if eps_min_op else np.empty(0)
+    if pooled.size == 0:
+        return []
+    return sorted({float(f"{q:.2g}") for q in np.quantile(pooled, [0.5, 0.9, 0.99]) if q > 0})
 
 
 def _fmt_eps(v) -> str:
@@ -418,6 +447,7 @@ def write_outputs(folder: Path, summary: dict, fields: dict, results: dict, scen
 
 def _figures(folder: Path, fields: dict, results: dict, scene: Scene, arena, settings, levels) -> list[str]:
     from matplotlib import pyplot as plt
+    from matplotlib.colors import BoundaryNorm
 
     from pipeline.viz import draw_scene, save
 
@@ -428,7 +458,7 @@ def _figures(folder: Path, fields: dict, results: dict, scene: Scene, arena, set
     out = []
 
     def panels(title):
-        fig, axes = plt.subplots(n, 1, figsize=(7.5, 3.9 * n), squeeze=False)
+        fig, axes = plt.subplots(n, 1, figsize=(7.5, 3.6 * n), squeeze=False, layout="constrained")
         fig.suptitle(title)
         return fig, axes[:, 0]
 
@@ -462,37 +492,40 @@ def _figures(folder: Path, fields: dict, results: dict, scene: Scene, arena, set
 
     # coverage: curve + eps_min maps with covered-set contours
     marks = sorted(settings["coverage"].get("eps_marks") or [])
-    fig, axes = plt.subplots(n + 1, 1, figsize=(7.5, 3.6 * (n + 1)), squeeze=False)
+    fig, axes = plt.subplots(n + 1, 1, figsize=(7.5, 3.5 * (n + 1)), squeeze=False, layout="constrained")
     axes = axes[:, 0]
     for lv in levels:
         c = results[lv]["coverage"]
-        axes[0].plot(c["eps"], c["fraction"], label=f"{lv} (L = {results[lv]['L']:.3g})")
+        (line,) = axes[0].plot(c["eps"], c["fraction"], label=f"{lv} (L = {results[lv]['L']:.3g})")
         ec = results[lv]["eps_cover"]
         if ec is not None and math.isfinite(ec):
-            axes[0].axvline(ec, ls=":", color=axes[0].lines[-1].get_color())
+            axes[0].axvline(ec, ls=":", color=line.get_color())
+    for m in marks:
+        axes[0].axvline(m, color="0.6", lw=0.6)
     axes[0].set_xlabel("ε")
-    axes[0].set_ylabel("covered fraction of the operational set")
+    axes[0].set_ylabel("covered fraction\nof the operational set")
     axes[0].set_ylim(0, 1.02)
     axes[0].legend(fontsize=8)
-    axes[0].set_title(f"Assumption 1: p ∈ S(L, ε) (r_cov = {settings['coverage']['r_cov']})", fontsize=9)
-    finite = np.concatenate([fields[f"eps_min_{lv}"][np.isfinite(fields[f"eps_min_{lv}"])] for lv in levels])
-    emax = float(np.percentile(finite, 99.5)) if finite.size else 1.0
+    axes[0].set_title(f"Assumption 1: p ∈ S(L, ε), r_cov = {settings['coverage']['r_cov']} "
+                      "(dotted: smallest ε covering the operational set)", fontsize=9)
+    # nested covered sets: the colour of p is the smallest marked ε whose covering set contains it
+    bounds = [0.0, *marks, np.inf]
+    cmap = plt.get_cmap("viridis", len(bounds) - 1).with_extremes(bad="tab:red")
+    norm = BoundaryNorm(np.arange(len(bounds)) - 0.5, cmap.N)
     for ax, lv in zip(axes[1:], levels):
         em = fields[f"eps_min_{lv}"]
-        im = ax.imshow(np.where(np.isfinite(em), em, np.nan), origin="lower", extent=extent, cmap="cividis",
-                       vmin=0, vmax=emax or 1.0, interpolation="nearest")
-        if marks and np.isfinite(em).any():
-            cs = ax.contour(fields["x"], fields["y"], np.where(np.isfinite(em), em, emax * 10), levels=marks,
-                            colors="w", linewidths=0.8)
-            ax.clabel(cs, fmt="ε=%g", fontsize=7)
+        band = np.where(np.isfinite(em), np.searchsorted(marks, em, side="left"), np.nan)
+        im = ax.imshow(band, origin="lower", extent=extent, cmap=cmap, norm=norm, interpolation="nearest")
         draw_scene(ax, scene, arena)
-        ax.set_title(f"occlusion {lv}: smallest ε covering p; operational set covered for ε >= "
-                     f"{_fmt_eps(results[lv]['eps_cover'])}", fontsize=9)
-        fig.colorbar(im, ax=ax, label="ε_min(p)", extend="max", shrink=0.85)
+        ax.set_title(f"occlusion {lv}: covered sets (red: no sample within r_cov); operational set covered "
+                     f"for ε >= {_fmt_eps(results[lv]['eps_cover'])}", fontsize=8)
+        cb = fig.colorbar(im, ax=ax, ticks=range(len(bounds) - 1), shrink=0.85)
+        cb.ax.set_yticklabels([f"ε ≤ {m:g}" for m in marks] + [f"ε > {marks[-1]:g}" if marks else "covered"],
+                              fontsize=7)
     out += save(fig, folder / "coverage", fmts)
 
     # error vs distance to the nearest training sample
-    fig, ax = plt.subplots(figsize=(7, 4))
+    fig, ax = plt.subplots(figsize=(7, 4), layout="constrained")
     op = fields["operational"].ravel()
     near = fields["nearest"].ravel()[op]
     rng = np.random.default_rng(0)
