@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import functools
 import math
+import threading
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -165,14 +166,13 @@ class Occlusion:
         whole = m == n
         sub = images if whole else images[idx]
         tall = sub.reshape(m * h, w, 3)
-        a3, tint, colour = _workspace(m * h, w, self.color)
-        # one gather of the shifted fields, then a premultiplied blend in uint8 (OpenCV SIMD):
-        # out = img * (1 - a) + colour * a, each term rounded
+        a3 = _workspace(m * h, w)
+        # gathers of the shifted fields, then a premultiplied blend in uint8 (OpenCV SIMD):
+        # out = img * (1 - a) + colour * a, each term rounded (colour * a precomputed per field)
         cv2.cvtColor(windows[k, dy, dx].reshape(m * h, w), cv2.COLOR_GRAY2RGB, dst=a3)
-        cv2.multiply(a3, colour, dst=tint, scale=1 / 255)
         cv2.bitwise_not(a3, dst=a3)
         cv2.multiply(tall, a3, dst=tall, scale=1 / 255)
-        cv2.add(tall, tint, dst=tall)
+        cv2.add(tall, _tint_windows(self, (h, w))[k, dy, dx].reshape(m * h, w, 3), dst=tall)
         if not whole:
             images[idx] = sub
         frac[idx] = means[k]
@@ -187,20 +187,27 @@ class Occlusion:
         return frac, lead
 
 
-_WORK: dict = {}
+_WORK = threading.local()
 
 
-def _workspace(rows: int, w: int, color) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Reused buffers for `apply` (fresh multi-MB arrays per chunk would cost page faults)."""
-    key = (rows, w, tuple(color))
-    if key not in _WORK:
-        if len(_WORK) > 8:
-            _WORK.clear()
-        a3 = np.empty((rows, w, 3), dtype=np.uint8)
-        colour = np.empty_like(a3)
-        colour[...] = np.asarray(color, dtype=np.uint8)
-        _WORK[key] = (a3, np.empty_like(a3), colour)
-    return _WORK[key]
+def _workspace(rows: int, w: int) -> np.ndarray:
+    """A reused per-thread buffer for `apply` (fresh multi-MB arrays per chunk would cost page faults)."""
+    buf = getattr(_WORK, "buf", None)
+    if buf is None or buf.shape[1] != w or len(buf) < rows:
+        buf = _WORK.buf = np.empty((rows, w, 3), dtype=np.uint8)
+    return buf[:rows]
+
+
+@functools.lru_cache(maxsize=16)
+def _tint_windows(occ: Occlusion, shape: tuple[int, int]) -> np.ndarray:
+    """`colour * a` of every bank field, as a read-only view `(bank, H+1, W+1, H, W*3)` of shifted windows."""
+    h, w = shape
+    bank, _ = _bank(occ, shape)
+    col = np.asarray(occ.color, dtype=np.float32) / 255.0
+    tint = np.floor(bank[..., None].astype(np.float32) * col + 0.5).astype(np.uint8)
+    s = tint.strides
+    return np.lib.stride_tricks.as_strided(tint, (len(bank), h + 1, w + 1, h, w * 3), (s[0], s[1], s[2], s[1], 1),
+                                           writeable=False)
 
 
 @functools.lru_cache(maxsize=16)

@@ -1,0 +1,208 @@
+"""The data stage: tracked, content-addressed datasets, the reading API and verify (issue 3 §2-§4)."""
+
+import hashlib
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline import tracking
+from pipeline.cli import REPO_ROOT, compose
+from pipeline.data import open_dataset, resolve_dataset
+from pipeline.data.stage import run
+from pipeline.data.verify import verify_datasets
+from pipeline.errors import ConfigError, DatasetError
+
+TINY = ["data.splits.train=50", "data.splits.val=10", "data.splits.test=10"]
+
+
+def cfg_for(root: Path, recipe="clean", *extra):
+    return compose("data", [f"data={recipe}", *TINY, f"paths.datasets_dir={root}", *extra])
+
+
+def file_hashes(folder: Path) -> dict:
+    return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.iterdir()) if p.name != "manifest.json"}
+
+
+def cli(*args, cwd=REPO_ROOT):
+    env = {**os.environ, "HYDRA_FULL_ERROR": "0"}
+    return subprocess.run([sys.executable, "-m", *args], cwd=cwd, capture_output=True, text=True, env=env, timeout=120)
+
+
+@pytest.fixture(scope="module")
+def occluded(tmp_path_factory):
+    root = tmp_path_factory.mktemp("datasets")
+    return root, run(cfg_for(root, "occluded"))
+
+
+# -------------------------------------------------------------------------------------------- stage
+def test_dataset_folder_and_api(tmp_path):
+    out = run(cfg_for(tmp_path, "clean"))
+    assert not out["skipped"] and out["path"] == tmp_path / f"clean-{out['id']}"
+    ds = open_dataset("clean", datasets_dir=tmp_path, verify=True)
+    assert ds.id == out["id"] and ds.name == "clean" and ds.counts == {"train": 50, "val": 10, "test": 10}
+    assert set(ds.manifest["files"]) == {"images_train.npy", "images_val.npy", "images_test.npy", "labels.csv", "preview.png"}
+    assert ds.recipe["occlusion"] == "none" and ds.manifest["seed"] == 0
+    for ref in (out["id"], f"clean-{out['id']}", str(out["path"])):
+        assert resolve_dataset(ref, tmp_path) == out["path"]
+    imgs = ds.images("train")
+    assert isinstance(imgs, np.memmap) and imgs.shape == (50, 60, 100, 3) and imgs.dtype == np.uint8
+    assert {"split", "x", "y", "follower_x", "follower_y", "occluded_frac"} <= set(ds.labels.columns)
+    assert len(ds.labels) == 70
+    # the stored images are exactly what the dataset's camera renders from the stored labels
+    pos, fol = ds.positions("val"), ds.follower("val")
+    assert pos.dtype == np.float32 and pos.shape == (10, 2)
+    np.testing.assert_array_equal(ds.camera().render(pos, fol), ds.images("val"))
+    # positions stay inside the arena by half the robot; followers keep their distance or are absent
+    allpos = ds.positions("train")
+    assert np.all(np.abs(allpos[:, 0]) <= 48.5) and np.all(np.abs(allpos[:, 1]) <= 28.5)
+    f = ds.follower("train")
+    present = ~np.isnan(f[:, 0])
+    assert 0 < present.sum() < 50
+    assert np.all(np.hypot(*(f[present] - allpos[present]).T) >= 5.0)
+    assert np.all(ds.occluded_frac("train") == 0)
+    with pytest.raises(DatasetError):
+        ds.images("holdout")
+    with pytest.raises(DatasetError, match="unknown dataset"):
+        open_dataset("nope", datasets_dir=tmp_path)
+
+
+def test_same_recipe_same_bytes_and_id_seed_changes_id(tmp_path, occluded):
+    root, first = occluded
+    again = run(cfg_for(tmp_path / "a", "occluded", "data.chunk_size=7"))  # chunking is volatile
+    assert again["id"] == first["id"]
+    assert file_hashes(again["path"]) == file_hashes(first["path"])
+    other = run(cfg_for(tmp_path / "b", "occluded", "data.seed=5"))
+    assert other["id"] != first["id"]
+    assert file_hashes(other["path"])["images_train.npy"] != file_hashes(first["path"])["images_train.npy"]
+    # other things that change the bytes change the id; barrier settings (not in the image) do not
+    assert run(cfg_for(tmp_path / "c", "occluded", "render.robot_size=2.0"))["id"] != first["id"]
+    assert run(cfg_for(tmp_path / "d", "occluded", "scene.barrier.rho=0.25"))["id"] == first["id"]
+
+
+def test_occluded_dataset_has_clouds(occluded):
+    root, out = occluded
+    ds = open_dataset(out["id"], datasets_dir=root)
+    frac = ds.occluded_frac("train")
+    assert np.all(frac > 0) and 0.1 < frac.mean() < 0.6
+    assert ds.occlusion().name == "heavy"
+
+
+def test_second_run_is_a_no_op_and_force_rerenders(tmp_path, capsys):
+    cfg = cfg_for(tmp_path, "leader_follower")
+    first = run(cfg)
+    shard = first["path"] / "images_train.npy"
+    stamp = (first["path"].stat().st_mtime_ns, shard.stat().st_mtime_ns)
+    second = run(cfg)
+    assert second["skipped"] and second["id"] == first["id"]
+    assert (first["path"].stat().st_mtime_ns, shard.stat().st_mtime_ns) == stamp
+    assert "nothing to do" in capsys.readouterr().out
+    forced = run(cfg_for(tmp_path, "leader_follower", "force=true"))
+    assert not forced["skipped"] and forced["path"] == first["path"]
+    assert (first["path"] / "images_train.npy").stat().st_mtime_ns != stamp[1]
+    assert not tracking.verify(forced["path"])
+    assert not np.isnan(open_dataset(first["path"]).follower("train")).any()  # every image has the follower
+
+
+def test_interrupted_render_leaves_nothing(tmp_path, monkeypatch):
+    from pipeline.render import Camera
+
+    real = Camera.render
+    calls = {"n": 0}
+
+    def flaky(self, *args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise KeyboardInterrupt("simulated interruption mid-write")
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(Camera, "render", flaky)
+    with pytest.raises(KeyboardInterrupt):
+        run(cfg_for(tmp_path, "clean", "data.chunk_size=20"))
+    assert calls["n"] == 3
+    assert list(tmp_path.iterdir()) == []  # neither the dataset folder nor a temporary one
+
+
+def test_verify_catches_flipped_byte_and_missing_shard(tmp_path):
+    out = run(cfg_for(tmp_path, "clean"))
+    folder = out["path"]
+    assert verify_datasets(tmp_path, echo=lambda s: None) == {str(folder): []}
+    shard = folder / "images_val.npy"
+    data = bytearray(shard.read_bytes())
+    data[1000] ^= 0xFF
+    shard.write_bytes(bytes(data))
+    problems = verify_datasets(tmp_path, echo=lambda s: None)[str(folder)]
+    assert problems == [f"{shard}: sha256 mismatch (altered)"]
+    with pytest.raises(DatasetError, match="images_val.npy"):
+        open_dataset("clean", datasets_dir=tmp_path, verify=True)
+    open_dataset("clean", datasets_dir=tmp_path)  # the cheap check (sizes) does not re-hash
+    (folder / "images_test.npy").unlink()
+    problems = verify_datasets(tmp_path, echo=lambda s: None)[str(folder)]
+    assert f"{folder / 'images_test.npy'}: missing" in problems and len(problems) == 2
+    with pytest.raises(DatasetError, match="missing"):
+        open_dataset("clean", datasets_dir=tmp_path)
+    # the stage refuses to skip over (or silently replace) a folder that does not match its manifest
+    with pytest.raises(DatasetError, match="does not match its manifest"):
+        run(cfg_for(tmp_path, "clean"))
+    # the CLI lists each problem with its path and exits non-zero
+    res = cli("pipeline.data.verify", f"paths.datasets_dir={tmp_path}", f"hydra.run.dir={tmp_path / 'hydra'}")
+    assert res.returncode != 0
+    assert f"{shard}: sha256 mismatch" in res.stdout and f"{folder / 'images_test.npy'}: missing" in res.stdout
+    assert "Traceback" not in res.stderr
+
+
+@pytest.mark.parametrize(
+    "override, field",
+    [
+        ("data.splits.val=-3", "data.splits.val"),
+        ("data.occlusion=fog", "data.occlusion"),
+        ("render.height=50", "render.height"),
+        ("render.width=120", "render.height"),
+        ("data.sampling.mode=spiral", "data.sampling.mode"),
+        ("data.follower.probability=2", "data.follower.probability"),
+    ],
+)
+def test_bad_config_names_field_and_writes_nothing(tmp_path, override, field):
+    with pytest.raises(ConfigError) as err:
+        run(cfg_for(tmp_path, "clean", override))
+    assert err.value.field == field
+    assert not tmp_path.exists() or list(tmp_path.iterdir()) == []
+
+
+def test_sampling_options(tmp_path):
+    grid = run(cfg_for(tmp_path, "clean", "data.sampling.mode=grid", "data.sampling.exclude_obstacle=true"))
+    ds = open_dataset(grid["path"])
+    p = ds.positions("train").astype(float)
+    assert len(np.unique(p, axis=0)) == 50
+    assert np.all(np.hypot(p[:, 0], p[:, 1]) > 4.0)
+    xs = np.unique(np.round(p[:, 0], 4))
+    assert len(xs) < 20  # on a lattice: few distinct columns
+    assert not np.array_equal(ds.positions("val")[:5], ds.positions("test")[:5])
+
+
+# -------------------------------------------------------------------------------------------- CLI
+def test_cli_bad_input_is_one_line(tmp_path):
+    res = cli("pipeline.data", "data=clean", "data.splits.train=0", f"paths.datasets_dir={tmp_path / 'ds'}",
+              f"hydra.run.dir={tmp_path / 'run'}")
+    assert res.returncode == 2
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and "data.splits.train" in lines[0] and lines[0].startswith("error:")
+    assert "Traceback" not in res.stderr + res.stdout
+    assert not (tmp_path / "ds").exists()
+    res = cli("pipeline.data", "data=foggy", f"paths.datasets_dir={tmp_path / 'ds'}", f"hydra.run.dir={tmp_path / 'run'}")
+    assert res.returncode != 0 and len(res.stderr.strip().splitlines()) == 1
+    assert "foggy" in res.stderr and "clean" in res.stderr
+
+
+def test_cli_multirun_renders_each_recipe(tmp_path):
+    res = cli("pipeline.data", "-m", "data=clean,occluded", *TINY, f"paths.datasets_dir={tmp_path / 'ds'}",
+              f"hydra.sweep.dir={tmp_path / 'sweep'}")
+    assert res.returncode == 0, res.stderr
+    names = sorted(d.name.rsplit("-", 1)[0] for d in (tmp_path / "ds").iterdir())
+    assert names == ["clean", "occluded"]
+    assert res.stdout.count("data: ") == 2
+    report = verify_datasets(tmp_path / "ds", echo=lambda s: None)
+    assert len(report) == 2 and not any(report.values())
