@@ -1,0 +1,87 @@
+"""Benchmark (issue 4 §4): Lightning `fit` img/s against a raw PyTorch loop of the same model and batch,
+and the achieved GFLOP/s of training (3x forward FLOPs)."""
+
+from __future__ import annotations
+
+import logging
+import time
+import warnings
+
+import numpy as np
+import torch
+
+from pipeline.train.model import PerceptionMap
+
+
+def _data(n: int, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    images = torch.from_numpy(rng.integers(0, 256, (n, 60, 100, 3), dtype=np.uint8))
+    pos = torch.from_numpy(rng.uniform([-50, -30], [50, 30], (n, 2)).astype(np.float32))
+    return images, pos
+
+
+def raw_loop(model: PerceptionMap, images, pos, batch: int, steps: int) -> float:
+    opt = torch.optim.Adam(model.parameters(), lr=1e-3)
+    model.train()
+    n = len(images)
+    t0 = None
+    for s in range(steps + 2):  # two warm-up steps
+        if s == 2:
+            t0 = time.perf_counter()
+        idx = torch.randint(0, n, (batch,))
+        target = (pos[idx] - model.center) / model.half_range
+        loss = torch.nn.functional.mse_loss(model.normalised(images[idx]), target)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+    return steps * batch / (time.perf_counter() - t0)
+
+
+def lightning_fit(model: PerceptionMap, images, pos, batch: int, steps: int) -> float:
+    import lightning as L
+    from torch.utils.data import BatchSampler, DataLoader, RandomSampler
+
+    from pipeline.train.datamodule import BatchArrays
+
+    for name in ("lightning", "lightning.pytorch", "lightning.fabric"):
+        logging.getLogger(name).setLevel(logging.ERROR)
+    warnings.filterwarnings("ignore", ".*does not have many workers.*")
+    ds = BatchArrays(images.numpy(), pos.numpy())
+    loader = DataLoader(ds, sampler=BatchSampler(RandomSampler(ds), batch, drop_last=True), batch_size=None)
+
+    class Timer(L.Callback):
+        t0 = None
+
+        def on_train_batch_start(self, trainer, pl_module, b, i):
+            if i == 2:
+                self.t0 = time.perf_counter()
+
+    timer = Timer()
+    trainer = L.Trainer(accelerator="cpu", devices=1, max_steps=steps + 2, logger=False, enable_checkpointing=False,
+                        enable_progress_bar=False, enable_model_summary=False, callbacks=[timer])
+    trainer.fit(model, train_dataloaders=loader)
+    return steps * batch / (time.perf_counter() - timer.t0)
+
+
+def bench(quick: bool = False) -> list[dict]:
+    torch.set_num_threads(torch.get_num_threads())
+    batch, steps = (64, 3) if quick else (128, 40)
+    images, pos = _data(batch * 8)
+    rows = []
+    for filters in ((32, 64, 128), (16, 32, 64)):
+        torch.manual_seed(0)
+        raw = raw_loop(PerceptionMap(filters=filters), images, pos, batch, steps)
+        torch.manual_seed(0)
+        model = PerceptionMap(filters=filters, lr=1e-3)
+        lit = lightning_fit(model, images, pos, batch, steps)
+        gflops = 3 * model.flops_per_image() * lit / 1e9
+        tag = "/".join(map(str, filters))
+        rows += [
+            {"section": "train", "case": f"raw PyTorch loop, {tag}, batch {batch}", "value": raw, "unit": "img/s",
+             "note": ""},
+            {"section": "train", "case": f"Lightning fit, {tag}, batch {batch}", "value": lit, "unit": "img/s",
+             "note": f"{gflops:.0f} GFLOP/s (3x fwd FLOPs)"},
+            {"section": "train", "case": f"Lightning / raw, {tag}", "value": lit / raw, "unit": "x",
+             "note": "target >= 0.85x"},
+        ]
+    return rows

@@ -1,0 +1,141 @@
+"""Train stage (issue 4): tiny datasets, fast_dev_run, overfitting, reload, no-op, bad input."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from pipeline.cli import REPO_ROOT, compose
+from pipeline.errors import ConfigError, DatasetError, ModelError
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    """A 512/64/64 clean dataset and a models folder, shared by the module's tests."""
+    from pipeline.data import run as data_run
+
+    root = tmp_path_factory.mktemp("train")
+    ds_dir, models_dir = root / "datasets", root / "models"
+    cfg = compose("data", ["data=clean", "data.splits.train=512", "data.splits.val=64", "data.splits.test=64",
+                           f"paths.datasets_dir={ds_dir}"])
+    data_run(cfg)
+    return {"datasets": ds_dir, "models": models_dir, "root": root}
+
+
+def _train_cfg(tiny, *extra):
+    return compose("train", [f"paths.datasets_dir={tiny['datasets']}", f"paths.models_dir={tiny['models']}",
+                             "trainer.enable_progress_bar=false", *extra])
+
+
+def test_fast_dev_run_reload_and_noop(tiny):
+    from pipeline.data import open_dataset
+    from pipeline.train import load_perception_map
+    from pipeline.train.stage import error_metrics, run
+
+    cfg = _train_cfg(tiny, "trainer=debug", "eval_levels=[none,heavy]")
+    out = run(cfg)
+    assert not out["skipped"]
+    folder = tiny["models"] / f"{out['name']}-{out['id']}"
+    manifest = json.loads((folder / "manifest.json").read_text())
+    ds = open_dataset("clean", datasets_dir=tiny["datasets"])
+    assert manifest["dataset_id"] == ds.id
+    assert set(out["metrics"]) >= {"test_split", "none", "heavy"}
+
+    # a saved map reloads and predicts the numbers the stage reported
+    pm = load_perception_map(out["id"], models_dir=tiny["models"])
+    pred = pm.predict(ds.images("test"))
+    again = error_metrics(pred, ds.positions("test"), pm.px_per_unit)
+    saved = json.loads((folder / "metrics.json").read_text())["test_split"]
+    assert again["mae_px"] == pytest.approx(saved["mae_px"], rel=1e-6)
+    assert np.array_equal(pred, pm.predict(ds.images("test")))  # inference is deterministic
+    # by name (latest) gives the same map
+    assert load_perception_map(out["name"], models_dir=tiny["models"]).id == out["id"]
+
+    # second run: a no-op that touches nothing
+    mtime = (folder / "model.pt").stat().st_mtime_ns
+    again_out = run(cfg)
+    assert again_out["skipped"] and again_out["id"] == out["id"]
+    assert (folder / "model.pt").stat().st_mtime_ns == mtime
+    # and a different seed is a different model
+    assert run(_train_cfg(tiny, "trainer=debug", "eval_levels=[none]", "seed=1"))["id"] != out["id"]
+
+
+def test_overfits_256_images(tiny):
+    """The map can memorise 256 images: train MAE below 1 px (the model is able to localise sub-pixel)."""
+    from pipeline.data import open_dataset
+    from pipeline.train import load_perception_map
+    from pipeline.train.stage import error_metrics, run
+
+    cfg = _train_cfg(tiny, "trainer.limit_train_samples=256", "trainer.batch_size=32", "trainer.max_epochs=60",
+                     "trainer.max_minutes=null", "model.lr=3e-3", "model.dropout=0.0", "eval_levels=[]",
+                     "name=overfit")
+    out = run(cfg)
+    pm = load_perception_map("overfit", models_dir=tiny["models"])
+    ds = open_dataset("clean", datasets_dir=tiny["datasets"])
+    m = error_metrics(pm.predict(ds.images("train")[:256]), ds.positions("train")[:256], pm.px_per_unit)
+    assert m["mae_px"] < 1.0, m
+    assert out["epochs"] >= 1
+
+
+def test_wrong_image_shape_is_a_model_error(tiny):
+    from pipeline.train import PerceptionMap
+    from pipeline.train.predict import PerceptionMapPredictor
+
+    pm = PerceptionMapPredictor(PerceptionMap())
+    assert pm.predict(np.zeros((3, 60, 100, 3), np.uint8)).shape == (3, 2)
+    with pytest.raises(ModelError, match="image shape"):
+        pm.predict(np.zeros((3, 64, 64, 3), np.uint8))
+
+
+def test_bad_configs(tiny):
+    from pipeline.train.stage import run
+
+    with pytest.raises(DatasetError, match="unknown dataset"):
+        run(_train_cfg(tiny, "dataset=nope", "trainer=debug"))
+    with pytest.raises(ConfigError, match="trainer.max_epochs"):
+        run(_train_cfg(tiny, "trainer.max_epochs=0"))
+    with pytest.raises(ConfigError, match="eval_levels"):
+        run(_train_cfg(tiny, "trainer=debug", "eval_levels=[fog]"))
+    with pytest.raises(ModelError, match="image_shape"):
+        run(_train_cfg(tiny, "trainer=debug", "+model.image_shape=[64,64,3]"))
+    with pytest.raises(ModelError, match="unknown perception map"):
+        from pipeline.train import load_perception_map
+
+        load_perception_map("nope", models_dir=tiny["models"])
+
+
+def test_damaged_dataset_is_rejected(tiny, tmp_path):
+    """A dataset whose shard was altered fails verification before any training."""
+    import shutil
+
+    from pipeline.data import resolve_dataset
+    from pipeline.train.stage import run
+
+    src = resolve_dataset("clean", datasets_dir=tiny["datasets"])
+    copy = tmp_path / "datasets" / src.name
+    shutil.copytree(src, copy)
+    shard = copy / "images_train.npy"
+    data = bytearray(shard.read_bytes())
+    data[-10] ^= 0xFF
+    shard.write_bytes(bytes(data))
+    cfg = compose("train", [f"paths.datasets_dir={tmp_path / 'datasets'}", f"paths.models_dir={tmp_path / 'm'}",
+                            "trainer=debug"])
+    with pytest.raises(DatasetError, match="images_train.npy"):
+        run(cfg)
+    assert not (tmp_path / "m").exists() or not any((tmp_path / "m").iterdir())
+
+
+def test_cli_unknown_dataset_one_line(tmp_path):
+    proc = subprocess.run(
+        [sys.executable, "-m", "pipeline.train", "dataset=does_not_exist", f"paths.datasets_dir={tmp_path}",
+         f"paths.models_dir={tmp_path / 'm'}", f"hydra.run.dir={tmp_path / 'run'}"],
+        cwd=REPO_ROOT, capture_output=True, text=True, timeout=300,
+    )
+    assert proc.returncode != 0
+    assert "Traceback" not in proc.stderr
+    err_lines = [ln for ln in proc.stderr.splitlines() if ln.startswith("error:")]
+    assert len(err_lines) == 1 and "does_not_exist" in err_lines[0]
