@@ -44,6 +44,8 @@ class PerceptionMap(L.LightningModule):
         weight_decay: float = 0.0,
         schedule: str = "constant",
         loss: str = "mse",
+        coord_channels: bool = False,
+        clamp: bool = True,
         name: str = "perception_map",
     ):
         super().__init__()
@@ -65,7 +67,14 @@ class PerceptionMap(L.LightningModule):
         self.register_buffer("half_range", torch.tensor([(x1 - x0) / 2, (y1 - y0) / 2], dtype=torch.float32))
         # px per world unit (for metrics reported in pixels)
         self.px_per_unit = float(w / (x1 - x0))
-        self.features = conv_blocks(3, [int(f) for f in filters], batch_norm)
+        # CoordConv: two extra input channels holding the pixel's column/row in [-0.5, 0.5]
+        self.coord_channels = bool(coord_channels)
+        self.clamp = bool(clamp)
+        if self.coord_channels:
+            cols = torch.linspace(-0.5, 0.5, w).view(1, 1, 1, w).expand(1, 1, h, w)
+            rows = torch.linspace(-0.5, 0.5, h).view(1, 1, h, 1).expand(1, 1, h, w)
+            self.register_buffer("coords", torch.cat([cols, rows], 1).contiguous(), persistent=False)
+        self.features = conv_blocks(3 + 2 * self.coord_channels, [int(f) for f in filters], batch_norm)
         fh, fw = h, w
         for _ in filters:
             fh, fw = fh // 2, fw // 2
@@ -93,10 +102,15 @@ class PerceptionMap(L.LightningModule):
         x = x.to(torch.float32)
         if images.dtype == torch.uint8:
             x = x.mul_(1.0 / 255.0)
-        return x.sub_(0.5).contiguous(memory_format=torch.channels_last)
+        x = x.sub_(0.5)
+        if self.coord_channels:
+            x = torch.cat([x, self.coords.expand(len(x), -1, -1, -1)], 1)
+        return x.contiguous(memory_format=torch.channels_last)
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         z = self.head(self.features(self.prepare(images)))
+        if self.clamp and not self.training:
+            z = z.clamp(-1.0, 1.0)  # a position estimate never leaves the arena the camera sees
         return z * self.half_range + self.center
 
     def normalised(self, images: torch.Tensor) -> torch.Tensor:
@@ -136,7 +150,7 @@ class PerceptionMap(L.LightningModule):
 
     def flops_per_image(self) -> float:
         """Forward multiply-adds x2 of the conv and linear layers (for GFLOP/s figures)."""
-        h, w, c = self.image_shape
+        h, w, _ = self.image_shape
         flops = 0.0
         for m in self.features:
             if isinstance(m, nn.Conv2d):

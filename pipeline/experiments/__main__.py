@@ -1,0 +1,14 @@
+"""`python -m pipeline.experiments experiment=<id>` (`-m 'experiment=glob(*)'` runs them all)."""
+
+from pipeline.cli import stage_main
+
+
+@stage_main("experiments")
+def main(cfg):
+    from pipeline.experiments.stage import run
+
+    return run(cfg)
+
+
+if __name__ == "__main__":
+    main()
