@@ -1,0 +1,71 @@
+"""Benchmark (issue 6 §5): closed-loop agent-frames/s with the CNN in the loop at N agents, against
+(a) the raw batched inference throughput of the same model and (b) a per-agent loop that renders one
+image and calls the model once per agent per frame (what the authors' code does)."""
+
+from __future__ import annotations
+
+import time
+
+import torch
+
+from pipeline.control import HybridController, Scene
+from pipeline.experiments.measure import CameraMeasure
+from pipeline.render import Camera
+from pipeline.sim import simulate
+from pipeline.sim.build import initial_conditions
+
+
+def _map():
+    """The trained `clean` map when there is one, else a fresh one of the default architecture."""
+    from pipeline.train import PerceptionMap, load_perception_map
+    from pipeline.train.predict import PerceptionMapPredictor
+
+    try:
+        return load_perception_map("clean"), "trained map `clean`"
+    except Exception:  # noqa: BLE001 - no trained map yet
+        torch.manual_seed(0)
+        return PerceptionMapPredictor(PerceptionMap(filters=(16, 32, 64), batch_norm=True)), "untrained 16/32/64 map"
+
+
+def bench(quick: bool = False) -> list[dict]:
+    n, frames, loop_agents, loop_frames = (100, 3, 5, 2) if quick else (1000, 20, 20, 5)
+    scene = Scene(target=(40.0, 0.0))
+    cam = Camera(scene)
+    pm, which = _map()
+    x0 = initial_conditions({"mode": "random", "n": n, "seed": 0, "margin": 2.0}, scene)
+    dt, period = 0.01, 0.05
+
+    # (a) raw batched inference on pre-rendered images
+    imgs = cam.render(x0)
+    pm.predict(imgs[:64])
+    t0 = time.perf_counter()
+    reps = max(1, frames // 4)
+    for _ in range(reps):
+        pm.predict(imgs)
+    raw = reps * n / (time.perf_counter() - t0)
+
+    # closed loop: every frame renders all N agents and infers them in one batch
+    measure = CameraMeasure(cam, pm)
+    t0 = time.perf_counter()
+    simulate(scene, HybridController(scene), x0, dt=dt, horizon=frames * period, camera_period=period,
+             measure=measure, record=False, stop_on_success=False)
+    loop_s = time.perf_counter() - t0
+    closed = measure.images / loop_s
+
+    # (b) per-agent loop: one image rendered and one model call per agent per frame
+    t0 = time.perf_counter()
+    for _ in range(loop_frames):
+        for i in range(loop_agents):
+            pm.predict(cam.render(x0[i : i + 1]))
+    per_agent = loop_frames * loop_agents / (time.perf_counter() - t0)
+    return [
+        {"section": "closed loop", "case": f"raw batched inference ({which})", "value": raw, "unit": "img/s", "note": ""},
+        {"section": "closed loop", "case": f"CNN in the loop, N={n}, {frames} frames", "value": closed,
+         "unit": "agent-frames/s", "note": ""},
+        {"section": "closed loop", "case": "per-agent loop (render 1 + infer 1)", "value": per_agent,
+         "unit": "agent-frames/s", "note": ""},
+        {"section": "closed loop", "case": "closed loop / raw inference", "value": closed / raw, "unit": "x",
+         "note": "target >= 0.8x"},
+        {"section": "closed loop", "case": "closed loop / per-agent loop", "value": closed / per_agent, "unit": "x",
+         "note": "target >= 30x"},
+    ]
