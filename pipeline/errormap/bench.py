@@ -1,0 +1,91 @@
+"""Benchmark: error-map points/s (render + infer, batched) vs raw inference of the same model (issue 5).
+
+The model is the newest trained perception map under outputs/models, else a fresh untrained
+`PerceptionMap` (same architecture, same cost); without pipeline.train/torch the rows say why.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from pipeline.cli import REPO_ROOT
+from pipeline.errormap import core
+
+
+def _predictor():
+    """`(predict, camera, label)` or `(None, None, reason)`."""
+    try:
+        from pipeline import tracking
+        from pipeline.control import Scene
+        from pipeline.render import Camera
+    except ImportError as err:  # pragma: no cover - render missing
+        return None, None, f"pipeline.render unavailable ({err})"
+    models_dir = REPO_ROOT / "outputs" / "models"
+    found = tracking.entries(models_dir)
+    if found:
+        try:
+            from pipeline.train import load_perception_map
+
+            pmap = load_perception_map(found[0].name, models_dir=models_dir)
+            return pmap.predict, pmap.camera(), f"model {pmap.name}-{pmap.id}"
+        except Exception as err:  # noqa: BLE001 - fall back to an untrained network and say so
+            note = f"trained model unusable ({type(err).__name__}); "
+    else:
+        note = "no trained model; "
+    try:
+        import torch
+
+        from pipeline.train.model import PerceptionMap
+    except ImportError as err:
+        return None, None, f"{note}pipeline.train unavailable ({err})"
+    net = PerceptionMap().eval()
+
+    def predict(images: np.ndarray) -> np.ndarray:
+        with torch.inference_mode():
+            return net(torch.from_numpy(np.ascontiguousarray(images))).double().numpy()
+
+    return predict, Camera(Scene(target=(40.0, 0.0))), note + "untrained PerceptionMap (same cost)"
+
+
+def _best(fn, repeat: int) -> float:
+    best = np.inf
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def bench(quick: bool = False) -> list[dict]:
+    predict, camera, label = _predictor()
+    if predict is None:
+        return [{"section": "errormap", "case": "error map vs raw inference", "value": "skipped", "unit": "",
+                 "note": label}]
+    from pipeline.render import load_occlusion
+
+    n, batch, repeat = (1024, 512, 1) if quick else (4096, 2048, 1)
+    pts, _, _, _ = core.arena_grid(camera.arena, 0.5)
+    pts = pts[np.random.default_rng(0).choice(len(pts), n, replace=False)]
+    predict(camera.render(pts[:8]))  # warm-up (threads, allocator)
+    rows = []
+    for level in ("none", "heavy"):
+        occ = load_occlusion(level)
+        images = camera.render(pts, occlusion=occ, rng=np.random.default_rng(1))
+        raw = n / _best(lambda images=images: [predict(images[s : s + batch]) for s in range(0, n, batch)], repeat)
+
+        def render(p, rng, occ=occ):
+            return camera.render(p, occlusion=occ, rng=rng)
+
+        full = n / _best(lambda render=render: core.error_field(predict, render, pts, batch=batch,
+                                                                rng=np.random.default_rng(1)), repeat)
+        rows += [
+            {"section": "errormap", "case": f"raw inference, {level} images (N={n}, batch {batch})", "value": raw,
+             "unit": "images/s", "note": label},
+            {"section": "errormap", "case": f"error map (render + infer), {level}", "value": full,
+             "unit": "points/s", "note": ""},
+            {"section": "errormap", "case": f"error map / raw inference, {level}", "value": full / raw, "unit": "x",
+             "note": "target >= 0.8x"},
+        ]
+    return rows
