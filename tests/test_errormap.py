@@ -230,7 +230,7 @@ class StubDataset:
 
 
 def _cfg(tmp_path, *extra):
-    return compose("errormap", [f"paths.errormaps_dir={tmp_path / 'em'}", f"paths.models_dir={tmp_path / 'models'}",
+    return compose("errormap", ["maps=synthetic", f"paths.errormaps_dir={tmp_path / 'em'}", f"paths.models_dir={tmp_path / 'models'}",
                                 "grid.step=2.0", "formats=[png]", "train_samples=null", "progress=false",
                                 "coverage.r_cov=3.0", *extra])
 
@@ -289,7 +289,7 @@ def test_stage_recovers_a_constant_bias_and_its_covered_set(tmp_path):
 
 
 def cfg_overrides(cfg):
-    return [f"paths.errormaps_dir={cfg.paths.errormaps_dir}", f"paths.models_dir={cfg.paths.models_dir}",
+    return ["maps=synthetic", f"paths.errormaps_dir={cfg.paths.errormaps_dir}", f"paths.models_dir={cfg.paths.models_dir}",
             "grid.step=2.0", "formats=[png]", "train_samples=null", "progress=false", "coverage.r_cov=3.0",
             "occlusion_levels=[none,heavy]", "coverage.eps=[0.0,0.25,0.499999,0.500001,1.0,3.0]"]
 
@@ -359,7 +359,7 @@ def test_load_error_map_unknown(tmp_path):
         load_error_map("nope", tmp_path)
 
 
-@pytest.mark.parametrize("override", ["model=does_not_exist", "grid.step=0"])
+@pytest.mark.parametrize("override", ["model=does_not_exist", "maps=[does_not_exist,clean]", "grid.step=0"])
 def test_cli_bad_input_is_one_line(tmp_path, override):
     env = {**os.environ, "PYTHONPATH": str(REPO_ROOT)}
     proc = subprocess.run(
@@ -371,4 +371,4 @@ def test_cli_bad_input_is_one_line(tmp_path, override):
     assert "Traceback" not in proc.stderr
     lines = [ln for ln in proc.stderr.splitlines() if ln.startswith("error:")]
     assert len(lines) == 1, proc.stderr
-    assert ("does_not_exist" in lines[0]) if override.startswith("model") else ("grid.step" in lines[0])
+    assert ("does_not_exist" in lines[0]) if "does_not_exist" in override else ("grid.step" in lines[0])

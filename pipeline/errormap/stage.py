@@ -30,7 +30,7 @@ from pipeline.control import Scene, in_diamond
 from pipeline.errormap import core
 from pipeline.errors import ConfigError, DatasetError
 
-VOLATILE = ("force", "progress", "paths", "hydra", "model")
+VOLATILE = ("force", "progress", "paths", "hydra", "maps")
 LIPSCHITZ_CHOICES = ("max", "p99")
 DEFAULT_ARENA = ((-50.0, 50.0), (-30.0, 30.0))
 
@@ -181,18 +181,23 @@ def _train_samples(dataset, predict, n_max, batch, seed, progress):
 # ---------------------------------------------------------------------------------------------- run
 def run(cfg: DictConfig, *, perception_map=None, camera=None, occlusions: Mapping | None = None,
         dataset=None) -> dict:
-    """Error map of `cfg.model` (or each model of a list); returns the result dict (see `run_one`).
+    """Error map of `cfg.maps` (one perception map, or each of a list); returns the result dict (see `run_one`).
 
-    For a list of models: `{"maps": [result, ...], "table": summary_table(...)}`.
+    For a list: every map is loaded first (an unknown one fails before any work), then
+    `{"maps": [result, ...], "table": summary_table(...)}`.
     """
-    models = _plain(cfg.get("model"))
-    if isinstance(models, list):
+    models = _plain(cfg.get("maps"))
+    if isinstance(models, list) and perception_map is None:
         validate(cfg)
-        results = []
-        for ref in models:
-            one = OmegaConf.merge(cfg, {"model": ref})
-            results.append(run_one(one))
-        return {"maps": results, "table": summary_table([r["path"] for r in results])}
+        if not models:
+            raise ConfigError("maps", "needs at least one perception map")
+        loaded = [_load_map(ref, cfg.paths.models_dir) for ref in models]
+        results = [run_one(OmegaConf.merge(cfg, {"maps": ref}), perception_map=pm)
+                   for ref, pm in zip(models, loaded)]
+        table = summary_table([r["summary"] for r in results])
+        with pd.option_context("display.width", 200, "display.max_columns", 20, "display.precision", 3):
+            print(table.drop(columns=["model_id", "errormap"]).to_string(index=False))
+        return {"maps": results, "table": table}
     return run_one(cfg, perception_map=perception_map, camera=camera, occlusions=occlusions, dataset=dataset)
 
 
@@ -206,7 +211,7 @@ def run_one(cfg: DictConfig, *, perception_map=None, camera=None, occlusions: Ma
     """
     settings = validate(cfg)
     levels = settings["occlusion_levels"]
-    pmap = perception_map if perception_map is not None else _load_map(cfg.model, cfg.paths.models_dir)
+    pmap = perception_map if perception_map is not None else _load_map(cfg.maps, cfg.paths.models_dir)
     camera = camera if camera is not None else pmap.camera()
     occ = dict(occlusions) if occlusions is not None else {name: _load_occlusion(name) for name in levels}
     shared_clouds = settings.get("clouds", "independent") == "shared"
@@ -285,7 +290,7 @@ def run_one(cfg: DictConfig, *, perception_map=None, camera=None, occlusions: Ma
     summary = {
         "id": id_,
         "name": pmap.name,
-        "model": {"ref": str(cfg.model), "id": str(pmap.id), "name": pmap.name,
+        "model": {"ref": str(cfg.maps), "id": str(pmap.id), "name": pmap.name,
                   "dataset_id": manifest.get("dataset_id"), "dataset_name": manifest.get("dataset_name")},
         "grid": {"step": float(settings["grid"]["step"]), "nx": int(shape[1]), "ny": int(shape[0]),
                  "n_points": int(len(points)), "n_operational": int(operational.sum()),
@@ -568,7 +573,7 @@ def summary_table(refs, errormaps_dir=None) -> pd.DataFrame:
     """One row per (error map, occlusion level): the headline numbers the experiments stage quotes."""
     rows = []
     for ref in refs:
-        s = ref if isinstance(ref, Mapping) else load_error_map(ref, errormaps_dir)
+        s = ref if isinstance(ref, Mapping) else load_error_map(ref, errormaps_dir)  # a summary or a reference
         for lv, r in s["levels"].items():
             rows.append({
                 "model": s["model"]["name"], "model_id": s["model"]["id"], "occlusion": lv,
