@@ -235,9 +235,10 @@ def _cfg(tmp_path, *extra):
                                 "coverage.r_cov=3.0", *extra])
 
 
-def _grid_and_op(step=2.0):
+def _grid_and_op(step=2.0, margin=0.0):
     pts, shape, _, _ = core.arena_grid(ARENA, step)
-    return pts, shape, ~in_diamond(Scene(target=(40.0, 0.0)), pts)
+    inside = (np.abs(pts[:, 0]) <= 50 - margin) & (np.abs(pts[:, 1]) <= 30 - margin)
+    return pts, shape, inside & ~in_diamond(Scene(target=(40.0, 0.0)), pts)
 
 
 def test_stage_recovers_a_constant_bias_and_its_covered_set(tmp_path):
@@ -300,10 +301,11 @@ def test_stage_recovers_a_linear_field(tmp_path):
     pmap = StubMap(lambda p: p @ A.T + b)
     rng = np.random.default_rng(1)
     samples = rng.uniform([-50, -30], [50, 30], (3000, 2))
-    cfg = _cfg(tmp_path, "occlusion_levels=[none]", "coverage.r_cov=null")
+    cfg = _cfg(tmp_path, "occlusion_levels=[none]", "coverage.r_cov=null", "operational_margin=5")
     out = run(cfg, perception_map=pmap, occlusions={"none": None}, dataset=StubDataset(samples))
     r = out["summary"]["levels"]["none"]
-    pts, shape, op = _grid_and_op()
+    pts, shape, op = _grid_and_op(margin=5.0)  # the border ring of width 5 is not operational
+    assert out["summary"]["grid"]["n_operational"] == op.sum() < _grid_and_op()[2].sum()
     mag = np.linalg.norm(pts @ A.T + b, axis=1)
     assert r["mean"] == pytest.approx(mag[op].mean()) and r["max"] == pytest.approx(mag[op].max())
     assert r["arena"]["max"] == pytest.approx(mag.max())
@@ -346,7 +348,8 @@ def test_random_levels_use_k_draws_deterministically(tmp_path):
 @pytest.mark.parametrize("override,field", [("grid.step=0", "grid.step"), ("grid.step=-1", "grid.step"),
                                             ("coverage.lipschitz=median", "coverage.lipschitz"),
                                             ("draws=0", "draws"), ("occlusion_levels=[]", "occlusion_levels"),
-                                            ("clouds=sometimes", "clouds"), ("coverage.r_cov=0", "coverage.r_cov")])
+                                            ("clouds=sometimes", "clouds"),
+                                            ("operational_margin=-1", "operational_margin"), ("coverage.r_cov=0", "coverage.r_cov")])
 def test_bad_config_raises_config_error(tmp_path, override, field):
     with pytest.raises(ConfigError) as err:
         run(_cfg(tmp_path, override), perception_map=StubMap(lambda p: 0 * p), occlusions={"none": None},

@@ -87,6 +87,9 @@ def validate(cfg) -> dict:
         eps_c_arr = np.array([np.nan])
     if not np.all(np.isfinite(eps_c_arr)) or np.any(eps_c_arr < 0):
         raise ConfigError("dean.eps_C", f"must be a list of numbers >= 0, got {eps_c!r}")
+    margin = get("operational_margin", "auto")
+    if margin != "auto" and (not isinstance(margin, int | float) or isinstance(margin, bool) or not margin >= 0):
+        raise ConfigError("operational_margin", f"must be auto (half the robot) or a number >= 0, got {margin!r}")
     clouds = get("clouds", "independent")
     if clouds not in ("independent", "shared"):
         raise ConfigError("clouds", f"must be independent (a fresh cloud draw per image) or shared (one per draw), "
@@ -251,7 +254,8 @@ def run_one(cfg: DictConfig, *, perception_map=None, camera=None, occlusions: Ma
     t_train = time.perf_counter() - t0
     sample_err_vec = sample_pred - samples
     sample_err = np.linalg.norm(sample_err_vec, axis=1)
-    operational = ~in_diamond(scene, points)
+    margin = operational_margin(settings.get("operational_margin", "auto"), camera)
+    operational = operational_set(points, scene, arena, margin)
     near = core.nearest_distance(points, samples)
 
     results, fields = {}, {"x": xs, "y": ys, "operational": operational.reshape(shape), "nearest": near.reshape(shape)}
@@ -294,6 +298,7 @@ def run_one(cfg: DictConfig, *, perception_map=None, camera=None, occlusions: Ma
                   "dataset_id": manifest.get("dataset_id"), "dataset_name": manifest.get("dataset_name")},
         "grid": {"step": float(settings["grid"]["step"]), "nx": int(shape[1]), "ny": int(shape[0]),
                  "n_points": int(len(points)), "n_operational": int(operational.sum()),
+                 "operational_margin": margin,
                  "arena": [list(a) for a in arena]},
         "r_cov": settings["coverage"]["r_cov"],
         "eps_marks": marks,
@@ -308,6 +313,23 @@ def run_one(cfg: DictConfig, *, perception_map=None, camera=None, occlusions: Ma
         write_outputs(tmp, summary, fields, results, scene, arena, settings, samples, sample_err_vec)
     print(f"errormap: wrote {final}")
     return {"path": final, "summary": summary, "skipped": False, "fields": fields}
+
+
+def operational_margin(margin, camera) -> float:
+    """`auto`: half the robot's side in world units (where the robot is fully in view, as the datasets
+    sample positions), else the number given."""
+    if margin != "auto":
+        return float(margin)
+    size, scale = getattr(camera, "robot_size", None), getattr(camera, "scale", None)
+    return float(size) / 2 / float(scale) if size and scale else 0.0
+
+
+def operational_set(points: np.ndarray, scene: Scene, arena, margin: float = 0.0) -> np.ndarray:
+    """The operational set on the grid: the arena shrunk by `margin`, minus the diamond `W_1 ∩ W_2`."""
+    (x0, x1), (y0, y1) = arena
+    inside = ((points[:, 0] >= x0 + margin) & (points[:, 0] <= x1 - margin)
+              & (points[:, 1] >= y0 + margin) & (points[:, 1] <= y1 - margin))
+    return inside & ~in_diamond(scene, points)
 
 
 def _dean_center(center, scene: Scene) -> np.ndarray:
@@ -472,7 +494,7 @@ def _figures(folder: Path, fields: dict, results: dict, scene: Scene, arena, set
     vmax = max(float(np.nanpercentile(w, 99.5)) for w in worst.values()) or 1.0
     fig, axes = panels("ε-error map |F(p)| = |l(h(p)) - p|")
     for ax, lv in zip(axes, levels):
-        im = ax.imshow(worst[lv], origin="lower", extent=extent, cmap="magma", vmin=0, vmax=vmax,
+        im = ax.imshow(worst[lv], origin="lower", extent=extent, cmap="magma_r", vmin=0, vmax=vmax,
                        interpolation="nearest")
         draw_scene(ax, scene, arena)
         r = results[lv]
