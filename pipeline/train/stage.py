@@ -14,6 +14,7 @@ import json
 import logging
 import os
 import shutil
+import sys
 import time
 import warnings
 from pathlib import Path
@@ -145,6 +146,27 @@ def _scatter(pred: np.ndarray, true: np.ndarray, path: Path, title: str) -> None
 
 
 # ---------------------------------------------------------------------------------------- the stage
+def _epoch_line_callback():
+    import lightning as L
+
+    class EpochLine(L.Callback):
+        """One progress line per epoch when no progress bar is shown (logs, CI)."""
+
+        def __init__(self, name: str):
+            self.name, self.t0 = name, time.perf_counter()
+
+        def on_validation_epoch_end(self, trainer, pl_module):
+            if trainer.sanity_checking:
+                return
+            m = {k: float(v) for k, v in trainer.callback_metrics.items() if k in ("val_mae", "train_loss_epoch")}
+            print(f"[train] {self.name}: epoch {trainer.current_epoch + 1}/{trainer.max_epochs} "
+                  f"val MAE {m.get('val_mae', float('nan')):.3f} px ({time.perf_counter() - self.t0:.0f} s)",
+                  flush=True)
+
+    return EpochLine
+
+
+
 def _quiet_lightning() -> None:
     for name in ("lightning", "lightning.pytorch", "lightning.fabric", "lightning_fabric"):
         logging.getLogger(name).setLevel(logging.WARNING)
@@ -163,6 +185,7 @@ def run(cfg) -> dict:
     from pipeline.train.datamodule import PerceptionDataModule
     from pipeline.train.predict import PerceptionMapPredictor
 
+    EpochLine = _epoch_line_callback()  # noqa: N806 - a class
     t_start = time.perf_counter()
     model_cfg = tracking.to_plain(cfg.model)
     trainer_cfg = tracking.to_plain(cfg.trainer)
@@ -206,6 +229,8 @@ def run(cfg) -> dict:
 
     work = root / f".work-{name}-{id_}"
     work.mkdir(parents=True, exist_ok=True)
+    # Lightning's bar on a terminal; one line per epoch in logs (a bar written to a file floods it)
+    show_bar = bool(trainer_cfg.get("enable_progress_bar", True)) and sys.stderr.isatty()
     ckpt_cb = ModelCheckpoint(dirpath=work / "ckpt", filename="best", monitor="val_mae", mode="min",
                               save_top_k=1, save_last=True)
     logger = CSVLogger(save_dir=str(work), name="logs", version=0)
@@ -217,9 +242,9 @@ def run(cfg) -> dict:
         limit_train_batches=trainer_cfg.get("limit_train_batches") or 1.0,
         limit_val_batches=trainer_cfg.get("limit_val_batches") or 1.0,
         gradient_clip_val=trainer_cfg.get("gradient_clip_val"),
-        enable_progress_bar=bool(trainer_cfg.get("enable_progress_bar", True)),
+        enable_progress_bar=show_bar,
         log_every_n_steps=int(trainer_cfg.get("log_every_n_steps") or 50),
-        callbacks=[ckpt_cb], logger=logger, num_sanity_val_steps=0, enable_model_summary=False,
+        callbacks=[ckpt_cb, *([] if show_bar else [EpochLine(name)])], logger=logger, num_sanity_val_steps=0, enable_model_summary=False,
         default_root_dir=str(work),
     )
     last = work / "ckpt" / "last.ckpt"
