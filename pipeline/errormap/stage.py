@@ -472,6 +472,22 @@ def write_outputs(folder: Path, summary: dict, fields: dict, results: dict, scen
     (folder / "summary.json").write_text(json.dumps(_jsonable(summary), indent=2) + "\n")
 
 
+def _shared_norm(arrays: list[np.ndarray]):
+    """One colour scale for all panels: logarithmic when the values span more than 20x (a clean and an
+    occluded level side by side), else linear from 0. Returns `(norm, floor)`; plot `max(values, floor)`."""
+    from matplotlib.colors import LogNorm, Normalize
+
+    vals = np.concatenate([np.asarray(a, dtype=float).ravel() for a in arrays])
+    vals = vals[np.isfinite(vals)]
+    vmax = float(np.percentile(vals, 99.5)) if vals.size else 1.0
+    vmax = vmax if vmax > 0 else 1.0
+    pos = vals[vals > 0]
+    vmin = max(float(np.percentile(pos, 1)) if pos.size else vmax, vmax * 1e-4)
+    if vmax / vmin > 20:
+        return LogNorm(vmin=vmin, vmax=vmax), vmin
+    return Normalize(vmin=0.0, vmax=vmax), 0.0
+
+
 def _figures(folder: Path, fields: dict, results: dict, scene: Scene, arena, settings, levels) -> list[str]:
     from matplotlib import pyplot as plt
     from matplotlib.colors import BoundaryNorm
@@ -491,10 +507,10 @@ def _figures(folder: Path, fields: dict, results: dict, scene: Scene, arena, set
 
     # error map: worst |F| per point, shared colour scale
     worst = {lv: np.linalg.norm(fields[f"F_{lv}"], axis=-1).max(axis=0) for lv in levels}
-    vmax = max(float(np.nanpercentile(w, 99.5)) for w in worst.values()) or 1.0
+    norm, floor = _shared_norm(list(worst.values()))
     fig, axes = panels("ε-error map |F(p)| = |l(h(p)) - p|")
     for ax, lv in zip(axes, levels):
-        im = ax.imshow(worst[lv], origin="lower", extent=extent, cmap="magma_r", vmin=0, vmax=vmax,
+        im = ax.imshow(np.maximum(worst[lv], floor), origin="lower", extent=extent, cmap="magma_r", norm=norm,
                        interpolation="nearest")
         draw_scene(ax, scene, arena)
         r = results[lv]
@@ -505,11 +521,10 @@ def _figures(folder: Path, fields: dict, results: dict, scene: Scene, arena, set
 
     # local slope map
     slopes = {lv: fields[f"slope_{lv}"] for lv in levels}
-    finite = np.concatenate([s[np.isfinite(s)] for s in slopes.values()])
-    smax = float(np.percentile(finite, 99.5)) if finite.size else 1.0
+    norm, floor = _shared_norm(list(slopes.values()))
     fig, axes = panels("local slope of F (largest difference quotient to a neighbour)")
     for ax, lv in zip(axes, levels):
-        im = ax.imshow(slopes[lv], origin="lower", extent=extent, cmap="viridis", vmin=0, vmax=smax or 1.0,
+        im = ax.imshow(np.fmax(slopes[lv], floor), origin="lower", extent=extent, cmap="viridis", norm=norm,
                        interpolation="nearest")
         draw_scene(ax, scene, arena)
         ax.set_title(f"occlusion {lv}: L max {results[lv]['L_max']:.3g}, p99 {results[lv]['L_p99']:.3g}",
