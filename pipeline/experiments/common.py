@@ -6,6 +6,7 @@ from __future__ import annotations
 import functools
 import json
 import math
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -169,7 +170,8 @@ class Context:
             delta=self.delta, camera_period=self.frame_period, p_fail=p_fail, disturbance=disturbance,
             measure=measure, target_fn=target_fn, seed=self.seed if seed is None else seed,
             record_every=record_every or int(self.cfg.sim.record_every), record=record,
-            stop_on_success=bool(self.cfg.sim.stop_on_success), progress=len(x0) >= 2000,
+            stop_on_success=bool(self.cfg.sim.stop_on_success),
+            progress=len(x0) >= 2000 and sys.stderr.isatty(),
         )
 
     def camera_measure(self, kind: str = "clean", level: str | None = None):
