@@ -403,15 +403,18 @@ def _distance_edges(dist: np.ndarray, bins: int) -> np.ndarray:
 
 
 def eps_marks(settings: Mapping, eps_min_op: list[np.ndarray]) -> list[float]:
-    """The ε values whose covered sets are drawn: `coverage.eps_marks`, else the 50/90/99 % coverage
-    thresholds of all levels pooled, rounded to 2 significant digits."""
+    """The ε values whose covered sets are drawn: `coverage.eps_marks`, else each level's 50 % and 95 %
+    coverage thresholds, rounded to 2 significant digits (so that every panel shows a few bands)."""
     marks = settings["coverage"].get("eps_marks")
     if marks:
         return sorted(float(m) for m in marks)
-    pooled = np.concatenate([e[np.isfinite(e)] for e in eps_min_op]) if eps_min_op else np.empty(0)
-    if pooled.size == 0:
-        return []
-    return sorted({float(f"{q:.2g}") for q in np.quantile(pooled, [0.5, 0.9, 0.99]) if q > 0})
+    out = set()
+    for e in eps_min_op:
+        finite = np.asarray(e, dtype=float)
+        finite = finite[np.isfinite(finite)]
+        if finite.size:
+            out |= {float(f"{q:.2g}") for q in np.quantile(finite, [0.5, 0.95]) if q > 0}
+    return sorted(out)
 
 
 def _fmt_eps(v) -> str:
@@ -524,8 +527,9 @@ def _figures(folder: Path, fields: dict, results: dict, scene: Scene, arena, set
     norm, floor = _shared_norm(list(slopes.values()))
     fig, axes = panels("local slope of F (largest difference quotient to a neighbour)")
     for ax, lv in zip(axes, levels):
-        im = ax.imshow(np.fmax(slopes[lv], floor), origin="lower", extent=extent, cmap="viridis", norm=norm,
-                       interpolation="nearest")
+        sl = np.where(np.isfinite(slopes[lv]), np.maximum(slopes[lv], floor), np.nan)  # NaN: not operational
+        im = ax.imshow(sl, origin="lower", extent=extent, cmap=plt.get_cmap("viridis").with_extremes(bad="0.92"),
+                       norm=norm, interpolation="nearest")
         draw_scene(ax, scene, arena)
         ax.set_title(f"occlusion {lv}: L max {results[lv]['L_max']:.3g}, p99 {results[lv]['L_p99']:.3g}",
                      fontsize=9)
@@ -558,6 +562,8 @@ def _figures(folder: Path, fields: dict, results: dict, scene: Scene, arena, set
         em = fields[f"eps_min_{lv}"]
         band = np.where(np.isfinite(em), np.searchsorted(marks, em, side="left"), np.nan)
         im = ax.imshow(band, origin="lower", extent=extent, cmap=cmap, norm=norm, interpolation="nearest")
+        ax.imshow(np.where(fields["operational"], np.nan, 1.0), origin="lower", extent=extent, cmap="Greys",
+                  vmin=0, vmax=1.6, alpha=0.75, interpolation="nearest")  # grey veil: not operational
         draw_scene(ax, scene, arena)
         ax.set_title(f"occlusion {lv}: covered sets (red: no sample within r_cov); operational set covered "
                      f"for ε >= {_fmt_eps(results[lv]['eps_cover'])}", fontsize=8)
