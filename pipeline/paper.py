@@ -39,7 +39,7 @@ def stage_commands(cfg) -> list[tuple[str, list[str]]]:
     if maps:
         cmds.append(("train", ["-m", f"data={','.join(maps)}", *paths, *args.get("train", [])]))
     if cfg.errormaps:
-        cmds.append(("errormap", [f"model=[{','.join(cfg.errormaps)}]", *paths, *args.get("errormap", [])]))
+        cmds.append(("errormap", [f"maps=[{','.join(cfg.errormaps)}]", *paths, *args.get("errormap", [])]))
     if cfg.experiments:
         cmds.append(("experiments", ["-m", f"experiment={','.join(cfg.experiments)}", *paths,
                                      *args.get("experiments", [])]))
