@@ -84,10 +84,12 @@ class sensitive_set:  # noqa: N801
     maps: tuple = ()
 
     def compute(self, ctx: Context) -> Results:
-        step = float(ctx.param("grid_step", 1.0)) / min(1.0, ctx.scale) ** 0.5
+        coarsen = 1.0 / min(1.0, ctx.scale) ** 0.5
+        step = float(ctx.param("grid_step", 1.0)) * coarsen
+        step_y = float(ctx.param("grid_step_y", step)) * coarsen  # fine across K to resolve the ε band
         eps = float(ctx.param("eps", 0.5))
         (x0, x1), (y0, y1) = ctx.arena
-        xs, ys = np.arange(x0 + 1, x1 - 1 + 1e-9, step), np.arange(y0 + 1, y1 - 1 + 1e-9, step)
+        xs, ys = np.arange(x0 + 1, x1 - 1 + 1e-9, step), np.arange(y0 + 1, y1 - 1 + 1e-9, step_y)
         X, Y = np.meshgrid(xs, ys)
         pts = np.stack([X.ravel(), Y.ravel()], 1)
         keep = np.hypot(*(pts - ctx.scene.p_0).T) > ctx.scene.obstacle_radius
