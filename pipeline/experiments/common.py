@@ -246,7 +246,8 @@ def summarise(metrics: pd.DataFrame, by: list[str], seed: int = 0) -> pd.DataFra
         rows.append({**dict(zip(by, key)), "n": n, "success_rate": s / n, "success_lo": float(s_lo),
                      "success_hi": float(s_hi), "collision_rate": c / n, "collision_lo": float(c_lo),
                      "collision_hi": float(c_hi), "median_time": t_med, "median_time_lo": t_lo,
-                     "median_time_hi": t_hi, "min_clearance": float(g["min_clearance"].min()),
+                     "median_time_hi": t_hi, "final_error_median": float(g["final_error"].median()),
+                     "min_clearance": float(g["min_clearance"].min()),
                      "mean_jumps": j_mean, "mean_jumps_lo": j_lo, "mean_jumps_hi": j_hi})
     return pd.DataFrame(rows)
 

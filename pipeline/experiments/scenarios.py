@@ -414,10 +414,11 @@ class monte_carlo:  # noqa: N801
 
     def draw(self, ctx: Context, res: Results, out: Outputs) -> None:
         cols = ["condition", "controller", "n", "success_rate", "success_lo", "success_hi", "collision_rate",
-                "median_time", "min_clearance", "mean_jumps"]
+                "median_time", "final_error_median", "min_clearance", "mean_jumps"]
         out.table(res.tables["summary"][cols], "tab1_monte_carlo",
-                  "Monte Carlo over random initial conditions: success and collision rates (95% Wilson CIs), median "
-                  "time to target, minimum clearance, mean jumps, per condition and controller.")
+                  "Monte Carlo over random initial conditions: success (|p - p_T| <= delta) and collision rates "
+                  "(95% Wilson CIs), median time to target, median final distance to the target, minimum "
+                  "clearance, mean jumps, per condition and controller.")
         plt = _plt()
         df = res.tables["summary"]
         conds = list(dict.fromkeys(df["condition"]))
