@@ -53,11 +53,12 @@ def lightning_fit(model: PerceptionMap, images, pos, batch: int, steps: int) -> 
         t0 = None
 
         def on_train_batch_start(self, trainer, pl_module, b, i):
-            if i == 2:
+            if trainer.global_step == 2 and self.t0 is None:  # after two warm-up steps, once (not per epoch)
                 self.t0 = time.perf_counter()
 
     timer = Timer()
     trainer = L.Trainer(accelerator="cpu", devices=1, max_steps=steps + 2, logger=False, enable_checkpointing=False,
+                        limit_val_batches=0, num_sanity_val_steps=0,
                         enable_progress_bar=False, enable_model_summary=False, callbacks=[timer])
     trainer.fit(model, train_dataloaders=loader)
     return steps * batch / (time.perf_counter() - timer.t0)
