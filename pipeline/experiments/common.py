@@ -288,14 +288,9 @@ class Outputs:
         self.items: list[dict] = []
 
     def figure(self, fig, stem: str, caption: str) -> list[Path]:
-        import matplotlib.pyplot as plt
+        from pipeline.viz import save
 
-        paths = []
-        for fmt in ("png", "pdf"):
-            path = self.dir / f"{stem}.{fmt}"
-            fig.savefig(path, dpi=150, bbox_inches="tight")
-            paths.append(path)
-        plt.close(fig)
+        paths = [Path(p) for p in save(fig, self.dir / stem, formats=("png", "pdf"))]
         self.items.append({"kind": "figure", "files": [p.name for p in paths], "caption": caption})
         return paths
 

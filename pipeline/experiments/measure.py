@@ -8,7 +8,7 @@ map's estimate of the leader, the follower's moving target.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -36,7 +36,6 @@ class CameraMeasure:
     occlusion: object | None = None
     frames: int = 0
     images: int = 0
-    errors: list = field(default_factory=list)  # per-frame max |l(h(p)) - p| (diagnostics)
 
     def __call__(self, p: np.ndarray, idx: np.ndarray, frame: int, rng: np.random.Generator) -> np.ndarray:
         if isinstance(self.perception_map, OracleMap):
@@ -55,11 +54,12 @@ class LeaderTrack:
     t: np.ndarray  # (T,)
     p: np.ndarray  # (T, N, 2)
 
-    def position(self, t: float, idx: np.ndarray | None = None) -> np.ndarray:
-        k = int(np.searchsorted(self.t, t + 1e-9, side="right") - 1)
-        k = min(max(k, 0), len(self.t) - 1)  # after the leader's run ended: it stays where it stopped
+    def position(self, t, idx: np.ndarray | None = None) -> np.ndarray:
+        """`(N, 2)` at a time `t`, or `(T, N, 2)` for an array of times."""
+        k = np.searchsorted(self.t, np.asarray(t) + 1e-9, side="right") - 1
+        k = np.clip(k, 0, len(self.t) - 1)  # after the leader's run ended: it stays where it stopped
         p = self.p[k]
-        return p if idx is None else p[idx]
+        return p if idx is None else p[..., idx, :]
 
 
 @dataclass

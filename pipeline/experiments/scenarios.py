@@ -189,16 +189,14 @@ class occlusion:  # noqa: N801
         level = str(ctx.param("occlusion", "heavy"))
         ics = np.asarray(ctx.param("initial_conditions", [[-12.0, 2.0], [-37.0, -17.0]]), float)
         n_mc = ctx.n(int(ctx.param("n_agents", 100)))
-        rng = np.random.default_rng(ctx.seed)
         leaders = np.repeat(ics[:1], n_mc, 0)
         followers = initial_conditions({"mode": "random", "n": n_mc, "seed": ctx.seed, "margin": 3.0},
                                        ctx.scene, ctx.scene_cfg)
         followers[0] = ics[1]
-        del rng
         rows, arrays = [], {}
         for kind in ("clean", "occluded"):
             lead, foll, track = ctx.leader_follower(leaders, followers, kind=kind, level=level)
-            err = np.hypot(*(foll.target - np.stack([track.position(t) for t in foll.t])).transpose(2, 0, 1))
+            err = np.hypot(*(foll.target - track.position(foll.t)).transpose(2, 0, 1))
             df = _agent_rows(foll, map=kind, occlusion=level)
             df["tracking_error_mean"] = np.nanmean(err, axis=0)
             rows.append(df)

@@ -9,7 +9,7 @@ import torch
 
 from pipeline import tracking
 from pipeline.cli import REPO_ROOT
-from pipeline.errors import ModelError
+from pipeline.errors import DatasetError, ModelError
 from pipeline.train.model import PerceptionMap
 
 DEFAULT_MODELS_DIR = REPO_ROOT / "outputs" / "models"
@@ -66,7 +66,7 @@ def load_perception_map(ref, models_dir=None, *, verify: bool = False) -> Percep
     root = Path(models_dir) if models_dir else DEFAULT_MODELS_DIR
     try:
         folder = tracking.resolve(root, ref, kind="perception map")
-    except Exception as err:  # DatasetError from resolve: re-raise as the model's error
+    except DatasetError as err:  # unknown name/id: reported as the model's error
         raise ModelError(str(err)) from None
     if verify:
         problems = tracking.verify(folder)

@@ -78,13 +78,15 @@ def error_metrics(pred: np.ndarray, true: np.ndarray, px_per_unit: float) -> dic
     }
 
 
-def evaluate(predictor, ds, levels, seed: int) -> dict:
-    """Test metrics on the dataset's own test split and on its test positions re-rendered per level."""
+def evaluate(predictor, ds, levels, seed: int) -> tuple[dict, np.ndarray]:
+    """Test metrics on the dataset's own test split and on its test positions re-rendered per level;
+    also returns the predictions on the test split."""
     from pipeline.render import load_occlusion
 
     out = {}
     images, pos = ds.images("test"), ds.positions("test")
-    out["test_split"] = error_metrics(predictor.predict(images), pos, predictor.px_per_unit)
+    test_pred = predictor.predict(images)
+    out["test_split"] = error_metrics(test_pred, pos, predictor.px_per_unit)
     labels = ds.labels[ds.labels["split"] == "test"]
     follower = labels[["follower_x", "follower_y"]].to_numpy(np.float64) if "follower_x" in labels else None
     cam = dataset_camera(ds)
@@ -93,7 +95,7 @@ def evaluate(predictor, ds, levels, seed: int) -> dict:
         rng = np.random.default_rng(seed)
         imgs = cam.render(pos, follower, occlusion=occ, rng=rng)
         out[level] = error_metrics(predictor.predict(imgs), pos, predictor.px_per_unit)
-    return out
+    return out, test_pred
 
 
 # ------------------------------------------------------------------------------------------ figures
@@ -261,10 +263,11 @@ def run(cfg) -> dict:
     model.eval()
     predictor = PerceptionMapPredictor(model, manifest={"dataset_id": ds.id, "scene": ds.manifest["scene"],
                                                         "render": ds.manifest["render"]})
+    test_metrics, test_pred = evaluate(predictor, ds, levels, int(cfg.get("eval_seed", 123)))
     metrics = {"dataset": f"{ds.name}-{ds.id}", "epochs": int(trainer.current_epoch),
                "fit_seconds": round(fit_s, 1),
                "train_images_per_s": round(trainer.global_step * trainer_cfg["batch_size"] / max(fit_s, 1e-9), 1),
-               **evaluate(predictor, ds, levels, int(cfg.get("eval_seed", 123)))}
+               **test_metrics}
     meta = {"kind": "perception_map", "dataset_id": ds.id, "dataset_name": ds.name, "seed": seed,
             "model": hparams, "trainer": trainer_cfg, "eval_levels": levels,
             "scene": ds.manifest["scene"], "render": ds.manifest["render"],
@@ -278,7 +281,6 @@ def run(cfg) -> dict:
         (out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
         (out / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=False))
         curves = _curves(work / "logs" / "version_0" / "metrics.csv", out)
-        test_pred = predictor.predict(ds.images("test"))
         _scatter(test_pred, ds.positions("test"), out / "scatter.png",
                  f"{name}-{id_} on {ds.name}-{ds.id} test: MAE {metrics['test_split']['mae_px']:.3f} px")
     shutil.rmtree(work, ignore_errors=True)
