@@ -1,11 +1,14 @@
-"""Thin Hydra shell shared by every stage: config location, resolvers, one-line errors.
+"""Thin Hydra shell shared by every stage: config location, resolvers, preflight, one-line errors.
 
 Each stage module does::
 
-    @stage_main("simulate")
+    @stage_main("simulate", check=check)
     def main(cfg): return run(cfg)
 
-`run(cfg) -> dict` holds the work and is what tests call with a composed config.
+`run(cfg) -> dict` holds the work and is what tests call with a composed config. Before Hydra runs any
+job, :func:`pipeline.config.preflight` composes every job of the command line (each sweep value) and checks
+it (Hydra's composition errors, unknown keys with or without `+`, output paths, the stage's `check`): a user
+error is one line on stderr and exit code 2, before any work.
 """
 
 from __future__ import annotations
@@ -37,8 +40,12 @@ def report_error(err: BaseException) -> None:
     print(f"error: {err}", file=sys.stderr)
 
 
-def stage_main(config_name: str):
-    """Decorator: Hydra entry point whose user errors become one line on stderr and exit code 2."""
+def stage_main(config_name: str, check=None):
+    """Decorator: Hydra entry point with a preflight; user errors become one line on stderr and exit 2.
+
+    `check(cfg)` validates a composed config cheaply (no data, no training): it runs for every job of the
+    command line before the first one starts, and again inside each job.
+    """
 
     def wrap(task):
         @functools.wraps(task)
@@ -53,8 +60,14 @@ def stage_main(config_name: str):
 
         @functools.wraps(task)
         def entry():
-            # Hydra prints its own one-line message for unknown config options; keep it short.
             os.environ.setdefault("HYDRA_FULL_ERROR", "0")
+            from pipeline.config import preflight
+
+            try:
+                preflight(config_name, sys.argv[1:], check)
+            except PipelineError as err:
+                report_error(err)
+                sys.exit(2)
             return main()
 
         return entry
@@ -68,12 +81,6 @@ def compose(config_name: str, overrides: list[str] | None = None) -> DictConfig:
     `hydra:` interpolations are not available here, so `paths.output_dir` must be overridden
     (or the caller sets it) before use.
     """
-    from hydra import compose as _compose
-    from hydra import initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
+    from pipeline.config import compose as _compose
 
-    GlobalHydra.instance().clear()
-    with initialize_config_dir(version_base="1.3", config_dir=str(CONF_DIR)):
-        cfg = _compose(config_name=config_name, overrides=overrides or [], return_hydra_config=False)
-    GlobalHydra.instance().clear()
-    return cfg
+    return _compose(config_name, overrides)

@@ -12,7 +12,8 @@ from pathlib import Path
 from omegaconf import DictConfig
 
 from pipeline.cli import stage_main
-from pipeline.sim import simulate
+from pipeline.schema import CameraTiming, load
+from pipeline.sim import check_timing, simulate
 from pipeline.sim.build import (
     arena_bounds,
     build_controller,
@@ -22,19 +23,31 @@ from pipeline.sim.build import (
 )
 
 
-def run(cfg: DictConfig) -> dict:
-    """Run one batched simulation; returns `{"metrics": DataFrame, "result": SimResult, "run_dir": Path}`."""
-    # validate everything before any work
+def build(cfg: DictConfig):
+    """Every object of the run, validated: (scene, controller, disturbance, initial conditions, timing)."""
     scene = build_scene(cfg.scene)
     controller = build_controller(cfg.controller, scene)
     disturbance = build_disturbance(cfg.disturbance)
     x0 = initial_conditions(cfg.init, scene, cfg.scene)
+    timing = load(cfg.camera, "camera", CameraTiming)
+    check_timing(cfg.sim.dt, cfg.sim.horizon, timing.period)
+    return scene, controller, disturbance, x0, timing
+
+
+def check(cfg: DictConfig) -> None:
+    """Preflight: build every object (no simulation)."""
+    build(cfg)
+
+
+def run(cfg: DictConfig) -> dict:
+    """Run one batched simulation; returns `{"metrics": DataFrame, "result": SimResult, "run_dir": Path}`."""
+    scene, controller, disturbance, x0, timing = build(cfg)  # validate everything before any work
     run_dir = Path(cfg.paths.output_dir)
     t0 = time.perf_counter()
     result = simulate(
         scene, controller, x0,
         dt=cfg.sim.dt, horizon=cfg.sim.horizon, delta=cfg.sim.delta,
-        camera_period=cfg.camera.period, p_fail=cfg.camera.p_fail, disturbance=disturbance,
+        camera_period=timing.period, p_fail=timing.p_fail, disturbance=disturbance,
         seed=cfg.sim.seed, record_every=cfg.sim.record_every, stop_on_success=cfg.sim.stop_on_success,
         progress=len(x0) >= 1000,
     )
@@ -60,7 +73,7 @@ def run(cfg: DictConfig) -> dict:
     return {"metrics": df, "result": result, "run_dir": run_dir}
 
 
-@stage_main("simulate")
+@stage_main("simulate", check=check)
 def main(cfg: DictConfig) -> None:
     run(cfg)
 

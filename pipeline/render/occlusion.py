@@ -21,7 +21,6 @@ import math
 import threading
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -252,33 +251,45 @@ def _bank(occ: Occlusion, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarra
 
 
 # ------------------------------------------------------------------------------------------ levels
-def _levels_dir() -> Path:
-    from pipeline.cli import CONF_DIR
-
-    return CONF_DIR / "occlusion"
-
-
-def occlusion_levels() -> list[str]:
-    """Names of the levels in conf/occlusion/."""
-    return sorted(p.stem for p in _levels_dir().glob("*.yaml"))
+def occlusion_level(*, name: str, probability: float = 0.0, blobs=(0, 0), radius=(4.0, 8.0), opacity=(0.5, 0.5),
+                    aspect=(0.6, 1.0), softness: float = 0.5, color=(185, 205, 255), bank: int = 256,
+                    seed: int = 0) -> Occlusion:
+    """`_target_` of conf/occlusion/*.yaml: a validated :class:`Occlusion` level."""
+    return Occlusion.from_config({"name": name, "probability": probability, "blobs": blobs, "radius": radius,
+                                  "opacity": opacity, "aspect": aspect, "softness": softness, "color": color,
+                                  "bank": bank, "seed": seed})
 
 
-def load_occlusion(level, field: str = "occlusion") -> Occlusion:
-    """An :class:`Occlusion` from a level name (conf/occlusion/<name>.yaml), a mapping, or an Occlusion.
+def default_levels():
+    """The `occlusions` config group as composed by Hydra (for APIs, benches and tests; stages pass the
+    `occlusions` node of their own composed config instead)."""
+    from pipeline.config import compose
 
-    An unknown name raises `ConfigError(field, ...)` listing the known levels.
+    return compose("occlusions/all").occlusions
+
+
+def occlusion_levels(levels=None) -> list[str]:
+    """Names of the levels of an `occlusions` config node (default: the composed `occlusions` group)."""
+    return list((levels if levels is not None else default_levels()).keys())
+
+
+def load_occlusion(level, levels=None, field: str = "occlusion") -> Occlusion:
+    """An :class:`Occlusion` from a level name of the `occlusions` node `levels`, a mapping, or an Occlusion.
+
+    `levels` is the run's composed `occlusions` node (default: the config group as Hydra composes it). An
+    unknown name raises `ConfigError(field, ...)` listing the known levels.
     """
     if isinstance(level, Occlusion):
         return level
     if level is None:
         return Occlusion()
     if isinstance(level, str):
-        path = _levels_dir() / f"{level}.yaml"
-        if not level or "/" in level or not path.is_file():
-            raise ConfigError(field, f"unknown occlusion level {level!r}; known: {', '.join(occlusion_levels())}")
-        from omegaconf import OmegaConf
+        levels = levels if levels is not None else default_levels()
+        if level not in levels:
+            raise ConfigError(field, f"unknown occlusion level {level!r}; known: {', '.join(levels.keys())}")
+        from pipeline.config import build
 
-        cfg = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
-        cfg.setdefault("name", level)
-        return Occlusion.from_config(cfg)
-    return Occlusion.from_config(level)
+        return build(levels[level], f"occlusions.{level}")
+    from pipeline.tracking import to_plain
+
+    return Occlusion.from_config({k: v for k, v in (to_plain(level) or {}).items() if k != "_target_"})

@@ -1,0 +1,323 @@
+"""Config is the single source of truth: objects built from their config node, schemas, a preflight.
+
+- :func:`build` instantiates a node (`_target_` + keywords) with `hydra.utils.instantiate`; a keyword the
+  constructor does not take, or a value it rejects, becomes a :class:`ConfigError` naming the node's path.
+- :func:`check_schema` walks a composed config before any work: every key of a `_target_` node must be a
+  keyword of its target (no `**kwargs` swallowing typos), and every key a `+`/`++` override added must be one.
+- :func:`check_paths` rejects output paths that are files or cannot be created.
+- :func:`preflight` composes every job of a command line (each sweep value) and runs those checks plus the
+  stage's own cheap check, so a bad input is one line and exit code 2 before any job starts.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import inspect
+import os
+import re
+from collections.abc import Callable, Iterable
+from pathlib import Path
+
+from omegaconf import DictConfig, ListConfig, OmegaConf
+
+from pipeline.errors import ConfigError, PipelineError
+
+META_KEYS = {"_target_", "_partial_", "_convert_", "_recursive_", "_args_", "name"}
+
+
+# ------------------------------------------------------------------------------------------ build
+def _signature(target: str):
+    from hydra.utils import get_object
+
+    try:
+        obj = get_object(target)
+    except Exception as err:  # noqa: BLE001 - any import problem is the config's fault
+        raise ConfigError("_target_", f"cannot import {target!r} ({str(err).splitlines()[0]})") from None
+    fn = obj.__init__ if inspect.isclass(obj) else obj
+    try:
+        sig = inspect.signature(fn)
+    except (TypeError, ValueError):  # builtins without a signature: accept anything
+        return None
+    if any(p.kind is p.VAR_KEYWORD for p in sig.parameters.values()):
+        return None
+    return [n for n, p in sig.parameters.items() if n != "self" and p.kind is not p.VAR_POSITIONAL]
+
+
+def allowed_keys(node) -> list[str] | None:
+    """Keywords a `_target_` node may hold (None: the target takes any)."""
+    return _signature(str(node["_target_"]))
+
+
+def _reprefix(err: ConfigError, path: str) -> ConfigError:
+    field = err.field
+    if path and not (field == path or field.startswith(path + ".")):
+        field = f"{path}.{field.rsplit('.', 1)[-1]}" if field not in ("", "_target_") else path
+    return ConfigError(field, err.reason)
+
+
+def build(node, path: str, /, **kwargs):
+    """`instantiate(node)(**kwargs)`: the object a config node describes, errors naming `path`.
+
+    `name` is a label of the node (the table row), not a constructor keyword, unless the target takes it.
+    """
+    from hydra.errors import InstantiationException
+    from hydra.utils import instantiate
+
+    if not isinstance(node, DictConfig):
+        node = OmegaConf.create(node)
+    if "_target_" not in node:
+        raise ConfigError(path, "needs a `_target_` (pick one of the options of its config group)")
+    keys = allowed_keys(node)
+    drop = [k for k in node.keys() if k == "name" and keys is not None and "name" not in keys]
+    for k in node.keys():
+        if keys is not None and k not in META_KEYS and k not in keys:
+            raise ConfigError(f"{path}.{k}", f"unknown key ({node['_target_']} takes {', '.join(keys)})")
+    clean = OmegaConf.masked_copy(node, [k for k in node.keys() if k not in drop]) if drop else node
+    try:
+        # partial first: Hydra would turn a dataclass kwarg (a Scene) into a config node
+        return instantiate(clean, _partial_=True)(**kwargs)
+    except ConfigError as err:
+        raise _reprefix(err, path) from None
+    except PipelineError:
+        raise
+    except InstantiationException as err:
+        cause = err.__cause__
+        while cause is not None and not isinstance(cause, PipelineError):
+            cause = cause.__cause__
+        if isinstance(cause, ConfigError):
+            raise _reprefix(cause, path) from None
+        if cause is not None:
+            raise cause from None
+        raise ConfigError(path, str(err).splitlines()[0]) from None
+    except (TypeError, ValueError) as err:
+        raise ConfigError(path, f"invalid parameters for {node['_target_']}: {err}") from None
+
+
+# ----------------------------------------------------------------------------------------- schema
+def _walk(node, path: str = "") -> Iterable[tuple[str, DictConfig]]:
+    if isinstance(node, DictConfig):
+        yield path, node
+        for k in node.keys():
+            if k == "hydra" and not path:
+                continue
+            try:
+                child = node._get_node(k)._dereference_node() if OmegaConf.is_interpolation(node, k) else node[k]
+            except Exception:  # noqa: BLE001 - unresolvable interpolation (hydra:...) is not a schema matter
+                continue
+            yield from _walk(child, f"{path}.{k}" if path else str(k))
+    elif isinstance(node, ListConfig):
+        for i, child in enumerate(node):
+            if isinstance(child, DictConfig | ListConfig):
+                yield from _walk(child, f"{path}[{i}]")
+
+
+def check_schema(cfg: DictConfig, added: Iterable[str] = ()) -> None:
+    """Unknown keys anywhere in `cfg` (targets' signatures) and keys added by `+`/`++` overrides."""
+    for path, node in _walk(cfg):
+        if "_target_" in node and isinstance(node["_target_"], str):
+            keys = allowed_keys(node)
+            if keys is None:
+                continue
+            for k in node.keys():
+                if k not in META_KEYS and k not in keys:
+                    raise ConfigError(f"{path}.{k}" if path else k,
+                                      f"unknown key ({node['_target_']} takes {', '.join(keys)})")
+    for key in added:
+        parent, _, leaf = key.rpartition(".")
+        node = OmegaConf.select(cfg, parent) if parent else cfg
+        if isinstance(node, DictConfig) and "_target_" in node:
+            keys = allowed_keys(node)
+            if keys is None or leaf in keys:
+                continue
+            raise ConfigError(key, f"unknown key ({node['_target_']} takes {', '.join(keys)})")
+        raise ConfigError(key, "unknown key (not in the config; check the spelling: `+` does not add keys here)")
+
+
+def check_paths(paths) -> None:
+    """Every `paths.*` entry (but the Hydra run dir) must be a folder or creatable as one."""
+    if paths is None:
+        return
+    for key in paths.keys():
+        if key == "output_dir":
+            continue
+        try:
+            value = paths[key]
+        except Exception:  # noqa: BLE001 - hydra: interpolations outside a run
+            continue
+        if value is None:
+            continue
+        p = Path(str(value))
+        if p.exists():
+            if not p.is_dir():
+                raise ConfigError(f"paths.{key}", f"{p} is a file, not a folder")
+            if not os.access(p, os.W_OK):
+                raise ConfigError(f"paths.{key}", f"{p} is not writable")
+            continue
+        parent = p
+        while not parent.exists() and parent != parent.parent:
+            parent = parent.parent
+        if not parent.is_dir():
+            raise ConfigError(f"paths.{key}", f"cannot create {p}: {parent} is a file")
+        if not os.access(parent, os.W_OK):
+            raise ConfigError(f"paths.{key}", f"cannot create {p}: {parent} is not writable")
+
+
+# ----------------------------------------------------------------------------------------- compose
+def compose(config_name: str, overrides: list[str] | None = None) -> DictConfig:
+    """Compose a config with Hydra's compose API, also from inside a running `@hydra.main` app."""
+    from hydra import compose as _compose
+    from hydra import initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from pipeline.cli import CONF_DIR
+
+    gh = GlobalHydra.instance()
+    if gh.is_initialized():
+        return _compose(config_name=config_name, overrides=list(overrides or []))
+    try:
+        with initialize_config_dir(version_base="1.3", config_dir=str(CONF_DIR)):
+            return _compose(config_name=config_name, overrides=list(overrides or []))
+    finally:
+        GlobalHydra.instance().clear()
+
+
+def hydra_error_line(err: BaseException) -> str:
+    """One line for Hydra/OmegaConf composition errors (their own messages span several lines)."""
+    from hydra.errors import MissingConfigException
+
+    if isinstance(err, MissingConfigException) and err.missing_cfg_file:
+        group, _, option = str(err.missing_cfg_file).rpartition("/")
+        opts = f" (available: {', '.join(sorted(err.options))})" if err.options else ""
+        return f"{group or option}: unknown option {option!r}{opts}"
+    text = str(err)
+    m = re.search(r"Could not override '([^']+)'", text)
+    if m and ("not in struct" in text or "ConfigKeyError" in text or "To append" in text):
+        return f"{m.group(1)}: unknown key (not in the config; check the spelling)"
+    m = re.search(r"Could not find '([^']+)'", text)
+    if m:
+        group, _, option = m.group(1).rpartition("/")
+        avail = re.findall(r"^\t(\S+)$", text, flags=re.M)
+        return f"{group or option}: unknown option {option!r}" + (f" (available: {', '.join(avail)})" if avail else "")
+    cause = err.__cause__ or err.__context__
+    while cause is not None:
+        full_key = getattr(cause, "full_key", None)
+        if full_key:
+            reason = str(cause).splitlines()[0]
+            return f"{full_key}: {reason}"
+        cause = cause.__cause__ or cause.__context__
+    m = re.search(r"Error merging override (\S+)", text)
+    if m:
+        return f"{m.group(1).split('=')[0].lstrip('+')}: invalid value in {m.group(1)!r}"
+    lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+    return " ".join(lines[:2]) if lines else type(err).__name__
+
+
+# --------------------------------------------------------------------------------------- preflight
+_SKIP_FLAGS = {"-h", "--help", "--hydra-help", "-i", "--info", "-c", "--cfg", "--resolve", "-sc", "--shell-completion",
+               "--version"}
+_VALUE_FLAGS = {"-cn", "--config-name", "-cp", "--config-path", "-cd", "--config-dir", "-p", "--package",
+                "--experimental-rerun"}
+
+
+def _split_argv(argv: list[str], config_name: str) -> tuple[str, list[str], bool]:
+    """(config name, task overrides, skip) from a Hydra command line."""
+    overrides, it = [], iter(argv)
+    for a in it:
+        if a in _SKIP_FLAGS or a.startswith("--info") or a.startswith("--cfg"):
+            return config_name, [], True
+        if a in _VALUE_FLAGS:
+            value = next(it, "")
+            if a in ("-cn", "--config-name"):
+                config_name = value
+            continue
+        if a.startswith("--config-name="):
+            config_name = a.split("=", 1)[1]
+            continue
+        if a in ("-m", "--multirun") or a.startswith("-"):
+            continue
+        key = a.lstrip("+~").split("=", 1)[0]
+        if key == "hydra" or key.startswith(("hydra.", "hydra/")):
+            continue
+        overrides.append(a)
+    return config_name, overrides, False
+
+
+def _group_options(group: str) -> list[str]:
+    from pipeline.cli import CONF_DIR
+
+    return sorted(p.stem for p in (CONF_DIR / group).glob("*.yaml"))
+
+
+def _expand(overrides: list[str]) -> list[list[str]]:
+    """Jobs to check: the first value of every sweep, then each other value of one sweep at a time."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.core.override_parser.types import Glob
+
+    try:
+        parsed = OverridesParser.create().parse_overrides(overrides)
+    except Exception as err:  # noqa: BLE001 - Hydra's parse errors
+        raise ConfigError(overrides[0].split("=")[0] if overrides else "overrides", hydra_error_line(err)) from None
+    choices: list[list[str]] = []
+    for ov, raw in zip(parsed, overrides):
+        if not ov.is_sweep_override():
+            choices.append([raw])
+            continue
+        prefix = raw.split("=", 1)[0]
+        value = ov.value()
+        if isinstance(value, Glob):
+            opts = [o for o in _group_options(ov.key_or_group)
+                    if any(fnmatch.fnmatch(o, p) for p in value.include)
+                    and not any(fnmatch.fnmatch(o, p) for p in value.exclude)]
+            vals = opts or [raw.split("=", 1)[1]]
+        else:
+            vals = list(ov.sweep_string_iterator())
+        choices.append([f"{prefix}={v}" for v in vals])
+    jobs = [[c[0] for c in choices]]
+    for i, c in enumerate(choices):
+        for v in c[1:]:
+            job = [cc[0] for cc in choices]
+            job[i] = v
+            jobs.append(job)
+    return jobs
+
+
+def _added_keys(job: list[str]) -> list[str]:
+    """Keys that `+key=value` / `++key=value` overrides add (group selections are not keys)."""
+    from pipeline.cli import CONF_DIR
+
+    out = []
+    for o in job:
+        if not o.startswith("+"):
+            continue
+        key = o.lstrip("+").split("=", 1)[0]
+        if "/" in key or "@" in key or (CONF_DIR / key).is_dir():
+            continue
+        out.append(key)
+    return out
+
+
+def preflight(config_name: str, argv: list[str], check: Callable[[DictConfig], None] | None = None) -> int:
+    """Compose and check every job of a command line; returns the number of jobs checked."""
+    config_name, overrides, skip = _split_argv(argv, config_name)
+    if skip:
+        return 0
+    jobs = _expand(overrides)
+    for job in jobs:
+        try:
+            cfg = compose(config_name, job)
+        except PipelineError:
+            raise
+        except Exception as err:  # noqa: BLE001 - Hydra composition errors, reported in one line
+            line = hydra_error_line(err)
+            field, _, reason = line.partition(": ")
+            raise ConfigError(field, reason or line) from None
+        added = _added_keys(job)
+        base = None
+        if any(o.startswith("++") for o in job):
+            base = compose(config_name, [o for o in job if not o.startswith("++")])
+        added = [k for k in added if base is None or OmegaConf.select(base, k, default="__missing__") == "__missing__"]
+        check_schema(cfg, added)
+        check_paths(cfg.get("paths"))
+        if check is not None:
+            check(cfg)
+    return len(jobs)
