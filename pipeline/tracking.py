@@ -187,8 +187,15 @@ def entries(root: Path, name: str | None = None) -> list[Path]:
     return sorted(out, key=lambda d: (created(d), d.stat().st_mtime), reverse=True)
 
 
-def resolve(root: Path, ref: str | os.PathLike, *, kind: str = "output") -> Path:
-    """A tracked folder from a name (latest), an id, `name-id`, or a path."""
+def resolve(root: Path, ref: str | os.PathLike, *, kind: str = "output", expected=None, command: str | None = None,
+            field: str | None = None) -> Path:
+    """A tracked folder from a path, `name-id`, an id, or a name (see :mod:`pipeline.lineage`).
+
+    A bare name never means "the newest folder": `expected(name) -> id | None` gives the id the upstream
+    stage's current config produces, and `<name>-<id>` is returned when it is built. A name that no config
+    produces resolves only when exactly one folder has it; several candidates are an error listing them.
+    `command` (with `{name}`) and `field` make the error messages say how to build or pin one.
+    """
     ref_s = str(ref)
     p = Path(ref_s)
     if p.is_dir() and (p / MANIFEST).is_file():
@@ -197,12 +204,59 @@ def resolve(root: Path, ref: str | os.PathLike, *, kind: str = "output") -> Path
     for d in all_entries:  # exact folder name or id
         if d.name == ref_s or d.name.rsplit("-", 1)[-1] == ref_s:
             return d
-    named = [d for d in all_entries if d.name.rsplit("-", 1)[0] == ref_s]
-    if named:
+    named = sorted((d for d in all_entries if d.name.rsplit("-", 1)[0] == ref_s), key=lambda d: d.name)
+    pin = f" (pin one with {field}=<name-id>)" if field else " (pin one by its id or name-id)"
+    others = f"; other builds: {', '.join(d.name for d in named)}{pin}" if named else ""
+    make = f"; run `{command.format(name=ref_s)}`" if command else ""
+    want = expected(ref_s) if expected is not None else None
+    if want is not None:
+        folder = Path(root) / f"{ref_s}-{want}"
+        if folder in all_entries:
+            return folder
+        raise DatasetError(f"{kind} {ref_s!r}: the current config makes {ref_s}-{want}, which is not built under "
+                           f"{root}{make}{others}")
+    if len(named) == 1:
         return named[0]
+    if len(named) > 1:
+        raise DatasetError(f"{kind} {ref_s!r} is ambiguous: {', '.join(d.name for d in named)}{pin}")
     known = sorted({d.name.rsplit("-", 1)[0] for d in all_entries})
-    hint = f"known: {', '.join(known)}" if known else f"none under {root}; run its stage first"
-    raise DatasetError(f"unknown {kind} {ref_s!r} ({hint})")
+    hint = f"known: {', '.join(known)}" if known else f"none under {root}"
+    raise DatasetError(f"unknown {kind} {ref_s!r} ({hint}){make}")
+
+
+def stale_temporaries(root: Path, remove: bool = True, echo=print) -> list[Path]:
+    """Temporary folders under `root` left by processes that no longer run (a `kill -9`): removed, or
+    only reported with their size when `remove` is false."""
+    root = Path(root)
+    if not root.is_dir():
+        return []
+    found = []
+    for d in root.iterdir():
+        if not (d.is_dir() and d.name.startswith(_TMP_PREFIX)):
+            continue
+        try:
+            pid = int(d.name.rsplit("-", 1)[-1])
+        except ValueError:
+            continue
+        if pid == os.getpid() or _alive(pid):
+            continue
+        size = sum(f.stat().st_size for f in d.rglob("*") if f.is_file())
+        found.append(d)
+        if remove:
+            shutil.rmtree(d, ignore_errors=True)
+        echo(f"{'removed' if remove else 'found'} stale temporary folder {d} ({size / 2**20:.1f} MiB) of "
+             f"process {pid}, which no longer runs")
+    return found
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
 
 # ----------------------------------------------------------------------------------------- writing
@@ -215,6 +269,7 @@ def tracked_output(root: Path, name: str, id_: str, meta: Mapping) -> Iterator[P
     """
     root = Path(root)
     root.mkdir(parents=True, exist_ok=True)
+    stale_temporaries(root)
     final = root / f"{name}-{id_}"
     tmp = root / f"{_TMP_PREFIX}{name}-{id_}-{os.getpid()}"
     shutil.rmtree(tmp, ignore_errors=True)

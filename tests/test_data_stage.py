@@ -42,7 +42,7 @@ def occluded(tmp_path_factory):
 def test_dataset_folder_and_api(tmp_path):
     out = run(cfg_for(tmp_path, "clean"))
     assert not out["skipped"] and out["path"] == tmp_path / f"clean-{out['id']}"
-    ds = open_dataset("clean", datasets_dir=tmp_path, verify=True)
+    ds = open_dataset(f"clean-{out['id']}", datasets_dir=tmp_path, verify=True)
     assert ds.id == out["id"] and ds.name == "clean" and ds.counts == {"train": 50, "val": 10, "test": 10}
     assert set(ds.manifest["files"]) == {"images_train.npy", "images_val.npy", "images_test.npy", "labels.csv", "preview.png"}
     assert ds.recipe["occlusion"] == "none" and ds.manifest["seed"] == 0
@@ -137,13 +137,13 @@ def test_verify_catches_flipped_byte_and_missing_shard(tmp_path):
     problems = verify_datasets(tmp_path, echo=lambda s: None)[str(folder)]
     assert problems == [f"{shard}: sha256 mismatch (altered)"]
     with pytest.raises(DatasetError, match="images_val.npy"):
-        open_dataset("clean", datasets_dir=tmp_path, verify=True)
-    open_dataset("clean", datasets_dir=tmp_path)  # the cheap check (sizes) does not re-hash
+        open_dataset(out["id"], datasets_dir=tmp_path, verify=True)
+    open_dataset(out["id"], datasets_dir=tmp_path)  # the cheap check (sizes) does not re-hash
     (folder / "images_test.npy").unlink()
     problems = verify_datasets(tmp_path, echo=lambda s: None)[str(folder)]
     assert f"{folder / 'images_test.npy'}: missing" in problems and len(problems) == 2
     with pytest.raises(DatasetError, match="missing"):
-        open_dataset("clean", datasets_dir=tmp_path)
+        open_dataset(out["id"], datasets_dir=tmp_path)
     # the stage refuses to skip over (or silently replace) a folder that does not match its manifest
     with pytest.raises(DatasetError, match="does not match its manifest"):
         run(cfg_for(tmp_path, "clean"))

@@ -203,7 +203,8 @@ class StubMap:
 
     def __init__(self, field, name="synthetic", id_="stub000001"):
         self.field, self.name, self.id = field, name, id_
-        self.manifest = {"dataset_id": "stubdata01"}
+        self.manifest = {"dataset_id": "stubdata01",
+                         "scene": {"target": [40.0, 0.0], "obstacle": {"center": [0.0, 0.0], "radius": 4.0}}}
         self.calls = 0
 
     def predict(self, images):

@@ -30,9 +30,11 @@ def default_datasets_dir() -> Path:
 
 
 def resolve_dataset(ref, datasets_dir=None) -> Path:
-    """Folder of a dataset from a name (latest), an id, `name-id` or a path; unknown -> DatasetError."""
-    root = Path(datasets_dir) if datasets_dir is not None else default_datasets_dir()
-    return tracking.resolve(root, ref, kind="dataset")
+    """Folder of a dataset from a path, `name-id`, an id, or a recipe name (the dataset the current
+    `conf/data/<name>.yaml` renders, see :mod:`pipeline.lineage`); unknown -> DatasetError."""
+    from pipeline.lineage import resolve_dataset as _resolve
+
+    return _resolve(ref, Path(datasets_dir) if datasets_dir is not None else default_datasets_dir())
 
 
 class Dataset:

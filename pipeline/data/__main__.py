@@ -2,31 +2,21 @@
 
 from __future__ import annotations
 
-import re
 import sys
 
 from omegaconf import DictConfig
 
-from pipeline.cli import CONF_DIR, stage_main
-
-_GROUPS = {"data": "dataset recipe", "scene": "scene", "render": "render config"}
+from pipeline.cli import stage_main
 
 
-def check_group_options(argv: list[str]) -> str | None:
-    """One-line message for an unknown option of the stage's config groups (Hydra's own is multi-line)."""
-    for arg in argv:
-        m = re.fullmatch(r"(?:\+{1,2})?(data|scene|render)=(.*)", arg)
-        if not m or "(" in m.group(2):  # sweep functions (glob, choice, ...) are left to Hydra
-            continue
-        group, values = m.groups()
-        known = sorted(p.stem for p in (CONF_DIR / group).glob("*.yaml"))
-        for v in values.split(","):
-            if v.strip() not in known:
-                return f"{group}: unknown {_GROUPS[group]} {v.strip()!r} (known: {', '.join(known)})"
-    return None
+def check(cfg: DictConfig) -> None:
+    """Preflight: validate the recipe and compute the dataset id (no rendering)."""
+    from pipeline.data.stage import plan
+
+    plan(cfg)
 
 
-@stage_main("data")
+@stage_main("data", check=check)
 def main(cfg: DictConfig) -> None:
     from pipeline.data.stage import run
 
@@ -34,8 +24,4 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
-    msg = check_group_options(sys.argv[1:])
-    if msg:
-        print(f"error: {msg}", file=sys.stderr)
-        sys.exit(2)
-    main()
+    sys.exit(main())

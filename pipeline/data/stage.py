@@ -17,10 +17,10 @@ import pandas as pd
 from omegaconf import DictConfig
 
 from pipeline import tracking
-from pipeline.control import Scene
 from pipeline.data.sampling import SPLITS, VOLATILE, Recipe, plan_split
 from pipeline.errors import ConfigError, DatasetError
 from pipeline.render import Camera, Occlusion, load_occlusion, save_png
+from pipeline.sim.build import build_scene
 
 LABELS = "labels.csv"
 PREVIEW = "preview.png"
@@ -82,10 +82,10 @@ def plan(cfg: DictConfig) -> Plan:
     """Validate the whole config (raises ConfigError naming the field) and compute the dataset id."""
     recipe_cfg = tracking.to_plain(cfg.data)
     recipe = Recipe.from_config(recipe_cfg)
-    occlusion = load_occlusion(recipe.occlusion, field="data.occlusion")
+    occlusion = load_occlusion(recipe.occlusion, cfg.occlusions, field="data.occlusion")
     scene_cfg = tracking.to_plain(cfg.scene)
     render_cfg = tracking.to_plain(cfg.render)
-    camera = Camera.from_config(render_cfg, Scene.from_config(scene_cfg), arena=None)
+    camera = Camera.from_config(render_cfg, build_scene(cfg.scene), arena=None)
     render_cfg = {**render_cfg, "arena": [list(camera.arena[0]), list(camera.arena[1])]}
     id_ = tracking.content_id(
         {

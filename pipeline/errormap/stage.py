@@ -25,12 +25,12 @@ import pandas as pd
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from pipeline import tracking
-from pipeline.cli import CONF_DIR, REPO_ROOT
+from pipeline.cli import REPO_ROOT
 from pipeline.control import Scene, in_diamond
 from pipeline.errormap import core
-from pipeline.errors import ConfigError, DatasetError
+from pipeline.errors import ConfigError, DatasetError, ModelError
 
-VOLATILE = ("force", "progress", "paths", "hydra", "maps")
+VOLATILE = ("force", "progress", "paths", "hydra", "maps", "occlusions", "device")
 LIPSCHITZ_CHOICES = ("max", "p99")
 DEFAULT_ARENA = ((-50.0, 50.0), (-30.0, 30.0))
 
@@ -111,10 +111,11 @@ def _load_map(ref, models_dir):
     return load_perception_map(ref, models_dir=models_dir)
 
 
-def _load_occlusion(name: str):
+def _occlusions(cfg, levels) -> dict:
+    """The cloud levels named by `occlusion_levels`, built from the run's `occlusions` node."""
     from pipeline.render import load_occlusion
 
-    return load_occlusion(name, field="occlusion_levels")
+    return {name: load_occlusion(name, cfg.occlusions, field="occlusion_levels") for name in levels}
 
 
 def _open_dataset(ref, datasets_dir):
@@ -124,11 +125,11 @@ def _open_dataset(ref, datasets_dir):
 
 
 def _scene_and_arena(pmap, camera) -> tuple[Scene, tuple, dict]:
-    """The scene the model's images show (its manifest), else conf/scene/default.yaml."""
+    """The scene the model's images show (recorded in its manifest)."""
     manifest = getattr(pmap, "manifest", None) or {}
     scene_cfg = manifest.get("scene")
     if not scene_cfg:
-        scene_cfg = _plain(OmegaConf.load(CONF_DIR / "scene" / "default.yaml"))
+        raise ModelError(f"perception map {getattr(pmap, 'name', '?')}: its manifest records no scene")
     scene = Scene.from_config(OmegaConf.create(scene_cfg))
     arena = getattr(camera, "arena", None)
     if arena is None:
@@ -216,7 +217,7 @@ def run_one(cfg: DictConfig, *, perception_map=None, camera=None, occlusions: Ma
     levels = settings["occlusion_levels"]
     pmap = perception_map if perception_map is not None else _load_map(cfg.maps, cfg.paths.models_dir)
     camera = camera if camera is not None else pmap.camera()
-    occ = dict(occlusions) if occlusions is not None else {name: _load_occlusion(name) for name in levels}
+    occ = dict(occlusions) if occlusions is not None else _occlusions(cfg, levels)
     shared_clouds = settings.get("clouds", "independent") == "shared"
     missing = [lv for lv in levels if lv not in occ]
     if missing:
@@ -229,9 +230,7 @@ def run_one(cfg: DictConfig, *, perception_map=None, camera=None, occlusions: Ma
         raise ConfigError("grid.step", str(err)) from None
 
     recipe = tracking.strip_keys(settings, VOLATILE)
-    code = [p for p in ("errormap", "render") if (Path(__file__).resolve().parents[1] / p).exists()]
-    id_ = tracking.content_id(recipe, str(pmap.id), scene_cfg, [float(v) for pair in arena for v in pair],
-                              tracking.code_version(*code))
+    _, id_ = errormap_identity(cfg, pmap, camera, settings=settings, occlusions=occ)
     root = Path(cfg.paths.errormaps_dir)
     final = root / f"{pmap.name}-{id_}"
     if tracking.is_complete(final) and not settings.get("force", False):
@@ -313,6 +312,22 @@ def run_one(cfg: DictConfig, *, perception_map=None, camera=None, occlusions: Ma
         write_outputs(tmp, summary, fields, results, scene, arena, settings, samples, sample_err_vec)
     print(f"errormap: wrote {final}")
     return {"path": final, "summary": summary, "skipped": False, "fields": fields}
+
+
+def errormap_identity(cfg, pmap, camera=None, *, settings=None, occlusions=None) -> tuple[str, str]:
+    """(folder name, id) of the error map a composed errormap config computes for `pmap`: the settings (minus
+    volatile keys), the occlusion levels' parameters, the map id, its scene and arena, and the code."""
+    settings = settings if settings is not None else validate(cfg)
+    camera = camera if camera is not None else pmap.camera()
+    occ = occlusions if occlusions is not None else _occlusions(cfg, settings["occlusion_levels"])
+    _, arena, scene_cfg = _scene_and_arena(pmap, camera)
+    occ_cfg = {lv: o.config() if hasattr(o, "config") else
+               {"type": type(o).__name__, **{k: v for k, v in getattr(o, "__dict__", {}).items()
+                                         if isinstance(v, int | float | str | bool)}}
+               for lv, o in occ.items()}
+    id_ = tracking.content_id(tracking.strip_keys(settings, VOLATILE), occ_cfg, str(pmap.id), scene_cfg,
+                              [float(v) for pair in arena for v in pair], tracking.code_version("errormap", "render"))
+    return pmap.name, id_
 
 
 def operational_margin(margin, camera) -> float:
@@ -602,7 +617,9 @@ def load_error_map(ref, errormaps_dir=None) -> dict:
     """A finished error map by model name (latest), id, `name-id` or path: its summary.json plus
     `"path"` (Path) and `"paths"` (`{file name: Path}`). Unknown or incomplete -> DatasetError."""
     root = Path(errormaps_dir) if errormaps_dir is not None else default_errormaps_dir()
-    folder = tracking.resolve(root, ref, kind="error map")
+    from pipeline.lineage import resolve_errormap
+
+    folder = resolve_errormap(ref, root)
     problems = tracking.verify(folder, full=False)
     if problems:
         raise DatasetError(f"error map {folder}: " + "; ".join(problems[:3]))

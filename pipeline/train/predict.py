@@ -62,10 +62,13 @@ class PerceptionMapPredictor:
 
 
 def load_perception_map(ref, models_dir=None, *, verify: bool = False) -> PerceptionMapPredictor:
-    """A trained map by name (latest), id, `name-id` or folder path."""
+    """A trained map by path, `name-id`, id, or name (the map the current train config makes for that
+    dataset recipe; see :mod:`pipeline.lineage`)."""
+    from pipeline.lineage import resolve_map
+
     root = Path(models_dir) if models_dir else DEFAULT_MODELS_DIR
     try:
-        folder = tracking.resolve(root, ref, kind="perception map")
+        folder = resolve_map(ref, root)
     except DatasetError as err:  # unknown name/id: reported as the model's error
         raise ModelError(str(err)) from None
     if verify:

@@ -59,6 +59,20 @@ def model_name(dataset_name: str, model_cfg: dict, trainer_cfg: dict, override: 
     return "_".join(dict.fromkeys(parts))  # e.g. clean, clean_paper
 
 
+def model_identity(cfg, dataset_name: str, dataset_id: str) -> tuple[str, str]:
+    """(folder name, id) of the map a composed train config trains on a dataset: what changes the weights."""
+    model_cfg = tracking.to_plain(cfg.model)
+    trainer_cfg = tracking.to_plain(cfg.trainer)
+    levels = list(tracking.to_plain(cfg.eval_levels) or [])
+    name = model_name(dataset_name, model_cfg, trainer_cfg, cfg.get("name"))
+    id_ = tracking.content_id(
+        {k: v for k, v in model_cfg.items() if k != "name"},
+        tracking.strip_keys(trainer_cfg, VOLATILE + ("name",)),
+        dataset_id, int(cfg.seed), levels, tracking.code_version("train"),
+    )
+    return name, id_
+
+
 def dataset_camera(ds):
     """The Camera that rendered a dataset (from its manifest)."""
     return ds.camera()
@@ -78,7 +92,7 @@ def error_metrics(pred: np.ndarray, true: np.ndarray, px_per_unit: float) -> dic
     }
 
 
-def evaluate(predictor, ds, levels, seed: int) -> tuple[dict, np.ndarray]:
+def evaluate(predictor, ds, levels, seed: int, occlusions=None) -> tuple[dict, np.ndarray]:
     """Test metrics on the dataset's own test split and on its test positions re-rendered per level;
     also returns the predictions on the test split."""
     from pipeline.render import load_occlusion
@@ -91,7 +105,7 @@ def evaluate(predictor, ds, levels, seed: int) -> tuple[dict, np.ndarray]:
     follower = labels[["follower_x", "follower_y"]].to_numpy(np.float64) if "follower_x" in labels else None
     cam = dataset_camera(ds)
     for level in levels:
-        occ = load_occlusion(level, field="train.eval_levels")
+        occ = load_occlusion(level, occlusions, field="eval_levels")
         rng = np.random.default_rng(seed)
         imgs = cam.render(pos, follower, occlusion=occ, rng=rng)
         out[level] = error_metrics(predictor.predict(imgs), pos, predictor.px_per_unit)
@@ -193,25 +207,23 @@ def run(cfg) -> dict:
     trainer_cfg = tracking.to_plain(cfg.trainer)
     _validate_trainer(trainer_cfg)
     levels = list(tracking.to_plain(cfg.eval_levels) or [])
-    known_levels = occlusion_levels()
+    known_levels = occlusion_levels(cfg.occlusions)
     for lv in levels:
         if lv not in known_levels:
             raise ConfigError("eval_levels", f"unknown occlusion level {lv!r}; known: {', '.join(known_levels)}")
-    ref = cfg.get("dataset") or cfg.data.name
-    ds = open_dataset(ref, datasets_dir=cfg.paths.datasets_dir, verify=bool(cfg.get("verify_dataset", True)))
+    from pipeline.lineage import train_dataset_id
+
+    ds_name, ds_id = train_dataset_id(cfg)  # the dataset this config's recipe renders (or `dataset`, pinned)
+    ds = open_dataset(f"{ds_name}-{ds_id}", datasets_dir=cfg.paths.datasets_dir,
+                      verify=bool(cfg.get("verify_dataset", True)))
     shape = tuple(int(s) for s in ds.images("train").shape[1:])
     want = model_cfg.get("image_shape")
     if want is not None and tuple(want) != shape:
         raise ModelError(f"model.image_shape {list(want)} does not match dataset {ds.name}-{ds.id} images {list(shape)}")
     arena = dataset_camera(ds).arena
 
-    name = model_name(ds.name, model_cfg, trainer_cfg, cfg.get("name"))
+    name, id_ = model_identity(cfg, ds.name, ds.id)
     seed = int(cfg.seed)
-    id_ = tracking.content_id(
-        {k: v for k, v in model_cfg.items() if k != "name"},
-        tracking.strip_keys(trainer_cfg, VOLATILE + ("name",)),
-        ds.id, seed, levels, tracking.code_version("train"),
-    )
     root = Path(cfg.paths.models_dir)
     final = root / f"{name}-{id_}"
     if tracking.is_complete(final) and not cfg.get("force", False):
@@ -263,7 +275,7 @@ def run(cfg) -> dict:
     model.eval()
     predictor = PerceptionMapPredictor(model, manifest={"dataset_id": ds.id, "scene": ds.manifest["scene"],
                                                         "render": ds.manifest["render"]})
-    test_metrics, test_pred = evaluate(predictor, ds, levels, int(cfg.get("eval_seed", 123)))
+    test_metrics, test_pred = evaluate(predictor, ds, levels, int(cfg.get("eval_seed", 123)), cfg.occlusions)
     metrics = {"dataset": f"{ds.name}-{ds.id}", "epochs": int(trainer.current_epoch),
                "fit_seconds": round(fit_s, 1),
                "train_images_per_s": round(trainer.global_step * trainer_cfg["batch_size"] / max(fit_s, 1e-9), 1),
