@@ -75,7 +75,7 @@ def build(node, path: str, /, **kwargs):
     clean = OmegaConf.masked_copy(node, [k for k in node.keys() if k not in drop]) if drop else node
     try:
         # partial first: Hydra would turn a dataclass kwarg (a Scene) into a config node
-        return instantiate(clean, _partial_=True)(**kwargs)
+        return instantiate(clean, _partial_=True, _convert_="all")(**kwargs)
     except ConfigError as err:
         raise _reprefix(err, path) from None
     except PipelineError:

@@ -84,7 +84,7 @@ def test_tables_carry_the_raw_metrics_and_cache_redraws(tmp_path):
     assert f"{table.iloc[0]['median_time']:.3g}" in md
     assert not first["cached"]
 
-    png = paper / "fig10_monte_carlo.png"
+    png = paper / "fig9_monte_carlo.png"
     mtime = png.stat().st_mtime_ns
     second = run(cfg)
     assert second["cached"] and second["cache"] == first["cache"]
@@ -106,8 +106,8 @@ def test_bad_input(tmp_path):
 
     with pytest.raises(ConfigError, match="perception"):
         run(_cfg(tmp_path, "experiment=noise_failure", "perception=psychic"))
-    with pytest.raises(ConfigError, match="experiment"):
-        run(_cfg(tmp_path, "experiment=noise_failure", "experiment.id=nope"))
+    with pytest.raises(ConfigError, match="experiment.nope"):
+        run(_cfg(tmp_path, "experiment=noise_failure", "+experiment.nope=1"))
     with pytest.raises(ModelError, match="unknown perception map"):
         run(_cfg(tmp_path, "experiment=noise_failure", "maps.clean=nope", f"paths.models_dir={tmp_path / 'm'}"))
     proc = subprocess.run(
@@ -127,21 +127,25 @@ def tiny_maps(tmp_path_factory):
     from pipeline.train.stage import run as train_run
 
     root = tmp_path_factory.mktemp("exp_maps")
+    ids = {}
     for recipe in ("clean", "occluded"):
-        data_run(compose("data", [f"data={recipe}", "data.splits.train=128", "data.splits.val=32",
-                                  "data.splits.test=32", f"paths.datasets_dir={root / 'datasets'}"]))
-        train_run(compose("train", [f"data={recipe}", "trainer=debug", f"name={recipe}", "eval_levels=[none]",
-                                    f"paths.datasets_dir={root / 'datasets'}", f"paths.models_dir={root / 'models'}"]))
-    return root
+        small = [f"data={recipe}", "data.splits.train=128", "data.splits.val=32", "data.splits.test=32",
+                 f"paths.datasets_dir={root / 'datasets'}"]
+        data_run(compose("data", small))
+        out = train_run(compose("train", [*small, "trainer=debug", f"name={recipe}", "eval_levels=[none]",
+                                          f"paths.models_dir={root / 'models'}"]))
+        ids[recipe] = f"{out['name']}-{out['id']}"
+    return root, ids
 
 
 def test_camera_in_the_loop_renders_all_agents_per_frame(tiny_maps):
+    root, ids = tiny_maps
     from pipeline.control import HybridController, Scene
     from pipeline.experiments.measure import CameraMeasure
     from pipeline.sim import simulate
     from pipeline.train import load_perception_map
 
-    pm = load_perception_map("clean", models_dir=tiny_maps / "models")
+    pm = load_perception_map(ids["clean"], models_dir=root / "models")
     cam = pm.camera()
     scene = Scene(target=(40.0, 0.0))
     x0 = np.array([[-30.0, 10.0], [-20.0, -15.0], [10.0, 20.0]])
@@ -156,7 +160,9 @@ def test_camera_in_the_loop_renders_all_agents_per_frame(tiny_maps):
 def test_occlusion_experiment_with_trained_maps(tiny_maps, tmp_path):
     from pipeline.experiments.stage import run
 
-    out = run(_cfg(tmp_path, "experiment=occlusion", "debug=tiny", f"paths.models_dir={tiny_maps / 'models'}"))
+    root, ids = tiny_maps
+    out = run(_cfg(tmp_path, "experiment=occlusion", "debug=tiny", f"paths.models_dir={root / 'models'}",
+                   f"maps.clean={ids['clean']}", f"maps.occluded={ids['occluded']}"))
     summary = out["results"].tables["summary"]
     assert list(summary["map"]) == ["clean", "occluded"]
     index = (tmp_path / "paper" / "index.md").read_text()

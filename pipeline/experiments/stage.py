@@ -1,24 +1,32 @@
 """The experiments stage: `python -m pipeline.experiments experiment=<id>` (one paper figure/table each).
 
-Each scenario's numbers are computed once and cached as a tracked output
-`outputs/experiments/<experiment>-<id>/` (id = hash of the experiment, scene, controller, camera, sim and render
-configs, the perception-map ids and the code version); re-running with nothing changed only re-draws.
-Figures (PNG + PDF) and tables (CSV + Markdown + LaTeX) go to `outputs/paper/`, with an `index.md`.
+The scenario is instantiated from its bundle (`experiment._target_`), with every object it uses built from the
+composed config (controllers, disturbances, cloud levels, scenes, camera). Its numbers are computed once and
+cached as a tracked output `outputs/experiments/<experiment>-<id>/`; the id hashes exactly what the
+computation reads: the scenario's parameters (not its title), the scene(s), the controllers, disturbances and
+cloud levels it uses, camera, sim and render settings, the ids of its perception and error maps, and the code
+that computes (not the drawing code). Re-running with nothing changed only re-draws; changing a baseline's
+parameter recomputes. Figures (PNG + PDF) and tables (CSV + Markdown + LaTeX) go to `outputs/paper/`, with an
+`index.md` in the paper's figure order.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
 from pathlib import Path
 
 from pipeline import tracking
+from pipeline.config import build
 from pipeline.errors import ConfigError
-from pipeline.experiments.common import Context, Outputs, Results, write_index
-from pipeline.experiments.scenarios import REGISTRY
+from pipeline.experiments.context import Context, Results
+from pipeline.experiments.report import Outputs, write_index
+from pipeline.experiments.scenarios import Scenario
 
-CODE = ("experiments", "control", "sim", "render")
+# the code whose changes change the numbers (figures.py and report.py only draw)
+COMPUTE_CODE = ("experiments/scenarios", "experiments/context", "experiments/measure", "control", "sim", "render")
 
 
 def _command(cfg, exp_id: str) -> str:
@@ -33,48 +41,82 @@ def _command(cfg, exp_id: str) -> str:
     return "python -m pipeline.experiments " + " ".join(overrides)
 
 
-def run(cfg) -> dict:
-    t0 = time.perf_counter()
-    exp = tracking.to_plain(cfg.get("experiment")) or {}
-    exp_id = exp.get("id")
-    if exp_id not in REGISTRY:
-        raise ConfigError("experiment", f"unknown experiment {exp_id!r}; known: {', '.join(sorted(REGISTRY))}")
-    scen = REGISTRY[exp_id]()
+def build_scenario(cfg) -> Scenario:
+    node = cfg.get("experiment")
+    if node is None or "_target_" not in node:
+        raise ConfigError("experiment", "pick a bundle: experiment=<id> (conf/experiment/)")
+    scen = build(node, "experiment")
+    if not isinstance(scen, Scenario):
+        raise ConfigError("experiment._target_", f"{node['_target_']} is not a scenario")
+    return scen
+
+
+def check(cfg) -> None:
+    """Preflight: the scenario, every object it uses and its inputs (maps and error maps, by id)."""
+    scen = build_scenario(cfg)
     ctx = Context(cfg)
-    key_parts = {
-        "experiment": exp, "scene": ctx.scene_cfg, "controller": tracking.to_plain(cfg.controller),
-        "camera": tracking.to_plain(cfg.camera), "sim": tracking.to_plain(cfg.sim),
-        "render": tracking.to_plain(cfg.render), "perception": ctx.perception, "scale": ctx.scale,
-        "maps": ctx.map_ids(scen.maps), "code": tracking.code_version(*CODE),
+    scen.check(ctx)
+    ctx.map_ids(scen.maps)
+    for kind in getattr(scen, "errormaps", ()):
+        ctx.error_map(kind)
+
+
+def cache_key(cfg, scen: Scenario, ctx: Context) -> dict:
+    """Everything the computation reads (resolved), and nothing it does not."""
+    plain = {k: tracking.to_plain(cfg[k]) for k in ("experiment", "scene", "camera", "sim", "render", "controllers",
+                                                    "disturbances", "occlusions", "other_scene") if k in cfg}
+    used = scen.uses()
+    exp = {k: v for k, v in plain["experiment"].items() if k not in scen.DRAW_ONLY}
+    key = {
+        "experiment": exp, "scene": plain["scene"], "camera": plain["camera"], "sim": plain["sim"],
+        "render": plain["render"], "perception": ctx.perception, "scale": ctx.scale,
+        "controllers": {n: plain["controllers"][n] for n in used["controllers"]},
+        "disturbances": {n: plain["disturbances"][n] for n in used["disturbances"]},
+        "occlusions": {n: plain["occlusions"][n] for n in used["occlusions"]},
+        "maps": ctx.map_ids(scen.maps), "code": tracking.code_version(*COMPUTE_CODE),
     }
-    if exp_id == "perception_closeness":
-        key_parts["errormap"] = ctx.eps_perception("clean", "none")[1]
+    if "other_scene" in plain:
+        key["other_scene"] = plain["other_scene"]
+    errormaps = {k: (s["id"] if (s := ctx.error_map(k)) else "oracle") for k in getattr(scen, "errormaps", ())}
+    if errormaps:
+        key["errormaps"] = errormaps
+    return key
+
+
+def run(cfg) -> dict:
+    from pipeline.experiments.figures import FIGURES, draw
+
+    t0 = time.perf_counter()
+    scen = build_scenario(cfg)
+    ctx = Context(cfg)
+    scen.check(ctx)
+    key_parts = cache_key(cfg, scen, ctx)
     cid = tracking.content_id(key_parts)
     root = Path(cfg.paths.outputs_dir) / "experiments"
-    folder = root / f"{exp_id}-{cid}"
+    folder = root / f"{scen.id}-{cid}"
     cached = tracking.is_complete(folder) and not cfg.get("force", False)
     if cached:
         res = Results.load(folder)
-        print(f"[experiments] {exp_id}: re-using cached results {folder}")
+        print(f"[experiments] {scen.id}: re-using cached results {folder}")
     else:
         res = scen.compute(ctx)
-        with tracking.tracked_output(root, exp_id, cid, {"kind": "experiment", **key_parts}) as tmp:
+        with tracking.tracked_output(root, scen.id, cid, {"kind": "experiment", "code_version": key_parts["code"],
+                                                          **key_parts}) as tmp:
             res.save(tmp)
     paper_dir = Path(cfg.paths.paper_dir)
-    out = Outputs(paper_dir, exp_id)
-    scen.draw(ctx, res, out)
+    out = Outputs(paper_dir, scen.id)
+    draw(scen, ctx, res, out)
     # the raw per-agent metrics of the scenario, next to its figures
     if "metrics" in res.tables:
-        res.tables["metrics"].to_csv(paper_dir / f"metrics_{exp_id}.csv", index=False)
-        out.items.append({"kind": "metrics", "files": [f"metrics_{exp_id}.csv"],
+        res.tables["metrics"].to_csv(paper_dir / f"metrics_{scen.id}.csv", index=False)
+        out.items.append({"kind": "metrics", "files": [f"metrics_{scen.id}.csv"],
                           "caption": "raw per-agent metrics (one row per simulated vehicle)"})
-    entry = {"id": exp_id, "title": exp.get("title", exp_id), "paper": exp.get("paper", "–"),
-             "command": _command(cfg, exp_id), "inputs": dict(ctx.used), "cache": str(folder),
-             "items": out.items}
+    entry = {"id": scen.id, "title": scen.title, "paper": scen.paper, "command": _command(cfg, scen.id),
+             "inputs": dict(ctx.used), "cache": os.path.relpath(folder, paper_dir), "items": out.items}
     (paper_dir / "index").mkdir(parents=True, exist_ok=True)
-    (paper_dir / "index" / f"{exp_id}.json").write_text(json.dumps(entry, indent=2) + "\n")
-    index = write_index(paper_dir)
+    (paper_dir / "index" / f"{scen.id}.json").write_text(json.dumps(entry, indent=2) + "\n")
+    index = write_index(paper_dir, FIGURES)
     files = [f for it in out.items for f in it["files"]]
-    print(f"[experiments] {exp_id}: {len(files)} files in {paper_dir} ({time.perf_counter() - t0:.0f} s); "
+    print(f"[experiments] {scen.id}: {len(files)} files in {paper_dir} ({time.perf_counter() - t0:.0f} s); "
           f"index {index}", file=sys.stdout)
-    return {"id": exp_id, "cache": folder, "cached": cached, "results": res, "files": [paper_dir / f for f in files]}
+    return {"id": scen.id, "cache": folder, "cached": cached, "results": res, "files": [paper_dir / f for f in files]}

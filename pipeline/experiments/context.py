@@ -1,5 +1,6 @@
-"""Shared machinery of the paper scenarios: context (scene, controllers, maps, camera), simulation helpers,
-confidence intervals, and writers for figures (PNG + PDF), tables (CSV + Markdown + LaTeX) and the index."""
+"""What a scenario computes with (cached results depend on this code, not on the drawing code): the context
+built from the run's composed config (scene, the controllers, disturbances and cloud levels under
+comparison, perception maps pinned by id, camera), results, and statistics."""
 
 from __future__ import annotations
 
@@ -12,16 +13,17 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from omegaconf import OmegaConf
 
 from pipeline import tracking
-from pipeline.cli import CONF_DIR
 from pipeline.control import Scene
 from pipeline.errors import ConfigError
 from pipeline.experiments.measure import CameraMeasure, FollowerTarget, LeaderTrack, OracleMap
-from pipeline.sim import Gaussian, simulate
+from pipeline.schema import CameraTiming, load
+from pipeline.sim import simulate
 from pipeline.sim.build import arena_bounds, build_controller, build_disturbance, build_scene
-from pipeline.sim.simulator import true_state
+from pipeline.sim.simulator import check_timing, true_state
+
+PERCEPTIONS = ("cnn", "oracle")
 
 
 # --------------------------------------------------------------------------------------- results
@@ -59,54 +61,66 @@ def _json_default(o):
     return str(o)
 
 
-# ---------------------------------------------------------------------------------------- context
 class Context:
-    """Everything a scenario needs, built from the resolved config; maps are loaded lazily."""
+    """Everything a scenario needs, built from the composed config; maps are loaded lazily, by id."""
 
     def __init__(self, cfg):
         self.cfg = cfg
-        self.exp = tracking.to_plain(cfg.experiment)
         self.scene_cfg = tracking.to_plain(cfg.scene)
         self.scene: Scene = build_scene(cfg.scene)
         self.arena = arena_bounds(cfg.scene)
-        self.scale = float(cfg.get("scale", 1.0))
-        if not self.scale > 0:
-            raise ConfigError("scale", f"must be > 0, got {self.scale}")
-        self.perception = str(cfg.get("perception", "cnn"))
-        if self.perception not in ("cnn", "oracle"):
+        self.scale = cfg.get("scale", 1.0)
+        if isinstance(self.scale, bool) or not isinstance(self.scale, int | float) or not self.scale > 0:
+            raise ConfigError("scale", f"must be a number > 0, got {self.scale!r}")
+        self.perception = cfg.get("perception", "cnn")
+        if self.perception not in PERCEPTIONS:
             raise ConfigError("perception", f"must be cnn or oracle (a perfect map), got {self.perception!r}")
+        timing = load(cfg.camera, "camera", CameraTiming)
         self.dt, self.horizon, self.delta = float(cfg.sim.dt), float(cfg.sim.horizon), float(cfg.sim.delta)
-        self.frame_period = cfg.camera.period
+        check_timing(self.dt, self.horizon, timing.period)
+        self.frame_period = timing.period
         self.seed = int(cfg.sim.seed)
+        if self.seed < 0:
+            raise ConfigError("sim.seed", f"must be >= 0, got {self.seed}")
         self.used: dict[str, str] = {}  # inputs used (map/dataset/error-map ids), for the index
 
     # sizes -------------------------------------------------------------------------------------
     def n(self, count: int, minimum: int = 2) -> int:
         return max(minimum, int(round(count * self.scale)))
 
-    def param(self, key: str, default=None):
-        return self.exp.get(key, default)
-
-    # controllers -------------------------------------------------------------------------------
-    def controller(self, name: str = "hybrid", scene: Scene | None = None, **overrides):
-        """`hybrid` uses the run's `controller` group (chi, lam, ...); smooth/cbf their own YAML."""
-        scene = scene or self.scene
-        if name == self.cfg.controller.get("name"):
-            node = OmegaConf.create(tracking.to_plain(self.cfg.controller))
-        else:
-            path = CONF_DIR / "controller" / f"{name}.yaml"
-            if not path.is_file():
-                raise ConfigError("experiment.controllers", f"unknown controller {name!r}")
-            node = OmegaConf.load(path)
-        for k, v in overrides.items():
-            node[k] = v
-        return build_controller(node, scene)
+    # composed objects --------------------------------------------------------------------------
+    def controller(self, name: str = "hybrid", scene: Scene | None = None, **params):
+        """The controller `controllers.<name>` of the composed config (hybrid: the run's `controller`)."""
+        nodes = self.cfg.controllers
+        if name not in nodes:
+            raise ConfigError("experiment.controllers", f"unknown controller {name!r}; known: {', '.join(nodes)}")
+        node = nodes[name]
+        path = "controller" if name == "hybrid" else f"controllers.{name}"
+        ctrl = build_controller(node, scene or self.scene, path=path) if not params else \
+            build_controller({**tracking.to_plain(node), **params}, scene or self.scene, path=path)
+        ctrl.name = name
+        return ctrl
 
     def disturbance(self, name: str, **params):
-        node = OmegaConf.load(CONF_DIR / "disturbance" / f"{name}.yaml")
-        for k, v in params.items():
-            node[k] = v
-        return build_disturbance(node)
+        """The disturbance `disturbances.<name>`; `params` set what the scenario sweeps (eps, sigma)."""
+        nodes = self.cfg.disturbances
+        if name not in nodes:
+            raise ConfigError("experiment.disturbances", f"unknown disturbance {name!r}; known: {', '.join(nodes)}")
+        return build_disturbance(nodes[name], f"disturbances.{name}", **params)
+
+    def occlusion(self, level: str | None):
+        if level is None:
+            return None
+        from pipeline.render import load_occlusion
+
+        occ = load_occlusion(level, self.cfg.occlusions, field="experiment.occlusion")
+        return occ if occ.active else None
+
+    def other_scene(self) -> tuple[str, Scene]:
+        node = self.cfg.get("other_scene")
+        if node is None:
+            raise ConfigError("other_scene", "this experiment needs a second scene (defaults: /scene@other_scene)")
+        return str(node.get("name", "other")), build_scene(node, "other_scene")
 
     # perception ------------------------------------------------------------------------------
     @functools.cache  # noqa: B019 - one context per run
@@ -125,9 +139,35 @@ class Context:
 
     def map_ids(self, kinds) -> dict:
         """Ids of the maps a scenario will use (part of its cache key)."""
-        if self.perception == "oracle":
-            return {k: "oracle" for k in kinds}
         return {k: self.perception_map(k).id for k in kinds}
+
+    @functools.cache  # noqa: B019
+    def error_map(self, kind: str = "clean") -> dict | None:
+        """Summary of the error map of map `kind` (`errormaps.<kind>`: an id, or null for the one the current
+        errormap config computes for the map); None with a perfect map."""
+        if self.perception == "oracle":
+            return None
+        from pipeline.errormap.stage import load_error_map
+        from pipeline.lineage import resolve_errormap
+
+        pm = self.perception_map(kind)
+        ref = (tracking.to_plain(self.cfg.get("errormaps")) or {}).get(kind)
+        folder = resolve_errormap(ref, self.cfg.paths.errormaps_dir, pm)
+        s = load_error_map(folder)
+        if s.get("model", {}).get("id") != pm.id:
+            raise ConfigError(f"errormaps.{kind}", f"{folder.name} is the error map of map {s['model'].get('id')}, "
+                                                   f"not of {pm.name}-{pm.id}")
+        self.used[f"errormap:{kind}"] = folder.name
+        return s
+
+    def eps_perception(self, kind: str = "clean", level: str = "none") -> tuple[float, str]:
+        """ε of the error map of a perception map at an occlusion level (p95 over the operational set)."""
+        s = self.error_map(kind)
+        if s is None:
+            return 0.0, "oracle"
+        if level not in s.get("levels", {}):
+            raise ConfigError("errormaps", f"{s['path'].name} has no occlusion level {level!r}")
+        return float(s["levels"][level]["p95"]), s["path"].name
 
     @functools.cache  # noqa: B019
     def camera(self):
@@ -137,29 +177,6 @@ class Context:
         if isinstance(pm, OracleMap):
             return Camera.from_config(self.cfg.render, self.scene_cfg)
         return pm.camera()
-
-    def occlusion(self, level: str | None):
-        if level in (None, "none"):
-            return None
-        from pipeline.render import load_occlusion
-
-        return load_occlusion(level, field="experiment.occlusion")
-
-    def eps_perception(self, kind: str = "clean", level: str = "none") -> tuple[float | None, str]:
-        """ε of the error map of a perception map at an occlusion level (p95 over the operational set)."""
-        if self.perception == "oracle":
-            return 0.0, "oracle"
-        try:
-            from pipeline.errormap.stage import load_error_map
-
-            pm = self.perception_map(kind)
-            s = load_error_map(pm.name, errormaps_dir=self.cfg.paths.errormaps_dir)
-        except Exception:  # noqa: BLE001 - no error map yet: the caller falls back to measured errors
-            return None, "none"
-        if s.get("model", {}).get("id") != pm.id or level not in s.get("levels", {}):
-            return None, "none"
-        self.used[f"errormap:{kind}"] = f"{s['path'].name}"
-        return float(s["levels"][level]["p95"]), s["path"].name
 
     # simulation ------------------------------------------------------------------------------
     def simulate(self, controller, x0, *, scene: Scene | None = None, disturbance=None, measure=None,
@@ -186,7 +203,7 @@ class Context:
         """Leader: hybrid on its own noisy state towards p_T. Follower: its own noisy state, target = the
         leader's position seen by its camera through the map (failures hold the last estimate)."""
         seed = self.seed if seed is None else seed
-        noise = Gaussian(sigma=sigma) if sigma > 0 else None
+        noise = self.disturbance("gaussian", sigma=sigma) if sigma > 0 else None
         every = max(1, round((self.frame_period or self.dt) / self.dt))
         lead = self.simulate(self.controller("hybrid"), leader_x0, disturbance=noise, seed=seed,
                              record_every=every)
@@ -252,84 +269,3 @@ def summarise(metrics: pd.DataFrame, by: list[str], seed: int = 0) -> pd.DataFra
     return pd.DataFrame(rows)
 
 
-# ----------------------------------------------------------------------------------------- writers
-def _fmt(v) -> str:
-    if isinstance(v, float | np.floating):
-        if not np.isfinite(v):
-            return "–"
-        return f"{v:.3g}" if abs(v) < 1e4 else f"{v:.0f}"
-    return str(v)
-
-
-def markdown_table(df: pd.DataFrame) -> str:
-    head = "| " + " | ".join(map(str, df.columns)) + " |"
-    sep = "|" + "|".join("---" for _ in df.columns) + "|"
-    body = ["| " + " | ".join(_fmt(v) for v in row) + " |" for row in df.itertuples(index=False)]
-    return "\n".join([head, sep, *body]) + "\n"
-
-
-def latex_table(df: pd.DataFrame, caption: str, label: str) -> str:
-    esc = lambda s: str(s).replace("_", r"\_").replace("%", r"\%").replace("&", r"\&")  # noqa: E731
-    lines = [r"\begin{table}[t]", r"\centering", rf"\caption{{{esc(caption)}}}", rf"\label{{tab:{label}}}",
-             r"\begin{tabular}{" + "l" * len(df.columns) + "}", r"\toprule",
-             " & ".join(esc(c) for c in df.columns) + r" \\", r"\midrule"]
-    lines += [" & ".join(esc(_fmt(v)) for v in row) + r" \\" for row in df.itertuples(index=False)]
-    lines += [r"\bottomrule", r"\end{tabular}", r"\end{table}"]
-    return "\n".join(lines) + "\n"
-
-
-class Outputs:
-    """Writes a scenario's figures and tables into the paper folder and records them for index.md."""
-
-    def __init__(self, paper_dir: Path, exp_id: str):
-        self.dir = Path(paper_dir)
-        self.dir.mkdir(parents=True, exist_ok=True)
-        self.exp_id = exp_id
-        self.items: list[dict] = []
-
-    def figure(self, fig, stem: str, caption: str) -> list[Path]:
-        from pipeline.viz import save
-
-        paths = [Path(p) for p in save(fig, self.dir / stem, formats=("png", "pdf"))]
-        self.items.append({"kind": "figure", "files": [p.name for p in paths], "caption": caption})
-        return paths
-
-    def table(self, df: pd.DataFrame, stem: str, caption: str) -> list[Path]:
-        paths = [self.dir / f"{stem}.{ext}" for ext in ("csv", "md", "tex")]
-        df.to_csv(paths[0], index=False)
-        paths[1].write_text(f"**{caption}**\n\n" + markdown_table(df))
-        paths[2].write_text(latex_table(df, caption, stem))
-        self.items.append({"kind": "table", "files": [p.name for p in paths], "caption": caption})
-        return paths
-
-
-def write_index(paper_dir: Path) -> Path:
-    """index.md from every experiment's entry in `<paper_dir>/index/*.json`."""
-    paper_dir = Path(paper_dir)
-    entries = [json.loads(p.read_text()) for p in sorted((paper_dir / "index").glob("*.json"))]
-    lines = ["# Regenerated figures and tables", "",
-             "Made by `make paper` (or each experiment alone with the command shown). Ids name the tracked",
-             "datasets, perception maps and error maps each result used.", ""]
-    for e in entries:
-        lines += [f"## {e['id']} — {e['title']}", "", f"- command: `{e['command']}`",
-                  f"- reproduces: {e.get('paper', '–')}"]
-        for k, v in sorted(e.get("inputs", {}).items()):
-            lines.append(f"- {k}: `{v}`")
-        lines.append(f"- results cache: `{e.get('cache', '–')}`")
-        lines.append("")
-        for it in e["items"]:
-            files = ", ".join(f"[{f}]({f})" for f in it["files"])
-            lines.append(f"- {it['kind']}: {it['caption']} — {files}")
-        lines.append("")
-    path = paper_dir / "index.md"
-    path.write_text("\n".join(lines))
-    return path
-
-
-def draw_frame(ax, scene: Scene, arena, diamond: bool = True):
-    from pipeline.viz import draw_scene
-
-    draw_scene(ax, scene, arena, diamond=diamond)
-    ax.set_xlim(*arena[0])
-    ax.set_ylim(*arena[1])
-    ax.set_aspect("equal")

@@ -1,0 +1,245 @@
+"""Figures and tables of each scenario, under the paper's figure numbers (drawing code only: restyling a
+figure re-draws from the cached results and never re-simulates).
+
+`FIGURES` lists the paper's figures in its order; `draw(scenario, ctx, results, out)` dispatches on the
+scenario's class.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.experiments import scenarios as S
+from pipeline.experiments.report import draw_frame
+
+# The paper's figures, in its order, then ours (fig8 on): stem -> (experiment id, what it reproduces)
+FIGURES = {
+    "fig1_perception_closeness": ("perception_closeness", "paper Fig. 1 (closeness)"),
+    "fig2_sensitive_set": ("sensitive_set", "paper Fig. 2 (obstacle problem and the set K)"),
+    "fig3_coverings": ("coverings", "paper Fig. 3 (coverings)"),
+    "fig4_scheme": ("scheme", "paper Fig. 4 (scheme of the closed loop)"),
+    "fig5_leader_follower_level_sets": ("leader_follower", "paper Fig. 5 (level sets around the moving target)"),
+    "fig6_occlusion": ("occlusion", "paper Fig. 6 (occlusion)"),
+    "fig7_robustness_noise_failure": ("noise_failure", "paper Fig. 7 (noise and camera failure)"),
+    "fig8_robustness_sweep": ("robustness_sweep", "not in the paper: Proposition 1 vs Theorem 1 measured"),
+    "fig9_monte_carlo": ("monte_carlo", "not in the paper: Monte Carlo success rates"),
+    "fig10_authors_code_vs_default": ("authors_code", "not in the paper: the authors' released-code scene"),
+}
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def draw(scen, ctx, res, out) -> None:
+    """Figures and tables of `scen` from its (cached) results."""
+    for cls, fn in _DRAWERS.items():
+        if isinstance(scen, cls):
+            return fn(scen, ctx, res, out)
+    raise TypeError(f"no figures for {type(scen).__name__}")
+
+
+def draw_coverings(scen, ctx, res, out) -> None:
+    plt = _plt()
+    fig, axes = plt.subplots(2, 1, figsize=(6.5, 7.2))  # the paper's layout: q = 1 top, q = 2 bottom
+    x, y = res.arrays["x"], res.arrays["y"]
+    for q, ax in zip((1, 2), axes):
+        V = res.arrays[f"V{q}"]
+        finite = np.isfinite(V)
+        ax.contourf(x, y, finite.astype(float), levels=[0.5, 1.5], colors=["#cfe3f7" if q == 1 else "#f7dccf"])
+        levels = np.quantile(V[finite], np.linspace(0.02, 0.9, 12))
+        ax.contour(x, y, np.where(finite, V, np.nan), levels=np.unique(levels), colors="k", linewidths=0.5)
+        draw_frame(ax, ctx.scene, ctx.arena)
+        ax.set_title(f"O_{q} (shaded) and level sets of V_{q}")
+    out.figure(fig, "fig3_coverings", "Coverings O_1, O_2 (shaded) with level sets of V_1, V_2 (paper Fig. coverings).")
+    out.table(res.tables["coverings"], "tab_coverings", "Share of the arena in each covering set.")
+
+
+def draw_sensitive_set(scen, ctx, res, out) -> None:
+    plt = _plt()
+    from matplotlib.colors import ListedColormap
+
+    eps = res.info["eps"]
+    x, y, keep = res.arrays["x"], res.arrays["y"], res.arrays["keep"]
+    cmap = ListedColormap(["#d62728", "#1f77b4", "#ff7f0e"])  # stall, K_1, K_2
+    cases = ["clean", f"adversarial eps={eps}"]
+    fig, axes = plt.subplots(2, 2, figsize=(11, 6.5))
+    for i, ctrl in enumerate(("smooth", "hybrid")):
+        for j, case in enumerate(cases):
+            grid = np.full(keep.shape, np.nan)
+            grid[keep] = res.arrays[f"{ctrl}|{case}"]
+            ax = axes[i, j]
+            ax.pcolormesh(x, y, grid.reshape(len(y), len(x)), cmap=cmap, vmin=0, vmax=2, shading="nearest")
+            draw_frame(ax, ctx.scene, ctx.arena)
+            ax.set_title(f"{ctrl}, {case}", fontsize=9)
+    fig.suptitle("Basins $K_1$ (blue: passes above), $K_2$ (orange: below); red: never reaches the target", fontsize=10)
+    out.figure(fig, "fig2_sensitive_set",
+               f"Basins K_1, K_2 of the smooth flow and the set K between them; with an adversary of size {eps} "
+               "the smooth flow stalls on a band around K while the hybrid controller does not (paper Fig. obstacle problem).")
+    out.table(res.tables["sensitive_set"], "tab_sensitive_set", "Share of grid initial conditions in K_1, K_2, stalled.")
+
+
+def draw_noise_failure(scen, ctx, res, out) -> None:
+    plt = _plt()
+    a = res.arrays
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4))
+    ax = axes[0]
+    draw_frame(ax, ctx.scene, ctx.arena)
+    for i in range(a["single_p"].shape[1]):
+        ax.plot(a["single_m"][:, i, 0], a["single_m"][:, i, 1], ".", ms=1.5, color="0.6")
+        ax.plot(a["single_p"][:, i, 0], a["single_p"][:, i, 1], lw=1.5)
+    ax.set_title(f"hybrid, CNN in the loop, noise σ={res.info['sigma']}, {res.info['p_fail']:.0%} camera failure",
+                 fontsize=9)
+    ax = axes[1]
+    draw_frame(ax, ctx.scene, ctx.arena)
+    ax.plot(a["lead_p"][:, 0, 0], a["lead_p"][:, 0, 1], color="k", lw=1.5, label="leader")
+    ax.plot(a["foll_p"][:, 0, 0], a["foll_p"][:, 0, 1], color="tab:green", lw=1.5, label="follower")
+    ax.plot(a["foll_target"][:, 0, 0], a["foll_target"][:, 0, 1], ".", ms=1.5, color="tab:olive",
+            label="leader as perceived by the follower")
+    ax.legend(fontsize=7, loc="lower right")
+    ax.set_title("leader-follower", fontsize=9)
+    out.figure(fig, "fig7_robustness_noise_failure",
+               "Hybrid controller with the CNN in the loop under noise and camera failure: single vehicle from "
+               "both initial conditions (grey: perceived positions) and leader-follower (paper Fig. robustness).")
+    out.table(res.tables["metrics"][["role", "x0", "y0", "success", "collision", "time_to_target", "min_clearance",
+                                     "jumps", "final_error"]],
+              "tab_noise_failure", "Per-vehicle outcomes of the noise/failure scenario.")
+
+
+def draw_occlusion(scen, ctx, res, out) -> None:
+    plt = _plt()
+    a = res.arrays
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4))
+    for ax, kind in zip(axes, ("clean", "occluded")):
+        draw_frame(ax, ctx.scene, ctx.arena)
+        ax.plot(a[f"{kind}_lead_p"][:, 0], a[f"{kind}_lead_p"][:, 1], "k", lw=1.5, label="leader")
+        ax.plot(a[f"{kind}_foll_p"][:, 0], a[f"{kind}_foll_p"][:, 1], color="tab:green", lw=1.5, label="follower")
+        ax.plot(a[f"{kind}_foll_target"][:, 0], a[f"{kind}_foll_target"][:, 1], ".", ms=2, color="tab:blue",
+                label="perceived leader")
+        ax.set_title(f"map trained on {kind} images; {res.info['level']} clouds "
+                     f"(mean tracking error {np.nanmean(a[f'{kind}_err']):.2f})", fontsize=9)
+        ax.legend(fontsize=7, loc="lower right")
+    out.figure(fig, "fig6_occlusion",
+               "Follower with the map trained without and with occlusion, tested on occluded frames (paper Fig. occlusion).")
+    cols = ["map", "occlusion", "n", "success_rate", "success_lo", "success_hi", "collision_rate",
+            "tracking_error_mean", "final_error_median", "within_3_units", "mean_jumps"]
+    out.table(res.tables["summary"][cols], "tab_occlusion",
+              "Followers from random initial conditions on occluded frames, per perception map: success "
+              "(|p - p_T| <= delta, 95% CIs), mean error of the perceived leader, median final distance to "
+              "the target, share ending within 3 units.")
+
+
+def draw_leader_follower(scen, ctx, res, out) -> None:
+    plt = _plt()
+    a = res.arrays
+    frames = res.info["frames"]
+    fig, axes = plt.subplots(1, len(frames), figsize=(5 * len(frames), 3.4))
+    for ax, f, k, row in zip(np.atleast_1d(axes), frames, a["idx"], res.tables["instants"].itertuples()):
+        V = a[f"V_{f}"]
+        fin = np.isfinite(V)
+        if fin.any():
+            ax.contour(a["x"], a["y"], np.where(fin, V, np.nan),
+                       levels=np.unique(np.quantile(V[fin], np.linspace(0.01, 0.8, 12))), linewidths=0.6)
+        draw_frame(ax, ctx.scene, ctx.arena)
+        ax.plot(a["lead_p"][: k + 1, 0], a["lead_p"][: k + 1, 1], "k", lw=1)
+        ax.plot(a["foll_p"][: k + 1, 0], a["foll_p"][: k + 1, 1], color="tab:green", lw=1)
+        ax.plot(*a["foll_target"][k], "o", color="tab:blue", ms=5)
+        ax.set_title(f"frame {f} (t = {row.t:.2f} s), q = {row.mode_q}", fontsize=9)
+    out.figure(fig, "fig5_leader_follower_level_sets",
+               "Level sets of the follower's V_q around the moving target (the perceived leader) at three "
+               "instants (paper Fig. level sets).")
+    out.table(res.tables["instants"], "tab_leader_follower_instants", "Follower state at the plotted instants.")
+
+
+def draw_perception_closeness(scen, ctx, res, out) -> None:
+    plt = _plt()
+    from matplotlib.patches import Circle
+
+    p, m, eps = res.arrays["p"], res.arrays["m"], res.info["eps"]
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    draw_frame(ax, ctx.scene, ctx.arena)
+    for c in p[:: max(1, len(p) // 150)]:
+        ax.add_patch(Circle(c, max(eps, 1e-3), color="tab:blue", alpha=0.06, lw=0))
+    ax.plot(p[:, 0], p[:, 1], "tab:blue", lw=1.5, label="true position p")
+    ax.plot(m[:, 0], m[:, 1], ".", ms=2, color="tab:red", label="CNN prediction l(h(p))")
+    ax.set_title(f"perception closeness: ε-tube with ε = {eps:.3f}", fontsize=9)
+    ax.legend(fontsize=8, loc="lower right")
+    out.figure(fig, "fig1_perception_closeness",
+               "A closed-loop trajectory with the CNN's predictions inside the ε-tube of the error map (paper Fig. closeness).")
+    out.table(res.tables["closeness"], "tab_perception_closeness", "Perception error along the trajectory vs ε.")
+
+
+def draw_robustness_sweep(scen, ctx, res, out, stem: str = "fig8_robustness_sweep") -> None:
+    plt = _plt()
+    df = res.tables["sweep"]
+    dists = list(dict.fromkeys(df["disturbance"]))
+    fig, axes = plt.subplots(1, len(dists), figsize=(5.5 * len(dists), 3.6), squeeze=False)
+    for ax, dist in zip(axes[0], dists):
+        for ctrl, g in df[df.disturbance == dist].groupby("controller", sort=False):
+            ax.plot(g.eps, g.success_rate, "o-", label=ctrl)
+            ax.fill_between(g.eps, g.success_lo, g.success_hi, alpha=0.2)
+        ax.set(xlabel="ε", ylabel="success rate", ylim=(-0.03, 1.03), title=f"{dist} disturbance, starts within ε of K")
+        ax.legend(fontsize=8)
+        ax.grid(alpha=0.3)
+    out.figure(fig, stem, "Success rate against the disturbance size ε from initial conditions near K: "
+               "Proposition 1 (smooth and CBF stall) against Theorem 1 (hybrid is robust).")
+    out.table(df, "tab_robustness_sweep", "Success rate vs ε (95% Wilson CIs), per disturbance and controller.")
+
+
+def draw_monte_carlo(scen, ctx, res, out) -> None:
+    cols = ["condition", "controller", "n", "success_rate", "success_lo", "success_hi", "collision_rate",
+            "median_time", "final_error_median", "min_clearance", "mean_jumps"]
+    out.table(res.tables["summary"][cols], "tab1_monte_carlo",
+              "Monte Carlo over random initial conditions: success (|p - p_T| <= delta) and collision rates "
+              "(95% Wilson CIs), median time to target, median final distance to the target, minimum "
+              "clearance, mean jumps, per condition and controller.")
+    plt = _plt()
+    df = res.tables["summary"]
+    conds = list(dict.fromkeys(df["condition"]))
+    ctrls = list(dict.fromkeys(df["controller"]))
+    fig, ax = plt.subplots(figsize=(max(6, 1.6 * len(conds)), 3.6))
+    w = 0.8 / len(ctrls)
+    for i, ctrl in enumerate(ctrls):
+        g = df[df.controller == ctrl].set_index("condition").reindex(conds)
+        xs = np.arange(len(conds)) + (i - (len(ctrls) - 1) / 2) * w
+        yerr = np.clip([g.success_rate - g.success_lo, g.success_hi - g.success_rate], 0, None)
+        ax.bar(xs, g.success_rate, w, label=ctrl, yerr=yerr, capsize=2)
+    ax.set_xticks(np.arange(len(conds)), conds, rotation=20, ha="right", fontsize=7)
+    ax.set(ylabel="success rate", ylim=(0, 1.05))
+    ax.legend(fontsize=8)
+    out.figure(fig, "fig9_monte_carlo", "Monte Carlo success rates with 95% CIs per condition and controller.")
+
+
+def draw_authors_code(scen, ctx, res, out) -> None:
+    plt = _plt()
+    df = res.tables["sweep"]
+    scenes = list(dict.fromkeys(df["scene"]))
+    dists = list(dict.fromkeys(df["disturbance"]))
+    fig, axes = plt.subplots(len(dists), len(scenes), figsize=(5.2 * len(scenes), 3.2 * len(dists)), squeeze=False)
+    for i, dist in enumerate(dists):
+        for j, sc in enumerate(scenes):
+            ax = axes[i, j]
+            for ctrl, g in df[(df.disturbance == dist) & (df.scene == sc)].groupby("controller", sort=False):
+                ax.plot(g.eps, g.success_rate, "o-", label=ctrl)
+            ax.set(xlabel="ε", ylabel="success rate", ylim=(-0.03, 1.03), title=f"scene {sc}, {dist}")
+            ax.legend(fontsize=7)
+            ax.grid(alpha=0.3)
+    out.figure(fig, "fig10_authors_code_vs_default",
+               "The authors' released-code scene next to the default scene: success vs ε near K.")
+    cols = ["scene", "condition", "controller", "n", "success_rate", "success_lo", "success_hi",
+            "collision_rate", "median_time", "min_clearance", "mean_jumps"]
+    out.table(res.tables["summary"][cols], "tab2_authors_code_vs_default",
+              "Monte Carlo (true state) on the default and the authors' scene, 95% CIs.")
+
+
+_DRAWERS = {
+    S.Coverings: draw_coverings, S.SensitiveSet: draw_sensitive_set, S.NoiseFailure: draw_noise_failure,
+    S.Occlusion: draw_occlusion, S.LeaderFollower: draw_leader_follower,
+    S.PerceptionCloseness: draw_perception_closeness, S.RobustnessSweep: draw_robustness_sweep,
+    S.MonteCarlo: draw_monte_carlo, S.AuthorsCode: draw_authors_code,
+}

@@ -1,0 +1,107 @@
+"""Writers of the paper folder (drawing code: not part of any experiment's cache key): figures (PNG + PDF),
+tables (CSV + Markdown + LaTeX) and `index.md`."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from pipeline.control import Scene
+
+
+# ----------------------------------------------------------------------------------------- writers
+def _fmt(v) -> str:
+    if isinstance(v, float | np.floating):
+        if not np.isfinite(v):
+            return "–"
+        return f"{v:.3g}" if abs(v) < 1e4 else f"{v:.0f}"
+    return str(v)
+
+
+def markdown_table(df: pd.DataFrame) -> str:
+    head = "| " + " | ".join(map(str, df.columns)) + " |"
+    sep = "|" + "|".join("---" for _ in df.columns) + "|"
+    body = ["| " + " | ".join(_fmt(v) for v in row) + " |" for row in df.itertuples(index=False)]
+    return "\n".join([head, sep, *body]) + "\n"
+
+
+def latex_table(df: pd.DataFrame, caption: str, label: str) -> str:
+    esc = lambda s: str(s).replace("_", r"\_").replace("%", r"\%").replace("&", r"\&")  # noqa: E731
+    lines = [r"\begin{table}[t]", r"\centering", rf"\caption{{{esc(caption)}}}", rf"\label{{tab:{label}}}",
+             r"\begin{tabular}{" + "l" * len(df.columns) + "}", r"\toprule",
+             " & ".join(esc(c) for c in df.columns) + r" \\", r"\midrule"]
+    lines += [" & ".join(esc(_fmt(v)) for v in row) + r" \\" for row in df.itertuples(index=False)]
+    lines += [r"\bottomrule", r"\end{tabular}", r"\end{table}"]
+    return "\n".join(lines) + "\n"
+
+
+class Outputs:
+    """Writes a scenario's figures and tables into the paper folder and records them for index.md."""
+
+    def __init__(self, paper_dir: Path, exp_id: str):
+        self.dir = Path(paper_dir)
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.exp_id = exp_id
+        self.items: list[dict] = []
+
+    def figure(self, fig, stem: str, caption: str) -> list[Path]:
+        from pipeline.experiments.figures import FIGURES
+        from pipeline.viz import save
+
+        paths = [Path(p) for p in save(fig, self.dir / stem, formats=("png", "pdf"))]
+        self.items.append({"kind": "figure", "files": [p.name for p in paths], "caption": caption,
+                           "reproduces": FIGURES.get(stem, (None, None))[1]})
+        return paths
+
+    def table(self, df: pd.DataFrame, stem: str, caption: str) -> list[Path]:
+        paths = [self.dir / f"{stem}.{ext}" for ext in ("csv", "md", "tex")]
+        df.to_csv(paths[0], index=False)
+        paths[1].write_text(f"**{caption}**\n\n" + markdown_table(df))
+        paths[2].write_text(latex_table(df, caption, stem))
+        self.items.append({"kind": "table", "files": [p.name for p in paths], "caption": caption})
+        return paths
+
+
+def write_index(paper_dir: Path, figures: dict | None = None) -> Path:
+    """index.md from every experiment's entry in `<paper_dir>/index/*.json`, in the paper's figure order
+    (`figures`: stem -> (experiment id, what it reproduces)); paths relative to `paper_dir`."""
+    paper_dir = Path(paper_dir)
+    entries = {e["id"]: e for e in (json.loads(p.read_text()) for p in sorted((paper_dir / "index").glob("*.json")))}
+    order = list(dict.fromkeys([exp for exp, _ in (figures or {}).values()] + sorted(entries)))
+    lines = ["# Regenerated figures and tables", "",
+             "Made by `make paper` (or each experiment alone with the command shown). Ids name the tracked",
+             "datasets, perception maps and error maps each result used."]
+    if (paper_dir / "paper.lock.yaml").is_file():
+        lines.append("Every input of this folder, with its config hash and code version: "
+                     "[paper.lock.yaml](paper.lock.yaml).")
+    lines.append("")
+    for exp in order:
+        e = entries.get(exp)
+        if e is None:
+            continue
+        lines += [f"## {e['id']} — {e['title']}", "", f"- command: `{e['command']}`",
+                  f"- reproduces: {e.get('paper', '–')}"]
+        for k, v in sorted(e.get("inputs", {}).items()):
+            lines.append(f"- {k}: `{v}`")
+        lines.append(f"- results cache: `{e.get('cache', '–')}`")
+        lines.append("")
+        for it in e["items"]:
+            files = ", ".join(f"[{f}]({f})" for f in it["files"])
+            label = f" ({it['reproduces']})" if it.get("reproduces") else ""
+            lines.append(f"- {it['kind']}{label}: {it['caption']} — {files}")
+        lines.append("")
+    path = paper_dir / "index.md"
+    path.write_text("\n".join(lines))
+    return path
+
+
+def draw_frame(ax, scene: Scene, arena, diamond: bool = True):
+    from pipeline.viz import draw_scene
+
+    draw_scene(ax, scene, arena, diamond=diamond)
+    ax.set_xlim(*arena[0])
+    ax.set_ylim(*arena[1])
+    ax.set_aspect("equal")
