@@ -253,10 +253,14 @@ def _expand(overrides: list[str]) -> list[list[str]]:
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.core.override_parser.types import Glob
 
-    try:
-        parsed = OverridesParser.create().parse_overrides(overrides)
-    except Exception as err:  # noqa: BLE001 - Hydra's parse errors
-        raise ConfigError(overrides[0].split("=")[0] if overrides else "overrides", hydra_error_line(err)) from None
+    parser = OverridesParser.create()
+    parsed = []
+    for raw in overrides:
+        try:
+            parsed += parser.parse_overrides([raw])
+        except Exception as err:  # noqa: BLE001 - Hydra's parse errors
+            reason = " ".join(str(err).split()).split(" See https://")[0]
+            raise ConfigError(raw.lstrip("+~").split("=")[0], f"cannot parse {raw!r}: {reason}") from None
     choices: list[list[str]] = []
     for ov, raw in zip(parsed, overrides):
         if not ov.is_sweep_override():

@@ -1,18 +1,27 @@
 """`make paper`: the DAG data -> train -> errormap -> experiments, each stage as its own Hydra job.
 
-Every stage skips work whose tracked output is up to date (same config, inputs and code), so a second
-`make paper` with nothing changed only re-draws the figures and tables under `outputs/paper/`.
+Inputs are pinned by id from stage to stage: the paper job computes the id each stage's config produces
+(with the `args` overrides), passes `maps.clean=clean-<id>` etc. to the next stage, and writes
+`outputs/paper/paper.lock.yaml` listing every dataset, map, error map and experiment result with its config
+hash and code version. Stages skip work whose tracked output is up to date, so a second `make paper` with
+nothing changed only re-draws the figures; another folder of the same name made on the side changes nothing.
 """
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 import time
+from pathlib import Path
+
+from omegaconf import DictConfig
 
 from pipeline import tracking
-from pipeline.cli import REPO_ROOT, stage_main
+from pipeline.cli import CONF_DIR, REPO_ROOT, stage_main
 from pipeline.errors import ConfigError, PipelineError
+
+STAGE_ARGS = ("data", "train", "errormap", "experiments")
 
 
 def _path_overrides() -> list[str]:
@@ -25,48 +34,114 @@ def _path_overrides() -> list[str]:
         return []
 
 
-def stage_commands(cfg) -> list[tuple[str, list[str]]]:
+def _args(cfg) -> dict[str, list[str]]:
     args = tracking.to_plain(cfg.args) or {}
-    paths = _path_overrides()
-    datasets = list(cfg.datasets)
-    maps = list(cfg.maps)
+    for k, v in args.items():
+        if k not in STAGE_ARGS:
+            raise ConfigError(f"args.{k}", f"unknown stage (one of {', '.join(STAGE_ARGS)})")
+        if not isinstance(v, list) or not all(isinstance(x, str) for x in v):
+            raise ConfigError(f"args.{k}", f"must be a list of override strings, got {v!r}")
+    return {k: list(args.get(k, [])) for k in STAGE_ARGS}
+
+
+def check(cfg: DictConfig) -> None:
+    datasets, maps = list(cfg.datasets), list(cfg.maps)
     if not datasets:
         raise ConfigError("datasets", "needs at least one recipe")
+    for field, names in (("datasets", datasets), ("maps", maps), ("errormaps", list(cfg.errormaps))):
+        for name in names:
+            if field == "datasets" and not (CONF_DIR / "data" / f"{name}.yaml").is_file():
+                raise ConfigError("datasets", f"unknown recipe {name!r} (conf/data/)")
     missing = set(maps) - set(datasets)
     if missing:
         raise ConfigError("maps", f"{sorted(missing)} are not among the datasets {datasets}")
-    cmds = [("data", ["-m", f"data={','.join(datasets)}", *paths, *args.get("data", [])])]
-    if maps:
-        cmds.append(("train", ["-m", f"data={','.join(maps)}", *paths, *args.get("train", [])]))
-    if cfg.errormaps:
-        cmds.append(("errormap", [f"maps=[{','.join(cfg.errormaps)}]", *paths, *args.get("errormap", [])]))
-    if cfg.experiments:
-        cmds.append(("experiments", ["-m", f"experiment={','.join(cfg.experiments)}", *paths,
-                                     *args.get("experiments", [])]))
-    return cmds
+    if set(cfg.errormaps) - set(maps):
+        raise ConfigError("errormaps", f"{sorted(set(cfg.errormaps) - set(maps))} are not among the maps {maps}")
+    for exp in cfg.experiments:
+        if not (CONF_DIR / "experiment" / f"{exp}.yaml").is_file():
+            raise ConfigError("experiments", f"unknown experiment {exp!r} (conf/experiment/)")
+    _args(cfg)
+
+
+def _stage(stage: str, argv: list[str], timings: dict, stop: bool) -> bool:
+    cmd = [sys.executable, "-m", f"pipeline.{stage}", *argv]
+    print(f"\n[paper] === {stage}: {' '.join(cmd[1:])}", flush=True)
+    ts = time.perf_counter()
+    proc = subprocess.run(cmd, cwd=REPO_ROOT, check=False)
+    timings[stage] = time.perf_counter() - ts
+    if proc.returncode != 0:
+        msg = f"stage {stage} failed (exit {proc.returncode}); fix it and re-run `make paper` (done stages are re-used)"
+        if stop:
+            raise PipelineError(msg)
+        print(f"[paper] {msg}", flush=True)
+        return False
+    return True
 
 
 def run(cfg) -> dict:
+    from pipeline.config import compose
+    from pipeline.lineage import expected_errormap_id, train_dataset_id, write_lock
+    from pipeline.train.stage import model_identity
+
+    check(cfg)
     t0 = time.perf_counter()
-    timings = {}
-    for stage, argv in stage_commands(cfg):
-        cmd = [sys.executable, "-m", f"pipeline.{stage}", *argv]
-        print(f"\n[paper] === {stage}: {' '.join(cmd[1:])}", flush=True)
-        ts = time.perf_counter()
-        proc = subprocess.run(cmd, cwd=REPO_ROOT, check=False)
-        timings[stage] = time.perf_counter() - ts
-        if proc.returncode != 0:
-            msg = f"stage {stage} failed (exit {proc.returncode}); fix it and re-run `make paper` (done stages are re-used)"
-            if cfg.get("stop_on_error", True):
-                raise PipelineError(msg)
-            print(f"[paper] {msg}", flush=True)
+    args, paths = _args(cfg), _path_overrides()
+    stop = bool(cfg.get("stop_on_error", True))
+    timings: dict[str, float] = {}
+    datasets, maps, errormaps, experiments = list(cfg.datasets), list(cfg.maps), list(cfg.errormaps), list(cfg.experiments)
+    lock: dict[str, dict[str, Path]] = {"datasets": {}, "maps": {}, "errormaps": {}, "experiments": {}}
+    ds_root, models_root = Path(cfg.paths.datasets_dir), Path(cfg.paths.models_dir)
+
+    _stage("data", ["-m", f"data={','.join(datasets)}", *paths, *args["data"]], timings, stop)
+    from pipeline.data.stage import plan
+
+    for name in datasets:
+        lock["datasets"][name] = ds_root / f"{name}-{plan(compose('data', [f'data={name}', *paths, *args['data']])).id}"
+    map_refs = {}
+    if maps:
+        _stage("train", ["-m", f"data={','.join(maps)}", *paths, *args["train"]], timings, stop)
+        for name in maps:
+            tcfg = compose("train", [f"data={name}", *paths, *args["train"]])
+            mname, mid = model_identity(tcfg, *train_dataset_id(tcfg))
+            map_refs[name] = f"{mname}-{mid}"
+            lock["maps"][name] = models_root / map_refs[name]
+    em_refs = {}
+    if errormaps:
+        _stage("errormap", [f"maps=[{','.join(map_refs[m] for m in errormaps)}]", *paths, *args["errormap"]],
+               timings, stop)
+        from pipeline.train import load_perception_map
+
+        for name in errormaps:
+            pm = load_perception_map(map_refs[name], models_dir=models_root)
+            ename, eid = expected_errormap_id(pm, [*paths, *args["errormap"]])
+            em_refs[name] = f"{ename}-{eid}"
+            lock["errormaps"][name] = Path(cfg.paths.errormaps_dir) / em_refs[name]
+    if experiments:
+        base = compose("experiments", paths)
+        pins = [f"maps.{k}={v}" for k, v in map_refs.items() if k in base.maps]
+        pins += [f"errormaps.{k}={v}" for k, v in em_refs.items() if k in base.errormaps]
+        _stage("experiments", ["-m", f"experiment={','.join(experiments)}", *pins, *paths, *args["experiments"]],
+               timings, stop)
+        paper_dir = Path(cfg.paths.paper_dir)
+        for exp in experiments:
+            entry = paper_dir / "index" / f"{exp}.json"
+            if entry.is_file():
+                lock["experiments"][exp] = (paper_dir / json.loads(entry.read_text())["cache"]).resolve()
+    lock = {k: {n: f for n, f in v.items() if tracking.is_complete(f)} for k, v in lock.items()}
+    lock_path = write_lock(Path(cfg.paths.paper_dir) / "paper.lock.yaml", lock)
+    from pipeline.experiments.figures import FIGURES
+    from pipeline.experiments.report import write_index
+
+    if (Path(cfg.paths.paper_dir) / "index").is_dir():
+        write_index(Path(cfg.paths.paper_dir), FIGURES)
     total = time.perf_counter() - t0
     line = ", ".join(f"{k} {v:.0f} s" for k, v in timings.items())
-    print(f"\n[paper] done in {total / 60:.1f} min ({line}); see {cfg.paths.paper_dir}/index.md")
-    return {"timings": timings, "total": total}
+    print(f"\n[paper] done in {total / 60:.1f} min ({line}); see {cfg.paths.paper_dir}/index.md; inputs pinned in "
+          f"{lock_path}")
+    return {"timings": timings, "total": total, "lock": lock_path, "maps": map_refs, "errormaps": em_refs}
 
 
-@stage_main("paper")
+@stage_main("paper", check=check)
 def main(cfg):
     return run(cfg)
 

@@ -164,3 +164,22 @@ def load_init(node, path: str = "init"):
     if mode not in INIT_MODES:
         raise ConfigError(f"{path}.mode", f"must be one of {', '.join(INIT_MODES)}, got {mode!r}")
     return load(node, path, INIT_MODES[mode])
+
+
+@dataclasses.dataclass(frozen=True)
+class SimSettings:
+    """`sim`: Euler step, horizon, success radius, recording, seed."""
+
+    dt: float = 0.01
+    horizon: float = 30.0
+    delta: float = 1.0
+    record_every: int = 5
+    stop_on_success: bool = True
+    seed: int = 0
+
+    def __post_init__(self):
+        need(self.dt > 0, "dt", f"must be > 0, got {self.dt}")
+        need(self.horizon >= self.dt, "horizon", f"must be >= sim.dt = {self.dt}, got {self.horizon}")
+        need(self.delta > 0, "delta", f"must be > 0, got {self.delta}")
+        need(self.record_every >= 1, "record_every", f"must be >= 1, got {self.record_every}")
+        need(self.seed >= 0, "seed", f"must be >= 0, got {self.seed}")

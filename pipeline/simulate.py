@@ -12,7 +12,7 @@ from pathlib import Path
 from omegaconf import DictConfig
 
 from pipeline.cli import stage_main
-from pipeline.schema import CameraTiming, load
+from pipeline.schema import CameraTiming, SimSettings, load
 from pipeline.sim import check_timing, simulate
 from pipeline.sim.build import (
     arena_bounds,
@@ -30,7 +30,8 @@ def build(cfg: DictConfig):
     disturbance = build_disturbance(cfg.disturbance)
     x0 = initial_conditions(cfg.init, scene, cfg.scene)
     timing = load(cfg.camera, "camera", CameraTiming)
-    check_timing(cfg.sim.dt, cfg.sim.horizon, timing.period)
+    sim = load(cfg.sim, "sim", SimSettings)
+    check_timing(sim.dt, sim.horizon, timing.period)
     return scene, controller, disturbance, x0, timing
 
 

@@ -90,7 +90,7 @@ class HybridController(Controller):
     hybrid = True
 
     def __init__(self, scene: Scene, k: float = 1.0, chi: float = 1.1, lam: float = 0.09,
-                 u_max: float | None = 10.0, push_speed: float | None = None, **_ignored):
+                 u_max: float | None = 10.0, push_speed: float | None = None):
         super().__init__(scene, k=k, u_max=u_max, push_speed=push_speed)
         try:
             chi, lam = float(chi), float(lam)
@@ -215,7 +215,7 @@ class CBFController(Controller):
     name = "cbf"
 
     def __init__(self, scene: Scene, k: float = 1.0, alpha: float = 1.0, u_max: float | None = 10.0,
-                 push_speed: float | None = None, **_ignored):
+                 push_speed: float | None = None):
         super().__init__(scene, k=k, u_max=u_max, push_speed=push_speed)
         self.alpha = _positive(alpha, "controller.alpha")
 

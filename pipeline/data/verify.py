@@ -17,10 +17,11 @@ from pipeline.errors import DatasetError
 
 
 def incomplete(root: Path) -> list[Path]:
-    """Folders under `root` that look like datasets but have no manifest (a temporary or broken folder)."""
+    """Final-named folders under `root` (not temporaries) that have no manifest: a damaged dataset."""
     if not root.is_dir():
         return []
-    return sorted(d for d in root.iterdir() if d.is_dir() and not (d / tracking.MANIFEST).is_file())
+    return sorted(d for d in root.iterdir()
+                  if d.is_dir() and not d.name.startswith(".") and not (d / tracking.MANIFEST).is_file())
 
 
 def verify_datasets(datasets_dir, dataset=None, full: bool = True, echo=print) -> dict[str, list[str]]:
@@ -30,9 +31,12 @@ def verify_datasets(datasets_dir, dataset=None, full: bool = True, echo=print) -
         folders = [tracking.resolve(root, dataset, kind="dataset")]
     else:
         folders = sorted(tracking.entries(root), key=lambda d: d.name)
-        for d in incomplete(root):
-            echo(f"note: {d} has no manifest (an interrupted run's leftovers or not a dataset); ignored")
+        tracking.stale_temporaries(root, remove=False, echo=lambda s: echo(f"note: {s}"))
     report = {}
+    if dataset is None:
+        for d in incomplete(root):
+            report[str(d)] = [f"{d}: no {tracking.MANIFEST} (not a finished dataset: delete it or re-render it)"]
+            echo(f"FAIL {d.name}: no {tracking.MANIFEST}")
     for folder in folders:
         problems = tracking.verify(folder, full=full)
         report[str(folder)] = problems

@@ -307,7 +307,8 @@ def run_one(cfg: DictConfig, *, perception_map=None, camera=None, occlusions: Ma
         "levels": _jsonable(results),
     }
     meta = {"recipe": recipe, "inputs": {"model": str(pmap.id), "dataset": getattr(ds, "id", None)},
-            "model_name": pmap.name}
+            "model_name": pmap.name, "code_version": tracking.code_version("errormap", "render"),
+            "occlusions": {lv: o.config() for lv, o in occ.items() if hasattr(o, "config")}}
     with tracking.tracked_output(root, pmap.name, id_, meta) as tmp:
         write_outputs(tmp, summary, fields, results, scene, arena, settings, samples, sample_err_vec)
     print(f"errormap: wrote {final}")

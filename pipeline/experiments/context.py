@@ -18,7 +18,7 @@ from pipeline import tracking
 from pipeline.control import Scene
 from pipeline.errors import ConfigError
 from pipeline.experiments.measure import CameraMeasure, FollowerTarget, LeaderTrack, OracleMap
-from pipeline.schema import CameraTiming, load
+from pipeline.schema import CameraTiming, SimSettings, load
 from pipeline.sim import simulate
 from pipeline.sim.build import arena_bounds, build_controller, build_disturbance, build_scene
 from pipeline.sim.simulator import check_timing, true_state
@@ -76,12 +76,11 @@ class Context:
         if self.perception not in PERCEPTIONS:
             raise ConfigError("perception", f"must be cnn or oracle (a perfect map), got {self.perception!r}")
         timing = load(cfg.camera, "camera", CameraTiming)
-        self.dt, self.horizon, self.delta = float(cfg.sim.dt), float(cfg.sim.horizon), float(cfg.sim.delta)
+        sim = load(cfg.sim, "sim", SimSettings)
+        self.dt, self.horizon, self.delta = float(sim.dt), float(sim.horizon), float(sim.delta)
         check_timing(self.dt, self.horizon, timing.period)
         self.frame_period = timing.period
-        self.seed = int(cfg.sim.seed)
-        if self.seed < 0:
-            raise ConfigError("sim.seed", f"must be >= 0, got {self.seed}")
+        self.seed = sim.seed
         self.used: dict[str, str] = {}  # inputs used (map/dataset/error-map ids), for the index
 
     # sizes -------------------------------------------------------------------------------------

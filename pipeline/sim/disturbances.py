@@ -32,7 +32,7 @@ class Disturbance:
 
 
 class NoDisturbance(Disturbance):
-    def __init__(self, **_ignored):
+    def __init__(self):
         pass
 
 
@@ -41,7 +41,7 @@ class Gaussian(Disturbance):
 
     name = "gaussian"
 
-    def __init__(self, sigma: float = 0.5, **_ignored):
+    def __init__(self, sigma: float = 0.5):
         self.sigma = _nonneg(sigma, "disturbance.sigma")
 
     def __call__(self, p, frame, rng, scene):
@@ -53,7 +53,7 @@ class Alternating(Disturbance):
 
     name = "alternating"
 
-    def __init__(self, eps: float = 0.5, **_ignored):
+    def __init__(self, eps: float = 0.5):
         self.eps = _nonneg(eps, "disturbance.eps")
 
     def __call__(self, p, frame, rng, scene):
@@ -66,7 +66,7 @@ class Adversarial(Disturbance):
 
     name = "adversarial"
 
-    def __init__(self, eps: float = 0.5, **_ignored):
+    def __init__(self, eps: float = 0.5):
         self.eps = _nonneg(eps, "disturbance.eps")
 
     def __call__(self, p, frame, rng, scene):
