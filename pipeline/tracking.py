@@ -17,6 +17,7 @@ import datetime as _dt
 import hashlib
 import json
 import os
+import re
 import shutil
 import subprocess
 from collections.abc import Iterator, Mapping
@@ -207,6 +208,10 @@ def resolve(root: Path, ref: str | os.PathLike, *, kind: str = "output", expecte
     named = sorted((d for d in all_entries if d.name.rsplit("-", 1)[0] == ref_s), key=lambda d: d.name)
     pin = f" (pin one with {field}=<name-id>)" if field else " (pin one by its id or name-id)"
     others = f"; other builds: {', '.join(d.name for d in named)}{pin}" if named else ""
+    base = re.fullmatch(rf"(.+)-[0-9a-f]{{{ID_LEN}}}", ref_s)
+    if base and expected is not None:  # a pinned `name-id` that is not built: say so, and what makes `name`
+        make = f"; `{command.format(name=base.group(1))}` makes the current config's" if command else ""
+        raise DatasetError(f"{kind} {ref_s} is not built under {root}{make}")
     make = f"; run `{command.format(name=ref_s)}`" if command else ""
     want = expected(ref_s) if expected is not None else None
     if want is not None:

@@ -180,7 +180,8 @@ def test_stale_temporaries_are_removed_and_verify_fails_without_manifest(tmp_pat
 
 # ----------------------------------------------------------------------- lineage: never the newest folder
 def test_a_name_means_the_current_config_never_the_newest_folder(tmp_path):
-    from pipeline.data import open_dataset, run as data_run
+    from pipeline.data import open_dataset
+    from pipeline.data import run as data_run
     from pipeline.errors import DatasetError
 
     root = tmp_path / "datasets"

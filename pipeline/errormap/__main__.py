@@ -10,10 +10,25 @@ import sys
 from omegaconf import DictConfig
 
 from pipeline.cli import stage_main
-from pipeline.errormap.stage import run
+from pipeline.errormap.stage import _occlusions, _plain, run, validate
+from pipeline.errors import DatasetError, ModelError
 
 
-@stage_main("errormap")
+def check(cfg: DictConfig) -> None:
+    """Preflight: the settings, the cloud levels and every map (resolved by id, not loaded)."""
+    from pipeline.lineage import resolve_map
+
+    settings = validate(cfg)
+    _occlusions(cfg, settings["occlusion_levels"])
+    maps = _plain(cfg.get("maps"))
+    for ref in maps if isinstance(maps, list) else [maps]:
+        try:
+            resolve_map(ref, cfg.paths.models_dir)
+        except DatasetError as err:
+            raise ModelError(str(err)) from None
+
+
+@stage_main("errormap", check=check)
 def main(cfg: DictConfig) -> None:
     run(cfg)
 
