@@ -167,3 +167,25 @@ def test_occlusion_experiment_with_trained_maps(tiny_maps, tmp_path):
     assert list(summary["map"]) == ["clean", "occluded"]
     index = (tmp_path / "paper" / "index.md").read_text()
     assert "map:clean" in index and "map:occluded" in index  # the ids of the maps used are listed
+
+
+def test_margin_map_cell_against_a_direct_simulation(tmp_path):
+    """One cell of the hysteresis margin map: robust just below the margin it reports, failing at the ε where
+    its bisection stopped, checked by simulating those two ε directly."""
+    from pipeline.experiments.context import Context
+    from pipeline.experiments.scenarios import HysteresisMargin, practical_success
+
+    cfg = _cfg(tmp_path, "experiment=hysteresis_margin", "perception=oracle")
+    ctx = Context(cfg)
+    scen = HysteresisMargin(id="m", title="m", chi=[1.1], lam=[0.09], disturbances=["adversarial"], n_agents=30,
+                            tol=0.25, success=0.99)
+    res = scen.compute(ctx)
+    row = res.tables["margin"].iloc[0]
+    assert 0.0 < row.eps_margin < row.eps_fails < scen.eps_max
+    assert row.eps_fails - row.eps_margin <= scen.tol
+    x0 = res.arrays["x0"]
+    for eps, robust in ((row.eps_margin, True), (row.eps_fails, False)):
+        sim = ctx.simulate(ctx.controller("hybrid", chi=1.1, lam=0.09), x0,
+                           disturbance=ctx.disturbance("adversarial", eps=eps), record=False)
+        rate = practical_success(sim, ctx.delta, eps).mean()
+        assert (rate >= 0.99) == robust, (eps, rate)

@@ -24,6 +24,7 @@ FIGURES = {
     "fig8_robustness_sweep": ("robustness_sweep", "not in the paper: Proposition 1 vs Theorem 1 measured"),
     "fig9_monte_carlo": ("monte_carlo", "not in the paper: Monte Carlo success rates"),
     "fig10_authors_code_vs_default": ("authors_code", "not in the paper: the authors' released-code scene"),
+    "fig11_hysteresis_margin": ("hysteresis_margin", "not in the paper: Theorem 1's robustness margin over (χ, λ)"),
 }
 
 
@@ -237,9 +238,42 @@ def draw_authors_code(scen, ctx, res, out) -> None:
               "Monte Carlo (true state) on the default and the authors' scene, 95% CIs.")
 
 
+def draw_hysteresis_margin(scen, ctx, res, out) -> None:
+    plt = _plt()
+    df = res.tables["margin"]
+    dists = list(dict.fromkeys(df["disturbance"]))
+    chis, lams = sorted(set(df["chi"])), sorted(set(df["lam"]))
+    vmax = float(np.nanmax(df["eps_margin"].to_numpy())) if df["eps_margin"].notna().any() else 1.0
+    fig, axes = plt.subplots(1, len(dists), figsize=(5.6 * len(dists), 4.2), squeeze=False)
+    for ax, dist in zip(axes[0], dists):
+        grid = np.full((len(lams), len(chis)), np.nan)
+        for r in df[df.disturbance == dist].itertuples():
+            grid[lams.index(r.lam), chis.index(r.chi)] = r.eps_margin
+        im = ax.imshow(grid, origin="lower", cmap="viridis", vmin=0, vmax=vmax, aspect="auto")
+        for i in range(len(lams)):
+            for j in range(len(chis)):
+                if np.isfinite(grid[i, j]):
+                    ax.text(j, i, f"{grid[i, j]:.2f}", ha="center", va="center", fontsize=7,
+                            color="w" if grid[i, j] < 0.6 * vmax else "k")
+        ax.set_xticks(range(len(chis)), [f"{c:g}" for c in chis])
+        ax.set_yticks(range(len(lams)), [f"{v:g}" for v in lams])
+        pc, pl = res.info["paper_cell"]
+        if pc in chis and pl in lams:
+            ax.add_patch(__import__("matplotlib.patches", fromlist=["Rectangle"]).Rectangle(
+                (chis.index(pc) - 0.5, lams.index(pl) - 0.5), 1, 1, fill=False, ec="red", lw=2, label="paper (1.1, 0.09)"))
+            ax.legend(fontsize=7, loc="upper left")
+        ax.set(xlabel="χ", ylabel="λ (λ < χ - 1; blank: not allowed)", title=f"{dist}: largest ε with ≥ {scen.success:.0%} success")
+        fig.colorbar(im, ax=ax, label="ε margin")
+    out.figure(fig, "fig11_hysteresis_margin",
+               "Hysteresis margin map: the largest disturbance ε for which the hybrid controller still reaches the "
+               "target from the starts near K, per (χ, λ) (bisection on ε; red: the paper's cell).")
+    out.table(df, "tab_hysteresis_margin", "Largest robust ε per (χ, λ) and disturbance (eps_fails: the smallest "
+                                           "failing ε the bisection found).")
+
+
 _DRAWERS = {
     S.Coverings: draw_coverings, S.SensitiveSet: draw_sensitive_set, S.NoiseFailure: draw_noise_failure,
     S.Occlusion: draw_occlusion, S.LeaderFollower: draw_leader_follower,
     S.PerceptionCloseness: draw_perception_closeness, S.RobustnessSweep: draw_robustness_sweep,
-    S.MonteCarlo: draw_monte_carlo, S.AuthorsCode: draw_authors_code,
+    S.MonteCarlo: draw_monte_carlo, S.AuthorsCode: draw_authors_code, S.HysteresisMargin: draw_hysteresis_margin,
 }

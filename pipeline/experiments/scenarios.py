@@ -32,6 +32,14 @@ def _agent_rows(res, **cols) -> pd.DataFrame:
     return df
 
 
+def practical_success(res, delta: float, eps: float) -> np.ndarray:
+    """Per agent: reached the target up to the disturbance (strict success, or |p - p_T| <= delta + ε at the
+    end) without a collision. Under a disturbance of size ε the closed loop is only practically stable: its
+    equilibrium moves by up to ε, so `delta` alone would count a vehicle resting at p_T + ε as a failure."""
+    m = res.metrics
+    return (m["success"] | (m["final_error"] <= delta + eps + 1e-9)) & ~m["collision"]
+
+
 def _frame_index(t: np.ndarray, times) -> list[int]:
     return [int(min(np.searchsorted(t, s - 1e-9), len(t) - 1)) for s in times]
 
@@ -304,10 +312,14 @@ class RobustnessSweep(Scenario):
                     d = ctx.disturbance(dist, eps=eps) if eps > 0 else None
                     res = ctx.simulate(ctx.controller(ctrl, scene=scene), x0, scene=scene, disturbance=d, record=False)
                     s, c = int(res.metrics["success"].sum()), int(res.metrics["collision"].sum())
+                    sp = int(practical_success(res, ctx.delta, eps).sum())
                     lo, hi = wilson(s, n)
+                    plo, phi = wilson(sp, n)
                     rows.append({"scene": label, "disturbance": dist, "eps": eps, "controller": ctrl, "n": n,
                                  "success_rate": s / n, "success_lo": float(lo), "success_hi": float(hi),
-                                 "collision_rate": c / n, "mean_jumps": float(res.metrics["jumps"].mean())})
+                                 "practical_success_rate": sp / n, "practical_lo": float(plo),
+                                 "practical_hi": float(phi), "collision_rate": c / n,
+                                 "mean_jumps": float(res.metrics["jumps"].mean())})
         return pd.DataFrame(rows)
 
     def compute(self, ctx: Context) -> Results:
@@ -400,3 +412,80 @@ class AuthorsCode(Scenario):
             mcs.append(mc.metrics(ctx, scene, label, camera=False))
         summary = summarise(pd.concat(mcs, ignore_index=True), ["scene", "condition", "controller"], seed=ctx.seed)
         return Results({"sweep": pd.concat(sweeps, ignore_index=True), "summary": summary}, {}, {})
+
+
+# ----------------------------------------------------------------------------- hysteresis margin map
+@dataclass(kw_only=True)
+class HysteresisMargin(Scenario):
+    """Theorem 1's robustness margin, measured: over a grid of (χ, λ) with λ < χ - 1, the largest disturbance
+    size ε for which the hybrid controller still reaches the target from >= `success` of the starts near K
+    (bisection on ε per cell; starts and seed fixed)."""
+
+    chi: list[float] = field(default_factory=lambda: [1.05, 1.1, 1.2, 1.4, 1.8])
+    lam: list[float] = field(default_factory=lambda: [0.01, 0.03, 0.09, 0.2, 0.4])
+    disturbances: list[str] = field(default_factory=lambda: ["adversarial", "alternating"])
+    n_agents: int = 100          # starts near K (a < -c, |b| < band), the same in every cell
+    band: float = 0.5
+    a_range: list[float] = field(default_factory=lambda: [-45.0, -15.0])
+    success: float = 0.99        # a cell is robust at ε when this share of the starts reaches the target
+    eps_max: float = 12.0        # bisection bracket [0, eps_max]
+    tol: float = 0.02            # bisection stops when the bracket is this narrow
+    paper_cell: list[float] = field(default_factory=lambda: [1.1, 0.09])
+
+    def validate(self) -> None:
+        super().validate()
+        if not (0 < self.success <= 1):
+            raise ConfigError("experiment.success", f"must be in (0, 1], got {self.success}")
+        if not (self.eps_max > 0 and 0 < self.tol < self.eps_max):
+            raise ConfigError("experiment.tol", f"needs 0 < tol < eps_max, got tol={self.tol}, eps_max={self.eps_max}")
+        if not self.chi or any(c <= 1 for c in self.chi):
+            raise ConfigError("experiment.chi", f"must be a non-empty list of values > 1, got {self.chi}")
+        if not self.lam or any(v <= 0 for v in self.lam):
+            raise ConfigError("experiment.lam", f"must be a non-empty list of values > 0, got {self.lam}")
+        if not self.cells():
+            raise ConfigError("experiment.lam", "no (chi, lam) cell with lam < chi - 1")
+
+    def uses(self):
+        return {"controllers": ["hybrid"], "disturbances": list(self.disturbances), "occlusions": []}
+
+    def cells(self) -> list[tuple[float, float]]:
+        return [(c, v) for c in self.chi for v in self.lam if v < c - 1]
+
+    def starts(self, ctx: Context) -> np.ndarray:
+        return initial_conditions({"mode": "near_k", "n": ctx.n(self.n_agents), "seed": ctx.seed, "band": self.band,
+                                   "a_range": list(self.a_range)}, ctx.scene)
+
+    def success_rate(self, ctx: Context, x0, chi: float, lam: float, dist: str, eps: float) -> float:
+        """Share of starts that get past the obstacle to the target up to the disturbance: |p - p_T| <= delta + ε
+        at the horizon, never in N (a biased measurement moves the equilibrium by up to ε, so the strict
+        |p - p_T| <= delta is lost at ε >= delta by every controller, whatever its hysteresis)."""
+        d = ctx.disturbance(dist, eps=eps) if eps > 0 else None
+        res = ctx.simulate(ctx.controller("hybrid", chi=chi, lam=lam), x0, disturbance=d, record=False)
+        return float(np.mean(practical_success(res, ctx.delta, eps)))
+
+    def margin(self, ctx: Context, x0, chi: float, lam: float, dist: str) -> tuple[float, float, int]:
+        """(largest robust ε found, smallest failing ε found, simulations): bisection on [0, eps_max]."""
+        lo, hi, sims = 0.0, self.eps_max, 1
+        if self.success_rate(ctx, x0, chi, lam, dist, 0.0) < self.success:
+            return float("nan"), 0.0, sims
+        sims += 1
+        if self.success_rate(ctx, x0, chi, lam, dist, hi) >= self.success:
+            return hi, float("inf"), sims
+        while hi - lo > self.tol:
+            mid = 0.5 * (lo + hi)
+            sims += 1
+            if self.success_rate(ctx, x0, chi, lam, dist, mid) >= self.success:
+                lo = mid
+            else:
+                hi = mid
+        return lo, hi, sims
+
+    def compute(self, ctx: Context) -> Results:
+        x0 = self.starts(ctx)
+        rows = []
+        for dist in self.disturbances:
+            for chi, lam in self.cells():
+                lo, hi, sims = self.margin(ctx, x0, chi, lam, dist)
+                rows.append({"disturbance": dist, "chi": chi, "lam": lam, "eps_margin": lo, "eps_fails": hi,
+                             "n_starts": len(x0), "simulations": sims})
+        return Results({"margin": pd.DataFrame(rows)}, {"x0": x0}, {"paper_cell": list(self.paper_cell)})
