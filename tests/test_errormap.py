@@ -376,3 +376,26 @@ def test_cli_bad_input_is_one_line(tmp_path, override):
     lines = [ln for ln in proc.stderr.splitlines() if ln.startswith("error:")]
     assert len(lines) == 1, proc.stderr
     assert ("does_not_exist" in lines[0]) if "does_not_exist" in override else ("grid.step" in lines[0])
+
+
+def test_near_target_error_is_reported_next_to_the_operational_set(tmp_path):
+    """A map that errs by 2 units within 4 of the target and is exact elsewhere: near_target sees the 2,
+    the operational set's statistics dilute it (issue 11: accuracy where the closed loop spends its time)."""
+    target = np.array([40.0, 0.0])
+
+    def field(p):
+        bump = (np.hypot(*(p - target).T) <= 4.0)[:, None]
+        return np.where(bump, np.array([2.0, 0.0]), 0.0)
+
+    rng = np.random.default_rng(2)
+    samples = rng.uniform([-50, -30], [50, 30], (500, 2))
+    cfg = _cfg(tmp_path, "occlusion_levels=[none]", "near_target_radius=3.0")
+    r = run(cfg, perception_map=StubMap(field), occlusions={"none": None}, dataset=StubDataset(samples))
+    r = r["summary"]["levels"]["none"]
+    near = r["near_target"]
+    assert near["radius"] == 3.0 and near["n_points"] > 0
+    assert near["mean"] == pytest.approx(2.0) and near["p95"] == pytest.approx(2.0) and near["max"] == pytest.approx(2.0)
+    assert r["mean"] < 0.05 and r["p95"] == pytest.approx(0.0)
+    with pytest.raises(ConfigError, match="near_target_radius"):
+        run(_cfg(tmp_path, "near_target_radius=-1"), perception_map=StubMap(field), occlusions={"none": None},
+            dataset=StubDataset(samples))

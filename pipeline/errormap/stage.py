@@ -87,6 +87,9 @@ def validate(cfg) -> dict:
         eps_c_arr = np.array([np.nan])
     if not np.all(np.isfinite(eps_c_arr)) or np.any(eps_c_arr < 0):
         raise ConfigError("dean.eps_C", f"must be a list of numbers >= 0, got {eps_c!r}")
+    r_t = get("near_target_radius", 5.0)
+    if isinstance(r_t, bool) or not isinstance(r_t, int | float) or not r_t > 0:
+        raise ConfigError("near_target_radius", f"must be a number > 0 (world units), got {r_t!r}")
     margin = get("operational_margin", "auto")
     if margin != "auto" and (not isinstance(margin, int | float) or isinstance(margin, bool) or not margin >= 0):
         raise ConfigError("operational_margin", f"must be auto (half the robot) or a number >= 0, got {margin!r}")
@@ -369,6 +372,10 @@ def analyse_level(F: np.ndarray, points: np.ndarray, shape: tuple[int, int], ope
     worst = mag.max(axis=0)
     op_stats = core.error_stats(mag[:, operational])
     arena_stats = core.error_stats(mag)
+    # where the closed loop spends its time: within r_T of the target (operational points only)
+    r_t = float(settings.get("near_target_radius", 5.0))
+    near_t = operational & (np.hypot(*(points - scene.p_T).T) <= r_t)
+    near_stats = core.error_stats(mag[:, near_t]) if near_t.any() else {}
     step = float(settings["grid"]["step"])
     grid_f = F.reshape(k, *shape, 2)
     lip_op = core.lipschitz_estimate(grid_f, step, operational.reshape(shape))
@@ -393,6 +400,8 @@ def analyse_level(F: np.ndarray, points: np.ndarray, shape: tuple[int, int], ope
     return {
         **op_stats,
         "arena": arena_stats,
+        "near_target": {**{k: near_stats.get(k) for k in ("mean", "p95", "max")}, "radius": r_t,
+                        "n_points": int(near_t.sum())},
         "L_max": lip_op["max"], "L_p99": lip_op["p99"], "L": L, "L_pairs": lip_op["n_pairs"],
         "L_arena_max": lip_all["max"], "L_arena_p99": lip_all["p99"],
         "eps_cover": core.smallest_covering_eps(eps_op, 1.0),
@@ -638,7 +647,9 @@ def summary_table(refs, errormaps_dir=None) -> pd.DataFrame:
         for lv, r in s["levels"].items():
             rows.append({
                 "model": s["model"]["name"], "model_id": s["model"]["id"], "occlusion": lv,
-                "mean": r["mean"], "p95": r["p95"], "max": r["max"], "L": r["L"], "L_p99": r["L_p99"],
+                "mean": r["mean"], "p95": r["p95"], "max": r["max"],
+                "near_target_mean": r.get("near_target", {}).get("mean"),
+                "near_target_p95": r.get("near_target", {}).get("p95"), "L": r["L"], "L_p99": r["L_p99"],
                 "eps_cover": r["eps_cover"], "eps_cover_95": r["eps_cover_95"], "bound_holds": r["bound_holds"],
                 "dean_eps_eta_at_0": r["dean"]["eps_eta_at_0"], "dean_eps_C_at_0": r["dean"]["eps_C_at_0"],
                 "errormap": s["id"],
