@@ -202,3 +202,27 @@ def test_from_config_matches_constructor():
     assert Camera.from_config({}, cfg).shape == (60, 100)
     occ = load_occlusion("heavy")
     assert Occlusion.from_config(occ.config()) == occ
+
+
+def test_authors_clouds_are_clustered_bubbles_and_the_disc_target():
+    """The `authors` level: 1-4 round bubbles per image whose centres lie within +-cluster px of one centre;
+    clustering two fixed-size blobs makes them overlap (less covered area than two blobs anywhere)."""
+    from pipeline.render.occlusion import Occlusion
+
+    authors = load_occlusion("authors")
+    assert authors.cluster == 10.0 and authors.blobs == (1, 4) and authors.probability == 1.0
+    base = dict(name="t", probability=1.0, blobs=(2, 2), radius=(6.0, 6.0), opacity=(0.5, 0.5), aspect=(1.0, 1.0),
+                softness=0.2, bank=64, seed=5)
+    tight = Occlusion(**base, cluster=0.5).fields((60, 100))[0][:, :60, :100]
+    loose = Occlusion(**base).fields((60, 100))[0][:, :60, :100]
+    assert (tight > 0).mean() < 0.75 * (loose > 0).mean()
+    assert Occlusion(**base).config() == Occlusion.from_config(Occlusion(**base).config()).config()
+    assert "cluster" not in Occlusion(**base).config()  # levels without clustering keep their mapping
+    with pytest.raises(ConfigError, match="occlusion.cluster"):
+        Occlusion.from_config({**base, "cluster": -1})
+    scene = Scene(target=(40.0, 0.0))
+    disc = Camera(scene, target_radius=4.0, target_ring_width=None, colors={"target": (255, 0, 0)})
+    ring = Camera(scene, target_radius=4.0, colors={"target": (255, 0, 0)})
+    (tu, tv), = disc.world_to_pixel([scene.target])
+    centre = disc.background[int(tv), int(tu)]
+    assert tuple(centre) == (255, 0, 0) and tuple(ring.background[int(tv), int(tu)]) != (255, 0, 0)

@@ -109,6 +109,7 @@ class Camera:
         robot_size: float = 3.0,
         target_radius: float = 2.5,
         colors: Mapping | None = None,
+        target_ring_width: float | None = 1.0,
     ):
         try:
             (x0, x1), (y0, y1) = _arena(arena)
@@ -145,6 +146,9 @@ class Camera:
         self.scale = sx  # pixels per world unit
         self.robot_size = float(robot_size)
         self.target_radius = float(target_radius)
+        if target_ring_width is not None and not (isinstance(target_ring_width, int | float) and target_ring_width > 0):
+            raise ConfigError("render.target_ring_width", f"must be > 0 px (or null: a filled disc), got {target_ring_width!r}")
+        self.target_ring_width = None if target_ring_width is None else float(target_ring_width)
         self.background = self._render_background()
         self._bg_flat = self.background.reshape(-1, 3)
 
@@ -169,14 +173,14 @@ class Camera:
         a = cfg.get("arena") or arena or DEFAULT_ARENA
         if isinstance(a, Mapping):
             a = (a.get("x"), a.get("y"))
-        known = {"height", "width", "robot_size", "target_radius", "colors", "arena", "name"}
+        known = {"height", "width", "robot_size", "target_radius", "target_ring_width", "colors", "arena", "name"}
         unknown = set(cfg) - known
         if unknown:
             raise ConfigError("render", f"unknown key(s) {sorted(unknown)}; known: {sorted(known)}")
         return cls(
             scene_obj, arena=a, height=cfg.get("height", 60), width=cfg.get("width", 100),
             robot_size=cfg.get("robot_size", 3.0), target_radius=cfg.get("target_radius", 2.5),
-            colors=cfg.get("colors"),
+            colors=cfg.get("colors"), target_ring_width=cfg.get("target_ring_width", 1.0),
         )
 
     @property
@@ -210,7 +214,8 @@ class Camera:
             if self.target_radius > 0:
                 (tu, tv), = self.world_to_pixel([self.scene.target])
                 d = np.sqrt((u[None, :] - tu) ** 2 + (v[:, None] - tv) ** 2)
-                ring = (d <= self.target_radius) & (d >= max(self.target_radius - 1.0, 0.0))
+                inner = 0.0 if self.target_ring_width is None else max(self.target_radius - self.target_ring_width, 0.0)
+                ring = (d <= self.target_radius) & (d >= inner)
                 layers.append((coverage(ring), self.colors["target"]))
         for cov, col in layers:
             img += cov[..., None] * (col - img)

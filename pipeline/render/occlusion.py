@@ -72,8 +72,10 @@ class Occlusion:
     color: tuple[int, int, int] = (185, 205, 255)
     bank: int = 256
     seed: int = 0
+    cluster: float | None = None
 
-    KEYS = ("name", "probability", "blobs", "radius", "opacity", "aspect", "softness", "color", "bank", "seed")
+    KEYS = ("name", "probability", "blobs", "radius", "opacity", "aspect", "softness", "color", "bank", "seed",
+            "cluster")
 
     @property
     def active(self) -> bool:
@@ -101,6 +103,9 @@ class Occlusion:
         seed = cfg.get("seed", d.seed)
         if not isinstance(seed, int) or isinstance(seed, bool) or seed < 0:
             raise ConfigError("occlusion.seed", f"must be an integer >= 0, got {seed!r}")
+        cluster = cfg.get("cluster", d.cluster)
+        if cluster is not None and (isinstance(cluster, bool) or not isinstance(cluster, int | float) or not cluster > 0):
+            raise ConfigError("occlusion.cluster", f"must be > 0 px (or null: blobs anywhere), got {cluster!r}")
         color = cfg.get("color", d.color)
         try:
             col = tuple(int(c) for c in color)
@@ -119,11 +124,14 @@ class Occlusion:
             color=col,
             bank=bank,
             seed=seed,
+            cluster=None if cluster is None else float(cluster),
         )
 
     def config(self) -> dict:
         """Plain mapping (for manifests and ids); `Occlusion.from_config(o.config()) == o`."""
         out = asdict(self)
+        if out["cluster"] is None:  # levels without clustering keep the mapping (and ids) they had
+            del out["cluster"]
         return {k: list(v) if isinstance(v, tuple) else v for k, v in out.items()}
 
     # ------------------------------------------------------------------------------------ sampling
@@ -222,8 +230,13 @@ def _bank(occ: Occlusion, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarra
     yy = np.arange(h, dtype=np.float32)[:, None] + 0.5
     xx = np.arange(w, dtype=np.float32)[None, :] + 0.5
     transmit = np.ones((b, h, w), dtype=np.float32)
+    if occ.cluster is not None:  # every field's blobs within +-cluster px of one random centre (the authors')
+        centre_y, centre_x = rng.uniform(0, h, b), rng.uniform(0, w, b)
     for slot in range(hi):  # a handful of blob slots, each vectorised over the whole bank
         cy, cx = rng.uniform(0, h, b), rng.uniform(0, w, b)
+        if occ.cluster is not None:
+            cy = (centre_y + (cy / h * 2 - 1) * occ.cluster) % h
+            cx = (centre_x + (cx / w * 2 - 1) * occ.cluster) % w
         rad = rng.uniform(*occ.radius, b)
         opa = rng.uniform(*occ.opacity, b)
         asp = rng.uniform(*occ.aspect, b)
@@ -253,11 +266,11 @@ def _bank(occ: Occlusion, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarra
 # ------------------------------------------------------------------------------------------ levels
 def occlusion_level(*, name: str, probability: float = 0.0, blobs=(0, 0), radius=(4.0, 8.0), opacity=(0.5, 0.5),
                     aspect=(0.6, 1.0), softness: float = 0.5, color=(185, 205, 255), bank: int = 256,
-                    seed: int = 0) -> Occlusion:
+                    seed: int = 0, cluster: float | None = None) -> Occlusion:
     """`_target_` of conf/occlusion/*.yaml: a validated :class:`Occlusion` level."""
     return Occlusion.from_config({"name": name, "probability": probability, "blobs": blobs, "radius": radius,
                                   "opacity": opacity, "aspect": aspect, "softness": softness, "color": color,
-                                  "bank": bank, "seed": seed})
+                                  "bank": bank, "seed": seed, "cluster": cluster})
 
 
 def default_levels():
