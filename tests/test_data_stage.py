@@ -206,3 +206,36 @@ def test_cli_multirun_renders_each_recipe(tmp_path):
     assert res.stdout.count("data: ") == 2
     report = verify_datasets(tmp_path / "ds", echo=lambda s: None)
     assert len(report) == 2 and not any(report.values())
+
+
+def test_closed_loop_sampling_over_represents_visited_positions_by_the_share(tmp_path):
+    """`sampling.mode=closed_loop`: the share of images near the target is share * (the visitation pool's
+    share there) + (1 - share) * (the uniform share there), within binomial noise; the pool is what the
+    composed controller and disturbance visit."""
+    from pipeline.data.sampling import Recipe, visitation_pool
+    from pipeline.data.stage import plan
+
+    fractions = {}
+    for share in (0.0, 0.6):
+        cfg = cfg_for(tmp_path / str(share), "closed_loop", "data.splits.train=4000", f"data.sampling.closed_loop.share={share}",
+                      "data.sampling.closed_loop.jitter=0.0")
+        out = run(cfg)
+        ds = open_dataset(out["id"], datasets_dir=out["path"].parent)
+        p = ds.positions("train")
+        fractions[share] = float((np.hypot(p[:, 0] - 40.0, p[:, 1]) <= 5.0).mean())
+        if share:
+            pl = plan(cfg)
+            pool = visitation_pool(pl.recipe, pl.camera)
+            f_pool = float((np.hypot(pool[:, 0] - 40.0, pool[:, 1]) <= 5.0).mean())
+            assert f_pool > 0.3  # the closed loop spends its time at the target
+            (x0, x1), (y0, y1) = pl.camera.arena
+            m = pl.camera.robot_size / 2 / pl.camera.scale
+            f_uniform = np.pi * 25.0 / ((x1 - x0 - 2 * m) * (y1 - y0 - 2 * m))
+            want = share * f_pool + (1 - share) * f_uniform
+            assert abs(fractions[share] - want) < 4 * np.sqrt(want * (1 - want) / 4000) + 1e-3
+            assert isinstance(pl.recipe, Recipe) and pl.recipe.closed_loop["controller"]["_target_"].endswith("HybridController")
+    assert fractions[0.6] > 10 * fractions[0.0]
+    # the composed controller is part of the dataset id: a different gain is a different dataset
+    a = plan(cfg_for(tmp_path, "closed_loop"))
+    b = plan(cfg_for(tmp_path, "closed_loop", "data.sampling.closed_loop.controller.k=2"))
+    assert a.id != b.id

@@ -19,7 +19,9 @@ from pipeline.render import Camera, CloudSample, Occlusion
 SPLITS = ("train", "val", "test")
 VOLATILE = ("chunk_size",)  # recipe keys that do not change the bytes (left out of the id)
 RECIPE_KEYS = ("name", "occlusion", "splits", "seed", "sampling", "follower", "preview", "chunk_size")
-SAMPLING_MODES = ("uniform", "grid")
+SAMPLING_MODES = ("uniform", "grid", "closed_loop")
+CLOSED_LOOP_KEYS = ("share", "starts", "controller", "disturbance", "horizon", "dt", "camera_period", "jitter",
+                    "stop_at_target", "seed")
 _MAX_ROUNDS = 64  # rejection-sampling rounds (each vectorised over the rejected rows)
 
 
@@ -58,6 +60,7 @@ class Recipe:
     follower_max_distance: float | None
     preview: int
     chunk_size: int
+    closed_loop: dict | None = None
 
     @classmethod
     def from_config(cls, cfg: Mapping) -> Recipe:
@@ -76,12 +79,14 @@ class Recipe:
             raise ConfigError("data.splits", f"needs exactly the sizes of {list(SPLITS)}, got {splits!r}")
         sizes = {s: _int(splits[s], f"data.splits.{s}", 1) for s in SPLITS}
         sampling = cfg.get("sampling") or {}
-        extra = set(sampling) - {"mode", "margin", "exclude_obstacle"}
+        extra = set(sampling) - {"mode", "margin", "exclude_obstacle", "closed_loop"}
         if extra:
-            raise ConfigError("data.sampling", f"unknown key(s) {sorted(extra)}; known: mode, margin, exclude_obstacle")
+            raise ConfigError("data.sampling", f"unknown key(s) {sorted(extra)}; known: mode, margin, exclude_obstacle, "
+                                               "closed_loop")
         mode = sampling.get("mode", "uniform")
         if mode not in SAMPLING_MODES:
             raise ConfigError("data.sampling.mode", f"must be one of {SAMPLING_MODES}, got {mode!r}")
+        closed_loop = _closed_loop(sampling.get("closed_loop")) if mode == "closed_loop" else None
         excl = sampling.get("exclude_obstacle", False)
         if not isinstance(excl, bool):
             raise ConfigError("data.sampling.exclude_obstacle", f"must be true or false, got {excl!r}")
@@ -104,7 +109,79 @@ class Recipe:
             follower_max_distance=max_d,
             preview=_int(cfg.get("preview", 32), "data.preview", 1, 256),
             chunk_size=_int(cfg.get("chunk_size", 4096), "data.chunk_size", 1),
+            closed_loop=closed_loop,
         )
+
+
+def _closed_loop(cl) -> dict:
+    """Validated `data.sampling.closed_loop`: where the simulated closed loop spends its time."""
+    if not isinstance(cl, Mapping):
+        raise ConfigError("data.sampling.closed_loop", "mode closed_loop needs this node (see conf/data/closed_loop.yaml)")
+    cl = dict(cl)
+    extra = set(cl) - set(CLOSED_LOOP_KEYS)
+    if extra:
+        raise ConfigError(f"data.sampling.closed_loop.{sorted(extra)[0]}", f"unknown key (known: {', '.join(CLOSED_LOOP_KEYS)})")
+    f = "data.sampling.closed_loop"
+    out = {"share": _num(cl.get("share", 0.5), f"{f}.share", 0.0, 1.0),
+           "starts": _int(cl.get("starts", 200), f"{f}.starts", 1),
+           "horizon": _num(cl.get("horizon", 30.0), f"{f}.horizon", 0.0, open_lo=True),
+           "dt": _num(cl.get("dt", 0.01), f"{f}.dt", 0.0, open_lo=True),
+           "camera_period": _num(cl.get("camera_period", 0.05), f"{f}.camera_period", 0.0, allow_none=True, open_lo=True),
+           "jitter": _num(cl.get("jitter", 1.0), f"{f}.jitter", 0.0),
+           "seed": _int(cl.get("seed", 0), f"{f}.seed", 0),
+           "controller": cl.get("controller"), "disturbance": cl.get("disturbance")}
+    stop = cl.get("stop_at_target", False)
+    if not isinstance(stop, bool):
+        raise ConfigError(f"{f}.stop_at_target", f"must be true or false, got {stop!r}")
+    out["stop_at_target"] = stop
+    for key in ("controller", "disturbance"):
+        if not isinstance(out[key], Mapping) or "_target_" not in out[key]:
+            raise ConfigError(f"{f}.{key}", "needs a composed node with `_target_` (conf/controller/, conf/disturbance/)")
+    return out
+
+
+def visitation_pool(recipe: Recipe, camera: Camera) -> np.ndarray:
+    """Positions `(M, 2)` the configured closed loop visits, sampled at every step of every simulated run (so
+    the pool's density is the time the loop spends at a place): random starts over the arena, the recipe's
+    controller and disturbance, on the true state. Deterministic in `closed_loop.seed`."""
+    from pipeline.sim import simulate
+    from pipeline.sim.build import build_controller, build_disturbance, initial_conditions
+
+    cl = recipe.closed_loop
+    scene = camera.scene
+    f = "data.sampling.closed_loop"
+    ctrl = build_controller(cl["controller"], scene, path=f"{f}.controller")
+    dist = build_disturbance(cl["disturbance"], f"{f}.disturbance")
+    (x0, x1), (y0, y1) = camera.arena
+    starts = initial_conditions({"mode": "random", "n": cl["starts"], "seed": cl["seed"], "margin": 2.0}, scene,
+                                {"arena": {"x": [x0, x1], "y": [y0, y1]}})
+    res = simulate(scene, ctrl, starts, dt=cl["dt"], horizon=cl["horizon"], camera_period=cl["camera_period"],
+                   disturbance=dist, seed=cl["seed"], record_every=max(1, round((cl["camera_period"] or cl["dt"]) / cl["dt"])),
+                   stop_on_success=cl["stop_at_target"])
+    p = res.p.reshape(-1, 2)
+    if cl["stop_at_target"]:  # drop the frozen rows after an agent stopped
+        moving = np.ones(res.p.shape[:2], dtype=bool)
+        moving[1:] = np.any(res.p[1:] != res.p[:-1], axis=-1)
+        p = res.p[moving]
+    return p[np.isfinite(p).all(axis=1)]
+
+
+def _closed_loop_positions(rng: np.random.Generator, n: int, camera: Camera, recipe: Recipe, pool: np.ndarray):
+    """`share` of `n` positions from the visitation pool (jittered, inside the box), the rest uniform, shuffled."""
+    lo, hi = _box(camera, recipe)
+    m = int(round(recipe.closed_loop["share"] * n))
+    out = np.empty((n, 2))
+    out[m:] = _uniform(rng, n - m, camera, recipe)
+    jitter = recipe.closed_loop["jitter"]
+    bad = np.arange(m)
+    for _ in range(_MAX_ROUNDS):
+        if bad.size == 0:
+            break
+        out[bad] = pool[rng.integers(0, len(pool), bad.size)] + rng.normal(0.0, jitter, (bad.size, 2))
+        inside = np.all((out[bad] >= lo) & (out[bad] <= hi), axis=1) & _allowed(out[bad], camera, recipe)
+        bad = bad[~inside]
+    out[bad] = np.clip(out[bad], lo, hi)
+    return out[rng.permutation(n)]
 
 
 @dataclass
@@ -198,13 +275,29 @@ def _followers(rng: np.random.Generator, leader: np.ndarray, camera: Camera, rec
     return out
 
 
+_POOLS: dict = {}
+
+
+def _pool(recipe: Recipe, camera: Camera) -> np.ndarray:
+    """The visitation pool, simulated once per (recipe, camera) in a process (the three splits share it)."""
+    import json
+
+    key = (json.dumps(recipe.closed_loop, sort_keys=True, default=str), id(camera))
+    if key not in _POOLS:
+        _POOLS.clear()
+        _POOLS[key] = visitation_pool(recipe, camera)
+    return _POOLS[key]
+
+
 def plan_split(recipe: Recipe, split: str, camera: Camera, occlusion: Occlusion) -> SplitPlan:
     """The positions and cloud choices of one split (deterministic in recipe + seed)."""
     n = recipe.splits[split]
     seq = np.random.SeedSequence(recipe.seed).spawn(len(SPLITS))[SPLITS.index(split)]
     rng = np.random.default_rng(seq)
-    sample = _uniform if recipe.mode == "uniform" else _grid
-    leader = sample(rng, n, camera, recipe)
+    if recipe.mode == "closed_loop":
+        leader = _closed_loop_positions(rng, n, camera, recipe, _pool(recipe, camera))
+    else:
+        leader = (_uniform if recipe.mode == "uniform" else _grid)(rng, n, camera, recipe)
     present = rng.random(n) < recipe.follower_probability
     follower = _followers(rng, leader, camera, recipe)
     follower[~present] = np.nan

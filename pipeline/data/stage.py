@@ -63,13 +63,18 @@ class Plan:
             "scene": self.scene_cfg,
             "render": self.render_cfg,
             "occlusion": self.occlusion.config(),
-            "code_version": tracking.code_version(*CODE),
+            "code_version": tracking.code_version(*code_modules(self.recipe)),
             "volatile": list(VOLATILE),
             "shards": {s: shard_name(s) for s in SPLITS},
             "labels": LABELS,
             "label_columns": LABEL_COLUMNS,
             "color_order": "RGB",
         }
+
+
+def code_modules(recipe: Recipe) -> tuple[str, ...]:
+    """The code that determines a dataset's bytes: closed-loop sampling also runs the simulator."""
+    return CODE + (("sim", "control") if recipe.mode == "closed_loop" else ())
 
 
 def _visible_scene(scene_cfg: dict) -> dict:
@@ -93,7 +98,7 @@ def plan(cfg: DictConfig) -> Plan:
             "scene": _visible_scene(scene_cfg),
             "render": render_cfg,
             "occlusion": occlusion.config(),
-            "code": tracking.code_version(*CODE),
+            "code": tracking.code_version(*code_modules(recipe)),
         }
     )
     return Plan(recipe, recipe_cfg, scene_cfg, render_cfg, camera, occlusion, id_, Path(cfg.paths.datasets_dir))
