@@ -32,8 +32,7 @@ class Disturbance:
 
 
 class NoDisturbance(Disturbance):
-    def __init__(self, **_ignored):
-        pass
+    """`e = 0`."""
 
 
 class Gaussian(Disturbance):
@@ -41,7 +40,7 @@ class Gaussian(Disturbance):
 
     name = "gaussian"
 
-    def __init__(self, sigma: float = 0.5, **_ignored):
+    def __init__(self, sigma: float = 0.5):
         self.sigma = _nonneg(sigma, "disturbance.sigma")
 
     def __call__(self, p, frame, rng, scene):
@@ -53,7 +52,7 @@ class Alternating(Disturbance):
 
     name = "alternating"
 
-    def __init__(self, eps: float = 0.5, **_ignored):
+    def __init__(self, eps: float = 0.5):
         self.eps = _nonneg(eps, "disturbance.eps")
 
     def __call__(self, p, frame, rng, scene):
@@ -66,7 +65,7 @@ class Adversarial(Disturbance):
 
     name = "adversarial"
 
-    def __init__(self, eps: float = 0.5, **_ignored):
+    def __init__(self, eps: float = 0.5):
         self.eps = _nonneg(eps, "disturbance.eps")
 
     def __call__(self, p, frame, rng, scene):
