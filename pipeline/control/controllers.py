@@ -78,9 +78,13 @@ class Controller:
         self.q = np.ones(n, dtype=np.int8)
 
     # ---- hybrid data (pure) -----------------------------------------------------------------------------
-    def flow_map(self, m: np.ndarray, q: np.ndarray | None = None, target=None) -> np.ndarray:
-        """Velocity `u = F(m, q)` `(N, 2)`, saturated at `u_max`, never NaN."""
-        return self._flow(np.asarray(m, dtype=float), target)[0]
+    def flow_map(self, m: np.ndarray, q: np.ndarray | None = None, target=None, with_pushout: bool = False):
+        """Velocity `u = F(m, q)` `(N, 2)`, saturated at `u_max`, never NaN.
+
+        `with_pushout=True` also returns the rows where `F` is the push-out fallback (boolean `(N,)`).
+        """
+        u, pushed = self._flow(np.asarray(m, dtype=float), target)
+        return (u, pushed) if with_pushout else u
 
     def jump_map(self, q: np.ndarray) -> np.ndarray:
         """`q+ = G(q)`: the identity for a controller without modes."""
@@ -167,14 +171,15 @@ class HybridController(Controller):
         return np.where(V1 < V2, 1, np.where(V2 < V1, 2, np.where(b < 0, 1, 2))).astype(np.int8)
 
     # ---- the paper's hybrid data ------------------------------------------------------------------------
-    def flow_map(self, m: np.ndarray, q: np.ndarray, target=None) -> np.ndarray:
+    def flow_map(self, m: np.ndarray, q: np.ndarray, target=None, with_pushout: bool = False):
         """Eq. (gradient_flows1): `p_dot = -k ∇V_q(m)`, `q_dot = 0`, saturated at `u_max`.
 
         Where `m ∉ O_q` (possible through perception error only), SPEC §3.3's rule: leave `W_q` along the
-        outward normal of its nearest face at `push_speed`.
+        outward normal of its nearest face at `push_speed`; `with_pushout=True` also returns those rows.
         """
         q = np.asarray(q, dtype=np.int8)
-        return self._flow_data(self._data(np.asarray(m, dtype=float), q, target), q)[0]
+        u, pushed = self._flow_data(self._data(np.asarray(m, dtype=float), q, target), q)
+        return (u, pushed) if with_pushout else u
 
     def jump_map(self, q: np.ndarray) -> np.ndarray:
         """The paper's jump map: `p+ = p`, `q+ = 3 - q`."""
