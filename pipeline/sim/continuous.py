@@ -52,6 +52,7 @@ _B4 = np.array([5179 / 57600, 0.0, 7571 / 16695, 393 / 640, -92097 / 339200, 187
 _E = _B5 - _B4
 _ROS_D, _ROS_E32 = 1.0 / (2.0 + math.sqrt(2.0)), 6.0 + math.sqrt(2.0)
 METHODS = ("rosenbrock23", "dopri5")
+_INSIDE = np.arange(1, 8) / 8.0  # interior points of a step near the obstacle, for the clearance
 _BISECT = 24  # halvings of a step when locating an event: 6e-8 of the step
 
 
@@ -88,8 +89,8 @@ class _Grid:
     `rows` (if given) keeps every row (the recorded arc); otherwise a ring buffer of `ring` rows.
     """
 
-    def __init__(self, period: float, arrays: dict, ring: int | None = None):
-        self.period, self.a, self.ring = period, arrays, ring
+    def __init__(self, period: float, arrays: dict, ring: int | None = None, on_sample=None):
+        self.period, self.a, self.ring, self.on_sample = period, arrays, ring, on_sample
         n = next(iter(arrays.values())).shape[1]
         self.next_k = np.ones(n, dtype=np.int64)  # row 0 (t = 0) is written by the caller
 
@@ -103,7 +104,10 @@ class _Grid:
             theta = np.clip((kk * self.period - t0[todo]) / h[todo], 0.0, 1.0)
             row = kk if self.ring is None else kk % self.ring
             ag = idx[todo]
-            self.a["p"][row, ag] = _hermite(p0[todo], f0[todo], p1[todo], f1[todo], h[todo], theta)
+            X = _hermite(p0[todo], f0[todo], p1[todo], f1[todo], h[todo], theta)
+            self.a["p"][row, ag] = X
+            if self.on_sample is not None:
+                self.on_sample(ag, X)
             for name, val in extra.items():
                 self.a[name][row, ag] = val[todo]
             k[todo] += 1
@@ -126,7 +130,7 @@ def simulate_continuous(
     record: bool,
     stop_on_success: bool,
     stall: StallMonitor,
-    rtol: float = 1e-4,
+    rtol: float = 1e-6,
     atol: float = 1e-4,
     h_max: float = 0.25,
     method: str = "rosenbrock23",
@@ -220,7 +224,10 @@ def simulate_continuous(
     n_rec = n_steps // record_every + 1 if record else 1
     rec = {"p": np.zeros((n_rec, n, 2)), "e": np.zeros((n_rec, n, 2)),
            "q": np.ones((n_rec, n), dtype=np.int8), "j": np.zeros((n_rec, n), dtype=np.int64)}
-    grid = _Grid(period, rec) if record else None
+    def seen(ag, X):  # every point of the arc we look at counts for the minimum clearance
+        min_d2[ag] = np.minimum(min_d2[ag], _sq(X, p0))
+
+    grid = _Grid(period, rec, on_sample=seen) if record else None
     for key, v in (("p", p), ("e", e), ("q", q), ("j", jumps)):
         rec[key][0] = v
     stall_buf = {"p": stall.buf}
@@ -290,15 +297,35 @@ def simulate_continuous(
             # events at the step's end, located in time: collision, arrival, jump (the earliest wins)
             theta = np.ones(a.size)
             kind = np.zeros(a.size, dtype=np.int8)  # 0 none, 1 collision, 2 arrival, 3 jump
+            P_evt = np.full_like(P1a, np.nan)  # event states from a step of the method (else Hermite)
+
+            def refine(i, c, rad2, inside):
+                """Newton in time on `|p(θ) - c|^2 = rad2`, `p(θ)` a step of `θ H` of the method itself (the
+                Hermite interpolant is the first guess); kept where the event's condition then holds."""
+                th = _locate(lambda X: (_sq(X, c) < rad2) == inside, Pa[i], Fa[i], P1a[i], F1a[i], Ha[i])
+                tn = th.copy()
+                for _ in range(3):
+                    Pt, Ft, _, _, ne = stepper(Pa[i], Fa[i], Qa[i], Ea[i], tn * Ha[i])
+                    g = _sq(Pt, c) - rad2
+                    dg = 2.0 * ((Pt[:, 0] - c[0]) * Ft[:, 0] + (Pt[:, 1] - c[1]) * Ft[:, 1]) * Ha[i]
+                    with np.errstate(divide="ignore", invalid="ignore"):
+                        tn = np.clip(tn - np.where(dg != 0, g / dg, 0.0), 0.0, 1.0)
+                tn = np.minimum(tn + 1e-9, 1.0)  # just past the crossing
+                Pt, _, _, _, ne = stepper(Pa[i], Fa[i], Qa[i], Ea[i], tn * Ha[i])
+                stats["evals"] += 4 * ne * i.size
+                good = ((_sq(Pt, c) < rad2) == inside) & np.isfinite(Pt).all(axis=1)
+                th[good] = tn[good]
+                P_evt[i[good]] = Pt[good]
+                return th
+
             hit_c = _sq(P1a, p0) < r2
             if hit_c.any():
                 i = np.flatnonzero(hit_c)
-                th = _locate(lambda X: _sq(X, p0) < r2, Pa[i], Fa[i], P1a[i], F1a[i], Ha[i])
-                theta[i], kind[i] = th, 1
+                theta[i], kind[i] = refine(i, p0, r2, True), 1
             hit_t = (_sq(P1a, pT) <= delta2) & (kind == 0) & np.isnan(t_hit[ia])
             if hit_t.any():
                 i = np.flatnonzero(hit_t)
-                th = _locate(lambda X: _sq(X, pT) <= delta2, Pa[i], Fa[i], P1a[i], F1a[i], Ha[i])
+                th = refine(i, pT, delta2 * (1 + 1e-12), True)
                 t_hit[ia[i]] = t[a[i]] + th * Ha[i]
                 if stop_on_success:
                     theta[i], kind[i] = th, 2
@@ -316,6 +343,8 @@ def simulate_continuous(
                 i = np.flatnonzero(cut)
                 Pn = P1a.copy()
                 Pn[i] = _hermite(Pa[i], Fa[i], P1a[i], F1a[i], Ha[i], theta[i])
+                own = (kind != 3) & np.isfinite(P_evt[:, 0])
+                Pn[own] = P_evt[own]
             t_a0 = t[a]
             t_a1 = t_a0 + theta * Ha
             t_a1[clipped[a] & ~cut] = T1  # exact window end
@@ -329,6 +358,13 @@ def simulate_continuous(
             f0[ia] = Fn
             f0_ok[ia] = ~cut
             min_d2[ia] = np.minimum(min_d2[ia], _sq(Pn, p0))
+            # the arc may pass closer than both ends: look inside steps that come near the obstacle
+            reach = np.sqrt(np.minimum(_sq(Pa, p0), _sq(Pn, p0))) - r < np.hypot(*(Pn - Pa).T) + 1e-9
+            if reach.any():
+                i = np.flatnonzero(reach)
+                for frac in _INSIDE:
+                    X = _hermite(Pa[i], Fa[i], P1a[i], F1a[i], Ha[i], np.minimum(frac, theta[i]))
+                    min_d2[ia[i]] = np.minimum(min_d2[ia[i]], _sq(X, p0))
             min_e2[ia] = np.minimum(min_e2[ia], _sq(Pn, pT))
             newly = pushed[a] & ~pushed_prev[ia] & ~cut
             pushouts[ia[newly]] += 1

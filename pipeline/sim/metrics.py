@@ -35,9 +35,10 @@ def check_stall(stall_speed, stall_time) -> tuple[float, float]:
 class StallMonitor:
     """Positions on a grid of `stall_time / n_samples` seconds, the last `stall_time` seconds kept (ring buffer).
 
-    An agent is *stalled* at the end if it stayed within `stall_speed * stall_time` of its final position
-    for the whole last `stall_time` seconds: a mean speed below `stall_speed`, which catches an equilibrium
-    and a vehicle chattering in place (Proposition 1's adversary) alike.
+    An agent is *stalled* at the end if its mean speed over the last `stall_time` seconds is below
+    `stall_speed`: the displacement between the mean positions of the window's first and last halves
+    (samples every `stall_time / n_samples`), divided by the time between them. Averaging catches an
+    equilibrium and a vehicle chattering in place (Proposition 1's adversary) alike.
     """
 
     def __init__(self, n: int, stall_speed: float, stall_time: float, dt: float, n_samples: int = 10):
@@ -57,8 +58,11 @@ class StallMonitor:
         """Boolean `(n,)`: within `stall_speed * stall_time` of `p_end` over the last `stall_time` seconds."""
         if self.count < self.size:  # less history than stall_time
             return np.zeros(len(p_end), dtype=bool)
-        dev = np.hypot(*(self.buf - p_end).transpose(2, 0, 1)).max(axis=0)
-        return dev <= self.speed * self.time
+        order = (self.count + np.arange(self.size)) % self.size  # oldest first
+        half = self.size // 2
+        first, last = self.buf[order[:half]].mean(axis=0), self.buf[order[-half:]].mean(axis=0)
+        gap = (self.size - half) * self.period  # time between the two halves' mean sample times
+        return np.hypot(*(last - first).T) <= self.speed * gap
 
 
 def outcome(success: np.ndarray, collision: np.ndarray, stalled: np.ndarray) -> np.ndarray:

@@ -104,7 +104,7 @@ def simulate(
     stop_on_success: bool = True,
     progress: bool = False,
     model: str = "sampled",
-    rtol: float = 1e-4,
+    rtol: float = 1e-6,
     atol: float = 1e-4,
     h_max: float = 0.25,
     method: str = "rosenbrock23",
