@@ -353,7 +353,10 @@ def simulate_continuous(
             if grid is not None:
                 grid.fill(ia, t_a0, t_a1, Pa, Fa, P1a, F1a, Ha, {"e": Ea, "q": Qa, "j": jumps[ia]})
             t[a] = t_a1
-            path[ia] += np.hypot(*(Pn - Pa).T)
+            # path length: the integral of the speed (trapezoid on |F|, exact at u_max); the chord for a cut step
+            chord = np.hypot(*(Pn - Pa).T)
+            trap = 0.5 * Ha * (np.hypot(*Fa.T) + np.hypot(*F1a.T))
+            path[ia] += np.where(cut, chord, np.maximum(chord, trap))
             p[ia] = Pn
             f0[ia] = Fn
             f0_ok[ia] = ~cut
