@@ -33,6 +33,8 @@ def _signature(target: str):
         obj = get_object(target)
     except Exception as err:  # noqa: BLE001 - any import problem is the config's fault
         raise ConfigError("_target_", f"cannot import {target!r} ({str(err).splitlines()[0]})") from None
+    if inspect.isclass(obj) and obj.__init__ is object.__init__:
+        return []  # no constructor of its own: it takes no keywords
     fn = obj.__init__ if inspect.isclass(obj) else obj
     try:
         sig = inspect.signature(fn)

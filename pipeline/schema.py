@@ -168,14 +168,22 @@ def load_init(node, path: str = "init"):
 
 @dataclasses.dataclass(frozen=True)
 class SimSettings:
-    """`sim`: Euler step, horizon, success radius, recording, seed."""
+    """`sim`: time model, Euler step / record grid, horizon, success radius, recording, seed, the continuous
+    integrator's tolerances and the stall thresholds of the outcome classes."""
 
+    model: str = "sampled"
     dt: float = 0.01
     horizon: float = 30.0
     delta: float = 1.0
     record_every: int = 5
     stop_on_success: bool = True
     seed: int = 0
+    method: str = "rosenbrock23"
+    rtol: float = 1e-6
+    atol: float = 1e-4
+    h_max: float = 0.25
+    stall_speed: float = 0.1
+    stall_time: float = 5.0
 
     def __post_init__(self):
         need(self.dt > 0, "dt", f"must be > 0, got {self.dt}")
@@ -183,3 +191,7 @@ class SimSettings:
         need(self.delta > 0, "delta", f"must be > 0, got {self.delta}")
         need(self.record_every >= 1, "record_every", f"must be >= 1, got {self.record_every}")
         need(self.seed >= 0, "seed", f"must be >= 0, got {self.seed}")
+        need(self.model in ("sampled", "continuous"), "model", f"must be sampled or continuous, got {self.model!r}")
+        need(self.method in ("rosenbrock23", "dopri5"), "method", f"must be rosenbrock23 or dopri5, got {self.method!r}")
+        for k in ("rtol", "atol", "h_max", "stall_speed", "stall_time"):
+            need(getattr(self, k) > 0, k, f"must be > 0, got {getattr(self, k)}")

@@ -23,6 +23,12 @@ from pipeline.sim.build import (
 )
 
 
+def sim_model_kwargs(sim_cfg) -> dict:
+    """`simulate` keywords of the time model and the outcome classes from the `sim` group (defaults if absent)."""
+    keys = ("model", "method", "rtol", "atol", "h_max", "stall_speed", "stall_time")
+    return {k: sim_cfg[k] for k in keys if k in sim_cfg}
+
+
 def build(cfg: DictConfig):
     """Every object of the run, validated: (scene, controller, disturbance, initial conditions, timing)."""
     scene = build_scene(cfg.scene)
@@ -50,7 +56,7 @@ def run(cfg: DictConfig) -> dict:
         dt=cfg.sim.dt, horizon=cfg.sim.horizon, delta=cfg.sim.delta,
         camera_period=timing.period, p_fail=timing.p_fail, disturbance=disturbance,
         seed=cfg.sim.seed, record_every=cfg.sim.record_every, stop_on_success=cfg.sim.stop_on_success,
-        progress=len(x0) >= 1000,
+        progress=len(x0) >= 1000, **sim_model_kwargs(cfg.sim),
     )
     elapsed = time.perf_counter() - t0
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -62,12 +68,13 @@ def run(cfg: DictConfig) -> dict:
 
         fig = trajectory_figure(
             scene, result.p, result.metrics["success"], arena=arena_bounds(cfg.scene),
-            title=f"{controller.name} controller, disturbance {disturbance.name}",
+            title=f"{controller.name} controller, disturbance {disturbance.name}, {cfg.sim.get('model', 'sampled')}",
         )
         save(fig, run_dir / "trajectories")
     med = df.time_to_target.dropna().median() if df.success.any() else float("nan")
     print(
-        f"simulate: {controller.name} / {disturbance.name}: {len(df)} agents, success {df.success.mean():.1%}, "
+        f"simulate ({cfg.sim.get('model', 'sampled')}): {controller.name} / {disturbance.name}: {len(df)} agents, "
+        f"success {df.success.mean():.1%}, "
         f"collision {df.collision.mean():.1%}, median time {med:.2f} s, "
         f"{elapsed:.2f} s -> {run_dir}"
     )

@@ -238,9 +238,7 @@ class _Straight(Controller):
 
     name = "straight"
 
-    def __call__(self, m, target=None):
-        if len(self.jumps) != len(m):
-            self.reset(m, target)
+    def _flow(self, m, target):
         return self._finalise(-(m - self.scene.p_T), np.zeros(len(m), bool), np.zeros_like(m))
 
 

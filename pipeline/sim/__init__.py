@@ -8,9 +8,10 @@ from pipeline.sim.disturbances import (
     Gaussian,
     NoDisturbance,
 )
-from pipeline.sim.simulator import TERMINATIONS, SimResult, check_timing, simulate, true_state
+from pipeline.sim.metrics import OUTCOMES, summarise_agents, wilson
+from pipeline.sim.simulator import MODELS, TERMINATIONS, SimResult, check_timing, simulate, true_state
 
 __all__ = [
-    "DISTURBANCES", "Adversarial", "Alternating", "Disturbance", "Gaussian", "NoDisturbance",
-    "TERMINATIONS", "SimResult", "check_timing", "simulate", "true_state",
+    "DISTURBANCES", "MODELS", "OUTCOMES", "Adversarial", "Alternating", "Disturbance", "Gaussian", "NoDisturbance",
+    "TERMINATIONS", "SimResult", "check_timing", "simulate", "summarise_agents", "true_state", "wilson",
 ]

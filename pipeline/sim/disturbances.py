@@ -32,8 +32,7 @@ class Disturbance:
 
 
 class NoDisturbance(Disturbance):
-    def __init__(self):
-        pass
+    """`e = 0`."""
 
 
 class Gaussian(Disturbance):

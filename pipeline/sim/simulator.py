@@ -1,6 +1,10 @@
-"""Batched sampled-data simulation of N vehicles `p_dot = u` under a feedback law (SPEC §1, §3.3).
+"""Batched simulation of N vehicles `p_dot = u` under a feedback law (SPEC §1, §3.3).
 
-Each camera frame (every `camera_period`, a multiple of `dt`) a vehicle gets a new measurement with
+Two models (`sim.model`): `sampled` (below; the camera in the loop) and `continuous` (the paper's hybrid
+arcs, `pipeline.sim.continuous`). Both read the controller's hybrid data through the same functions
+(`flow_map`, `jump_map`, `flow_set`, `jump_set`) and return the same `SimResult`.
+
+Sampled model: each camera frame (every `camera_period`, a multiple of `dt`) a vehicle gets a new measurement with
 probability `1 - p_fail` (else the controller holds the last estimate); the controller is evaluated on
 the perceived positions and its velocity is held until the next frame (zero-order hold). The state is
 integrated with explicit Euler steps of `dt`. Each agent's hybrid arc `(t, j, p, q, m, u)` is recorded
@@ -21,7 +25,9 @@ from pipeline.control.controllers import Controller
 from pipeline.control.scene import Scene
 from pipeline.errors import ConfigError
 from pipeline.sim.disturbances import Disturbance, NoDisturbance
+from pipeline.sim.metrics import StallMonitor, check_stall, outcome
 
+MODELS = ("sampled", "continuous")
 TERMINATIONS = ("horizon", "target", "collision", "non_finite")
 HORIZON, TARGET, COLLISION, NON_FINITE = range(4)
 
@@ -97,13 +103,28 @@ def simulate(
     record: bool = True,
     stop_on_success: bool = True,
     progress: bool = False,
+    model: str = "sampled",
+    rtol: float = 1e-6,
+    atol: float = 1e-4,
+    h_max: float = 0.25,
+    method: str = "rosenbrock23",
+    stall_speed: float = 0.1,
+    stall_time: float = 5.0,
 ) -> SimResult:
     """Simulate all agents of `x0` `(N, 2)` at once; see the module docstring.
 
     The first frame is always delivered (a vehicle starts with an estimate). Success: `|p - p_T| <= delta`
     within the horizon without ever entering the obstacle; collision: `|p - p_0| < r` at any step.
+    `model='continuous'` integrates the hybrid arcs with a batched adaptive Runge–Kutta scheme
+    (`method`: `rosenbrock23` or `dopri5`; tolerances `rtol`, `atol`, largest step `h_max`); `dt` is then the record grid only. It takes the
+    true state only: a `measure`/`target_fn` hook or camera failures raise `ConfigError('sim.model')`.
+    Outcome per agent (`metrics['outcome']`): `reached`, `collided`, `stalled` (mean speed below
+    `stall_speed` over the last `stall_time` seconds, away from the target) or `timed_out`.
     """
+    if model not in MODELS:
+        raise ConfigError("sim.model", f"must be one of {MODELS}, got {model!r}")
     every = check_timing(dt, horizon, camera_period)
+    stall_speed, stall_time = check_stall(stall_speed, stall_time)
     if not (0.0 <= float(p_fail) < 1.0):
         raise ConfigError("camera.p_fail", f"must be in [0, 1), got {p_fail!r}")
     if not delta > 0:
@@ -115,6 +136,27 @@ def simulate(
         raise ConfigError("init.points", f"initial conditions must be a non-empty (N, 2) array, got shape {x0.shape}")
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
     disturbance = disturbance or NoDisturbance()
+    stall = StallMonitor(len(x0), stall_speed, stall_time, dt)
+    if model == "continuous":
+        if (measure is not None and measure is not true_state) or target_fn is not None:
+            raise ConfigError("sim.model", "continuous takes the true state only: a camera/perception-map "
+                              "measurement or a moving target is sampled per frame (use sim.model=sampled)")
+        if p_fail > 0:
+            raise ConfigError("sim.model", f"camera failures (camera.p_fail = {p_fail}) hold a frame's "
+                              "estimate: sampled-only (use sim.model=sampled)")
+        for value, name in ((rtol, "sim.rtol"), (atol, "sim.atol"), (h_max, "sim.h_max")):
+            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+                raise ConfigError(name, f"must be > 0, got {value!r}")
+        from pipeline.sim.continuous import METHODS, simulate_continuous
+
+        if method not in METHODS:
+            raise ConfigError("sim.method", f"must be one of {METHODS}, got {method!r}")
+
+        rec, st = simulate_continuous(
+            scene, controller, x0, dt=dt, horizon=horizon, delta=delta, every=every, disturbance=disturbance,
+            rng=rng, record_every=record_every, record=record, stop_on_success=stop_on_success, stall=stall,
+            rtol=rtol, atol=atol, h_max=h_max, method=method)
+        return _result(scene, controller, x0, rec, None, st, stall, delta, stop_on_success)
     measure = measure or true_state
     n = len(x0)
     n_steps = int(round(horizon / dt))
@@ -140,6 +182,7 @@ def simulate(
     px, py = p[:, 0], p[:, 1]  # views: integrating them updates p
     min_d2 = (px - p0[0]) ** 2 + (py - p0[1]) ** 2
     collided = min_d2 < r2
+    min_e2 = (px - pT[0]) ** 2 + (py - pT[1]) ** 2
     path = np.zeros(n)
     speed_dt = dpx = dpy = np.zeros(n)
 
@@ -166,6 +209,7 @@ def simulate(
     t = 0.0
     if record:
         store(0.0)
+    stall.sample(p)
 
     steps = range(n_steps)
     if progress:
@@ -202,6 +246,7 @@ def simulate(
         t = (step + 1) * dt
         ex, ey = px - pT[0], py - pT[1]
         e2 = ex * ex + ey * ey
+        np.minimum(min_e2, e2, out=min_e2)
         events = (d2 < r2) | (e2 <= delta2)
         events &= active
         if events.any():  # rare: handle collisions and arrivals in detail
@@ -219,6 +264,8 @@ def simulate(
             if bad.any():
                 term[bad] = NON_FINITE
                 active &= ~bad
+        if (step + 1) % stall.every == 0:
+            stall.sample(p)
         if record and (step + 1) % record_every == 0:
             store(t)
         if not active.any():
@@ -226,21 +273,36 @@ def simulate(
     if not record or (k_rec < n_rec and rec["t"][k_rec - 1] != t):
         store(t)  # the final state (the only one recorded when record=False)
     k = k_rec
-    success = ~np.isnan(t_hit) & ~collided
+    rec = {key: v[:k] for key, v in rec.items()}
+    st = {"p": p, "term": term, "t_hit": t_hit, "collided": collided, "min_d2": min_d2, "min_e2": min_e2,
+          "path": path, "jumps": controller.jumps.copy(), "pushouts": controller.pushouts.copy()}
+    return _result(scene, controller, x0, rec, None if rec_target is None else rec_target[:k], st, stall, delta,
+                   stop_on_success)
+
+
+def _result(scene, controller, x0, rec, target, st, stall, delta, stop_on_success) -> SimResult:
+    """Per-agent metrics from the final state `st` of either model, packed with the recorded arc."""
+    p, term, collided = st["p"], st["term"], st["collided"]
+    pT, r = scene.p_T, scene.obstacle_radius
+    success = ~np.isnan(st["t_hit"]) & ~collided
     if not stop_on_success:
         term[success & (term == HORIZON)] = TARGET
+    final_error = np.hypot(p[:, 0] - pT[0], p[:, 1] - pT[1])
+    stalled = stall.stalled(p) & (term == HORIZON) & (final_error > delta)
     metrics = {
         "success": success,
         "collision": collided,
-        "time_to_target": t_hit,
-        "min_clearance": np.sqrt(min_d2) - r,
-        "jumps": controller.jumps.copy(),
-        "pushouts": controller.pushouts.copy(),
-        "path_length": path,
-        "final_error": np.hypot(p[:, 0] - pT[0], p[:, 1] - pT[1]),
+        "time_to_target": st["t_hit"],
+        "min_clearance": np.sqrt(st["min_d2"]) - r,
+        "min_target_distance": np.sqrt(st["min_e2"]),
+        "jumps": st["jumps"],
+        "pushouts": st["pushouts"],
+        "path_length": st["path"],
+        "final_error": final_error,
         "termination": np.asarray(TERMINATIONS)[term],
+        "outcome": outcome(success, collided, stalled),
     }
     return SimResult(
-        controller=controller.name, x0=x0, t=rec["t"][:k], p=rec["p"][:k], m=rec["m"][:k], u=rec["u"][:k],
-        q=rec["q"][:k], j=rec["j"][:k], target=None if rec_target is None else rec_target[:k], metrics=metrics,
+        controller=controller.name, x0=x0, t=rec["t"], p=rec["p"], m=rec["m"], u=rec["u"], q=rec["q"],
+        j=rec["j"], target=target, metrics=metrics,
     )

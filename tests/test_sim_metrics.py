@@ -1,0 +1,222 @@
+"""Per-agent outcome classes and `summarise_agents` (issue 12 §2); constructors take the keywords they use."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from pipeline.control import CBFController, HybridController, Scene, SmoothController
+from pipeline.control.controllers import Controller
+from pipeline.errors import ConfigError
+from pipeline.sim import OUTCOMES, Adversarial, Alternating, Gaussian, NoDisturbance, simulate, summarise_agents, wilson
+from pipeline.sim.build import build_controller, build_disturbance
+from pipeline.sim.metrics import StallMonitor
+
+MODELS = ["sampled", "continuous"]
+
+
+@pytest.fixture(scope="module")
+def scene() -> Scene:
+    return Scene(target=(40.0, 0.0), obstacle_center=(0.0, 0.0), obstacle_radius=4.0)
+
+
+class _Straight(Controller):
+    """Drives straight at the target at u_max, blind to the obstacle."""
+
+    name = "straight"
+
+    def _flow(self, m, target):
+        return self._finalise(-(m - self.scene.p_T), np.zeros(len(m), bool), np.zeros_like(m))
+
+
+# ------------------------------------------------------------------------------------------ outcomes
+
+
+@pytest.mark.parametrize("model", MODELS)
+def test_smooth_on_the_saddle_is_stalled_not_timed_out(scene, model):
+    """Started on K behind the obstacle, the smooth flow goes to its saddle and stays (Proposition 1)."""
+    x0 = np.array([[-20.0, 0.0], [-40.0, 0.0]])
+    res = simulate(scene, SmoothController(scene), x0, dt=0.01, horizon=20.0, camera_period=0.05, model=model,
+                   record=False)
+    m = res.metrics
+    assert list(m["outcome"]) == ["stalled", "stalled"]
+    assert list(m["termination"]) == ["horizon", "horizon"]
+    a, b = scene.to_frame(res.p[-1])
+    assert (a < -scene.obstacle_radius).all() and np.allclose(b, 0.0)  # behind the obstacle, on K
+
+
+@pytest.mark.parametrize("model", MODELS)
+def test_outcome_classes(scene, model):
+    """reached / collided / timed_out on constructed cases; a short horizon is never `stalled`."""
+    x0 = np.array([[-5.0, 25.0], [-20.0, 0.0], [-45.0, 29.0]])
+    res = simulate(scene, _Straight(scene), x0, dt=0.01, horizon=8.0, camera_period=0.05, model=model, record=False)
+    m = res.metrics
+    # the third still drives towards the target at the horizon (|x0 - p_T| = 90 at 10 units/s)
+    assert list(m["outcome"]) == ["reached", "collided", "timed_out"]
+    assert m["min_clearance"][1] < 0 < m["min_clearance"][0]
+    assert set(m["outcome"]) <= set(OUTCOMES)
+    # a horizon shorter than stall_time cannot tell a stall: the smooth saddle is `timed_out` then
+    res = simulate(scene, SmoothController(scene), np.array([[-20.0, 0.0]]), dt=0.01, horizon=4.0, model=model,
+                   stall_time=5.0, record=False)
+    assert list(res.metrics["outcome"]) == ["timed_out"]
+
+
+def test_stall_thresholds_are_config(scene):
+    x0 = np.array([[-20.0, 0.0], [-45.0, 20.0]])
+    # the second agent moves at ~10 units/s: stalled only if the threshold is above its speed
+    slow = simulate(scene, SmoothController(scene), x0, dt=0.01, horizon=5.0, stall_time=2.0, stall_speed=0.1,
+                    record=False)
+    assert list(slow.metrics["outcome"]) == ["stalled", "timed_out"]
+    fast = simulate(scene, SmoothController(scene), x0, dt=0.01, horizon=5.0, stall_time=2.0, stall_speed=20.0,
+                    record=False)
+    assert list(fast.metrics["outcome"]) == ["stalled", "stalled"]
+    for kw, field in (({"stall_speed": 0.0}, "sim.stall_speed"), ({"stall_time": -1.0}, "sim.stall_time"),
+                      ({"stall_time": "x"}, "sim.stall_time")):
+        with pytest.raises(ConfigError) as info:
+            simulate(scene, SmoothController(scene), x0, horizon=1.0, **kw)
+        assert info.value.field == field
+
+
+@pytest.mark.parametrize("cls", [SmoothController, CBFController])
+def test_adversary_near_k_is_stalled(scene, cls):
+    """Proposition 1's chattering vehicles count as stalled (mean speed ~ 0), not timed out."""
+    rng = np.random.default_rng(0)
+    x0 = scene.from_frame(rng.uniform(-45, -15, 40), rng.uniform(-0.5, 0.5, 40))
+    res = simulate(scene, cls(scene), x0, dt=0.01, horizon=30.0, camera_period=0.05, disturbance=Adversarial(0.5),
+                   record=False)
+    assert (res.metrics["outcome"] == "stalled").mean() >= 0.95
+
+
+def test_stall_monitor_mean_speed():
+    """Half-window means: a vehicle at constant speed v reads v; chattering in place reads ~0."""
+    dt, T = 0.01, 2.0
+    for v, chatter, stalled in ((0.05, 0.0, True), (0.2, 0.0, False), (0.0, 0.4, True), (0.15, 0.4, False)):
+        mon = StallMonitor(1, stall_speed=0.1, stall_time=T, dt=dt)
+        n = int(round(6.0 / dt))
+        for k in range(n + 1):
+            if k % mon.every == 0:
+                t = k * dt
+                mon.sample(np.array([[v * t + chatter * (-1) ** (k // 5), 0.0]]))
+        p_end = mon.buf[(mon.count - 1) % mon.size]
+        assert mon.stalled(p_end)[0] == stalled, (v, chatter)
+
+
+def test_outcome_column_in_metrics_frame(scene):
+    res = simulate(scene, HybridController(scene), np.array([[-12.0, 2.0]]), horizon=15.0, camera_period=0.05)
+    df = res.metrics_frame()
+    assert {"outcome", "min_clearance", "min_target_distance"} <= set(df.columns)
+    assert df.outcome.tolist() == ["reached"]
+    assert df.min_target_distance[0] <= 1.0 + 1e-9
+
+
+# ----------------------------------------------------------------------------------------- the table
+
+
+def _frame(rng, n, **over):
+    df = pd.DataFrame({
+        "controller": rng.choice(["hybrid", "smooth"], n),
+        "success": rng.random(n) < 0.7,
+        "min_clearance": rng.normal(2.0, 1.0, n),
+        "final_error": rng.exponential(2.0, n),
+        "time_to_target": rng.uniform(3, 10, n),
+        "jumps": rng.integers(0, 4, n),
+        "min_target_distance": rng.exponential(1.0, n),
+    })
+    df["collision"] = ~df.success & (rng.random(n) < 0.3)
+    df["outcome"] = np.where(df.collision, "collided", np.where(df.success, "reached",
+                             np.where(rng.random(n) < 0.5, "stalled", "timed_out")))
+    df.loc[~df.success, "time_to_target"] = np.nan
+    for k, v in over.items():
+        df[k] = v
+    return df
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 60))
+def test_summarise_agents_matches_direct_computation(seed, n):
+    rng = np.random.default_rng(seed)
+    df = _frame(rng, n)
+    out = summarise_agents(df, "controller", delta_practical=0.8)
+    assert sorted(out.controller) == sorted(df.controller.unique())
+    for _, row in out.iterrows():
+        g = df[df.controller == row.controller]
+        assert row.n == len(g)
+        assert row.success_rate == pytest.approx(g.success.mean())
+        assert row.success_lo - 1e-12 <= row.success_rate <= row.success_hi + 1e-12
+        assert -1e-12 <= row.success_lo and row.success_hi <= 1 + 1e-12
+        assert row.collision_rate == pytest.approx(g.collision.mean())
+        assert sum(row[k] for k in OUTCOMES) == pytest.approx(1.0)
+        assert row.reached == pytest.approx((g.outcome == "reached").mean())
+        assert row.clearance_median == pytest.approx(np.median(g.min_clearance))
+        assert row.clearance_p05 == pytest.approx(np.quantile(g.min_clearance, 0.05))
+        assert row.clearance_min == g.min_clearance.min() <= row.clearance_p05
+        assert row.final_median == pytest.approx(np.median(g.final_error))
+        assert row.final_p90 == pytest.approx(np.quantile(g.final_error, 0.9))
+        t = g.time_to_target[g.success]
+        assert (np.isnan(row.median_time) and len(t) == 0) or row.median_time == pytest.approx(np.median(t))
+        assert row.mean_jumps == pytest.approx(g.jumps.mean())
+        ok = ~g.collision & (g.min_target_distance <= 0.8)
+        assert row.success_practical == pytest.approx(ok.mean())
+        assert row.success_practical_lo - 1e-12 <= row.success_practical <= row.success_practical_hi + 1e-12
+
+
+def test_summarise_agents_groups_and_without_practical():
+    rng = np.random.default_rng(1)
+    df = _frame(rng, 200)
+    df["sigma"] = rng.choice([0.0, 0.5], 200)
+    out = summarise_agents(df, ["controller", "sigma"])
+    assert len(out) == 4 and out.n.sum() == 200
+    assert "success_practical" not in out.columns
+    assert list(out.columns[:3]) == ["controller", "sigma", "n"]
+
+
+def test_wilson_interval():
+    lo, hi = wilson(0, 20)
+    assert lo == pytest.approx(0.0, abs=1e-12) and 0.1 < hi < 0.2
+    lo, hi = wilson(20, 20)
+    assert 0.8 < lo < 0.9 and hi == pytest.approx(1.0)
+    lo, hi = wilson(50, 100)  # textbook: [0.404, 0.596]
+    assert lo == pytest.approx(0.4038, abs=1e-3) and hi == pytest.approx(0.5962, abs=1e-3)
+
+
+def test_summarise_on_a_simulation(scene):
+    x0 = np.array([[-20.0, 0.0], [-12.0, 2.0], [-30.0, 20.0]])
+    frames = [simulate(scene, cls(scene), x0, horizon=15.0, camera_period=0.05).metrics_frame()
+              for cls in (HybridController, SmoothController)]
+    out = summarise_agents(pd.concat(frames), "controller")
+    row = out.set_index("controller")
+    assert row.loc["hybrid", "reached"] == 1.0
+    assert row.loc["smooth", "stalled"] == pytest.approx(1 / 3)
+
+
+# ------------------------------------------------------------------------------- constructor keywords
+
+
+@pytest.mark.parametrize("cls", [HybridController, SmoothController, CBFController])
+def test_controllers_reject_unknown_keywords(scene, cls):
+    with pytest.raises(TypeError):
+        cls(scene, gain=2.0)
+    with pytest.raises(TypeError):
+        cls(scene, name="hybrid")
+
+
+@pytest.mark.parametrize(("cls", "kw"), [(NoDisturbance, {"eps": 0.5}), (Gaussian, {"eps": 0.5}),
+                                         (Alternating, {"sigma": 0.5}), (Adversarial, {"name": "x"})])
+def test_disturbances_reject_unknown_keywords(cls, kw):
+    with pytest.raises(TypeError):
+        cls(**kw)
+
+
+def test_builders_strip_name_and_reject_typos(scene):
+    ctrl = build_controller({"_target_": "pipeline.control.SmoothController", "name": "smooth", "k": 2.0}, scene)
+    assert isinstance(ctrl, SmoothController) and ctrl.k == 2.0
+    assert isinstance(build_disturbance({"_target_": "pipeline.sim.NoDisturbance", "name": "none"}), NoDisturbance)
+    with pytest.raises(ConfigError) as info:
+        build_controller({"_target_": "pipeline.control.HybridController", "name": "hybrid", "lamda": 0.05}, scene)
+    assert info.value.field == "controller"
+    with pytest.raises(ConfigError) as info:
+        build_disturbance({"_target_": "pipeline.sim.Gaussian", "name": "gaussian", "sigmaa": 0.1})
+    assert info.value.field == "disturbance"
