@@ -186,6 +186,6 @@ def test_margin_map_cell_against_a_direct_simulation(tmp_path):
     x0 = res.arrays["x0"]
     for eps, robust in ((row.eps_margin, True), (row.eps_fails, False)):
         sim = ctx.simulate(ctx.controller("hybrid", chi=1.1, lam=0.09), x0,
-                           disturbance=ctx.disturbance("adversarial", eps=eps), record=False)
+                           disturbance=ctx.disturbance("adversarial", eps=eps), record=False, model=scen.time_model)
         rate = practical_success(sim, ctx.delta, eps).mean()
         assert (rate >= 0.99) == robust, (eps, rate)

@@ -180,14 +180,17 @@ class Context:
     # simulation ------------------------------------------------------------------------------
     def simulate(self, controller, x0, *, scene: Scene | None = None, disturbance=None, measure=None,
                  target_fn=None, p_fail: float = 0.0, seed: int | None = None, record: bool = True,
-                 record_every: int | None = None, horizon: float | None = None):
+                 record_every: int | None = None, horizon: float | None = None, model: str | None = None):
+        """One batched run; `model` (sampled | continuous) overrides `sim.model` (the camera is sampled-only)."""
+        sim = self.cfg.sim
+        kw = {k: sim[k] for k in ("method", "rtol", "atol", "h_max", "stall_speed", "stall_time") if k in sim}
         return simulate(
             scene or self.scene, controller, np.asarray(x0, float), dt=self.dt, horizon=horizon or self.horizon,
             delta=self.delta, camera_period=self.frame_period, p_fail=p_fail, disturbance=disturbance,
             measure=measure, target_fn=target_fn, seed=self.seed if seed is None else seed,
             record_every=record_every or int(self.cfg.sim.record_every), record=record,
             stop_on_success=bool(self.cfg.sim.stop_on_success),
-            progress=len(x0) >= 2000 and sys.stderr.isatty(),
+            progress=len(x0) >= 2000 and sys.stderr.isatty(), model=model or sim.get("model", "sampled"), **kw,
         )
 
     def camera_measure(self, kind: str = "clean", level: str | None = None):
@@ -246,25 +249,19 @@ def median_ci(x: np.ndarray, rng: np.random.Generator, n_boot: int = 1000):
     return float(np.median(x)), float(np.percentile(boot, 2.5)), float(np.percentile(boot, 97.5))
 
 
-def summarise(metrics: pd.DataFrame, by: list[str], seed: int = 0) -> pd.DataFrame:
-    """Monte Carlo table: success/collision rates with Wilson CIs, median time (bootstrap CI), min
-    clearance and mean jumps, one row per group."""
+def summarise(metrics: pd.DataFrame, by: list[str], seed: int = 0, delta_practical: float | None = None) -> pd.DataFrame:
+    """Monte Carlo table (`pipeline.sim.metrics.summarise_agents`: success/collision with Wilson CIs, outcome
+    classes, clearance median/p05/min, final-distance quantiles, practical success) plus a bootstrap CI of the
+    median time to target and a CI of the mean jump count."""
+    from pipeline.sim.metrics import summarise_agents
+
+    table = summarise_agents(metrics, by, delta_practical=delta_practical)
     rng = np.random.default_rng(seed)
-    rows = []
-    for key, g in metrics.groupby(by, sort=False):
-        key = key if isinstance(key, tuple) else (key,)
-        n = len(g)
-        s, c = int(g["success"].sum()), int(g["collision"].sum())
-        s_lo, s_hi = wilson(s, n)
-        c_lo, c_hi = wilson(c, n)
-        t_med, t_lo, t_hi = median_ci(g.loc[g["success"].astype(bool), "time_to_target"].to_numpy(), rng)
-        j_mean, j_lo, j_hi = mean_ci(g["jumps"].to_numpy())
-        rows.append({**dict(zip(by, key)), "n": n, "success_rate": s / n, "success_lo": float(s_lo),
-                     "success_hi": float(s_hi), "collision_rate": c / n, "collision_lo": float(c_lo),
-                     "collision_hi": float(c_hi), "median_time": t_med, "median_time_lo": t_lo,
-                     "median_time_hi": t_hi, "final_error_median": float(g["final_error"].median()),
-                     "min_clearance": float(g["min_clearance"].min()),
-                     "mean_jumps": j_mean, "mean_jumps_lo": j_lo, "mean_jumps_hi": j_hi})
-    return pd.DataFrame(rows)
+    extra = []
+    for _, g in metrics.groupby(by, sort=False):
+        _, t_lo, t_hi = median_ci(g.loc[g["success"].astype(bool), "time_to_target"].to_numpy(), rng)
+        _, j_lo, j_hi = mean_ci(g["jumps"].to_numpy())
+        extra.append({"median_time_lo": t_lo, "median_time_hi": t_hi, "mean_jumps_lo": j_lo, "mean_jumps_hi": j_hi})
+    return pd.concat([table, pd.DataFrame(extra)], axis=1)
 
 

@@ -107,7 +107,7 @@ def draw_noise_failure(scen, ctx, res, out) -> None:
     out.figure(fig, "fig7_robustness_noise_failure",
                "Hybrid controller with the CNN in the loop under noise and camera failure: single vehicle from "
                "both initial conditions (grey: perceived positions) and leader-follower (paper Fig. robustness).")
-    out.table(res.tables["metrics"][["role", "x0", "y0", "success", "collision", "time_to_target", "min_clearance",
+    out.table(res.tables["metrics"][["role", "x0", "y0", "success", "outcome", "collision", "time_to_target", "min_clearance",
                                      "jumps", "final_error"]],
               "tab_noise_failure", "Per-vehicle outcomes of the noise/failure scenario.")
 
@@ -127,9 +127,10 @@ def draw_occlusion(scen, ctx, res, out) -> None:
         ax.legend(fontsize=7, loc="lower right")
     out.figure(fig, "fig6_occlusion",
                "Follower with the map trained without and with occlusion, tested on occluded frames (paper Fig. occlusion).")
-    cols = ["map", "occlusion", "n", "success_rate", "success_lo", "success_hi", "collision_rate",
-            "tracking_error_mean", "final_error_median", "within_3_units", "mean_jumps"]
-    out.table(res.tables["summary"][cols], "tab_occlusion",
+    cols = ["map", "occlusion", "n", "success_rate", "success_lo", "success_hi", "success_practical",
+            "collision_rate", "reached", "stalled", "timed_out", "tracking_error_mean", "final_error_median",
+            "final_p90", "within_3_units", "clearance_median", "clearance_p05", "clearance_min", "mean_jumps"]
+    out.table(res.tables["summary"][[c for c in cols if c in res.tables["summary"]]], "tab_occlusion",
               "Followers from random initial conditions on occluded frames, per perception map: success "
               "(|p - p_T| <= delta, 95% CIs), mean error of the perceived leader, median final distance to "
               "the target, share ending within 3 units.")
@@ -193,12 +194,17 @@ def draw_robustness_sweep(scen, ctx, res, out, stem: str = "fig8_robustness_swee
 
 
 def draw_monte_carlo(scen, ctx, res, out) -> None:
-    cols = ["condition", "controller", "n", "success_rate", "success_lo", "success_hi", "collision_rate",
-            "median_time", "final_error_median", "min_clearance", "mean_jumps"]
-    out.table(res.tables["summary"][cols], "tab1_monte_carlo",
-              "Monte Carlo over random initial conditions: success (|p - p_T| <= delta) and collision rates "
-              "(95% Wilson CIs), median time to target, median final distance to the target, minimum "
-              "clearance, mean jumps, per condition and controller.")
+    cols = ["condition", "controller", "n", "success_rate", "success_lo", "success_hi", "success_practical",
+            "collision_rate", "reached", "stalled", "timed_out", "median_time", "final_median", "final_p90",
+            "clearance_median", "clearance_p05", "clearance_min", "mean_jumps"]
+    df = res.tables["summary"]
+    dp = float(df["delta_practical"].iloc[0]) if "delta_practical" in df else float("nan")
+    out.table(df[[c for c in cols if c in df]], "tab1_monte_carlo",
+              f"Monte Carlo over random initial conditions: success (|p - p_T| <= delta, 95% Wilson CIs) and at the "
+              f"practical delta = {dp:g} (about the perception error near the target), collision rate, outcome "
+              "classes (reached / stalled: an undesired equilibrium away from the target / timed out), median "
+              "time to target, final distance (median, p90), per-agent minimum clearance (median and 5th "
+              "percentile over agents; global minimum), mean jumps, per condition and controller.")
     plt = _plt()
     df = res.tables["summary"]
     conds = list(dict.fromkeys(df["condition"]))
@@ -233,7 +239,8 @@ def draw_authors_code(scen, ctx, res, out) -> None:
     out.figure(fig, "fig10_authors_code_vs_default",
                "The authors' released-code scene next to the default scene: success vs ε near K.")
     cols = ["scene", "condition", "controller", "n", "success_rate", "success_lo", "success_hi",
-            "collision_rate", "median_time", "min_clearance", "mean_jumps"]
+            "collision_rate", "reached", "stalled", "timed_out", "median_time", "final_median",
+            "clearance_median", "clearance_p05", "clearance_min", "mean_jumps"]
     out.table(res.tables["summary"][cols], "tab2_authors_code_vs_default",
               "Monte Carlo (true state) on the default and the authors' scene, 95% CIs.")
 

@@ -82,6 +82,9 @@ class Scenario:
         a_range = getattr(self, "a_range", None)
         if a_range is not None and not (len(a_range) == 2 and a_range[0] < a_range[1]):
             raise ConfigError("experiment.a_range", f"must be [min, max] with min < max, got {a_range}")
+        tm = getattr(self, "time_model", "sampled")
+        if tm not in ("sampled", "continuous"):
+            raise ConfigError("experiment.time_model", f"must be sampled or continuous, got {tm!r}")
         ics = getattr(self, "initial_conditions", None)
         if ics is not None and not (ics and all(len(p) == 2 for p in ics)):
             raise ConfigError("experiment.initial_conditions", f"must be a non-empty list of [x, y], got {ics}")
@@ -138,6 +141,7 @@ class SensitiveSet(Scenario):
     grid_step: float = 1.0
     grid_step_y: float = 0.25   # fine across K to resolve the ε band
     eps: float = 0.5            # size of the adversarial disturbance in the second column
+    time_model: str = "continuous"  # the paper's hybrid arcs (true state): sim.model for this figure
 
     def uses(self):
         return {"controllers": ["smooth", "hybrid"], "disturbances": ["adversarial"], "occlusions": []}
@@ -155,7 +159,7 @@ class SensitiveSet(Scenario):
         rows = []
         for case, dist in (("clean", None), (f"adversarial eps={self.eps}", ctx.disturbance("adversarial", eps=self.eps))):
             for ctrl in ("smooth", "hybrid"):
-                res = ctx.simulate(ctx.controller(ctrl), pts, disturbance=dist, record_every=10)
+                res = ctx.simulate(ctx.controller(ctrl), pts, disturbance=dist, record_every=10, model=self.time_model)
                 a, b = ctx.scene.to_frame(res.p.reshape(-1, 2))
                 a, b = a.reshape(res.p.shape[:2]), b.reshape(res.p.shape[:2])
                 passed = a >= 0  # beyond the obstacle's centre along the target direction
@@ -198,6 +202,7 @@ class Occlusion(Scenario):
     occlusion: str = "heavy"
     initial_conditions: Points = field(default_factory=lambda: [[-12.0, 2.0], [-37.0, -17.0]])
     n_agents: int = 100   # followers from random initial conditions for the table
+    delta_practical: float = 3.0  # success also within this distance of the target
     maps: ClassVar[tuple[str, ...]] = ("clean", "occluded")
 
     def uses(self):
@@ -223,7 +228,7 @@ class Occlusion(Scenario):
             arrays[f"{kind}_lead_p"] = lead.p[:, 0]
             arrays[f"{kind}_err"] = err[:, 0]
         metrics = pd.concat(rows, ignore_index=True)
-        table = summarise(metrics, ["map", "occlusion"], seed=ctx.seed)
+        table = summarise(metrics, ["map", "occlusion"], seed=ctx.seed, delta_practical=self.delta_practical)
         g = metrics.groupby("map", sort=False)
         table["tracking_error_mean"] = g["tracking_error_mean"].mean().to_numpy()
         # the follower stops next to a leader it only sees through clouds: how close it gets matters more
@@ -296,6 +301,7 @@ class RobustnessSweep(Scenario):
     n_agents: int = 200      # initial conditions within eps of K per cell
     min_band: float = 0.1    # at eps = 0 the starts are within this band of K
     a_range: list[float] = field(default_factory=lambda: [-45.0, -15.0])
+    time_model: str = "continuous"  # the paper's hybrid arcs (true state)
 
     def uses(self):
         return {"controllers": list(self.controllers), "disturbances": list(self.disturbances), "occlusions": []}
@@ -310,7 +316,8 @@ class RobustnessSweep(Scenario):
                                          "a_range": list(self.a_range)}, scene)
                 for ctrl in self.controllers:
                     d = ctx.disturbance(dist, eps=eps) if eps > 0 else None
-                    res = ctx.simulate(ctx.controller(ctrl, scene=scene), x0, scene=scene, disturbance=d, record=False)
+                    res = ctx.simulate(ctx.controller(ctrl, scene=scene), x0, scene=scene, disturbance=d, record=False,
+                                       model=self.time_model)
                     s, c = int(res.metrics["success"].sum()), int(res.metrics["collision"].sum())
                     sp = int(practical_success(res, ctx.delta, eps).sum())
                     lo, hi = wilson(s, n)
@@ -319,6 +326,7 @@ class RobustnessSweep(Scenario):
                                  "success_rate": s / n, "success_lo": float(lo), "success_hi": float(hi),
                                  "practical_success_rate": sp / n, "practical_lo": float(plo),
                                  "practical_hi": float(phi), "collision_rate": c / n,
+                                 "stalled": float(np.mean(res.metrics["outcome"] == "stalled")),
                                  "mean_jumps": float(res.metrics["jumps"].mean())})
         return pd.DataFrame(rows)
 
@@ -336,6 +344,7 @@ class MonteCarlo(Scenario):
     camera: bool = True          # include the camera-in-the-loop occlusion conditions (one per map)
     n_agents: int = 300          # random initial conditions, true-state conditions
     n_agents_camera: int = 100   # random initial conditions, camera conditions (each frame renders + infers them all)
+    delta_practical: float = 3.0  # success also within this distance (about the perception error near the target)
 
     @property
     def maps(self) -> tuple[str, ...]:  # type: ignore[override]
@@ -373,7 +382,7 @@ class MonteCarlo(Scenario):
 
     def compute(self, ctx: Context) -> Results:
         metrics = self.metrics(ctx, ctx.scene, "default", camera=self.camera)
-        table = summarise(metrics, ["condition", "controller"], seed=ctx.seed)
+        table = summarise(metrics, ["condition", "controller"], seed=ctx.seed, delta_practical=self.delta_practical)
         return Results({"metrics": metrics, "summary": table}, {}, {})
 
 
@@ -391,6 +400,7 @@ class AuthorsCode(Scenario):
     a_range: list[float] = field(default_factory=lambda: [-45.0, -15.0])
     sigma: float = 0.5
     p_fail: float = 0.5
+    time_model: str = "continuous"  # of the sweep (the Monte Carlo has camera failures: sampled)
 
     def uses(self):
         return {"controllers": list(self.controllers), "disturbances": sorted({*self.disturbances, "gaussian"}),
@@ -403,7 +413,7 @@ class AuthorsCode(Scenario):
     def compute(self, ctx: Context) -> Results:
         sweep = RobustnessSweep(id=self.id, title=self.title, eps=self.eps, disturbances=self.disturbances,
                                 controllers=self.controllers, n_agents=self.n_agents, min_band=self.min_band,
-                                a_range=self.a_range)
+                                a_range=self.a_range, time_model=self.time_model)
         mc = MonteCarlo(id=self.id, title=self.title, controllers=self.controllers, sigma=self.sigma,
                         p_fail=self.p_fail, camera=False, n_agents=self.n_agents, n_agents_camera=1)
         sweeps, mcs = [], []
@@ -431,6 +441,7 @@ class HysteresisMargin(Scenario):
     eps_max: float = 12.0        # bisection bracket [0, eps_max]
     tol: float = 0.02            # bisection stops when the bracket is this narrow
     paper_cell: list[float] = field(default_factory=lambda: [1.1, 0.09])
+    time_model: str = "continuous"  # the paper's hybrid arcs (true state)
 
     def validate(self) -> None:
         super().validate()
@@ -460,7 +471,8 @@ class HysteresisMargin(Scenario):
         at the horizon, never in N (a biased measurement moves the equilibrium by up to ε, so the strict
         |p - p_T| <= delta is lost at ε >= delta by every controller, whatever its hysteresis)."""
         d = ctx.disturbance(dist, eps=eps) if eps > 0 else None
-        res = ctx.simulate(ctx.controller("hybrid", chi=chi, lam=lam), x0, disturbance=d, record=False)
+        res = ctx.simulate(ctx.controller("hybrid", chi=chi, lam=lam), x0, disturbance=d, record=False,
+                           model=self.time_model)
         return float(np.mean(practical_success(res, ctx.delta, eps)))
 
     def margin(self, ctx: Context, x0, chi: float, lam: float, dist: str) -> tuple[float, float, int]:
