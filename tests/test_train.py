@@ -71,8 +71,8 @@ def test_overfits_256_images(tiny):
     from pipeline.train.stage import error_metrics, run
 
     # a narrow variant of the default architecture (CoordConv, one-cycle), without dropout and BatchNorm
-    cfg = _train_cfg(tiny, "trainer.limit_train_samples=256", "trainer.batch_size=16", "trainer.max_epochs=40",
-                     "trainer.max_minutes=null", "model.lr=2e-3", "model.dropout=0.0", "model.filters=[8,16,32]",
+    cfg = _train_cfg(tiny, "datamodule.limit_train_samples=256", "datamodule.batch_size=16", "trainer.max_epochs=40",
+                     "trainer.max_time=null", "~callbacks.early_stopping", "model.lr=2e-3", "model.dropout=0.0", "model.filters=[8,16,32]",
                      "model.batch_norm=false", "eval_levels=[]", "name=overfit")
     out = run(cfg)
     pm = load_perception_map("overfit", models_dir=tiny["models"])
