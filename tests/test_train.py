@@ -43,6 +43,9 @@ def test_fast_dev_run_reload_and_noop(tiny):
     manifest = json.loads((folder / "manifest.json").read_text())
     ds = open_dataset("clean", datasets_dir=tiny["datasets"])
     assert manifest["dataset_id"] == ds.id
+    from pipeline.train.stage import model_identity
+
+    assert model_identity(cfg, ds.name, ds.id) == (out["name"], out["id"])  # the stage uses the pure rule
     assert set(out["metrics"]) >= {"test_split", "none", "heavy"}
 
     # a saved map reloads and predicts the numbers the stage reported
@@ -140,3 +143,73 @@ def test_cli_unknown_dataset_one_line(tmp_path):
     assert "Traceback" not in proc.stderr
     err_lines = [ln for ln in proc.stderr.splitlines() if ln.startswith("error:")]
     assert len(err_lines) == 1 and "does_not_exist" in err_lines[0]
+
+
+# One line per bad input, naming the field, before any work (nothing written). `None` field part: the case
+# needs no dataset to be rejected, so it also runs through the CLI below.
+BAD_INPUTS = [
+    (["+model.lrr=0.1"], "model.lrr"),
+    (["+trainer.foo=1"], "trainer.foo"),
+    (["+callbacks.early_stopping.patiense=3"], "callbacks.early_stopping.patiense"),
+    (["model.lr=abc"], "model.lr"),
+    (["model.lr=-0.001"], "model.lr"),
+    (["model.weight_decay=-1"], "model.weight_decay"),
+    (["model.hidden=-5"], "model.hidden"),
+    (["model.filters=[16,0]"], "model.filters"),
+    (["model.dropout=1.5"], "model.dropout"),
+    (["seed=-1"], "seed"),
+    (["seed=abc"], "seed"),
+    (["datamodule.batch_size=100000"], "datamodule.batch_size"),  # larger than the 512-image split
+    (["datamodule.batch_size=0"], "datamodule.batch_size"),
+    (["datamodule.limit_train_samples=-3"], "datamodule.limit_train_samples"),
+    (["datamodule.limit_train_samples=8"], "datamodule.batch_size"),  # 8 samples < one batch of 32
+    (["name=a/b"], "name"),
+    (["model.name=a/b"], "model.name"),
+    (["trainer.max_epochs=0"], "trainer.max_epochs"),
+    (["device=tpu"], "device"),
+    (["num_threads=0"], "num_threads"),
+]
+
+
+@pytest.mark.parametrize(("overrides", "field"), BAD_INPUTS, ids=[" ".join(o) for o, _ in BAD_INPUTS])
+def test_bad_input_is_one_config_error(tiny, tmp_path, overrides, field):
+    from pipeline.train.stage import run
+
+    cfg = compose("train", [f"paths.datasets_dir={tiny['datasets']}", f"paths.models_dir={tmp_path / 'm'}",
+                            "trainer.max_epochs=1", "eval_levels=[]", *overrides])
+    with pytest.raises(ConfigError) as info:
+        run(cfg)
+    assert info.value.field == field
+    assert "\n" not in str(info.value)
+    assert not (tmp_path / "m").exists() or not any((tmp_path / "m").iterdir())
+
+
+def test_gpu_trainer_without_gpu_is_one_config_error(tiny, tmp_path):
+    import torch
+
+    from pipeline.train.stage import run
+
+    if torch.cuda.is_available():
+        pytest.skip("this machine has a GPU")
+    with pytest.raises(ConfigError, match="no CUDA GPU") as info:
+        run(_train_cfg(tiny, "trainer=gpu"))
+    assert info.value.field == "trainer.accelerator"
+
+
+@pytest.mark.parametrize("override", ["+trainer.foo=1", "model.lr=abc", "trainer=gpu", "datamodule.batch_size=-4"])
+def test_cli_bad_input_one_line_exit_2(tmp_path, override):
+    import torch
+
+    if override == "trainer=gpu" and torch.cuda.is_available():
+        pytest.skip("this machine has a GPU")
+    proc = subprocess.run(
+        [sys.executable, "-m", "pipeline.train", override, f"paths.datasets_dir={tmp_path}",
+         f"paths.models_dir={tmp_path / 'm'}", f"hydra.run.dir={tmp_path / 'run'}"],
+        cwd=REPO_ROOT, capture_output=True, text=True, timeout=300,
+    )
+    assert proc.returncode == 2, proc.stderr
+    assert "Traceback" not in proc.stderr
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: "), proc.stderr
+    field = override.lstrip("+").split("=")[0]
+    assert (field if field != "trainer" else "trainer.accelerator") in lines[0]

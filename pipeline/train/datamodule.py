@@ -47,7 +47,7 @@ class ShardedBatchSampler(Sampler):
     """
 
     def __init__(self, n: int, batch_size: int, *, shuffle: bool, seed: int = 0, rank: int = 0, world: int = 1):
-        if batch_size % world:
+        if shuffle and batch_size % world:  # training: every rank an equal share of each global batch
             raise ConfigError("datamodule.batch_size",
                               f"{batch_size} is not divisible by the {world} training processes")
         self.n, self.batch_size, self.shuffle = n, batch_size, shuffle
