@@ -208,9 +208,10 @@ def test_logger_none_and_missing_package(tiny, tmp_path, monkeypatch):
 
 
 def _cli(tmp_path, tiny, *args, timeout=540):
+    flags = [a for a in args if a.startswith("-")]
     return subprocess.run(
-        [sys.executable, "-m", "pipeline.train", f"paths.datasets_dir={tiny / 'datasets'}",
-         f"paths.models_dir={tmp_path / 'm'}", "eval_levels=[]", *args],
+        [sys.executable, "-m", "pipeline.train", *flags, f"paths.datasets_dir={tiny / 'datasets'}",
+         f"paths.models_dir={tmp_path / 'm'}", "eval_levels=[]", *(a for a in args if a not in flags)],
         cwd=REPO_ROOT, capture_output=True, text=True, timeout=timeout,
     )
 

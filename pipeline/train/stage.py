@@ -145,6 +145,8 @@ def check_config(cfg) -> None:
     if accel in _GPU_ACCELERATORS and not torch.cuda.is_available():
         raise ConfigError("trainer.accelerator", f"{accel!r} requested but no CUDA GPU is available on this "
                                                  "machine (use trainer=cpu or trainer=default)")
+    if tc.get("sync_batchnorm") and (accel == "cpu" or not torch.cuda.is_available()):
+        raise ConfigError("trainer.sync_batchnorm", "SyncBatchNorm needs CUDA devices; set it false on CPU")
     for group in ("callbacks", "logger"):
         for key, node in (_plain(cfg.get(group)) or {}).items():
             if not isinstance(node, dict):
@@ -307,6 +309,7 @@ def _quiet_lightning() -> None:
     warnings.filterwarnings("ignore", ".*LeafSpec.*")
     warnings.filterwarnings("ignore", ".*treespec.*")
     warnings.filterwarnings("ignore", ".*pin_memory.*")
+    warnings.filterwarnings("ignore", ".*smaller than the logging interval.*")
 
 
 def _threads(cfg) -> int:
