@@ -67,13 +67,15 @@ def lightning_fit(model: PerceptionMap, images, pos, batch: int, steps: int) -> 
 
 
 def _maps():
-    """(label, constructor) of the benchmarked maps: the default config's map and a plain 32/64/128 CNN."""
+    """(label, constructor) of the benchmarked maps: the default config's map (BatchNorm, CoordConv) and the
+    plain CNNs (no BatchNorm, no CoordConv) of 16/32/64 and 32/64/128 filters."""
     from hydra.utils import instantiate
 
     from pipeline.cli import compose
 
     node = compose("train").model
     yield "default map 16/32/64 BN+CoordConv", lambda: instantiate(node, _convert_="all")
+    yield "plain 16/32/64", lambda: PerceptionMap(filters=(16, 32, 64), lr=1e-3)  # no BN, no CoordConv
     yield "plain 32/64/128", lambda: PerceptionMap(filters=(32, 64, 128), lr=1e-3)
 
 
