@@ -2,11 +2,16 @@
 
 Each area exposes `pipeline.<area>.bench.bench(quick=False) -> list[dict]` (rows with section, case, value,
 unit, note). Absolute numbers depend on the machine and its load; ratios are measured in the same run.
+
+The machine's ceiling is measured first: the fp32 GFLOP/s of a large matrix multiply per device present
+(`ceiling_gflops`, measured once per run and cached), so that training and inference rows can be given as a
+share of it.
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import importlib
 import os
 import sys
@@ -15,8 +20,44 @@ import time
 AREAS = ("sim", "data", "train", "errormap", "experiments")
 
 
-def collect(areas=AREAS, quick: bool = False) -> list[dict]:
+@functools.cache
+def ceiling_gflops(device: str = "cpu", quick: bool = False) -> float:
+    """fp32 GFLOP/s of a large square matrix multiply on `device` (best of several): what the device can do."""
+    import torch
+
+    n, repeat = (1024, 3) if quick else ((2048, 8) if device == "cpu" else (8192, 10))
+    a = torch.randn(n, n, device=device)
+    b = torch.randn(n, n, device=device)
+    best = float("inf")
+    for _ in range(repeat + 1):  # the first multiply is a warm-up
+        if device != "cpu":
+            torch.cuda.synchronize()
+        t0 = time.perf_counter()
+        a @ b
+        if device != "cpu":
+            torch.cuda.synchronize()
+        best = min(best, time.perf_counter() - t0)
+    return 2 * n**3 / best / 1e9
+
+
+def ceiling_rows(quick: bool = False) -> list[dict]:
+    try:
+        import torch
+    except ImportError:  # pragma: no cover
+        return []
     rows = []
+    for dev in ["cpu"] + (["cuda"] if torch.cuda.is_available() else []):
+        g = ceiling_gflops(dev, quick)
+        rows.append({"section": "ceiling", "case": f"{dev}: fp32 matmul ({torch.get_num_threads()} threads)"
+                     if dev == "cpu" else f"{dev}: fp32 matmul ({torch.cuda.get_device_name()})",
+                     "value": g, "unit": "GFLOP/s", "note": "the machine's ceiling; shares below are of this"})
+    return rows
+
+
+def collect(areas=AREAS, quick: bool = False) -> list[dict]:
+    t0 = time.perf_counter()
+    rows = ceiling_rows(quick)  # measured first, on a quiet process
+    print(f"[bench] ceiling: {len(rows)} rows in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
     for area in areas:
         try:
             mod = importlib.import_module(f"pipeline.{area}.bench")

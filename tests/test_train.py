@@ -13,6 +13,10 @@ from pipeline.cli import REPO_ROOT, compose
 from pipeline.errors import ConfigError, DatasetError, ModelError
 
 
+# the train configs name the same recipe as the dataset they train on (lineage: a recipe means its id)
+SMALL = ["data.splits.train=512", "data.splits.val=64", "data.splits.test=64"]
+
+
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
     """A 512/64/64 clean dataset and a models folder, shared by the module's tests."""
@@ -20,15 +24,14 @@ def tiny(tmp_path_factory):
 
     root = tmp_path_factory.mktemp("train")
     ds_dir, models_dir = root / "datasets", root / "models"
-    cfg = compose("data", ["data=clean", "data.splits.train=512", "data.splits.val=64", "data.splits.test=64",
-                           f"paths.datasets_dir={ds_dir}"])
-    data_run(cfg)
-    return {"datasets": ds_dir, "models": models_dir, "root": root}
+    cfg = compose("data", ["data=clean", *SMALL, f"paths.datasets_dir={ds_dir}"])
+    out = data_run(cfg)
+    return {"datasets": ds_dir, "models": models_dir, "root": root, "id": out["id"]}
 
 
 def _train_cfg(tiny, *extra):
     return compose("train", [f"paths.datasets_dir={tiny['datasets']}", f"paths.models_dir={tiny['models']}",
-                             "trainer.enable_progress_bar=false", *extra])
+                             "trainer.enable_progress_bar=false", *SMALL, *extra])
 
 
 def test_fast_dev_run_reload_and_noop(tiny):
@@ -41,8 +44,11 @@ def test_fast_dev_run_reload_and_noop(tiny):
     assert not out["skipped"]
     folder = tiny["models"] / f"{out['name']}-{out['id']}"
     manifest = json.loads((folder / "manifest.json").read_text())
-    ds = open_dataset("clean", datasets_dir=tiny["datasets"])
+    ds = open_dataset(tiny["id"], datasets_dir=tiny["datasets"])
     assert manifest["dataset_id"] == ds.id
+    from pipeline.train.stage import model_identity
+
+    assert model_identity(cfg, ds.name, ds.id) == (out["name"], out["id"])  # the stage uses the pure rule
     assert set(out["metrics"]) >= {"test_split", "none", "heavy"}
 
     # a saved map reloads and predicts the numbers the stage reported
@@ -52,8 +58,11 @@ def test_fast_dev_run_reload_and_noop(tiny):
     saved = json.loads((folder / "metrics.json").read_text())["test_split"]
     assert again["mae_px"] == pytest.approx(saved["mae_px"], rel=1e-6)
     assert np.array_equal(pred, pm.predict(ds.images("test")))  # inference is deterministic
-    # by name (latest) gives the same map
-    assert load_perception_map(out["name"], models_dir=tiny["models"]).id == out["id"]
+    # by name: the map the *default* train config makes (not built here), never the newest folder
+    with pytest.raises(ModelError, match="current config makes") as err:
+        load_perception_map(out["name"], models_dir=tiny["models"])
+    assert f"{out['name']}-{out['id']}" in str(err.value)  # listed among the other builds
+    assert load_perception_map(f"{out['name']}-{out['id']}", models_dir=tiny["models"]).id == out["id"]
 
     # second run: a no-op that touches nothing
     mtime = (folder / "model.pt").stat().st_mtime_ns
@@ -71,12 +80,12 @@ def test_overfits_256_images(tiny):
     from pipeline.train.stage import error_metrics, run
 
     # a narrow variant of the default architecture (CoordConv, one-cycle), without dropout and BatchNorm
-    cfg = _train_cfg(tiny, "trainer.limit_train_samples=256", "trainer.batch_size=16", "trainer.max_epochs=40",
-                     "trainer.max_minutes=null", "model.lr=2e-3", "model.dropout=0.0", "model.filters=[8,16,32]",
+    cfg = _train_cfg(tiny, "datamodule.limit_train_samples=256", "datamodule.batch_size=16", "trainer.max_epochs=40",
+                     "trainer.max_time=null", "~callbacks.early_stopping", "model.lr=2e-3", "model.dropout=0.0", "model.filters=[8,16,32]",
                      "model.batch_norm=false", "eval_levels=[]", "name=overfit")
     out = run(cfg)
     pm = load_perception_map("overfit", models_dir=tiny["models"])
-    ds = open_dataset("clean", datasets_dir=tiny["datasets"])
+    ds = open_dataset(tiny["id"], datasets_dir=tiny["datasets"])
     m = error_metrics(pm.predict(ds.images("train")[:256]), ds.positions("train")[:256], pm.px_per_unit)
     assert m["mae_px"] < 1.0, m
     assert out["epochs"] >= 1
@@ -116,7 +125,7 @@ def test_damaged_dataset_is_rejected(tiny, tmp_path):
     from pipeline.data import resolve_dataset
     from pipeline.train.stage import run
 
-    src = resolve_dataset("clean", datasets_dir=tiny["datasets"])
+    src = resolve_dataset(tiny["id"], datasets_dir=tiny["datasets"])
     copy = tmp_path / "datasets" / src.name
     shutil.copytree(src, copy)
     shard = copy / "images_train.npy"
@@ -124,7 +133,7 @@ def test_damaged_dataset_is_rejected(tiny, tmp_path):
     data[-10] ^= 0xFF
     shard.write_bytes(bytes(data))
     cfg = compose("train", [f"paths.datasets_dir={tmp_path / 'datasets'}", f"paths.models_dir={tmp_path / 'm'}",
-                            "trainer=debug"])
+                            "trainer=debug", *SMALL])
     with pytest.raises(DatasetError, match="images_train.npy"):
         run(cfg)
     assert not (tmp_path / "m").exists() or not any((tmp_path / "m").iterdir())
@@ -140,3 +149,73 @@ def test_cli_unknown_dataset_one_line(tmp_path):
     assert "Traceback" not in proc.stderr
     err_lines = [ln for ln in proc.stderr.splitlines() if ln.startswith("error:")]
     assert len(err_lines) == 1 and "does_not_exist" in err_lines[0]
+
+
+# One line per bad input, naming the field, before any work (nothing written). `None` field part: the case
+# needs no dataset to be rejected, so it also runs through the CLI below.
+BAD_INPUTS = [
+    (["+model.lrr=0.1"], "model.lrr"),
+    (["+trainer.foo=1"], "trainer.foo"),
+    (["+callbacks.early_stopping.patiense=3"], "callbacks.early_stopping.patiense"),
+    (["model.lr=abc"], "model.lr"),
+    (["model.lr=-0.001"], "model.lr"),
+    (["model.weight_decay=-1"], "model.weight_decay"),
+    (["model.hidden=-5"], "model.hidden"),
+    (["model.filters=[16,0]"], "model.filters"),
+    (["model.dropout=1.5"], "model.dropout"),
+    (["seed=-1"], "seed"),
+    (["seed=abc"], "seed"),
+    (["datamodule.batch_size=100000"], "datamodule.batch_size"),  # larger than the 512-image split
+    (["datamodule.batch_size=0"], "datamodule.batch_size"),
+    (["datamodule.limit_train_samples=-3"], "datamodule.limit_train_samples"),
+    (["datamodule.limit_train_samples=8"], "datamodule.batch_size"),  # 8 samples < one batch of 32
+    (["name=a/b"], "name"),
+    (["model.name=a/b"], "model.name"),
+    (["trainer.max_epochs=0"], "trainer.max_epochs"),
+    (["device=tpu"], "device"),
+    (["num_threads=0"], "num_threads"),
+]
+
+
+@pytest.mark.parametrize(("overrides", "field"), BAD_INPUTS, ids=[" ".join(o) for o, _ in BAD_INPUTS])
+def test_bad_input_is_one_config_error(tiny, tmp_path, overrides, field):
+    from pipeline.train.stage import run
+
+    cfg = compose("train", [f"paths.datasets_dir={tiny['datasets']}", f"paths.models_dir={tmp_path / 'm'}",
+                            "trainer.max_epochs=1", "eval_levels=[]", *SMALL, *overrides])
+    with pytest.raises(ConfigError) as info:
+        run(cfg)
+    assert info.value.field == field
+    assert "\n" not in str(info.value)
+    assert not (tmp_path / "m").exists() or not any((tmp_path / "m").iterdir())
+
+
+def test_gpu_trainer_without_gpu_is_one_config_error(tiny, tmp_path):
+    import torch
+
+    from pipeline.train.stage import run
+
+    if torch.cuda.is_available():
+        pytest.skip("this machine has a GPU")
+    with pytest.raises(ConfigError, match="no CUDA GPU") as info:
+        run(_train_cfg(tiny, "trainer=gpu"))
+    assert info.value.field == "trainer.accelerator"
+
+
+@pytest.mark.parametrize("override", ["+trainer.foo=1", "model.lr=abc", "trainer=gpu", "datamodule.batch_size=-4"])
+def test_cli_bad_input_one_line_exit_2(tmp_path, override):
+    import torch
+
+    if override == "trainer=gpu" and torch.cuda.is_available():
+        pytest.skip("this machine has a GPU")
+    proc = subprocess.run(
+        [sys.executable, "-m", "pipeline.train", override, f"paths.datasets_dir={tmp_path}",
+         f"paths.models_dir={tmp_path / 'm'}", f"hydra.run.dir={tmp_path / 'run'}"],
+        cwd=REPO_ROOT, capture_output=True, text=True, timeout=300,
+    )
+    assert proc.returncode == 2, proc.stderr
+    assert "Traceback" not in proc.stderr
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: "), proc.stderr
+    field = override.lstrip("+").split("=")[0]
+    assert (field if field != "trainer" else "trainer.accelerator") in lines[0]

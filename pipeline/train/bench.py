@@ -1,5 +1,7 @@
-"""Benchmark (issue 4 §4): Lightning `fit` img/s against a raw PyTorch loop of the same model and batch,
-and the achieved GFLOP/s of training (3x forward FLOPs)."""
+"""Benchmark (issues 4 and 10): Lightning `fit` img/s against a raw PyTorch loop of the same model and batch,
+the achieved GFLOP/s of training (3x forward FLOPs) and its share of the machine's fp32 matmul ceiling
+(`pipeline.bench.ceiling_gflops`), for the default map (conf/model/default.yaml) and the paper-width
+network; then batched inference (`pipeline.train.infer_bench`)."""
 
 from __future__ import annotations
 
@@ -64,19 +66,35 @@ def lightning_fit(model: PerceptionMap, images, pos, batch: int, steps: int) -> 
     return steps * batch / (time.perf_counter() - timer.t0)
 
 
+def _maps():
+    """(label, constructor) of the benchmarked maps: the default config's map (BatchNorm, CoordConv) and the
+    plain CNNs (no BatchNorm, no CoordConv) of 16/32/64 and 32/64/128 filters."""
+    from hydra.utils import instantiate
+
+    from pipeline.cli import compose
+
+    node = compose("train").model
+    yield "default map 16/32/64 BN+CoordConv", lambda: instantiate(node, _convert_="all")
+    yield "plain 16/32/64", lambda: PerceptionMap(filters=(16, 32, 64), lr=1e-3)  # no BN, no CoordConv
+    yield "plain 32/64/128", lambda: PerceptionMap(filters=(32, 64, 128), lr=1e-3)
+
+
 def bench(quick: bool = False) -> list[dict]:
+    from pipeline.bench import ceiling_gflops
+    from pipeline.train import infer_bench
+
     torch.set_num_threads(torch.get_num_threads())
     batch, steps = (64, 3) if quick else (128, 40)
     images, pos = _data(batch * 8)
+    peak = ceiling_gflops("cpu", quick)
     rows = []
-    for filters in ((32, 64, 128), (16, 32, 64)):
+    for tag, make in _maps():
         torch.manual_seed(0)
-        raw = raw_loop(PerceptionMap(filters=filters), images, pos, batch, steps)
+        raw = raw_loop(make(), images, pos, batch, steps)
         torch.manual_seed(0)
-        model = PerceptionMap(filters=filters, lr=1e-3)
+        model = make()
         lit = lightning_fit(model, images, pos, batch, steps)
         gflops = 3 * model.flops_per_image() * lit / 1e9
-        tag = "/".join(map(str, filters))
         rows += [
             {"section": "train", "case": f"raw PyTorch loop, {tag}, batch {batch}", "value": raw, "unit": "img/s",
              "note": ""},
@@ -84,5 +102,7 @@ def bench(quick: bool = False) -> list[dict]:
              "note": f"{gflops:.0f} GFLOP/s (3x fwd FLOPs)"},
             {"section": "train", "case": f"Lightning / raw, {tag}", "value": lit / raw, "unit": "x",
              "note": "target >= 0.85x"},
+            {"section": "train", "case": f"cpu: training / ceiling, {tag}", "value": gflops / peak, "unit": "x",
+             "note": "target >= 0.60x" if tag.startswith("default") else ""},
         ]
-    return rows
+    return rows + infer_bench.bench(quick=quick, ceiling=lambda dev: ceiling_gflops(dev, quick))

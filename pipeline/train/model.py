@@ -18,6 +18,48 @@ from torch import nn
 from pipeline.errors import ConfigError, ModelError
 
 
+def _is_num(v) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool)
+
+
+def _validate(*, image_shape, arena, filters, batch_norm, hidden, dropout, lr, weight_decay, schedule, loss,
+              coord_channels, clamp, name) -> None:
+    """Every constructor argument checked before anything is built: one `ConfigError` naming the field."""
+    def bad(field: str, reason: str, value) -> ConfigError:
+        return ConfigError(f"model.{field}", f"{reason}, got {value!r}")
+
+    if (not isinstance(image_shape, Sequence) or len(image_shape) != 3 or image_shape[2] != 3
+            or not all(isinstance(s, int) and s > 0 for s in image_shape)):
+        raise bad("image_shape", "must be [H, W, 3]", image_shape)
+    try:
+        (x0, x1), (y0, y1) = arena
+        ok = all(_is_num(v) for v in (x0, x1, y0, y1)) and x1 > x0 and y1 > y0
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise bad("arena", "must be [[x_min, x_max], [y_min, y_max]] with min < max", arena)
+    if (isinstance(filters, str) or not isinstance(filters, Sequence) or not filters
+            or not all(isinstance(f, int) and not isinstance(f, bool) and f > 0 for f in filters)):
+        raise bad("filters", "must be a non-empty list of positive integers", filters)
+    for field, v in (("batch_norm", batch_norm), ("coord_channels", coord_channels), ("clamp", clamp)):
+        if not isinstance(v, bool):
+            raise bad(field, "must be true or false", v)
+    if isinstance(hidden, bool) or not isinstance(hidden, int) or hidden < 0:
+        raise bad("hidden", "must be an integer >= 0 (0 = no hidden layer)", hidden)
+    if not _is_num(dropout) or not 0.0 <= dropout < 1.0:
+        raise bad("dropout", "must be a number in [0, 1)", dropout)
+    if not _is_num(lr) or not lr > 0:
+        raise bad("lr", "must be a positive number", lr)
+    if not _is_num(weight_decay) or not weight_decay >= 0:
+        raise bad("weight_decay", "must be a number >= 0", weight_decay)
+    if schedule not in ("constant", "cosine", "onecycle"):
+        raise bad("schedule", "must be constant, cosine or onecycle", schedule)
+    if loss not in ("mse", "l1", "smooth_l1"):
+        raise bad("loss", "must be mse, l1 or smooth_l1", loss)
+    if not isinstance(name, str) or not name or "/" in name or "\\" in name or name.startswith("."):
+        raise bad("name", "must be a non-empty name without '/', '\\' or a leading '.'", name)
+
+
 def conv_blocks(in_ch: int, filters: Sequence[int], batch_norm: bool) -> nn.Sequential:
     layers: list[nn.Module] = []
     for out_ch in filters:
@@ -49,17 +91,10 @@ class PerceptionMap(L.LightningModule):
         name: str = "perception_map",
     ):
         super().__init__()
+        _validate(image_shape=image_shape, arena=arena, filters=filters, batch_norm=batch_norm, hidden=hidden,
+                  dropout=dropout, lr=lr, weight_decay=weight_decay, schedule=schedule, loss=loss,
+                  coord_channels=coord_channels, clamp=clamp, name=name)
         self.save_hyperparameters()
-        if len(image_shape) != 3 or image_shape[2] != 3:
-            raise ConfigError("model.image_shape", f"must be [H, W, 3], got {list(image_shape)}")
-        if not filters or any(int(f) <= 0 for f in filters):
-            raise ConfigError("model.filters", f"must be a non-empty list of positive ints, got {list(filters)}")
-        if not 0.0 <= dropout < 1.0:
-            raise ConfigError("model.dropout", f"must be in [0, 1), got {dropout}")
-        if schedule not in ("constant", "cosine", "onecycle"):
-            raise ConfigError("model.schedule", f"must be constant, cosine or onecycle, got {schedule!r}")
-        if loss not in ("mse", "l1", "smooth_l1"):
-            raise ConfigError("model.loss", f"must be mse, l1 or smooth_l1, got {loss!r}")
         h, w, _ = (int(s) for s in image_shape)
         self.image_shape = (h, w, 3)
         (x0, x1), (y0, y1) = arena
@@ -123,10 +158,11 @@ class PerceptionMap(L.LightningModule):
         pred_n = self.normalised(images)
         loss = self._loss(pred_n, target)
         err_px = (pred_n.detach() - target) * self.half_range * self.px_per_unit
+        sync = stage != "train"  # epoch metrics over every rank's share of the split (a no-op on one device)
         self.log(f"{stage}_loss", loss, prog_bar=stage != "train", on_epoch=True, on_step=stage == "train",
-                 batch_size=len(pos))
+                 batch_size=len(pos), sync_dist=sync)
         self.log(f"{stage}_mae", err_px.abs().mean(), prog_bar=True, on_epoch=True, on_step=False,
-                 batch_size=len(pos))
+                 batch_size=len(pos), sync_dist=sync)
         return loss
 
     def training_step(self, batch, batch_idx):
@@ -161,3 +197,71 @@ class PerceptionMap(L.LightningModule):
             if isinstance(m, nn.Linear):
                 flops += 2 * m.in_features * m.out_features
         return flops
+
+
+# -------------------------------------------------------------------------------------- inference
+class FoldedPerceptionNet(nn.Module):
+    """The eval-mode `PerceptionMap` rewritten for fast inference (same outputs up to float rounding).
+
+    - BatchNorm folded into the preceding convolution (one pass instead of three per block);
+    - the input scaling (`x / 255 - 0.5`) and the CoordConv channels folded into the first convolution: its
+      weights are divided by 255 and a constant per-pixel bias map (the coordinate channels' and the -0.5
+      offset's contribution, zero padding included) replaces the extra input channels and the offset;
+    - Dropout dropped (identity at inference); activations in channels_last memory.
+    `forward(uint8 or float NHWC images in [0, 255]) -> (N, 2)` world coordinates.
+    """
+
+    def __init__(self, model: PerceptionMap):
+        super().__init__()
+        blocks = _folded_convs(model.features)
+        h, w, _ = model.image_shape
+        w0, b0 = blocks[0]
+        with torch.no_grad():
+            bias_map = -0.5 * nn.functional.conv2d(torch.ones(1, 3, h, w), w0[:, :3], padding=1)
+            if model.coord_channels:
+                bias_map += nn.functional.conv2d(model.coords, w0[:, 3:], padding=1)
+            bias_map += b0.view(1, -1, 1, 1)
+        self.register_buffer("w0", (w0[:, :3] / 255.0).contiguous(memory_format=torch.channels_last))
+        self.register_buffer("bias_map", bias_map.contiguous(memory_format=torch.channels_last))
+        self.convs = nn.ModuleList()
+        for wk, bk in blocks[1:]:
+            conv = nn.Conv2d(wk.shape[1], wk.shape[0], 3, padding=1)
+            with torch.no_grad():
+                conv.weight.copy_(wk)
+                conv.bias.copy_(bk)
+            self.convs.append(conv)
+        self.head = nn.Sequential(*[m for m in model.head if not isinstance(m, nn.Flatten | nn.Dropout)])
+        self.register_buffer("center", model.center.detach().clone())
+        self.register_buffer("half_range", model.half_range.detach().clone())
+        self.clamp = model.clamp
+        self.image_shape = model.image_shape
+        self.to(memory_format=torch.channels_last).requires_grad_(False).eval()
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        x = images.permute(0, 3, 1, 2).to(torch.float32)  # NHWC uint8 -> NCHW float in channels_last memory
+        x = nn.functional.conv2d(x, self.w0, None, padding=1).add_(self.bias_map)
+        x = nn.functional.max_pool2d(nn.functional.relu_(x), 2)
+        for conv in self.convs:
+            x = nn.functional.max_pool2d(nn.functional.relu_(conv(x)), 2)
+        z = self.head(x.flatten(1))
+        if self.clamp:
+            z = z.clamp(-1.0, 1.0)
+        return z * self.half_range + self.center
+
+
+def _folded_convs(features: nn.Sequential) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """(weight, bias) per Conv2d with the following eval-mode BatchNorm2d folded in."""
+    mods = list(features)
+    out = []
+    for i, conv in enumerate(mods):
+        if not isinstance(conv, nn.Conv2d):
+            continue
+        wt = conv.weight.detach().float()
+        b = conv.bias.detach().float() if conv.bias is not None else torch.zeros(wt.shape[0])
+        bn = mods[i + 1] if i + 1 < len(mods) and isinstance(mods[i + 1], nn.BatchNorm2d) else None
+        if bn is not None:
+            scale = bn.weight.detach() / torch.sqrt(bn.running_var + bn.eps)
+            wt = wt * scale.view(-1, 1, 1, 1)
+            b = (b - bn.running_mean) * scale + bn.bias.detach()
+        out.append((wt.contiguous(), b.contiguous()))
+    return out

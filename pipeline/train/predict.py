@@ -1,7 +1,14 @@
-"""Loading a trained perception map for the next stages: batched inference on uint8 images."""
+"""Loading a trained perception map for the next stages: batched inference on uint8 images, on any device.
+
+Inference runs a `FoldedPerceptionNet` (BatchNorm and input scaling folded into the convolutions,
+channels_last) on the device of `resolve_device(device)`; `compile=True` (or `"auto"`: when a C++ compiler
+is on PATH) adds `torch.compile`, falling back to the folded eager network if compilation fails.
+"""
 
 from __future__ import annotations
 
+import logging
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -9,18 +16,57 @@ import torch
 
 from pipeline import tracking
 from pipeline.cli import REPO_ROOT
-from pipeline.errors import DatasetError, ModelError
-from pipeline.train.model import PerceptionMap
+from pipeline.errors import ConfigError, DatasetError, ModelError
+from pipeline.train.model import FoldedPerceptionNet, PerceptionMap
 
 DEFAULT_MODELS_DIR = REPO_ROOT / "outputs" / "models"
+log = logging.getLogger(__name__)
+
+
+def resolve_device(spec="auto") -> torch.device:
+    """`auto` (CUDA when present, else CPU) | `cpu` | `cuda` | `cuda:N` -> a usable `torch.device`.
+
+    A CUDA device that is not there is a `ConfigError("device", ...)`, not a CUDA traceback later.
+    """
+    if isinstance(spec, torch.device):
+        spec = str(spec)
+    if spec is None or spec == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if not isinstance(spec, str):
+        raise ConfigError("device", f"must be auto, cpu, cuda or cuda:N, got {spec!r}")
+    try:
+        dev = torch.device(spec)
+    except (RuntimeError, ValueError):
+        raise ConfigError("device", f"must be auto, cpu, cuda or cuda:N, got {spec!r}") from None
+    if dev.type == "cpu":
+        return torch.device("cpu")
+    if dev.type != "cuda":
+        raise ConfigError("device", f"must be auto, cpu, cuda or cuda:N, got {spec!r}")
+    if not torch.cuda.is_available():
+        raise ConfigError("device", f"{spec!r} requested but no CUDA device is available on this machine "
+                                    "(use device=auto or device=cpu)")
+    n = torch.cuda.device_count()
+    if dev.index is not None and dev.index >= n:
+        raise ConfigError("device", f"{spec!r} requested but this machine has {n} CUDA device(s)")
+    return dev
+
+
+def _compiler_present() -> bool:
+    return any(shutil.which(c) for c in ("cc", "gcc", "clang", "g++", "c++"))
 
 
 class PerceptionMapPredictor:
-    """`predict(images uint8 (N, H, W, 3)) -> (N, 2)` world coordinates, in inference mode, channels_last."""
+    """`predict(images uint8 (N, H, W, 3)) -> float64 (N, 2)` world coordinates, in inference mode.
+
+    `device`: see `resolve_device`. `fold=True` runs the folded network (`FoldedPerceptionNet`), `False`
+    the training module itself (the reference). `compile`: `True`, `False` or `"auto"` (when a compiler is
+    on PATH); a failed compilation falls back to eager with a warning.
+    """
 
     def __init__(self, model: PerceptionMap, manifest: dict | None = None, path: Path | None = None,
-                 batch_size: int = 1024):
+                 batch_size: int = 1024, device="cpu", fold: bool = True, compile=False):
         self.model = model.eval()
+        self.device = resolve_device(device)
         self.manifest = manifest or {}
         self.path = Path(path) if path else None
         self.batch_size = batch_size
@@ -28,26 +74,54 @@ class PerceptionMapPredictor:
         self.name = self.manifest.get("name", model.hparams.get("name"))
         self.image_shape = model.image_shape
         self.px_per_unit = model.px_per_unit
+        self.net = (FoldedPerceptionNet(model) if fold else model).to(self.device)
+        self.compiled = False
+        if compile == "auto":
+            compile = _compiler_present()
+        if compile:
+            self._compile()
+
+    def _compile(self) -> None:
+        eager = self.net
+        try:
+            net = torch.compile(eager, dynamic=False)
+            with torch.inference_mode():  # compile now (a small batch), not in the middle of a run
+                net(torch.zeros((2, *self.image_shape), dtype=torch.uint8, device=self.device))
+            self.net, self.compiled = net, True
+        except Exception as err:  # noqa: BLE001 - any compiler/toolchain failure: eager is still correct
+            log.warning("torch.compile unavailable (%s: %s); using eager inference",
+                        type(err).__name__, str(err).splitlines()[0] if str(err) else "")
+            self.net = eager
 
     def __repr__(self) -> str:
-        return f"PerceptionMapPredictor({self.name}-{self.id})"
+        return f"PerceptionMapPredictor({self.name}-{self.id} on {self.device})"
+
+    def to_device(self, images) -> torch.Tensor:
+        """uint8 images (N, H, W, 3) (numpy or tensor) as one tensor on the predictor's device."""
+        if isinstance(images, torch.Tensor):
+            return images.to(self.device, non_blocking=True)
+        images = np.asarray(images)
+        if not (images.flags.writeable and images.flags.c_contiguous):
+            images = np.array(images)  # memory-mapped/read-only input: torch wants a writable buffer
+        return torch.from_numpy(images).to(self.device, non_blocking=True)
 
     def predict(self, images) -> np.ndarray:
-        images = np.asarray(images)
-        if images.ndim == 3:
-            images = images[None]
-        if images.ndim != 4 or tuple(images.shape[1:]) != self.image_shape:
-            raise ModelError(f"perception map {self.name}: image shape {tuple(images.shape[1:])} does not "
+        if isinstance(images, torch.Tensor):
+            shape = tuple(images.shape)
+        else:
+            images = np.asarray(images)
+            shape = images.shape
+        if len(shape) == 3:
+            images, shape = images[None], (1, *shape)
+        if len(shape) != 4 or tuple(shape[1:]) != self.image_shape:
+            raise ModelError(f"perception map {self.name}: image shape {tuple(shape[1:])} does not "
                              f"match the model's {self.image_shape}")
-        out = np.empty((len(images), 2), dtype=np.float64)
+        out = torch.empty((shape[0], 2), dtype=torch.float64)
         with torch.inference_mode():
-            for s in range(0, len(images), self.batch_size):
-                chunk = images[s : s + self.batch_size]
-                if not (chunk.flags.writeable and chunk.flags.c_contiguous):
-                    chunk = np.array(chunk)  # memory-mapped/read-only input: torch wants a writable buffer
-                batch = torch.from_numpy(chunk)
-                out[s : s + len(batch)] = self.model(batch).numpy()
-        return out
+            for s in range(0, shape[0], self.batch_size):
+                batch = self.to_device(images[s : s + self.batch_size])  # one host->device copy per batch
+                out[s : s + len(batch)] = self.net(batch).to("cpu", torch.float64)
+        return out.numpy()
 
     __call__ = predict
 
@@ -61,9 +135,10 @@ class PerceptionMapPredictor:
             raise ModelError(f"perception map {self.name}: manifest has no {err.args[0]!r} config") from None
 
 
-def load_perception_map(ref, models_dir=None, *, verify: bool = False) -> PerceptionMapPredictor:
+def load_perception_map(ref, models_dir=None, *, verify: bool = False, device="auto",
+                        compile=False) -> PerceptionMapPredictor:
     """A trained map by path, `name-id`, id, or name (the map the current train config makes for that
-    dataset recipe; see :mod:`pipeline.lineage`)."""
+    dataset recipe; see :mod:`pipeline.lineage`), for inference on `device`."""
     from pipeline.lineage import resolve_map
 
     root = Path(models_dir) if models_dir else DEFAULT_MODELS_DIR
@@ -71,6 +146,7 @@ def load_perception_map(ref, models_dir=None, *, verify: bool = False) -> Percep
         folder = resolve_map(ref, root)
     except DatasetError as err:  # unknown name/id: reported as the model's error
         raise ModelError(str(err)) from None
+    dev = resolve_device(device)
     if verify:
         problems = tracking.verify(folder)
         if problems:
@@ -79,4 +155,4 @@ def load_perception_map(ref, models_dir=None, *, verify: bool = False) -> Percep
     blob = torch.load(folder / "model.pt", map_location="cpu", weights_only=True)
     model = PerceptionMap(**blob["hparams"])
     model.load_state_dict(blob["state_dict"])
-    return PerceptionMapPredictor(model, manifest=manifest, path=folder)
+    return PerceptionMapPredictor(model, manifest=manifest, path=folder, device=dev, compile=compile)

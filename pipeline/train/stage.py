@@ -1,15 +1,23 @@
 """The train stage: `python -m pipeline.train` — a tracked perception map per dataset.
 
+Every object of the run is built from the composed config with `hydra.utils.instantiate`: the model
+(`conf/model/`), the DataModule (`conf/datamodule/`), Lightning's Trainer (`conf/trainer/`, Lightning's own
+arguments), the callbacks (`conf/callbacks/`) and the loggers (`conf/logger/`). The whole config is checked
+before any work: an unknown or misspelled key, a value of the wrong type or range is one `ConfigError`.
+
 Output: `outputs/models/<name>-<id>/` with `model.pt` (weights + hyper-parameters), `best.ckpt` (the
 Lightning checkpoint of the best validation epoch), `metrics.json` (test MAE/RMSE in px on the dataset's
-test split and re-rendered at each occlusion level), `curves.csv/png`, `scatter.png`, `config.yaml` and
-`manifest.json`. The id hashes the model and trainer configs (minus volatile keys), the dataset id, the seed
-and the training code, so an unchanged run is skipped. Interrupted runs resume from
-`outputs/models/.work-<name>-<id>/last.ckpt`.
+test split and re-rendered at each occlusion level, and the best validation MAE), `curves.csv/png`,
+`scatter.png`, `config.yaml` and `manifest.json`. The id (`model_identity`) hashes what changes the weights
+(model, batch, epochs, precision, schedule, early stopping, dataset id, seed, training code), not where the
+run happened (accelerator, devices, strategy, logger, workers), so an unchanged run is skipped. Interrupted
+runs resume from `outputs/models/.work-<name>-<id>/ckpt/last.ckpt`.
 """
 
 from __future__ import annotations
 
+import copy
+import inspect
 import json
 import logging
 import os
@@ -22,53 +30,185 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import torch
-from omegaconf import OmegaConf
+from omegaconf import DictConfig, OmegaConf
 
 from pipeline import tracking
-from pipeline.errors import ConfigError, ModelError
-from pipeline.train.model import PerceptionMap
+from pipeline.errors import ConfigError, ModelError, PipelineError
 
 log = logging.getLogger(__name__)
 
-# Trainer keys that change speed or display, not the weights: left out of the model id.
-VOLATILE = ("enable_progress_bar", "num_threads", "log_every_n_steps", "eval_batch_size", "num_workers")
-_TRAINER_KEYS = ("max_epochs", "max_minutes", "batch_size", "fast_dev_run", "limit_train_batches",
-                 "limit_val_batches", "gradient_clip_val", "limit_train_samples")
+# Trainer arguments that say where/how visibly a run happens, not what it learns: left out of the model id.
+PLACEMENT_KEYS = ("_target_", "accelerator", "strategy", "devices", "num_nodes", "enable_progress_bar",
+                  "enable_model_summary", "log_every_n_steps", "default_root_dir", "num_sanity_val_steps",
+                  "use_distributed_sampler", "sync_batchnorm", "profiler", "logger", "callbacks",
+                  "enable_checkpointing", "benchmark", "barebones", "detect_anomaly", "inference_mode",
+                  "plugins", "enable_autolog_hparams", "model_registry")
+# DataModule arguments that change speed only.
+DATAMODULE_SPEED_KEYS = ("_target_", "eval_batch_size", "num_workers", "pin_memory")
+# Callbacks that change the saved weights, and which of their arguments do.
+_WEIGHT_CALLBACKS = {"ModelCheckpoint": ("monitor", "mode"), "EarlyStopping": None}  # None = all arguments
+_GPU_ACCELERATORS = ("gpu", "cuda")
 
 
-def _validate_trainer(tc: dict) -> None:
-    unknown = set(tc) - set(_TRAINER_KEYS) - set(VOLATILE) - {"name"}
-    if unknown:
-        raise ConfigError("trainer", f"unknown key(s) {sorted(unknown)}; known: {sorted(_TRAINER_KEYS + VOLATILE)}")
-    if not isinstance(tc.get("max_epochs"), int) or tc["max_epochs"] <= 0:
-        raise ConfigError("trainer.max_epochs", f"must be a positive integer, got {tc.get('max_epochs')!r}")
-    if not isinstance(tc.get("batch_size"), int) or tc["batch_size"] <= 0:
-        raise ConfigError("trainer.batch_size", f"must be a positive integer, got {tc.get('batch_size')!r}")
-    mm = tc.get("max_minutes")
-    if mm is not None and not (isinstance(mm, int | float) and mm > 0):
-        raise ConfigError("trainer.max_minutes", f"must be > 0 or null, got {mm!r}")
+# ---------------------------------------------------------------------------------- config checks
+def _plain(node):
+    """Plain Python of a config node; a value whose interpolation cannot resolve here (`${hydra:...}`
+    outside a Hydra app) is kept as its `${...}` text."""
+    if node is None:
+        return {}
+    if isinstance(node, DictConfig):
+        out = {}
+        for key in node:
+            try:
+                out[key] = _plain(OmegaConf.select(node, str(key), throw_on_resolution_failure=True))
+            except Exception:  # noqa: BLE001 - InterpolationResolutionError and friends
+                out[key] = OmegaConf.to_container(node, resolve=False)[key]
+        return out
+    return tracking.to_plain(node)
 
 
-def model_name(dataset_name: str, model_cfg: dict, trainer_cfg: dict, override: str | None) -> str:
+def _target(node: dict, field: str):
+    from hydra.utils import get_object
+
+    target = node.get("_target_")
+    if not target:
+        raise ConfigError(field, "has no _target_ (the class it builds)")
+    try:
+        return get_object(target)
+    except Exception as err:  # noqa: BLE001 - ImportError, AttributeError, missing optional package
+        raise ConfigError(f"{field}._target_", f"cannot import {target!r} ({type(err).__name__}: "
+                                               f"{str(err).splitlines()[0] if str(err) else ''})") from None
+
+
+def check_keywords(node, field: str, *, exclude: tuple[str, ...] = ()) -> None:
+    """Each key of an instantiable config node must be an argument of its `_target_` (no typo survives)."""
+    node = _plain(node)
+    obj = _target(node, field)
+    kwargs = {k: v for k, v in node.items() if not k.startswith("_") and k not in exclude}
+    try:
+        sig = inspect.signature(obj)
+    except (TypeError, ValueError):  # builtins without a signature: nothing to check
+        return
+    try:
+        sig.bind_partial(**kwargs)
+    except TypeError as err:
+        bad = next((k for k in kwargs if k not in sig.parameters), None)
+        known = ", ".join(p for p in sig.parameters if p not in ("self", "args", "kwargs"))
+        where = f"{field}.{bad}" if bad else field
+        raise ConfigError(where, f"unknown argument of {node['_target_']} ({err}); known: {known}") from None
+
+
+def _int(cfg, key: str, lo: int) -> int | None:
+    v = cfg.get(key)
+    if v is None:
+        return None
+    if isinstance(v, bool) or not isinstance(v, int) or v < lo:
+        raise ConfigError(key, f"must be an integer >= {lo}, got {v!r}")
+    return v
+
+
+def check_name(name, field: str = "name") -> str:
+    if not isinstance(name, str) or not name or "/" in name or "\\" in name or name.startswith("."):
+        raise ConfigError(field, f"must be a non-empty name without '/', '\\' or a leading '.', got {name!r}")
+    return name
+
+
+def check_config(cfg) -> None:
+    """Everything that can be checked without the dataset: raises one `ConfigError` before any work."""
+    from hydra.utils import instantiate
+
+    from pipeline.render import occlusion_levels
+    from pipeline.train.predict import resolve_device
+
+    _int(cfg, "seed", 0)
+    _int(cfg, "num_threads", 1)
+    if cfg.get("name") is not None:
+        check_name(cfg.name)
+    levels = list(_plain(cfg.get("eval_levels")) or [])
+    known_levels = occlusion_levels(cfg.occlusions)
+    for lv in levels:
+        if lv not in known_levels:
+            raise ConfigError("eval_levels", f"unknown occlusion level {lv!r}; known: {', '.join(known_levels)}")
+    resolve_device(cfg.get("device", "auto"))
+    # model and datamodule: unknown keys, then a dry build with their own value checks
+    check_keywords(cfg.model, "model")
+    check_keywords(cfg.datamodule, "datamodule")
+    _dry_build(lambda: instantiate(cfg.model, _convert_="all"), "model")
+    _dry_build(lambda: instantiate(cfg.datamodule, dataset=None, seed=int(cfg.seed)), "datamodule")
+    # trainer: Lightning's arguments; the common mistakes in one line before Lightning sees them
+    check_keywords(cfg.trainer, "trainer", exclude=("logger", "callbacks"))
+    tc = _plain(cfg.trainer)
+    me = tc.get("max_epochs")
+    if me is not None and (isinstance(me, bool) or not isinstance(me, int) or me <= 0):
+        raise ConfigError("trainer.max_epochs", f"must be a positive integer, got {me!r}")
+    accel = str(tc.get("accelerator", "auto")).lower()
+    if accel in _GPU_ACCELERATORS and not torch.cuda.is_available():
+        raise ConfigError("trainer.accelerator", f"{accel!r} requested but no CUDA GPU is available on this "
+                                                 "machine (use trainer=cpu or trainer=default)")
+    if tc.get("sync_batchnorm") and (accel == "cpu" or not torch.cuda.is_available()):
+        raise ConfigError("trainer.sync_batchnorm", "SyncBatchNorm needs CUDA devices; set it false on CPU")
+    for group in ("callbacks", "logger"):
+        for key, node in (_plain(cfg.get(group)) or {}).items():
+            if not isinstance(node, dict):
+                raise ConfigError(f"{group}.{key}", f"must be a config with a _target_, got {node!r}")
+            check_keywords(node, f"{group}.{key}", exclude=("dirpath",) if group == "callbacks" else ())
+
+
+def _dry_build(build, field: str):
+    from hydra.errors import InstantiationException
+
+    try:
+        return build()
+    except InstantiationException as err:
+        cause = err.__cause__
+        if isinstance(cause, PipelineError):
+            raise cause from None
+        raise ConfigError(field, _first_line(cause or err)) from None
+
+
+def _first_line(err: BaseException) -> str:
+    text = str(err).strip().splitlines()
+    msg = next((ln for ln in text if ln.strip() and not ln.startswith("Error in call to target")), "")
+    return f"{type(err).__name__}: {msg}" if msg else type(err).__name__
+
+
+# ------------------------------------------------------------------------------------------- the id
+def model_name(dataset_name: str, model_cfg: dict, override: str | None) -> str:
     if override:
-        return str(override)
+        return check_name(str(override))
     parts = [dataset_name]
-    for cfg in (model_cfg, trainer_cfg):
-        if cfg.get("name") not in (None, "default"):
-            parts.append(str(cfg["name"]))
-    return "_".join(dict.fromkeys(parts))  # e.g. clean, clean_paper
+    if model_cfg.get("name") not in (None, "default"):
+        parts.append(str(model_cfg["name"]))
+    return check_name("_".join(dict.fromkeys(parts)), "model.name")  # e.g. clean, clean_paper
+
+
+def _weight_callbacks(callbacks: dict) -> dict:
+    out = {}
+    for key, node in sorted((callbacks or {}).items()):
+        cls = str(node.get("_target_", "")).rsplit(".", 1)[-1]
+        if cls in _WEIGHT_CALLBACKS:
+            keep = _WEIGHT_CALLBACKS[cls]
+            out[key] = {k: v for k, v in node.items() if k != "verbose" and (keep is None or k in keep or
+                                                                          k == "_target_")}
+    return out
 
 
 def model_identity(cfg, dataset_name: str, dataset_id: str) -> tuple[str, str]:
-    """(folder name, id) of the map a composed train config trains on a dataset: what changes the weights."""
-    model_cfg = tracking.to_plain(cfg.model)
-    trainer_cfg = tracking.to_plain(cfg.trainer)
-    levels = list(tracking.to_plain(cfg.eval_levels) or [])
-    name = model_name(dataset_name, model_cfg, trainer_cfg, cfg.get("name"))
+    """(model folder name, id) of the map `cfg` (a composed train config) trains on dataset `dataset_id`.
+
+    Pure: reads only the config (and hashes the training code). In the id: the model config (but its
+    `name`), the DataModule's batch and sample limit, the Trainer arguments but `PLACEMENT_KEYS`, the
+    callbacks that change the saved weights (checkpoint monitor, early stopping), the dataset id, the seed
+    and the evaluation levels. Not in it: accelerator, devices, strategy, logger, workers, display.
+    """
+    model_cfg = _plain(cfg.model)
+    name = model_name(dataset_name, model_cfg, cfg.get("name"))
+    trainer = {k: v for k, v in _plain(cfg.trainer).items() if k not in PLACEMENT_KEYS}
+    datamodule = {k: v for k, v in _plain(cfg.datamodule).items() if k not in DATAMODULE_SPEED_KEYS}
     id_ = tracking.content_id(
-        {k: v for k, v in model_cfg.items() if k != "name"},
-        tracking.strip_keys(trainer_cfg, VOLATILE + ("name",)),
-        dataset_id, int(cfg.seed), levels, tracking.code_version("train"),
+        {k: v for k, v in model_cfg.items() if k not in ("name", "image_shape")},
+        trainer, datamodule, _weight_callbacks(_plain(cfg.get("callbacks"))),
+        dataset_id, int(cfg.seed), list(_plain(cfg.get("eval_levels")) or []), tracking.code_version("train"),
     )
     return name, id_
 
@@ -113,8 +253,8 @@ def evaluate(predictor, ds, levels, seed: int, occlusions=None) -> tuple[dict, n
 
 
 # ------------------------------------------------------------------------------------------ figures
-def _curves(log_csv: Path, out: Path) -> pd.DataFrame:
-    raw = pd.read_csv(log_csv) if log_csv.is_file() else pd.DataFrame()
+def _curves(log_csv: Path | None, out: Path) -> pd.DataFrame:
+    raw = pd.read_csv(log_csv) if log_csv is not None and log_csv.is_file() else pd.DataFrame()
     if raw.empty or "epoch" not in raw:
         curves = pd.DataFrame(columns=["epoch", "train_loss", "val_loss", "val_mae"])
     else:
@@ -162,55 +302,67 @@ def _scatter(pred: np.ndarray, true: np.ndarray, path: Path, title: str) -> None
 
 
 # ---------------------------------------------------------------------------------------- the stage
-def _epoch_line_callback():
-    import lightning as L
-
-    class EpochLine(L.Callback):
-        """One progress line per epoch when no progress bar is shown (logs, CI)."""
-
-        def __init__(self, name: str):
-            self.name, self.t0 = name, time.perf_counter()
-
-        def on_validation_epoch_end(self, trainer, pl_module):
-            if trainer.sanity_checking:
-                return
-            m = {k: float(v) for k, v in trainer.callback_metrics.items() if k in ("val_mae", "train_loss_epoch")}
-            print(f"[train] {self.name}: epoch {trainer.current_epoch + 1}/{trainer.max_epochs} "
-                  f"val MAE {m.get('val_mae', float('nan')):.3f} px ({time.perf_counter() - self.t0:.0f} s)",
-                  flush=True)
-
-    return EpochLine
-
-
-
 def _quiet_lightning() -> None:
     for name in ("lightning", "lightning.pytorch", "lightning.fabric", "lightning_fabric"):
         logging.getLogger(name).setLevel(logging.WARNING)
     warnings.filterwarnings("ignore", ".*does not have many workers.*")
     warnings.filterwarnings("ignore", ".*LeafSpec.*")
     warnings.filterwarnings("ignore", ".*treespec.*")
+    warnings.filterwarnings("ignore", ".*pin_memory.*")
+    warnings.filterwarnings("ignore", ".*smaller than the logging interval.*")
+
+
+def _threads(cfg) -> int:
+    if cfg.get("num_threads"):
+        return int(cfg.num_threads)
+    tc = cfg.trainer
+    procs = 1
+    if str(tc.get("accelerator", "auto")) == "cpu" and "ddp" in str(tc.get("strategy", "")):
+        devices = tc.get("devices", 1)
+        procs = devices if isinstance(devices, int) and devices > 0 else 1
+    return max(1, (os.cpu_count() or 1) // procs)
+
+
+def _build(node, field: str, **kwargs):
+    from hydra.utils import instantiate
+
+    try:
+        return instantiate(node, **kwargs)
+    except PipelineError:
+        raise
+    except Exception as err:  # noqa: BLE001 - Lightning's MisconfigurationException, TypeError, missing package
+        cause = err.__cause__ or err
+        if isinstance(cause, PipelineError):
+            raise cause from None
+        if isinstance(cause, ModuleNotFoundError | ImportError):
+            raise ConfigError(field, f"needs an optional package ({cause}); e.g. "
+                                     f".venv/bin/pip install -c constraints.txt -e '.[{field.split('.')[-1]}]'") from None
+        raise ConfigError(field, _first_line(cause)) from None
+
+
+def _run_dir(cfg: DictConfig, fallback: Path) -> DictConfig:
+    """`paths.output_dir` is Hydra's run dir; outside `@hydra.main` (tests, the DAG) it is the work dir."""
+    cfg = copy.deepcopy(cfg)
+    try:
+        OmegaConf.select(cfg, "paths.output_dir", throw_on_resolution_failure=True)
+    except Exception:  # noqa: BLE001 - `${hydra:...}` without a Hydra app
+        cfg.paths.output_dir = str(fallback)
+    return cfg
 
 
 def run(cfg) -> dict:
     import lightning as L
-    from lightning.pytorch.callbacks import ModelCheckpoint
+    from lightning.pytorch.callbacks import LearningRateMonitor, ModelCheckpoint
     from lightning.pytorch.loggers import CSVLogger
 
     from pipeline.data import open_dataset
-    from pipeline.render import occlusion_levels
-    from pipeline.train.datamodule import PerceptionDataModule
-    from pipeline.train.predict import PerceptionMapPredictor
+    from pipeline.train.predict import PerceptionMapPredictor, resolve_device
 
-    EpochLine = _epoch_line_callback()  # noqa: N806 - a class
     t_start = time.perf_counter()
-    model_cfg = tracking.to_plain(cfg.model)
-    trainer_cfg = tracking.to_plain(cfg.trainer)
-    _validate_trainer(trainer_cfg)
-    levels = list(tracking.to_plain(cfg.eval_levels) or [])
-    known_levels = occlusion_levels(cfg.occlusions)
-    for lv in levels:
-        if lv not in known_levels:
-            raise ConfigError("eval_levels", f"unknown occlusion level {lv!r}; known: {', '.join(known_levels)}")
+    check_config(cfg)  # one ConfigError before any work
+    seed = int(cfg.seed)
+    levels = list(_plain(cfg.eval_levels) or [])
+    model_cfg = _plain(cfg.model)
     from pipeline.lineage import train_dataset_id
 
     ds_name, ds_id = train_dataset_id(cfg)  # the dataset this config's recipe renders (or `dataset`, pinned)
@@ -220,10 +372,9 @@ def run(cfg) -> dict:
     want = model_cfg.get("image_shape")
     if want is not None and tuple(want) != shape:
         raise ModelError(f"model.image_shape {list(want)} does not match dataset {ds.name}-{ds.id} images {list(shape)}")
-    arena = dataset_camera(ds).arena
+    arena = [list(a) for a in dataset_camera(ds).arena]
 
     name, id_ = model_identity(cfg, ds.name, ds.id)
-    seed = int(cfg.seed)
     root = Path(cfg.paths.models_dir)
     final = root / f"{name}-{id_}"
     if tracking.is_complete(final) and not cfg.get("force", False):
@@ -231,68 +382,82 @@ def run(cfg) -> dict:
         return {"id": id_, "name": name, "path": str(final), "skipped": True,
                 "metrics": json.loads((final / "metrics.json").read_text())}
 
-    torch.set_num_threads(int(trainer_cfg.get("num_threads") or os.cpu_count() or 1))
+    dm = _build(cfg.datamodule, "datamodule", dataset=None, seed=seed).attach(ds)  # batch vs split size
+    work = root / f".work-{name}-{id_}"
+    cfg = _run_dir(cfg, work)
+    torch.set_num_threads(_threads(cfg))
     _quiet_lightning()
     L.seed_everything(seed, workers=True, verbose=False)
-    hparams = {k: v for k, v in model_cfg.items() if k not in ("image_shape",)}
-    hparams["name"] = name
-    model = PerceptionMap(image_shape=shape, arena=arena, **hparams)
-    dm = PerceptionDataModule(ds, batch_size=trainer_cfg["batch_size"],
-                              eval_batch_size=int(trainer_cfg.get("eval_batch_size") or 512), seed=seed,
-                              limit_train=trainer_cfg.get("limit_train_samples"))
-
-    work = root / f".work-{name}-{id_}"
-    work.mkdir(parents=True, exist_ok=True)
+    model = _build(cfg.model, "model", image_shape=list(shape), arena=arena, name=name, _convert_="all")
+    loggers = [_build(node, f"logger.{key}") for key, node in (cfg.get("logger") or {}).items()]
+    callbacks = []
+    for key, node in (cfg.get("callbacks") or {}).items():
+        cls = str(node.get("_target_", "")).rsplit(".", 1)[-1]
+        extra = {"dirpath": str(work / "ckpt")} if cls == "ModelCheckpoint" else {}
+        cb = _build(node, f"callbacks.{key}", **extra)
+        if isinstance(cb, LearningRateMonitor) and not loggers:
+            continue  # Lightning refuses a learning-rate monitor without a logger
+        callbacks.append(cb)
+    ckpt_cb = next((cb for cb in callbacks if isinstance(cb, ModelCheckpoint)), None)
+    if ckpt_cb is None:  # the stage needs the best and last checkpoints (saved map, resume)
+        ckpt_cb = ModelCheckpoint(dirpath=work / "ckpt", filename="best", monitor="val_mae", mode="min",
+                                  save_top_k=1, save_last=True)
+        callbacks.append(ckpt_cb)
     # Lightning's bar on a terminal; one line per epoch in logs (a bar written to a file floods it)
-    show_bar = bool(trainer_cfg.get("enable_progress_bar", True)) and sys.stderr.isatty()
-    ckpt_cb = ModelCheckpoint(dirpath=work / "ckpt", filename="best", monitor="val_mae", mode="min",
-                              save_top_k=1, save_last=True)
-    logger = CSVLogger(save_dir=str(work), name="logs", version=0)
-    mm = trainer_cfg.get("max_minutes")
-    trainer = L.Trainer(
-        accelerator="cpu", devices=1, max_epochs=trainer_cfg["max_epochs"],
-        max_time={"minutes": float(mm)} if mm else None,
-        fast_dev_run=bool(trainer_cfg.get("fast_dev_run", False)),
-        limit_train_batches=trainer_cfg.get("limit_train_batches") or 1.0,
-        limit_val_batches=trainer_cfg.get("limit_val_batches") or 1.0,
-        gradient_clip_val=trainer_cfg.get("gradient_clip_val"),
-        enable_progress_bar=show_bar,
-        log_every_n_steps=int(trainer_cfg.get("log_every_n_steps") or 50),
-        callbacks=[ckpt_cb, *([] if show_bar else [EpochLine(name)])], logger=logger, num_sanity_val_steps=0, enable_model_summary=False,
-        default_root_dir=str(work),
-    )
+    show_bar = bool(cfg.trainer.get("enable_progress_bar", True)) and sys.stderr.isatty()
+    work.mkdir(parents=True, exist_ok=True)
+    trainer = _build(cfg.trainer, "trainer", logger=loggers or False, callbacks=callbacks,
+                     enable_progress_bar=show_bar)
+
     last = work / "ckpt" / "last.ckpt"
-    resume = last if last.is_file() and not trainer_cfg.get("fast_dev_run") else None
-    if resume:
+    resume = last if last.is_file() and not cfg.trainer.get("fast_dev_run") else None
+    if resume and trainer.is_global_zero:
         print(f"[train] resuming {name}-{id_} from {resume}")
     t_fit = time.perf_counter()
-    trainer.fit(model, datamodule=dm, ckpt_path=str(resume) if resume else None)
+    try:
+        trainer.fit(model, datamodule=dm, ckpt_path=str(resume) if resume else None)
+    except PipelineError:
+        raise
+    except (ValueError, TypeError) as err:  # Lightning's late config errors (MisconfigurationException is one)
+        if type(err).__module__.startswith(("lightning", "pytorch_lightning")):
+            raise ConfigError("trainer", _first_line(err)) from None
+        raise
     fit_s = time.perf_counter() - t_fit
+    if not trainer.is_global_zero:  # DDP: rank 0 evaluates the test split once and writes the map
+        return {"id": id_, "name": name, "path": str(final), "skipped": False, "rank": trainer.global_rank}
     best_path = ckpt_cb.best_model_path
     if best_path and Path(best_path).is_file():
         state = torch.load(best_path, map_location="cpu", weights_only=False)["state_dict"]
         model.load_state_dict(state)
-    model.eval()
+    model = model.to("cpu").eval()
+    hparams = {k: v for k, v in _plain(model.hparams).items() if k not in ("image_shape", "arena")}
     predictor = PerceptionMapPredictor(model, manifest={"dataset_id": ds.id, "scene": ds.manifest["scene"],
-                                                        "render": ds.manifest["render"]})
+                                                        "render": ds.manifest["render"]},
+                                       device=resolve_device(cfg.get("device", "auto")))
     test_metrics, test_pred = evaluate(predictor, ds, levels, int(cfg.get("eval_seed", 123)), cfg.occlusions)
+    best = ckpt_cb.best_model_score
+    batch = int(cfg.datamodule.batch_size)
     metrics = {"dataset": f"{ds.name}-{ds.id}", "epochs": int(trainer.current_epoch),
                "fit_seconds": round(fit_s, 1),
-               "train_images_per_s": round(trainer.global_step * trainer_cfg["batch_size"] / max(fit_s, 1e-9), 1),
+               "train_images_per_s": round(trainer.global_step * batch / max(fit_s, 1e-9), 1),
+               "val_mae_px": float(best) if best is not None else None,
+               "device": str(trainer.strategy.root_device), "world_size": int(trainer.world_size),
                **test_metrics}
     meta = {"kind": "perception_map", "dataset_id": ds.id, "dataset_name": ds.name, "seed": seed,
-            "model": hparams, "trainer": trainer_cfg, "eval_levels": levels,
+            "model": hparams, "trainer": tracking.to_plain(cfg.trainer),
+            "datamodule": tracking.to_plain(cfg.datamodule), "eval_levels": levels,
             "scene": ds.manifest["scene"], "render": ds.manifest["render"],
-            "image_shape": list(shape), "arena": [list(a) for a in arena],
+            "image_shape": list(shape), "arena": arena,
             "code_version": tracking.code_version("train"), "metrics": metrics}
+    csv_dir = next((Path(lg.log_dir) for lg in trainer.loggers if isinstance(lg, CSVLogger)), None)
     with tracking.tracked_output(root, name, id_, meta) as out:
-        torch.save({"hparams": {**hparams, "image_shape": list(shape), "arena": [list(a) for a in arena]},
+        torch.save({"hparams": {**hparams, "image_shape": list(shape), "arena": arena},
                     "state_dict": model.state_dict()}, out / "model.pt")
         if best_path and Path(best_path).is_file():
             shutil.copy2(best_path, out / "best.ckpt")
         (out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
         (out / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=False))
-        curves = _curves(work / "logs" / "version_0" / "metrics.csv", out)
+        curves = _curves(csv_dir / "metrics.csv" if csv_dir else None, out)
         _scatter(test_pred, ds.positions("test"), out / "scatter.png",
                  f"{name}-{id_} on {ds.name}-{ds.id} test: MAE {metrics['test_split']['mae_px']:.3f} px")
     shutil.rmtree(work, ignore_errors=True)
@@ -302,3 +467,17 @@ def run(cfg) -> dict:
     return {"id": id_, "name": name, "path": str(final), "skipped": False, "metrics": metrics,
             "epochs": len(curves)}
 
+
+def objective(out: dict, metric: str | None):
+    """What a Hydra job returns: `out`, or the value of `metrics[metric]` for a sweeper (`optimized_metric`).
+
+    `metric` may be a dotted path into metrics.json (`test_split.mae_px`). A DDP worker rank returns `out`."""
+    if not metric or "metrics" not in out:
+        return out
+    value = out["metrics"]
+    for part in str(metric).split("."):
+        if not isinstance(value, dict) or part not in value:
+            raise ConfigError("optimized_metric", f"{metric!r} is not a metric of the trained map; "
+                                                  f"known: {', '.join(sorted(out['metrics']))}")
+        value = value[part]
+    return float(value)
