@@ -100,12 +100,12 @@ def test_arrival_time_is_exact_in_the_far_field(scene, angle, d0):
     with the tolerances (the default's error, ~1e-3 s, is the integration's, not the event location's)."""
     x0 = scene.p_T + d0 * np.array([[math.cos(angle), math.sin(angle)]])
     expected = (d0 - 5.0) / 10.0 + math.log(5.0) / 2.0
-    for method, tol, abs_err in (("rosenbrock23", 1e-9, 1e-5), ("dopri5", 1e-9, 1e-6), ("rosenbrock23", None, 5e-3)):
+    for method, tol, abs_err in (("rosenbrock23", 1e-9, 1e-5), ("dopri5", 1e-9, 1e-5), ("rosenbrock23", None, 5e-3)):
         kw = {} if tol is None else {"rtol": tol, "atol": tol}
         res = simulate(scene, HybridController(scene), x0, dt=0.01, horizon=10.0, model="continuous", record=False,
                        method=method, **kw)
         assert res.metrics["time_to_target"][0] == pytest.approx(expected, abs=abs_err), (method, tol)
-        assert res.metrics["final_error"][0] == pytest.approx(1.0, abs=1e-9)
+        assert res.metrics["final_error"][0] == pytest.approx(1.0, abs=1e-7)
 
 
 class _Toggle(Controller):

@@ -53,6 +53,7 @@ _E = _B5 - _B4
 _ROS_D, _ROS_E32 = 1.0 / (2.0 + math.sqrt(2.0)), 6.0 + math.sqrt(2.0)
 METHODS = ("rosenbrock23", "dopri5")
 _INSIDE = np.arange(1, 8) / 8.0  # interior points of a step near the obstacle, for the clearance
+_SAFETY, _GROW = 0.9, 5.0  # step-size control: safety factor, largest growth per step
 _BISECT = 24  # halvings of a step when locating an event: 6e-8 of the step
 
 
@@ -69,13 +70,14 @@ def _hermite(p0, f0, p1, f1, h, theta):
     return (h00[:, None] * p0 + (h10 * h)[:, None] * f0 + h01[:, None] * p1 + (h11 * h)[:, None] * f1)
 
 
-def _locate(cond, p0, f0, p1, f1, h):
-    """First fraction `theta` in (0, 1] where `cond` holds (false at 0, true at 1), by bisection.
+def _locate(cond, p0, f0, p1, f1, h, hi=None, iters=_BISECT):
+    """First fraction `theta` in (0, hi] where `cond` holds (false at 0, true at `hi`, default 1), by bisection.
 
     Returns `theta_hi` (cond true there) so that the event state satisfies the event's condition.
     """
-    lo, hi = np.zeros(len(h)), np.ones(len(h))
-    for _ in range(_BISECT):
+    lo = np.zeros(len(h))
+    hi = np.ones(len(h)) if hi is None else np.array(hi, dtype=float)
+    for _ in range(iters):
         mid = 0.5 * (lo + hi)
         c = cond(_hermite(p0, f0, p1, f1, h, mid))
         hi = np.where(c, mid, hi)
@@ -282,7 +284,7 @@ def simulate_continuous(
             stats["tries"][sel] += 1
             ok = err <= 1.0
             with np.errstate(divide="ignore"):
-                fac = np.clip(0.9 * err**-expo, 0.2, 5.0)
+                fac = np.clip(_SAFETY * err**-expo, 0.2, _GROW)
             fac = np.where(ok, fac, np.minimum(fac, 1.0))
             h_new = np.minimum(H * fac, h_max)
             # a step clipped to the window keeps its unclipped proposal for the next window
@@ -300,28 +302,51 @@ def simulate_continuous(
             P_evt = np.full_like(P1a, np.nan)  # event states from a step of the method (else Hermite)
 
             def refine(i, c, rad2, inside):
-                """Newton in time on `|p(θ) - c|^2 = rad2`, `p(θ)` a step of `θ H` of the method itself (the
-                Hermite interpolant is the first guess); kept where the event's condition then holds."""
-                th = _locate(lambda X: (_sq(X, c) < rad2) == inside, Pa[i], Fa[i], P1a[i], F1a[i], Ha[i])
+                """First crossing of `|p(θ) - c|^2 = rad2` in the step: bracketed by bisection on the Hermite
+                interpolant, then polished by Newton in time on `p(θ)`, a step of `θ H` of the method itself."""
+                th = _locate(lambda X: (_sq(X, c) < rad2) == inside, Pa[i], Fa[i], P1a[i], F1a[i], Ha[i],
+                             iters=12)
                 tn = th.copy()
-                for _ in range(3):
+                for _ in range(2):
                     Pt, Ft, _, _, ne = stepper(Pa[i], Fa[i], Qa[i], Ea[i], tn * Ha[i])
                     g = _sq(Pt, c) - rad2
                     dg = 2.0 * ((Pt[:, 0] - c[0]) * Ft[:, 0] + (Pt[:, 1] - c[1]) * Ft[:, 1]) * Ha[i]
                     with np.errstate(divide="ignore", invalid="ignore"):
                         tn = np.clip(tn - np.where(dg != 0, g / dg, 0.0), 0.0, 1.0)
-                tn = np.minimum(tn + 1e-9, 1.0)  # just past the crossing
+                tn = np.minimum(tn * (1 + 1e-9) + 1e-12, 1.0)  # just past the crossing
                 Pt, _, _, _, ne = stepper(Pa[i], Fa[i], Qa[i], Ea[i], tn * Ha[i])
-                stats["evals"] += 4 * ne * i.size
-                good = ((_sq(Pt, c) < rad2) == inside) & np.isfinite(Pt).all(axis=1)
-                th[good] = tn[good]
+                stats["evals"] += 3 * ne * i.size
+                # Newton from the first crossing's bracket stays on it; else keep the Hermite bisection
+                good = ((_sq(Pt, c) < rad2) == inside) & np.isfinite(Pt).all(axis=1) & (np.abs(tn - th) < 1e-3)
                 P_evt[i[good]] = Pt[good]
+                th[good] = tn[good]
+                if not good.all():
+                    b = np.flatnonzero(~good)
+                    th[b] = _locate(lambda X: (_sq(X, c) < rad2) == inside, Pa[i[b]], Fa[i[b]], P1a[i[b]],
+                                    F1a[i[b]], Ha[i[b]])
                 return th
 
             hit_c = _sq(P1a, p0) < r2
             if hit_c.any():
                 i = np.flatnonzero(hit_c)
                 theta[i], kind[i] = refine(i, p0, r2, True), 1
+            # the arc may pass closer than both ends: look inside steps that come near the obstacle
+            d_ends = np.sqrt(np.minimum(_sq(Pa, p0), _sq(P1a, p0))) - r
+            reach = (d_ends < np.hypot(*(P1a - Pa).T) + 1e-9) & ~hit_c
+            inner = []
+            if reach.any():
+                i = np.flatnonzero(reach)
+                first_in = np.full(i.size, np.inf)
+                for frac in _INSIDE[::-1]:
+                    X = _hermite(Pa[i], Fa[i], P1a[i], F1a[i], Ha[i], np.full(i.size, frac))
+                    d2x = _sq(X, p0)
+                    inner.append((i, frac, d2x))
+                    first_in = np.where(d2x < r2, frac, first_in)
+                grazed = np.isfinite(first_in)
+                if grazed.any():  # a chord through the disc's edge: a collision inside the step
+                    g = i[grazed]
+                    th = _locate(lambda X: _sq(X, p0) < r2, Pa[g], Fa[g], P1a[g], F1a[g], Ha[g], first_in[grazed])
+                    theta[g], kind[g] = th, 1
             hit_t = (_sq(P1a, pT) <= delta2) & (kind == 0) & np.isnan(t_hit[ia])
             if hit_t.any():
                 i = np.flatnonzero(hit_t)
@@ -361,13 +386,9 @@ def simulate_continuous(
             f0[ia] = Fn
             f0_ok[ia] = ~cut
             min_d2[ia] = np.minimum(min_d2[ia], _sq(Pn, p0))
-            # the arc may pass closer than both ends: look inside steps that come near the obstacle
-            reach = np.sqrt(np.minimum(_sq(Pa, p0), _sq(Pn, p0))) - r < np.hypot(*(Pn - Pa).T) + 1e-9
-            if reach.any():
-                i = np.flatnonzero(reach)
-                for frac in _INSIDE:
-                    X = _hermite(Pa[i], Fa[i], P1a[i], F1a[i], Ha[i], np.minimum(frac, theta[i]))
-                    min_d2[ia[i]] = np.minimum(min_d2[ia[i]], _sq(X, p0))
+            for i, frac, d2x in inner:  # interior points of the step up to its event
+                keep = frac <= theta[i]
+                min_d2[ia[i[keep]]] = np.minimum(min_d2[ia[i[keep]]], d2x[keep])
             min_e2[ia] = np.minimum(min_e2[ia], _sq(Pn, pT))
             newly = pushed[a] & ~pushed_prev[ia] & ~cut
             pushouts[ia[newly]] += 1
