@@ -262,3 +262,17 @@ def test_continuous_rejects_sampled_only_inputs(scene):
     assert info.value.field == "sim.model"
     # the true state is fine
     simulate(scene, ctrl, x0, horizon=1.0, model="continuous", measure=true_state)
+
+
+def test_model_comparison_table_and_figure(scene):
+    from pipeline.sim.compare import model_comparison, zigzag_figure
+
+    df = model_comparison(scene, ((-12.0, 2.0), (10.0, 25.0)), limit_dt=0.001, horizon=15.0)
+    assert list(df[["x0", "y0"]].itertuples(index=False, name=None)) == [(-12.0, 2.0), (10.0, 25.0)]
+    assert abs(df["err_continuous_%"]).max() < 1.0  # vs a coarser limit than the module's fixture
+    assert df["err_sampled_%"][0] > 20.0  # the zigzag along the edge
+    assert df.path_sampled[0] > 1.2 * df.path_continuous[0]
+    fig = zigzag_figure(scene, horizon=10.0)
+    assert len(fig.axes) == 2
+    labels = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    assert any("sampled" in s for s in labels) and any("continuous" in s for s in labels)
