@@ -54,8 +54,9 @@ _E = _B5 - _B4
 _ROS_D, _ROS_E32 = 1.0 / (2.0 + math.sqrt(2.0)), 6.0 + math.sqrt(2.0)
 METHODS = ("rosenbrock23", "dopri5")
 _INSIDE = np.arange(1, 8) / 8.0  # interior points of a step near the obstacle, for the clearance
+_J_REUSE = 3  # rosenbrock23: accepted steps a Jacobian is used for
 _SAFETY, _GROW = 0.9, 5.0  # step-size control: safety factor, largest growth per step
-_BISECT = 30  # halvings of a step when locating an event: 1e-9 of the step
+_BISECT = 22  # halvings of a step when locating an event: 2.4e-7 of the step
 
 
 def _sq(X, c):
@@ -168,7 +169,7 @@ def simulate_continuous(
         z = err_vec / (atol + rtol * np.maximum(np.abs(P), np.abs(P1)))
         return np.sqrt(0.5 * (z[:, 0] * z[:, 0] + z[:, 1] * z[:, 1]))
 
-    def dopri5(P, F0, Q, E, H):
+    def dopri5(P, F0, Q, E, H, idx):
         K = [F0]
         for i in range(1, 6):
             K.append(flow(P + H[:, None] * sum(a * K[j] for j, a in enumerate(_A[i]) if a != 0.0), Q, E))
@@ -178,14 +179,23 @@ def simulate_continuous(
         err_vec = H[:, None] * sum(c * K[j] for j, c in enumerate(_E) if c != 0.0)
         return P1, F1, pushed, err_norm(err_vec, P, P1), 6
 
-    def rosenbrock23(P, F0, Q, E, H):
+    def rosenbrock23(P, F0, Q, E, H, idx):
         # J = dF/dp by forward differences (2 flow evaluations); W = I - h d J solved in closed form (2x2)
-        eps = 1e-7 * np.maximum(1.0, np.abs(P))
-        J = np.empty((len(P), 2, 2))
-        for c in range(2):
-            Pc = P.copy()
-            Pc[:, c] += eps[:, c]
-            J[:, :, c] = (flow(Pc, Q, E) - F0) / eps[:, c : c + 1]
+        # J is reused for up to _J_REUSE accepted steps (the formula is a W-method: second order for any J;
+        # a fresh J after a rejection, a jump or a new frame keeps it close where the flow is stiff)
+        stale = np.flatnonzero(J_age[idx] >= _J_REUSE)
+        ne = 4
+        if stale.size:
+            g = idx[stale]
+            Ps, Fs = P[stale], F0[stale]
+            eps = 1e-7 * np.maximum(1.0, np.abs(Ps))
+            for c in range(2):
+                Pc = Ps.copy()
+                Pc[:, c] += eps[:, c]
+                J_all[g, :, c] = (flow(Pc, Q[stale], E[stale]) - Fs) / eps[:, c : c + 1]
+            J_age[g] = 0
+            stats["evals"] += 2 * stale.size
+        J = J_all[idx]
         hd = H * _ROS_D
         w00, w01 = 1.0 - hd * J[:, 0, 0], -hd * J[:, 0, 1]
         w10, w11 = -hd * J[:, 1, 0], 1.0 - hd * J[:, 1, 1]
@@ -201,7 +211,7 @@ def simulate_continuous(
         F2, pushed = flow_pushed(P1, Q, E)
         k3 = solve(F2 - _ROS_E32 * (k2 - F1m) - 2.0 * (k1 - F0))
         err_vec = (H / 6.0)[:, None] * (k1 - 2.0 * k2 + k3)
-        return P1, F2, pushed, err_norm(err_vec, P, P1), 4
+        return P1, F2, pushed, err_norm(err_vec, P, P1), 2
 
     stepper, expo = (dopri5, 0.2) if method == "dopri5" else (rosenbrock23, 1.0 / 3.0)
 
@@ -220,6 +230,8 @@ def simulate_continuous(
     h_next = np.full(n, min(h_max, 0.01))
     f0 = np.zeros_like(p)
     f0_ok = np.zeros(n, dtype=bool)
+    J_all = np.zeros((n, 2, 2))  # rosenbrock23: dF/dp per agent, and its age in accepted steps
+    J_age = np.full(n, _J_REUSE)
     pushed_prev = np.zeros(n, dtype=bool)
     stats = {"steps": 0, "rejected": 0, "evals": 0, "passes": 0, "tries": np.zeros(n, dtype=np.int64)}
 
@@ -246,6 +258,7 @@ def simulate_continuous(
             q[jmp] = controller.jump_map(q[jmp])
             jumps[jmp] += 1
             f0_ok[jmp] = False
+            J_age[jmp] = _J_REUSE
 
     jump_now(np.flatnonzero(active))
     if record:
@@ -258,6 +271,7 @@ def simulate_continuous(
         if disturbed and w > 0:  # a new camera frame: new e, test D first
             e = disturbance(p, s0 // every, rng, scene)
             f0_ok[:] = False
+            J_age[:] = _J_REUSE
             jump_now(np.flatnonzero(active))
         sel = np.flatnonzero(active)
         t = np.full(sel.size, T0)
@@ -279,11 +293,12 @@ def simulate_continuous(
             h_prop = h_next[sel]
             clipped = h_prop >= room
             H = np.where(clipped, room, h_prop)
-            P1, F1, pushed, err, ne = stepper(P, F0, Q, E, H)
+            P1, F1, pushed, err, ne = stepper(P, F0, Q, E, H, sel)
             stats["evals"] += ne * sel.size
             stats["passes"] += 1
             stats["tries"][sel] += 1
             ok = err <= 1.0
+            J_age[sel] = np.where(ok, J_age[sel] + 1, _J_REUSE)
             with np.errstate(divide="ignore"):
                 fac = np.clip(_SAFETY * err**-expo, 0.2, _GROW)
             fac = np.where(ok, fac, np.minimum(fac, 1.0))
@@ -370,6 +385,7 @@ def simulate_continuous(
                 if jc.size:
                     q[jc] = controller.jump_map(q[jc])
                     jumps[jc] += 1
+                    J_age[jc] = _J_REUSE
                 stop = (kind == 1) | (kind == 2)
                 if stop.any():
                     term[ia[kind == 1]] = 2
