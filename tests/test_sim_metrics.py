@@ -11,7 +11,16 @@ from hypothesis import strategies as st
 from pipeline.control import CBFController, HybridController, Scene, SmoothController
 from pipeline.control.controllers import Controller
 from pipeline.errors import ConfigError
-from pipeline.sim import OUTCOMES, Adversarial, Alternating, Gaussian, NoDisturbance, simulate, summarise_agents, wilson
+from pipeline.sim import (
+    OUTCOMES,
+    Adversarial,
+    Alternating,
+    Gaussian,
+    NoDisturbance,
+    simulate,
+    summarise_agents,
+    wilson,
+)
 from pipeline.sim.build import build_controller, build_disturbance
 from pipeline.sim.metrics import StallMonitor
 

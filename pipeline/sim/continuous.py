@@ -184,7 +184,6 @@ def simulate_continuous(
         # J is reused for up to _J_REUSE accepted steps (the formula is a W-method: second order for any J;
         # a fresh J after a rejection, a jump or a new frame keeps it close where the flow is stiff)
         stale = np.flatnonzero(J_age[idx] >= _J_REUSE)
-        ne = 4
         if stale.size:
             g = idx[stale]
             Ps, Fs = P[stale], F0[stale]
@@ -347,7 +346,8 @@ def simulate_continuous(
                 jd = controller.jump_set(P1a + Ea, Qa)
                 if jd.any():
                     i = np.flatnonzero(jd)
-                    th = _locate(lambda X, i=i: controller.jump_set(X + Ea[i], Qa[i]),
+                    Ej, Qj = Ea[i], Qa[i]
+                    th = _locate(lambda X, Ej=Ej, Qj=Qj: controller.jump_set(X + Ej, Qj),
                                  Pa[i], Fa[i], P1a[i], F1a[i], Ha[i])
                     earlier = th < theta[i]
                     theta[i[earlier]], kind[i[earlier]] = th[earlier], 3
