@@ -100,12 +100,12 @@ def test_arrival_time_is_exact_in_the_far_field(scene, angle, d0):
     with the tolerances (the default's error, ~1e-3 s, is the integration's, not the event location's)."""
     x0 = scene.p_T + d0 * np.array([[math.cos(angle), math.sin(angle)]])
     expected = (d0 - 5.0) / 10.0 + math.log(5.0) / 2.0
-    for method, tol, abs_err in (("rosenbrock23", 1e-9, 1e-5), ("dopri5", 1e-9, 1e-6), ("rosenbrock23", None, 5e-3)):
+    for method, tol, abs_err in (("rosenbrock23", 1e-9, 1e-5), ("dopri5", 1e-9, 1e-5), ("rosenbrock23", None, 5e-3)):
         kw = {} if tol is None else {"rtol": tol, "atol": tol}
         res = simulate(scene, HybridController(scene), x0, dt=0.01, horizon=10.0, model="continuous", record=False,
                        method=method, **kw)
         assert res.metrics["time_to_target"][0] == pytest.approx(expected, abs=abs_err), (method, tol)
-        assert res.metrics["final_error"][0] == pytest.approx(1.0, abs=1e-9)
+        assert res.metrics["final_error"][0] == pytest.approx(1.0, abs=1e-7)
 
 
 class _Toggle(Controller):
@@ -262,3 +262,17 @@ def test_continuous_rejects_sampled_only_inputs(scene):
     assert info.value.field == "sim.model"
     # the true state is fine
     simulate(scene, ctrl, x0, horizon=1.0, model="continuous", measure=true_state)
+
+
+def test_model_comparison_table_and_figure(scene):
+    from pipeline.sim.compare import model_comparison, zigzag_figure
+
+    df = model_comparison(scene, ((-12.0, 2.0), (10.0, 25.0)), limit_dt=0.001, horizon=15.0)
+    assert list(df[["x0", "y0"]].itertuples(index=False, name=None)) == [(-12.0, 2.0), (10.0, 25.0)]
+    assert abs(df["err_continuous_%"]).max() < 1.0  # vs a coarser limit than the module's fixture
+    assert df["err_sampled_%"][0] > 20.0  # the zigzag along the edge
+    assert df.path_sampled[0] > 1.2 * df.path_continuous[0]
+    fig = zigzag_figure(scene, horizon=10.0)
+    assert len(fig.axes) == 2
+    labels = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    assert any("sampled" in s for s in labels) and any("continuous" in s for s in labels)

@@ -11,7 +11,16 @@ from hypothesis import strategies as st
 from pipeline.control import CBFController, HybridController, Scene, SmoothController
 from pipeline.control.controllers import Controller
 from pipeline.errors import ConfigError
-from pipeline.sim import OUTCOMES, Adversarial, Alternating, Gaussian, NoDisturbance, simulate, summarise_agents, wilson
+from pipeline.sim import (
+    OUTCOMES,
+    Adversarial,
+    Alternating,
+    Gaussian,
+    NoDisturbance,
+    simulate,
+    summarise_agents,
+    wilson,
+)
 from pipeline.sim.build import build_controller, build_disturbance
 from pipeline.sim.metrics import StallMonitor
 
@@ -220,3 +229,29 @@ def test_builders_strip_name_and_reject_typos(scene):
     with pytest.raises(ConfigError) as info:
         build_disturbance({"_target_": "pipeline.sim.Gaussian", "name": "gaussian", "sigmaa": 0.1})
     assert info.value.field == "disturbance"
+
+
+class _Constant(Controller):
+    """Constant velocity (10, 0): straight horizontal lines, at the largest step the integrator allows."""
+
+    name = "constant"
+
+    def _flow(self, m, target):
+        return np.tile([10.0, 0.0], (len(m), 1)), np.zeros(len(m), bool)
+
+
+@pytest.mark.parametrize("model", MODELS)
+def test_grazing_chord_is_a_collision(scene, model):
+    """A straight path that cuts the obstacle's edge 0.05 deep is a collision even when both ends of every
+    step lie outside it; 0.05 outside, the clearance is 0.05."""
+    r = scene.obstacle_radius
+    x0 = np.array([[-30.0, r - 0.05], [-30.0, r + 0.05], [-30.0, -r + 0.05]])
+    res = simulate(scene, _Constant(scene), x0, dt=0.01, horizon=6.0, model=model, record=False)
+    m = res.metrics
+    assert m["collision"].tolist() == [True, False, True]
+    assert m["outcome"].tolist() == ["collided", "timed_out", "collided"]
+    assert m["min_clearance"][1] == pytest.approx(0.05, abs=1e-3)
+    assert (m["min_clearance"][[0, 2]] < 0).all()
+    # the collision is located where the line enters the disc
+    x_in = -np.sqrt(r**2 - (r - 0.05) ** 2)
+    np.testing.assert_allclose(res.p[-1, [0, 2], 0], x_in, atol=0.1 if model == "sampled" else 1e-6)

@@ -1,4 +1,6 @@
-"""Benchmark: batched hybrid simulator vs a per-agent Python loop of the same controller (issue 2 §6)."""
+"""Benchmarks: batched hybrid simulator vs a per-agent Python loop of the same controller (issue 2 §6), and
+the cost of the continuous-time model (`sim.model: continuous`) per agent-second against the sampled one
+(issue 12: target <= 3x)."""
 
 from __future__ import annotations
 
@@ -26,6 +28,34 @@ def _rate(scene, x0, steps, period, repeat=2) -> float:
     return len(x0) * steps / best
 
 
+def _agent_seconds(scene, x0, horizon, model, repeat=2) -> float:
+    """Agent-seconds of simulated time per wall second (best of `repeat`), no recording, no early stop."""
+    best = np.inf
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        simulate(scene, HybridController(scene), x0, dt=0.01, horizon=horizon, camera_period=0.05, record=False,
+                 stop_on_success=False, model=model)
+        best = min(best, time.perf_counter() - t0)
+    return len(x0) * horizon / best
+
+
+def bench_models(quick: bool = False) -> list[dict]:
+    """Continuous vs sampled (20 Hz camera) on random starts of the default scene, clean, 10 s of each arc."""
+    scene = Scene(target=(40.0, 0.0))
+    n, horizon = (500, 2.0) if quick else (10_000, 10.0)
+    x0 = _agents(scene, n)
+    sampled = _agent_seconds(scene, x0, horizon, "sampled")
+    continuous = _agent_seconds(scene, x0, horizon, "continuous")
+    return [
+        {"section": "simulator", "case": f"sampled, 20 Hz camera, N={n}, {horizon:g} s", "value": sampled / 1e3,
+         "unit": "k agent-s/s", "note": ""},
+        {"section": "simulator", "case": f"continuous (rosenbrock23), N={n}, {horizon:g} s",
+         "value": continuous / 1e3, "unit": "k agent-s/s", "note": ""},
+        {"section": "simulator", "case": "cost per agent-second, continuous / sampled", "value": sampled / continuous,
+         "unit": "x", "note": "target <= 3x"},
+    ]
+
+
 def bench(quick: bool = False) -> list[dict]:
     scene = Scene(target=(40.0, 0.0))
     n, steps, n_loop, loop_steps = (1000, 20, 5, 20) if quick else (10_000, 200, 20, 200)
@@ -46,4 +76,4 @@ def bench(quick: bool = False) -> list[dict]:
             {"section": "simulator", "case": f"batched / loop, {label}", "value": batched / loop, "unit": "x",
              "note": "target >= 100x"},
         ]
-    return rows
+    return rows + bench_models(quick)

@@ -15,7 +15,8 @@ of frame `k`; adversarial: `-eps sign(b(p(t_k))) e_b`) and held on `[t_k, t_{k+1
 is evaluated continuously on `p(t) + e_k`; at a frame the new `(p + e, q)` is tested against `D` first.
 Without a disturbance no frame matters. Cameras, perception maps and camera failures are sampled-only.
 
-Agents are synchronised only at the camera frames, and only when a disturbance is present; the recorded
+Events are located on the step's cubic Hermite interpolant (its error is far below the step's own at
+the default tolerances). Agents are synchronised only at the camera frames, and only when a disturbance is present; the recorded
 arc (every `record_every * dt`) and the stall monitor's samples are read off each step's Hermite
 interpolant, so each agent's step grows to `h_max` where the flow allows.
 
@@ -53,7 +54,9 @@ _E = _B5 - _B4
 _ROS_D, _ROS_E32 = 1.0 / (2.0 + math.sqrt(2.0)), 6.0 + math.sqrt(2.0)
 METHODS = ("rosenbrock23", "dopri5")
 _INSIDE = np.arange(1, 8) / 8.0  # interior points of a step near the obstacle, for the clearance
-_BISECT = 24  # halvings of a step when locating an event: 6e-8 of the step
+_J_REUSE = 3  # rosenbrock23: accepted steps a Jacobian is used for
+_SAFETY, _GROW = 0.9, 5.0  # step-size control: safety factor, largest growth per step
+_BISECT = 22  # halvings of a step when locating an event: 2.4e-7 of the step
 
 
 def _sq(X, c):
@@ -69,12 +72,13 @@ def _hermite(p0, f0, p1, f1, h, theta):
     return (h00[:, None] * p0 + (h10 * h)[:, None] * f0 + h01[:, None] * p1 + (h11 * h)[:, None] * f1)
 
 
-def _locate(cond, p0, f0, p1, f1, h):
-    """First fraction `theta` in (0, 1] where `cond` holds (false at 0, true at 1), by bisection.
+def _locate(cond, p0, f0, p1, f1, h, hi=None):
+    """First fraction `theta` in (0, hi] where `cond` holds (false at 0, true at `hi`, default 1), by bisection.
 
     Returns `theta_hi` (cond true there) so that the event state satisfies the event's condition.
     """
-    lo, hi = np.zeros(len(h)), np.ones(len(h))
+    lo = np.zeros(len(h))
+    hi = np.ones(len(h)) if hi is None else np.array(hi, dtype=float)
     for _ in range(_BISECT):
         mid = 0.5 * (lo + hi)
         c = cond(_hermite(p0, f0, p1, f1, h, mid))
@@ -165,7 +169,7 @@ def simulate_continuous(
         z = err_vec / (atol + rtol * np.maximum(np.abs(P), np.abs(P1)))
         return np.sqrt(0.5 * (z[:, 0] * z[:, 0] + z[:, 1] * z[:, 1]))
 
-    def dopri5(P, F0, Q, E, H):
+    def dopri5(P, F0, Q, E, H, idx):
         K = [F0]
         for i in range(1, 6):
             K.append(flow(P + H[:, None] * sum(a * K[j] for j, a in enumerate(_A[i]) if a != 0.0), Q, E))
@@ -175,14 +179,22 @@ def simulate_continuous(
         err_vec = H[:, None] * sum(c * K[j] for j, c in enumerate(_E) if c != 0.0)
         return P1, F1, pushed, err_norm(err_vec, P, P1), 6
 
-    def rosenbrock23(P, F0, Q, E, H):
+    def rosenbrock23(P, F0, Q, E, H, idx):
         # J = dF/dp by forward differences (2 flow evaluations); W = I - h d J solved in closed form (2x2)
-        eps = 1e-7 * np.maximum(1.0, np.abs(P))
-        J = np.empty((len(P), 2, 2))
-        for c in range(2):
-            Pc = P.copy()
-            Pc[:, c] += eps[:, c]
-            J[:, :, c] = (flow(Pc, Q, E) - F0) / eps[:, c : c + 1]
+        # J is reused for up to _J_REUSE accepted steps (the formula is a W-method: second order for any J;
+        # a fresh J after a rejection, a jump or a new frame keeps it close where the flow is stiff)
+        stale = np.flatnonzero(J_age[idx] >= _J_REUSE)
+        if stale.size:
+            g = idx[stale]
+            Ps, Fs = P[stale], F0[stale]
+            eps = 1e-7 * np.maximum(1.0, np.abs(Ps))
+            for c in range(2):
+                Pc = Ps.copy()
+                Pc[:, c] += eps[:, c]
+                J_all[g, :, c] = (flow(Pc, Q[stale], E[stale]) - Fs) / eps[:, c : c + 1]
+            J_age[g] = 0
+            stats["evals"] += 2 * stale.size
+        J = J_all[idx]
         hd = H * _ROS_D
         w00, w01 = 1.0 - hd * J[:, 0, 0], -hd * J[:, 0, 1]
         w10, w11 = -hd * J[:, 1, 0], 1.0 - hd * J[:, 1, 1]
@@ -198,7 +210,7 @@ def simulate_continuous(
         F2, pushed = flow_pushed(P1, Q, E)
         k3 = solve(F2 - _ROS_E32 * (k2 - F1m) - 2.0 * (k1 - F0))
         err_vec = (H / 6.0)[:, None] * (k1 - 2.0 * k2 + k3)
-        return P1, F2, pushed, err_norm(err_vec, P, P1), 4
+        return P1, F2, pushed, err_norm(err_vec, P, P1), 2
 
     stepper, expo = (dopri5, 0.2) if method == "dopri5" else (rosenbrock23, 1.0 / 3.0)
 
@@ -217,6 +229,8 @@ def simulate_continuous(
     h_next = np.full(n, min(h_max, 0.01))
     f0 = np.zeros_like(p)
     f0_ok = np.zeros(n, dtype=bool)
+    J_all = np.zeros((n, 2, 2))  # rosenbrock23: dF/dp per agent, and its age in accepted steps
+    J_age = np.full(n, _J_REUSE)
     pushed_prev = np.zeros(n, dtype=bool)
     stats = {"steps": 0, "rejected": 0, "evals": 0, "passes": 0, "tries": np.zeros(n, dtype=np.int64)}
 
@@ -243,6 +257,7 @@ def simulate_continuous(
             q[jmp] = controller.jump_map(q[jmp])
             jumps[jmp] += 1
             f0_ok[jmp] = False
+            J_age[jmp] = _J_REUSE
 
     jump_now(np.flatnonzero(active))
     if record:
@@ -255,6 +270,7 @@ def simulate_continuous(
         if disturbed and w > 0:  # a new camera frame: new e, test D first
             e = disturbance(p, s0 // every, rng, scene)
             f0_ok[:] = False
+            J_age[:] = _J_REUSE
             jump_now(np.flatnonzero(active))
         sel = np.flatnonzero(active)
         t = np.full(sel.size, T0)
@@ -276,13 +292,14 @@ def simulate_continuous(
             h_prop = h_next[sel]
             clipped = h_prop >= room
             H = np.where(clipped, room, h_prop)
-            P1, F1, pushed, err, ne = stepper(P, F0, Q, E, H)
+            P1, F1, pushed, err, ne = stepper(P, F0, Q, E, H, sel)
             stats["evals"] += ne * sel.size
             stats["passes"] += 1
             stats["tries"][sel] += 1
             ok = err <= 1.0
+            J_age[sel] = np.where(ok, J_age[sel] + 1, _J_REUSE)
             with np.errstate(divide="ignore"):
-                fac = np.clip(0.9 * err**-expo, 0.2, 5.0)
+                fac = np.clip(_SAFETY * err**-expo, 0.2, _GROW)
             fac = np.where(ok, fac, np.minimum(fac, 1.0))
             h_new = np.minimum(H * fac, h_max)
             # a step clipped to the window keeps its unclipped proposal for the next window
@@ -297,35 +314,31 @@ def simulate_continuous(
             # events at the step's end, located in time: collision, arrival, jump (the earliest wins)
             theta = np.ones(a.size)
             kind = np.zeros(a.size, dtype=np.int8)  # 0 none, 1 collision, 2 arrival, 3 jump
-            P_evt = np.full_like(P1a, np.nan)  # event states from a step of the method (else Hermite)
-
-            def refine(i, c, rad2, inside):
-                """Newton in time on `|p(θ) - c|^2 = rad2`, `p(θ)` a step of `θ H` of the method itself (the
-                Hermite interpolant is the first guess); kept where the event's condition then holds."""
-                th = _locate(lambda X: (_sq(X, c) < rad2) == inside, Pa[i], Fa[i], P1a[i], F1a[i], Ha[i])
-                tn = th.copy()
-                for _ in range(3):
-                    Pt, Ft, _, _, ne = stepper(Pa[i], Fa[i], Qa[i], Ea[i], tn * Ha[i])
-                    g = _sq(Pt, c) - rad2
-                    dg = 2.0 * ((Pt[:, 0] - c[0]) * Ft[:, 0] + (Pt[:, 1] - c[1]) * Ft[:, 1]) * Ha[i]
-                    with np.errstate(divide="ignore", invalid="ignore"):
-                        tn = np.clip(tn - np.where(dg != 0, g / dg, 0.0), 0.0, 1.0)
-                tn = np.minimum(tn + 1e-9, 1.0)  # just past the crossing
-                Pt, _, _, _, ne = stepper(Pa[i], Fa[i], Qa[i], Ea[i], tn * Ha[i])
-                stats["evals"] += 4 * ne * i.size
-                good = ((_sq(Pt, c) < rad2) == inside) & np.isfinite(Pt).all(axis=1)
-                th[good] = tn[good]
-                P_evt[i[good]] = Pt[good]
-                return th
-
             hit_c = _sq(P1a, p0) < r2
             if hit_c.any():
                 i = np.flatnonzero(hit_c)
-                theta[i], kind[i] = refine(i, p0, r2, True), 1
+                theta[i], kind[i] = _locate(lambda X: _sq(X, p0) < r2, Pa[i], Fa[i], P1a[i], F1a[i], Ha[i]), 1
+            # the arc may pass closer than both ends: look inside steps that come near the obstacle
+            d_ends = np.sqrt(np.minimum(_sq(Pa, p0), _sq(P1a, p0))) - r
+            reach = (d_ends < np.hypot(*(P1a - Pa).T) + 1e-9) & ~hit_c
+            inner = []
+            if reach.any():
+                i = np.flatnonzero(reach)
+                first_in = np.full(i.size, np.inf)
+                for frac in _INSIDE[::-1]:
+                    X = _hermite(Pa[i], Fa[i], P1a[i], F1a[i], Ha[i], np.full(i.size, frac))
+                    d2x = _sq(X, p0)
+                    inner.append((i, frac, d2x))
+                    first_in = np.where(d2x < r2, frac, first_in)
+                grazed = np.isfinite(first_in)
+                if grazed.any():  # a chord through the disc's edge: a collision inside the step
+                    g = i[grazed]
+                    th = _locate(lambda X: _sq(X, p0) < r2, Pa[g], Fa[g], P1a[g], F1a[g], Ha[g], first_in[grazed])
+                    theta[g], kind[g] = th, 1
             hit_t = (_sq(P1a, pT) <= delta2) & (kind == 0) & np.isnan(t_hit[ia])
             if hit_t.any():
                 i = np.flatnonzero(hit_t)
-                th = refine(i, pT, delta2 * (1 + 1e-12), True)
+                th = _locate(lambda X: _sq(X, pT) <= delta2, Pa[i], Fa[i], P1a[i], F1a[i], Ha[i])
                 t_hit[ia[i]] = t[a[i]] + th * Ha[i]
                 if stop_on_success:
                     theta[i], kind[i] = th, 2
@@ -333,7 +346,8 @@ def simulate_continuous(
                 jd = controller.jump_set(P1a + Ea, Qa)
                 if jd.any():
                     i = np.flatnonzero(jd)
-                    th = _locate(lambda X, i=i: controller.jump_set(X + Ea[i], Qa[i]),
+                    Ej, Qj = Ea[i], Qa[i]
+                    th = _locate(lambda X, Ej=Ej, Qj=Qj: controller.jump_set(X + Ej, Qj),
                                  Pa[i], Fa[i], P1a[i], F1a[i], Ha[i])
                     earlier = th < theta[i]
                     theta[i[earlier]], kind[i[earlier]] = th[earlier], 3
@@ -343,8 +357,6 @@ def simulate_continuous(
                 i = np.flatnonzero(cut)
                 Pn = P1a.copy()
                 Pn[i] = _hermite(Pa[i], Fa[i], P1a[i], F1a[i], Ha[i], theta[i])
-                own = (kind != 3) & np.isfinite(P_evt[:, 0])
-                Pn[own] = P_evt[own]
             t_a0 = t[a]
             t_a1 = t_a0 + theta * Ha
             t_a1[clipped[a] & ~cut] = T1  # exact window end
@@ -361,13 +373,9 @@ def simulate_continuous(
             f0[ia] = Fn
             f0_ok[ia] = ~cut
             min_d2[ia] = np.minimum(min_d2[ia], _sq(Pn, p0))
-            # the arc may pass closer than both ends: look inside steps that come near the obstacle
-            reach = np.sqrt(np.minimum(_sq(Pa, p0), _sq(Pn, p0))) - r < np.hypot(*(Pn - Pa).T) + 1e-9
-            if reach.any():
-                i = np.flatnonzero(reach)
-                for frac in _INSIDE:
-                    X = _hermite(Pa[i], Fa[i], P1a[i], F1a[i], Ha[i], np.minimum(frac, theta[i]))
-                    min_d2[ia[i]] = np.minimum(min_d2[ia[i]], _sq(X, p0))
+            for i, frac, d2x in inner:  # interior points of the step up to its event
+                keep = frac <= theta[i]
+                min_d2[ia[i[keep]]] = np.minimum(min_d2[ia[i[keep]]], d2x[keep])
             min_e2[ia] = np.minimum(min_e2[ia], _sq(Pn, pT))
             newly = pushed[a] & ~pushed_prev[ia] & ~cut
             pushouts[ia[newly]] += 1
@@ -377,6 +385,7 @@ def simulate_continuous(
                 if jc.size:
                     q[jc] = controller.jump_map(q[jc])
                     jumps[jc] += 1
+                    J_age[jc] = _J_REUSE
                 stop = (kind == 1) | (kind == 2)
                 if stop.any():
                     term[ia[kind == 1]] = 2

@@ -108,7 +108,7 @@ def simulate(
     atol: float = 1e-4,
     h_max: float = 0.25,
     method: str = "rosenbrock23",
-    stall_speed: float = 0.1,
+    stall_speed: float = 0.25,
     stall_time: float = 5.0,
 ) -> SimResult:
     """Simulate all agents of `x0` `(N, 2)` at once; see the module docstring.
