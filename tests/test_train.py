@@ -12,7 +12,6 @@ import pytest
 from pipeline.cli import REPO_ROOT, compose
 from pipeline.errors import ConfigError, DatasetError, ModelError
 
-
 # the train configs name the same recipe as the dataset they train on (lineage: a recipe means its id)
 SMALL = ["data.splits.train=512", "data.splits.val=64", "data.splits.test=64"]
 

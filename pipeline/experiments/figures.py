@@ -25,6 +25,7 @@ FIGURES = {
     "fig9_monte_carlo": ("monte_carlo", "not in the paper: Monte Carlo success rates"),
     "fig10_authors_code_vs_default": ("authors_code", "not in the paper: the authors' released-code scene"),
     "fig11_hysteresis_margin": ("hysteresis_margin", "not in the paper: Theorem 1's robustness margin over (χ, λ)"),
+    "fig12_sample_and_hold": ("sample_and_hold", "not in the paper: the 20 Hz sample-and-hold vs continuous time"),
 }
 
 
@@ -104,6 +105,9 @@ def draw_noise_failure(scen, ctx, res, out) -> None:
             label="leader as perceived by the follower")
     ax.legend(fontsize=7, loc="lower right")
     ax.set_title("leader-follower", fontsize=9)
+    _gif(ctx, out, "anim7_noise_failure", "leader and follower under noise and camera failure: the arena, the "
+         "follower's camera frame and the perceived leader", a["foll_t"], a["lead_p"][:, 0], a["foll_p"][:, 0],
+         a["foll_target"][:, 0])
     out.figure(fig, "fig7_robustness_noise_failure",
                "Hybrid controller with the CNN in the loop under noise and camera failure: single vehicle from "
                "both initial conditions (grey: perceived positions) and leader-follower (paper Fig. robustness).")
@@ -125,6 +129,10 @@ def draw_occlusion(scen, ctx, res, out) -> None:
         ax.set_title(f"map trained on {kind} images; {res.info['level']} clouds "
                      f"(mean tracking error {np.nanmean(a[f'{kind}_err']):.2f})", fontsize=9)
         ax.legend(fontsize=7, loc="lower right")
+    _gif(ctx, out, "anim6_occlusion", f"follower with the occlusion-trained map on {res.info['level']} clouds: the "
+         "arena, the follower's camera frame with its clouds and the perceived leader",
+         np.arange(len(a["occluded_foll_p"])) * (ctx.frame_period or ctx.dt), a["occluded_lead_p"],
+         a["occluded_foll_p"], a["occluded_foll_target"], level=res.info["level"])
     out.figure(fig, "fig6_occlusion",
                "Follower with the map trained without and with occlusion, tested on occluded frames (paper Fig. occlusion).")
     cols = ["map", "occlusion", "n", "success_rate", "success_lo", "success_hi", "success_practical",
@@ -278,9 +286,61 @@ def draw_hysteresis_margin(scen, ctx, res, out) -> None:
                                            "failing ε the bisection found).")
 
 
+def draw_scheme(scen, ctx, res, out) -> None:
+    from pipeline.experiments.scheme import scheme_figure
+
+    out.figure(scheme_figure(), "fig4_scheme",
+               "Scheme of the closed loop: camera h(p) -> perception map l(θ) -> hybrid supervisor (flow set C, jump "
+               "set D, mode q) -> gradient flow -k∇V_q -> vehicle, with the disturbance and camera-failure inputs "
+               "where the simulator applies them (paper Fig. 4).")
+
+
+def draw_sample_and_hold(scen, ctx, res, out) -> None:
+    plt = _plt()
+    a, df = res.arrays, res.tables["sample_and_hold"]
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4))
+    row = df.iloc[0]
+    for ax, zoom in zip(axes, (False, True)):
+        draw_frame(ax, ctx.scene, ctx.arena)
+        ax.plot(a["sampled_p"][:, 0], a["sampled_p"][:, 1], color="tab:red", lw=0.9,
+                label=f"sampled at {1 / res.info['period']:g} Hz: {row.t_sampled:.2f} s" if res.info["period"] else "sampled")
+        ax.plot(a["continuous_p"][:, 0], a["continuous_p"][:, 1], color="tab:blue", lw=1.2,
+                label=f"continuous time: {row.t_continuous:.2f} s (dt -> 0 limit {row.t_limit:.2f} s)")
+        if zoom:
+            c = ctx.scene.c
+            ax.set_xlim(-c - 2, 2)
+            ax.set_ylim(-1, c + 1)
+            ax.set_title("zoom on the diamond's edge: the zigzag of the held velocity", fontsize=9)
+        else:
+            ax.legend(fontsize=7, loc="lower right")
+            ax.set_title(f"hybrid controller from ({row.x0:g}, {row.y0:g})", fontsize=9)
+    out.figure(fig, "fig12_sample_and_hold",
+               "What the camera's sample-and-hold costs: the sampled arc zigzags along the diamond's edge (a stiff "
+               "barrier gradient saturated at u_max, held between frames); the continuous-time model follows it.")
+    out.table(df, "tab_sample_and_hold", "Time to target, jumps and path length: sampled, continuous time and the "
+                                         "dt = period -> 0 limit; relative errors of the first two against the limit.")
+
+
+def _gif(ctx, out, stem: str, caption: str, t, lead, foll, perceived, level=None) -> None:
+    """The arena with both vehicles, the follower's camera frame (with its clouds) and the perceived leader."""
+    from pipeline.experiments.animation import leader_follower_gif
+
+    cam, occ = ctx.camera(), ctx.occlusion(level)
+    n = min(len(t), len(lead), len(foll), len(perceived))
+    lead, foll, perceived, t = lead[:n], foll[:n], perceived[:n], t[:n]
+
+    def frame(k: int):
+        return cam.render(lead[k:k + 1], foll[k:k + 1], occlusion=occ, rng=np.random.default_rng(k))[0]
+
+    path = leader_follower_gif(out.dir / f"{stem}.gif", ctx.scene, ctx.arena, t, lead, foll, perceived, frame,
+                               title=caption)
+    out.items.append({"kind": "animation", "files": [path.name], "caption": caption})
+
+
 _DRAWERS = {
     S.Coverings: draw_coverings, S.SensitiveSet: draw_sensitive_set, S.NoiseFailure: draw_noise_failure,
     S.Occlusion: draw_occlusion, S.LeaderFollower: draw_leader_follower,
     S.PerceptionCloseness: draw_perception_closeness, S.RobustnessSweep: draw_robustness_sweep,
     S.MonteCarlo: draw_monte_carlo, S.AuthorsCode: draw_authors_code, S.HysteresisMargin: draw_hysteresis_margin,
+    S.Scheme: draw_scheme, S.SampleAndHold: draw_sample_and_hold,
 }

@@ -501,3 +501,50 @@ class HysteresisMargin(Scenario):
                 rows.append({"disturbance": dist, "chi": chi, "lam": lam, "eps_margin": lo, "eps_fails": hi,
                              "n_starts": len(x0), "simulations": sims})
         return Results({"margin": pd.DataFrame(rows)}, {"x0": x0}, {"paper_cell": list(self.paper_cell)})
+
+
+# ------------------------------------------------------------------------------------- the scheme
+@dataclass(kw_only=True)
+class Scheme(Scenario):
+    """Fig. 4: the closed loop's block diagram, drawn from code (nothing to compute)."""
+
+    def uses(self):
+        return {"controllers": [], "disturbances": [], "occlusions": []}
+
+    def compute(self, ctx: Context) -> Results:
+        return Results({}, {}, {})
+
+
+# --------------------------------------------------------------------------------- sample-and-hold
+@dataclass(kw_only=True)
+class SampleAndHold(Scenario):
+    """What the camera's sample-and-hold costs: the hybrid controller's arcs under the sampled model (a frame
+    every `camera.period`), the continuous-time model, and the sampled model with dt = period = `limit_dt`
+    (the dt -> 0 limit), on the true state without disturbance."""
+
+    initial_conditions: Points = field(default_factory=lambda: [[-12.0, 2.0], [-45.0, 0.3], [-37.0, -17.0],
+                                                                [-30.0, 20.0], [10.0, 25.0]])
+    limit_dt: float = 0.0005
+
+    def validate(self) -> None:
+        super().validate()
+        if not self.limit_dt > 0:
+            raise ConfigError("experiment.limit_dt", f"must be > 0, got {self.limit_dt}")
+
+    def compute(self, ctx: Context) -> Results:
+        from pipeline.sim import simulate
+
+        x0 = np.asarray(self.initial_conditions, float)
+        runs = {"sampled": ctx.simulate(ctx.controller("hybrid"), x0, model="sampled", record_every=1),
+                "continuous": ctx.simulate(ctx.controller("hybrid"), x0, model="continuous", record_every=1),
+                "limit": simulate(ctx.scene, ctx.controller("hybrid"), x0, dt=self.limit_dt, horizon=ctx.horizon,
+                                  delta=ctx.delta, camera_period=self.limit_dt, record=False)}
+        df = pd.DataFrame({"x0": x0[:, 0], "y0": x0[:, 1]})
+        for name, res in runs.items():
+            df[f"t_{name}"] = res.metrics["time_to_target"]
+            df[f"jumps_{name}"] = res.metrics["jumps"]
+            df[f"path_{name}"] = res.metrics["path_length"]
+        for name in ("sampled", "continuous"):
+            df[f"err_{name}_%"] = 100 * (df[f"t_{name}"] - df["t_limit"]) / df["t_limit"]
+        arrays = {"sampled_p": runs["sampled"].p[:, 0], "continuous_p": runs["continuous"].p[:, 0]}
+        return Results({"sample_and_hold": df}, arrays, {"period": ctx.frame_period})
