@@ -189,3 +189,26 @@ def test_margin_map_cell_against_a_direct_simulation(tmp_path):
                            disturbance=ctx.disturbance("adversarial", eps=eps), record=False, model=scen.time_model)
         rate = practical_success(sim, ctx.delta, eps).mean()
         assert (rate >= 0.99) == robust, (eps, rate)
+
+
+def test_camera_in_the_loop_is_the_same_on_every_device(tiny_maps):
+    """The closed loop with the CNN on each device present (CPU here; CUDA too on a GPU machine) gives the CPU
+    run's perceived positions and trajectory up to float tolerance."""
+    import torch
+
+    from pipeline.control import HybridController, Scene
+    from pipeline.experiments.measure import CameraMeasure
+    from pipeline.sim import simulate
+    from pipeline.train import load_perception_map
+
+    root, ids = tiny_maps
+    scene = Scene(target=(40.0, 0.0))
+    x0 = np.array([[-30.0, 10.0], [-20.0, -15.0], [10.0, 20.0]])
+    runs = {}
+    for device in ["cpu", "auto"] + (["cuda"] if torch.cuda.is_available() else []):
+        pm = load_perception_map(ids["clean"], models_dir=root / "models", device=device)
+        runs[device] = simulate(scene, HybridController(scene), x0, dt=0.01, horizon=1.0, camera_period=0.05,
+                                measure=CameraMeasure(pm.camera(), pm), record_every=5, stop_on_success=False)
+    for device, res in runs.items():
+        np.testing.assert_allclose(res.m, runs["cpu"].m, atol=1e-3, err_msg=device)
+        np.testing.assert_allclose(res.p, runs["cpu"].p, atol=1e-3, err_msg=device)

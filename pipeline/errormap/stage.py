@@ -106,12 +106,12 @@ def validate(cfg) -> dict:
 
 
 # --------------------------------------------------------------------------------------- injection
-def _load_map(ref, models_dir):
+def _load_map(ref, models_dir, device="auto"):
     try:
         from pipeline.train import load_perception_map
     except ImportError as err:  # the train stage is not installed in this tree
         raise DatasetError(f"cannot load perception map {ref!r}: pipeline.train is unavailable ({err})") from None
-    return load_perception_map(ref, models_dir=models_dir)
+    return load_perception_map(ref, models_dir=models_dir, device=device)
 
 
 def _occlusions(cfg, levels) -> dict:
@@ -198,7 +198,7 @@ def run(cfg: DictConfig, *, perception_map=None, camera=None, occlusions: Mappin
         validate(cfg)
         if not models:
             raise ConfigError("maps", "needs at least one perception map")
-        loaded = [_load_map(ref, cfg.paths.models_dir) for ref in models]
+        loaded = [_load_map(ref, cfg.paths.models_dir, cfg.get("device", "auto")) for ref in models]
         results = [run_one(OmegaConf.merge(cfg, {"maps": ref}), perception_map=pm)
                    for ref, pm in zip(models, loaded)]
         table = summary_table([r["summary"] for r in results])
@@ -218,7 +218,8 @@ def run_one(cfg: DictConfig, *, perception_map=None, camera=None, occlusions: Ma
     """
     settings = validate(cfg)
     levels = settings["occlusion_levels"]
-    pmap = perception_map if perception_map is not None else _load_map(cfg.maps, cfg.paths.models_dir)
+    pmap = perception_map if perception_map is not None else _load_map(cfg.maps, cfg.paths.models_dir,
+                                                                        cfg.get("device", "auto"))
     camera = camera if camera is not None else pmap.camera()
     occ = dict(occlusions) if occlusions is not None else _occlusions(cfg, levels)
     shared_clouds = settings.get("clouds", "independent") == "shared"

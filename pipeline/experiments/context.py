@@ -81,6 +81,9 @@ class Context:
         check_timing(self.dt, self.horizon, timing.period)
         self.frame_period = timing.period
         self.seed = sim.seed
+        from pipeline.train.predict import resolve_device
+
+        resolve_device(cfg.get("device", "auto"))  # `device=cuda` without a GPU: one line, before any work
         self.used: dict[str, str] = {}  # inputs used (map/dataset/error-map ids), for the index
 
     # sizes -------------------------------------------------------------------------------------
@@ -132,7 +135,7 @@ class Context:
         ref = tracking.to_plain(self.cfg.maps).get(kind)
         if ref is None:
             raise ConfigError(f"maps.{kind}", "no perception map configured")
-        pm = load_perception_map(ref, models_dir=self.cfg.paths.models_dir)
+        pm = load_perception_map(ref, models_dir=self.cfg.paths.models_dir, device=self.cfg.get("device", "auto"))
         self.used[f"map:{kind}"] = f"{pm.name}-{pm.id} (dataset {pm.manifest.get('dataset_name')}-{pm.manifest.get('dataset_id')})"
         return pm
 
