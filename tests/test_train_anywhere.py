@@ -261,3 +261,11 @@ def test_optuna_search_tiny_budget(tiny, tmp_path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     best = (tmp_path / "sweep" / "optimization_results.yaml").read_text()
     assert "best_value" in best and "best_params" in best
+
+
+def test_default_training_does_not_depend_on_the_clock():
+    """Bug: a default wall-clock cap (max_time 12 min) ended the occluded map after 4 of 10 epochs on a busy
+    machine: same config, same id, other weights. No trainer option of a default `make paper` caps time."""
+    for option in ("default", "cpu", "paper"):
+        cfg = compose("train", [f"trainer={option}", "paths.output_dir=/nonexistent"])
+        assert cfg.trainer.get("max_time") is None, option
