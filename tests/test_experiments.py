@@ -39,6 +39,15 @@ def test_every_bundle_runs_in_one_multirun(tmp_path):
         assert f.with_suffix(".png").stat().st_size > 1000
     for tex in (tmp_path / "paper").glob("tab*.tex"):
         assert tex.read_text().startswith("\\begin{table}")
+    # the paper's numbering (issue 12): fig1..fig7 are the paper's figures, in its order, then ours
+    paper_figs = ["fig1_perception_closeness", "fig2_sensitive_set", "fig3_coverings", "fig4_scheme",
+                  "fig5_leader_follower_level_sets", "fig6_occlusion", "fig7_robustness_noise_failure"]
+    stems = {f.stem for f in figures}
+    assert set(paper_figs) <= stems, sorted(stems)
+    assert all(int(s.split("_")[0][3:]) >= 8 for s in stems - set(paper_figs)), sorted(stems)
+    positions = [index.index(f"{stem}.png") for stem in paper_figs]
+    assert positions == sorted(positions)  # index.md lists them in the paper's order
+    assert "paper Fig. 4" in index and (tmp_path / "paper" / "anim6_occlusion.gif").stat().st_size > 10_000
 
 
 def test_noise_failure_perfect_map_succeeds(tmp_path):

@@ -225,10 +225,10 @@ def test_builders_strip_name_and_reject_typos(scene):
     assert isinstance(build_disturbance({"_target_": "pipeline.sim.NoDisturbance", "name": "none"}), NoDisturbance)
     with pytest.raises(ConfigError) as info:
         build_controller({"_target_": "pipeline.control.HybridController", "name": "hybrid", "lamda": 0.05}, scene)
-    assert info.value.field == "controller"
+    assert info.value.field == "controller.lamda"
     with pytest.raises(ConfigError) as info:
         build_disturbance({"_target_": "pipeline.sim.Gaussian", "name": "gaussian", "sigmaa": 0.1})
-    assert info.value.field == "disturbance"
+    assert info.value.field == "disturbance.sigmaa"
 
 
 class _Constant(Controller):

@@ -36,7 +36,7 @@ def test_model_identity_placement_vs_weights():
     changed = set()
     for o in (["trainer.precision=bf16-mixed"], ["trainer.max_epochs=3"], ["datamodule.batch_size=64"],
               ["model.schedule=cosine"], ["seed=1"], ["callbacks.early_stopping.patience=2"],
-              ["~callbacks.early_stopping"], ["+trainer.accumulate_grad_batches=2"], ["trainer.max_time=null"]):
+              ["~callbacks.early_stopping"], ["+trainer.accumulate_grad_batches=2"], ["trainer.max_time=00:00:30:00"]):
         name, id_ = model_identity(_cfg(*o), "clean", "abc")
         assert name == "clean" and id_ != base[1], o
         changed.add(id_)
