@@ -20,13 +20,8 @@ from pipeline.sim.build import (
     build_disturbance,
     build_scene,
     initial_conditions,
+    sim_model_kwargs,
 )
-
-
-def sim_model_kwargs(sim_cfg) -> dict:
-    """`simulate` keywords of the time model and the outcome classes from the `sim` group (defaults if absent)."""
-    keys = ("model", "method", "rtol", "atol", "h_max", "stall_speed", "stall_time")
-    return {k: sim_cfg[k] for k in keys if k in sim_cfg}
 
 
 def build(cfg: DictConfig):

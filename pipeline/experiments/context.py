@@ -20,7 +20,14 @@ from pipeline.errors import ConfigError
 from pipeline.experiments.measure import CameraMeasure, FollowerTarget, LeaderTrack, OracleMap
 from pipeline.schema import CameraTiming, SimSettings, load
 from pipeline.sim import simulate
-from pipeline.sim.build import arena_bounds, build_controller, build_disturbance, build_scene
+from pipeline.sim.build import (
+    arena_bounds,
+    build_controller,
+    build_disturbance,
+    build_scene,
+    sim_model_kwargs,
+)
+from pipeline.sim.metrics import wilson  # noqa: F401 - re-exported for the scenarios
 from pipeline.sim.simulator import check_timing, true_state
 
 PERCEPTIONS = ("cnn", "oracle")
@@ -186,14 +193,15 @@ class Context:
                  record_every: int | None = None, horizon: float | None = None, model: str | None = None):
         """One batched run; `model` (sampled | continuous) overrides `sim.model` (the camera is sampled-only)."""
         sim = self.cfg.sim
-        kw = {k: sim[k] for k in ("method", "rtol", "atol", "h_max", "stall_speed", "stall_time") if k in sim}
+        kw = sim_model_kwargs(sim)
+        kw["model"] = model or kw.get("model", "sampled")
         return simulate(
             scene or self.scene, controller, np.asarray(x0, float), dt=self.dt, horizon=horizon or self.horizon,
             delta=self.delta, camera_period=self.frame_period, p_fail=p_fail, disturbance=disturbance,
             measure=measure, target_fn=target_fn, seed=self.seed if seed is None else seed,
             record_every=record_every or int(self.cfg.sim.record_every), record=record,
             stop_on_success=bool(self.cfg.sim.stop_on_success),
-            progress=len(x0) >= 2000 and sys.stderr.isatty(), model=model or sim.get("model", "sampled"), **kw,
+            progress=len(x0) >= 2000 and sys.stderr.isatty(), **kw,
         )
 
     def camera_measure(self, kind: str = "clean", level: str | None = None):
@@ -222,16 +230,6 @@ class Context:
 
 
 # -------------------------------------------------------------------------------------- statistics
-def wilson(successes: np.ndarray | int, n: np.ndarray | int, z: float = 1.96):
-    """95% Wilson score interval of a binomial proportion (works for 0 and n successes)."""
-    s, n = np.asarray(successes, float), np.asarray(n, float)
-    p = np.where(n > 0, s / np.maximum(n, 1), np.nan)
-    denom = 1 + z**2 / n
-    centre = (p + z**2 / (2 * n)) / denom
-    half = z * np.sqrt(p * (1 - p) / n + z**2 / (4 * n**2)) / denom
-    return centre - half, centre + half
-
-
 def mean_ci(x: np.ndarray, z: float = 1.96):
     x = np.asarray(x, float)
     x = x[np.isfinite(x)]

@@ -71,6 +71,12 @@ def build_disturbance(cfg, path: str = "disturbance", **params) -> Disturbance:
     return build(_as_cfg(cfg), path, **params)
 
 
+def sim_model_kwargs(sim_cfg) -> dict:
+    """`simulate` keywords of the time model and the outcome classes from the `sim` group (defaults if absent)."""
+    keys = ("model", "method", "rtol", "atol", "h_max", "stall_speed", "stall_time")
+    return {k: sim_cfg[k] for k in keys if k in sim_cfg}
+
+
 def arena_bounds(scene_cfg) -> tuple[tuple[float, float], tuple[float, float]]:
     arena = _as_cfg(scene_cfg).get("arena") or {"x": [-50.0, 50.0], "y": [-30.0, 30.0]}
     try:
