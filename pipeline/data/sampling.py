@@ -282,7 +282,8 @@ def _pool(recipe: Recipe, camera: Camera) -> np.ndarray:
     """The visitation pool, simulated once per (recipe, camera) in a process (the three splits share it)."""
     import json
 
-    key = (json.dumps(recipe.closed_loop, sort_keys=True, default=str), id(camera))
+    sc = camera.scene
+    key = (json.dumps(recipe.closed_loop, sort_keys=True, default=str), repr(camera.arena), repr(sc))
     if key not in _POOLS:
         _POOLS.clear()
         _POOLS[key] = visitation_pool(recipe, camera)
