@@ -10,6 +10,8 @@ import numpy as np
 from pipeline.errors import ConfigError
 
 BARRIER_KINDS = ("squared", "authors_code")
+OBSTACLE_KEYS = ("center", "radius")
+BARRIER_KEYS = ("rho", "scale", "kind", "gain")
 
 
 def _pair(value, name: str) -> np.ndarray:
@@ -117,10 +119,15 @@ class Scene:
 
     @classmethod
     def from_config(cls, cfg) -> Scene:
-        """Build from the `scene` config group (conf/scene/*.yaml)."""
+        """Build from the `scene` config group (conf/scene/*.yaml) or a manifest's copy of it; unknown keys of
+        `obstacle` and `barrier` are errors naming them."""
         get = (lambda k, d=None: cfg.get(k, d)) if hasattr(cfg, "get") else (lambda k, d=None: getattr(cfg, k, d))
-        obstacle = get("obstacle") or {}
-        barrier = get("barrier") or {}
+        obstacle = dict(get("obstacle") or {})
+        barrier = dict(get("barrier") or {})
+        for part, node, known in (("obstacle", obstacle, OBSTACLE_KEYS), ("barrier", barrier, BARRIER_KEYS)):
+            unknown = sorted(set(node) - set(known))
+            if unknown:
+                raise ConfigError(f"scene.{part}.{unknown[0]}", f"unknown key (known: {', '.join(known)})")
         return cls(
             target=tuple(get("target")),
             obstacle_center=tuple(obstacle.get("center", (0.0, 0.0))),

@@ -16,26 +16,12 @@ from pipeline.errors import ConfigError
 from pipeline.schema import load_init
 from pipeline.sim.disturbances import Disturbance
 
-OBSTACLE_KEYS = ("center", "radius")
-BARRIER_KEYS = ("rho", "scale", "kind", "gain")
-
-
-def _keys(node, allowed, field: str) -> dict:
-    node = dict(node or {})
-    unknown = sorted(set(node) - set(allowed))
-    if unknown:
-        raise ConfigError(f"{field}.{unknown[0]}", f"unknown key (known: {', '.join(allowed)})")
-    return node
-
 
 def scene(*, target, obstacle, name: str = "custom", apex=None, barrier=None, arena=None) -> Scene:
-    """`_target_` of conf/scene/*.yaml: a validated Scene whose target and obstacle lie inside the arena."""
-    ob = _keys(obstacle, OBSTACLE_KEYS, "scene.obstacle")
-    br = _keys(barrier, BARRIER_KEYS, "scene.barrier")
-    sc = Scene(target=tuple(target), obstacle_center=tuple(ob.get("center", (0.0, 0.0))),
-               obstacle_radius=ob.get("radius", 4.0), barrier_rho=br.get("rho", 0.5),
-               barrier_scale=br.get("scale"), apex=apex, barrier_kind=br.get("kind", "squared"),
-               barrier_gain=br.get("gain", 1.0), name=str(name))
+    """`_target_` of conf/scene/*.yaml: `Scene.from_config` (the one parser of a scene node) plus the check
+    that the target and the obstacle lie inside the arena."""
+    sc = Scene.from_config({"target": target, "obstacle": obstacle, "name": str(name), "apex": apex,
+                            "barrier": barrier})
     if arena is not None:
         (x0, x1), (y0, y1) = arena_bounds({"arena": arena})
         for field, (x, y) in (("scene.target", sc.p_T), ("scene.obstacle.center", sc.p_0)):
