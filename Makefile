@@ -47,6 +47,9 @@ experiments: $(STAMP) ## every paper scenario (figures and tables under outputs/
 test: $(STAMP) ## fast test suite (< 10 min on 2 cores)
 	$(PY) -m pytest -q $(ARGS)
 
+test-explore: $(STAMP) ## property tests with fresh random examples each run (finds new counter-examples)
+	HYPOTHESIS_PROFILE=explore $(PY) -m pytest -q -m '' -k 'not slow' $(ARGS) $$(grep -l hypothesis tests/*.py)
+
 test-all: $(STAMP) ## every test, slow ones included
 	$(PY) -m pytest -q -m '' $(ARGS)
 

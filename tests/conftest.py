@@ -6,6 +6,14 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 os.environ.setdefault("HYDRA_FULL_ERROR", "0")
 
 import pytest  # noqa: E402
+from hypothesis import settings  # noqa: E402
+
+# `make test` (and CI) draws the same property-test examples every run, so a result does not depend on the
+# day; `make test-explore` (HYPOTHESIS_PROFILE=explore) draws fresh ones each run (500 where a test sets no count) to look for new failures.
+# A failure found there goes into the test as an `@example`.
+settings.register_profile("ci", derandomize=True, print_blob=True)
+settings.register_profile("explore", max_examples=500, print_blob=True)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 
 
 @pytest.fixture(autouse=True)

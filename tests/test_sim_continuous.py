@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from pipeline.control import CBFController, HybridController, Scene, SmoothController
@@ -94,13 +94,15 @@ def test_rosenbrock_and_dopri5_agree(scene, continuous):
 
 @settings(max_examples=20, deadline=None)
 @given(angle=st.floats(-1.0, 1.0), d0=st.floats(6.0, 40.0))
+@example(angle=0.0, d0=6.515625)  # CI, 2026-11: a step across the saturation kink fitted a smooth curve (5 ms late)
 def test_arrival_time_is_exact_in_the_far_field(scene, angle, d0):
     """Away from the obstacle the flow is `sat(-2 (p - p_T))`: straight at u_max = 10 to |p - p_T| = 5, then
     exponential: arrival at delta = 1 at `(d0 - 5) / 10 + ln(5) / 2`. The located arrival converges to it
-    with the tolerances (the default's error, ~1e-3 s, is the integration's, not the event location's)."""
+    with the tolerances (the default's error, ~4e-4 s, is the integration's, not the event location's; a step
+    across the saturation kink is kept short, see `crosses_kink`)."""
     x0 = scene.p_T + d0 * np.array([[math.cos(angle), math.sin(angle)]])
     expected = (d0 - 5.0) / 10.0 + math.log(5.0) / 2.0
-    for method, tol, abs_err in (("rosenbrock23", 1e-9, 1e-5), ("dopri5", 1e-9, 1e-5), ("rosenbrock23", None, 5e-3)):
+    for method, tol, abs_err in (("rosenbrock23", 1e-9, 1e-5), ("dopri5", 1e-9, 1e-5), ("rosenbrock23", None, 1e-3)):
         kw = {} if tol is None else {"rtol": tol, "atol": tol}
         res = simulate(scene, HybridController(scene), x0, dt=0.01, horizon=10.0, model="continuous", record=False,
                        method=method, **kw)
