@@ -34,6 +34,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from pipeline import tracking
 from pipeline.errors import ConfigError, ModelError, PipelineError
+from pipeline.train.metrics import HIDDEN_ALPHA, NEAR_TARGET_RADIUS, error_metrics, perception_metrics  # noqa: F401
 
 log = logging.getLogger(__name__)
 
@@ -219,36 +220,29 @@ def dataset_camera(ds):
 
 
 # ------------------------------------------------------------------------------------- evaluation
-def error_metrics(pred: np.ndarray, true: np.ndarray, px_per_unit: float) -> dict:
-    err = (np.asarray(pred, np.float64) - np.asarray(true, np.float64)) * px_per_unit
-    dist = np.hypot(err[:, 0], err[:, 1])
-    return {
-        "mae_px": float(np.abs(err).mean()),  # per coordinate, as Keras' MAE (the authors' metric)
-        "rmse_px": float(np.sqrt((err**2).mean())),
-        "mean_dist_px": float(dist.mean()),
-        "p95_dist_px": float(np.percentile(dist, 95)),
-        "max_dist_px": float(dist.max()),
-        "n": len(err),
-    }
-
-
-def evaluate(predictor, ds, levels, seed: int, occlusions=None) -> tuple[dict, np.ndarray]:
-    """Test metrics on the dataset's own test split and on its test positions re-rendered per level;
-    also returns the predictions on the test split."""
+def evaluate(predictor, ds, levels, seed: int, occlusions=None, near_radius: float = NEAR_TARGET_RADIUS,
+             hidden_alpha: float = HIDDEN_ALPHA) -> tuple[dict, np.ndarray]:
+    """Test metrics on the dataset's own test split and on its test positions re-rendered per level (each with
+    the near-target and visible/hidden splits of `perception_metrics`); also returns the test predictions."""
+    from pipeline.control import Scene
     from pipeline.render import load_occlusion
 
     out = {}
     images, pos = ds.images("test"), ds.positions("test")
-    test_pred = predictor.predict(images)
-    out["test_split"] = error_metrics(test_pred, pos, predictor.px_per_unit)
+    target = Scene.from_config(ds.manifest["scene"]).p_T
+    split = dict(target=target, near_radius=near_radius, hidden_alpha=hidden_alpha)
     labels = ds.labels[ds.labels["split"] == "test"]
+    alpha = labels["leader_alpha"].to_numpy(np.float64) if "leader_alpha" in labels else None
+    test_pred = predictor.predict(images)
+    out["test_split"] = perception_metrics(test_pred, pos, predictor.px_per_unit, leader_alpha=alpha, **split)
     follower = labels[["follower_x", "follower_y"]].to_numpy(np.float64) if "follower_x" in labels else None
     cam = dataset_camera(ds)
     for level in levels:
         occ = load_occlusion(level, occlusions, field="eval_levels")
         rng = np.random.default_rng(seed)
-        imgs = cam.render(pos, follower, occlusion=occ, rng=rng)
-        out[level] = error_metrics(predictor.predict(imgs), pos, predictor.px_per_unit)
+        res = cam.render(pos, follower, occlusion=occ, rng=rng, return_info=True)
+        out[level] = perception_metrics(predictor.predict(res.images), pos, predictor.px_per_unit,
+                                        leader_alpha=res.leader_alpha, **split)
     return out, test_pred
 
 
