@@ -34,7 +34,12 @@ from omegaconf import DictConfig, OmegaConf
 
 from pipeline import tracking
 from pipeline.errors import ConfigError, ModelError, PipelineError
-from pipeline.train.metrics import HIDDEN_ALPHA, NEAR_TARGET_RADIUS, error_metrics, perception_metrics  # noqa: F401
+from pipeline.train.metrics import (  # noqa: F401
+    HIDDEN_ALPHA,
+    NEAR_TARGET_RADIUS,
+    error_metrics,
+    perception_metrics,
+)
 
 log = logging.getLogger(__name__)
 
