@@ -88,14 +88,17 @@ def need(cond: bool, field: str, reason: str) -> None:
 # ------------------------------------------------------------------------------------------ nodes
 @dataclasses.dataclass(frozen=True)
 class CameraTiming:
-    """`camera`: a frame every `period` seconds (null: every step), lost with probability `p_fail`."""
+    """`camera`: a frame every `period` seconds (null: every step), lost with probability `p_fail`; with `gate`,
+    a frame whose predicted error (a map with an uncertainty head) exceeds `gate` world units is lost too."""
 
     period: float | None = 0.05
     p_fail: float = 0.0
+    gate: float | None = None
 
     def __post_init__(self):
         need(self.period is None or self.period > 0, "period", f"must be > 0 (or null), got {self.period!r}")
         need(0.0 <= self.p_fail < 1.0, "p_fail", f"must be in [0, 1), got {self.p_fail!r}")
+        need(self.gate is None or self.gate > 0, "gate", f"must be > 0 (world units) or null, got {self.gate!r}")
 
 
 def _pair_range(value, field: str) -> None:

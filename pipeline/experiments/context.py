@@ -87,6 +87,7 @@ class Context:
         self.dt, self.horizon, self.delta = float(sim.dt), float(sim.horizon), float(sim.delta)
         check_timing(self.dt, self.horizon, timing.period)
         self.frame_period = timing.period
+        self.gate = timing.gate  # camera.gate: doubtful frames of a map with an uncertainty head are failures
         self.seed = sim.seed
         from pipeline.train.predict import resolve_device
 
@@ -208,7 +209,7 @@ class Context:
         pm = self.perception_map(kind)
         if isinstance(pm, OracleMap):
             return true_state
-        return CameraMeasure(self.camera(), pm, self.occlusion(level))
+        return CameraMeasure(self.camera(), pm, self.occlusion(level), gate=self.gate)
 
     def leader_follower(self, leader_x0, follower_x0, *, kind: str = "clean", level: str | None = None,
                         sigma: float = 0.0, p_fail: float = 0.0, seed: int | None = None,
@@ -223,7 +224,7 @@ class Context:
         track = LeaderTrack(lead.t, lead.p)
         pm = self.perception_map(kind)
         target = FollowerTarget(track, None if isinstance(pm, OracleMap) else self.camera(), pm,
-                                self.occlusion(level))
+                                self.occlusion(level), gate=self.gate)
         foll = self.simulate(self.controller(follower_controller), follower_x0, disturbance=noise,
                              target_fn=target, p_fail=p_fail, seed=seed + 1, record_every=every)
         return lead, foll, track

@@ -2,7 +2,9 @@
 
 Each camera frame renders `h(p)` for **all** agents that get a frame at once (with the scenario's clouds)
 and runs the perception map on the batch. Camera failures (the simulator's `p_fail`) hold the last
-estimate. The leader-follower hook renders the leader and the follower in one image and returns the
+estimate. With a `gate` (`camera.gate`), a map with an uncertainty head turns its doubtful frames into
+failures: rows whose predicted error exceeds the gate come back as NaN, and the simulator holds the last
+estimate for them (never on the first frame: a vehicle starts with an estimate). The leader-follower hook renders the leader and the follower in one image and returns the
 map's estimate of the leader, the follower's moving target.
 """
 
@@ -27,23 +29,52 @@ class OracleMap:
         raise RuntimeError("OracleMap does not read images")
 
 
+def check_gate(perception_map, gate) -> None:
+    """`camera.gate` needs a map that predicts its own error: one line naming the field otherwise."""
+    if gate is not None and not isinstance(perception_map, OracleMap) and \
+            not getattr(perception_map, "has_uncertainty", False):
+        from pipeline.errors import ConfigError
+
+        raise ConfigError("camera.gate", f"perception map {perception_map.name}-{perception_map.id} has no "
+                                         "uncertainty head (train it with model.uncertainty=gaussian, or gate=null)")
+
+
+def gated_predict(perception_map, images, gate: float | None, frame: int) -> tuple[np.ndarray, int]:
+    """Estimates, with NaN rows where the predicted error exceeds `gate` (not on frame 0); and their count."""
+    if gate is None:
+        return perception_map.predict(images), 0
+    est, err = perception_map.predicted_error(images)
+    if frame == 0:
+        return est, 0
+    doubt = err > gate
+    est[doubt] = np.nan
+    return est, int(doubt.sum())
+
+
 @dataclass
 class CameraMeasure:
-    """`measure(p (n, 2), idx, frame, rng) -> l(h(p))`: render every agent's frame, infer in one batch."""
+    """`measure(p (n, 2), idx, frame, rng) -> l(h(p))`: render every agent's frame, infer in one batch;
+    `gate`: rows whose predicted error exceeds it are NaN (held by the simulator), counted in `gated`."""
 
     camera: object
     perception_map: object
     occlusion: object | None = None
+    gate: float | None = None
     frames: int = 0
     images: int = 0
+    gated: int = 0
+
+    def __post_init__(self):
+        check_gate(self.perception_map, self.gate)
 
     def __call__(self, p: np.ndarray, idx: np.ndarray, frame: int, rng: np.random.Generator) -> np.ndarray:
         if isinstance(self.perception_map, OracleMap):
             return np.array(p, dtype=float)
         imgs = self.camera.render(p, None, occlusion=self.occlusion, rng=rng)
-        est = self.perception_map.predict(imgs)
+        est, n_gated = gated_predict(self.perception_map, imgs, self.gate, frame)
         self.frames += 1
         self.images += len(p)
+        self.gated += n_gated
         return est
 
 
@@ -71,10 +102,19 @@ class FollowerTarget:
     camera: object
     perception_map: object
     occlusion: object | None = None
+    gate: float | None = None
+    images: int = 0
+    gated: int = 0
+
+    def __post_init__(self):
+        check_gate(self.perception_map, self.gate)
 
     def __call__(self, t: float, frame: int, p: np.ndarray, idx: np.ndarray, rng: np.random.Generator):
         lead = self.leader.position(t, idx)
         if isinstance(self.perception_map, OracleMap):
             return np.array(lead, dtype=float)
         imgs = self.camera.render(lead, p, occlusion=self.occlusion, rng=rng)
-        return self.perception_map.predict(imgs)
+        est, n_gated = gated_predict(self.perception_map, imgs, self.gate, frame)
+        self.images += len(p)
+        self.gated += n_gated
+        return est

@@ -5,7 +5,8 @@ arcs, `pipeline.sim.continuous`). Both read the controller's hybrid data through
 (`flow_map`, `jump_map`, `flow_set`, `jump_set`) and return the same `SimResult`.
 
 Sampled model: each camera frame (every `camera_period`, a multiple of `dt`) a vehicle gets a new measurement with
-probability `1 - p_fail` (else the controller holds the last estimate); the controller is evaluated on
+probability `1 - p_fail` (else the controller holds the last estimate; a measurement hook may also return NaN
+rows, frames it rejects itself, e.g. gated by the map's predicted error, which are held alike); the controller is evaluated on
 the perceived positions and its velocity is held until the next frame (zero-order hold). The state is
 integrated with explicit Euler steps of `dt`. Each agent's hybrid arc `(t, j, p, q, m, u)` is recorded
 every `record_every` steps, and each agent ends with a termination cause in the spirit of the Hybrid
@@ -83,6 +84,16 @@ def check_timing(dt: float, horizon: float, camera_period: float | None) -> int:
     if every < 1 or abs(every * dt - camera_period) > 1e-9 * max(1.0, camera_period):
         raise ConfigError("camera.period", f"must be a positive multiple of sim.dt = {dt}, got {camera_period!r}")
     return every
+
+
+def _hold(new: np.ndarray, last: np.ndarray) -> np.ndarray:
+    """A measurement hook's NaN rows are failed frames (e.g. gated by the map's own predicted error): the
+    controller holds the last estimate for those agents, as for `p_fail`."""
+    bad = np.isnan(new).any(axis=1)
+    if bad.any():
+        new = np.array(new, dtype=float)
+        new[bad] = last[bad]
+    return new
 
 
 def simulate(
@@ -222,16 +233,17 @@ def simulate(
             if frame > 0:
                 fresh = active & (rng.random(n) >= p_fail) if p_fail > 0 else active
                 if fresh.all():
-                    m = perceive(p, all_idx, frame)
+                    m = _hold(perceive(p, all_idx, frame), m)
                     if target_fn is not None:
-                        target = np.asarray(target_fn(step * dt, frame, p, all_idx, rng), dtype=float)
+                        target = _hold(np.asarray(target_fn(step * dt, frame, p, all_idx, rng), dtype=float), target)
                 elif fresh.any():
                     idx = np.flatnonzero(fresh)
                     m = m.copy()
-                    m[idx] = perceive(p[idx], idx, frame)
+                    m[idx] = _hold(perceive(p[idx], idx, frame), m[idx])
                     if target_fn is not None:
                         target = target.copy()
-                        target[idx] = target_fn(step * dt, frame, p[idx], idx, rng)
+                        target[idx] = _hold(np.asarray(target_fn(step * dt, frame, p[idx], idx, rng), dtype=float),
+                                            target[idx])
             u = controller(m, target)
             if not active.all():
                 u[~active] = 0.0

@@ -17,13 +17,24 @@ from torch import nn
 
 from pipeline.errors import ConfigError, ModelError
 
+UNCERTAINTY = ("none", "gaussian")
+CHI2_2_95 = 5.991464547107979  # 95% quantile of chi^2 with 2 degrees of freedom: the 95% ellipse of a 2-D Gaussian
+_LOGVAR_RANGE = (-16.0, 4.0)  # normalised coordinates: sigma from ~3e-4 to ~7 half-arenas
+
+
+def gaussian_nll(logvar: torch.Tensor, sq_residual: torch.Tensor) -> torch.Tensor:
+    """Mean Gaussian negative log-likelihood (constant dropped) of residuals with per-coordinate log variance:
+    `0.5 (s + r^2 e^-s)`. For fixed residuals it is minimised at `s = log r^2`, i.e. the head learns the mean
+    squared error of the frames that look alike."""
+    return 0.5 * (logvar + sq_residual * torch.exp(-logvar)).mean()
+
 
 def _is_num(v) -> bool:
     return isinstance(v, int | float) and not isinstance(v, bool)
 
 
 def _validate(*, image_shape, arena, filters, batch_norm, hidden, dropout, lr, weight_decay, schedule, loss,
-              coord_channels, clamp, name) -> None:
+              coord_channels, clamp, name, uncertainty, nll_weight) -> None:
     """Every constructor argument checked before anything is built: one `ConfigError` naming the field."""
     def bad(field: str, reason: str, value) -> ConfigError:
         return ConfigError(f"model.{field}", f"{reason}, got {value!r}")
@@ -56,6 +67,10 @@ def _validate(*, image_shape, arena, filters, batch_norm, hidden, dropout, lr, w
         raise bad("schedule", "must be constant, cosine or onecycle", schedule)
     if loss not in ("mse", "l1", "smooth_l1"):
         raise bad("loss", "must be mse, l1 or smooth_l1", loss)
+    if uncertainty not in UNCERTAINTY:
+        raise bad("uncertainty", f"must be one of {', '.join(UNCERTAINTY)}", uncertainty)
+    if not _is_num(nll_weight) or not nll_weight > 0:
+        raise bad("nll_weight", "must be a positive number", nll_weight)
     if not isinstance(name, str) or not name or "/" in name or "\\" in name or name.startswith("."):
         raise bad("name", "must be a non-empty name without '/', '\\' or a leading '.'", name)
 
@@ -89,11 +104,14 @@ class PerceptionMap(L.LightningModule):
         coord_channels: bool = False,
         clamp: bool = True,
         name: str = "perception_map",
+        uncertainty: str = "none",
+        nll_weight: float = 1.0,
     ):
         super().__init__()
         _validate(image_shape=image_shape, arena=arena, filters=filters, batch_norm=batch_norm, hidden=hidden,
                   dropout=dropout, lr=lr, weight_decay=weight_decay, schedule=schedule, loss=loss,
-                  coord_channels=coord_channels, clamp=clamp, name=name)
+                  coord_channels=coord_channels, clamp=clamp, name=name, uncertainty=uncertainty,
+                  nll_weight=nll_weight)
         self.save_hyperparameters()
         h, w, _ = (int(s) for s in image_shape)
         self.image_shape = (h, w, 3)
@@ -116,11 +134,16 @@ class PerceptionMap(L.LightningModule):
         if fh < 1 or fw < 1:
             raise ConfigError("model.filters", f"{len(filters)} pooling blocks shrink a {h}x{w} image to nothing")
         flat = int(filters[-1]) * fh * fw
+        # `uncertainty: gaussian`: two more outputs, the log variance of each normalised coordinate
+        self.uncertainty = uncertainty
+        n_out = 4 if uncertainty == "gaussian" else 2
         head: list[nn.Module] = [nn.Flatten(), nn.Dropout(dropout)]
         if hidden:
-            head += [nn.Linear(flat, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, 2)]
+            head += [nn.Linear(flat, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, n_out)]
         else:
-            head += [nn.Linear(flat, 2)]
+            head += [nn.Linear(flat, n_out)]
+        # calibration of the predicted sigma on the validation split (set after training; 1 = raw NLL sigma)
+        self.register_buffer("sigma_scale", torch.ones(()))
         self.head = nn.Sequential(*head)
         self._loss = {"mse": nn.functional.mse_loss, "l1": nn.functional.l1_loss,
                       "smooth_l1": nn.functional.smooth_l1_loss}[loss]
@@ -143,22 +166,35 @@ class PerceptionMap(L.LightningModule):
         return x.contiguous(memory_format=torch.channels_last)
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
-        z = self.head(self.features(self.prepare(images)))
-        if self.clamp and not self.training:
-            z = z.clamp(-1.0, 1.0)  # a position estimate never leaves the arena the camera sees
-        return z * self.half_range + self.center
+        """World coordinates `(N, 2)`; with `uncertainty: gaussian`, `(N, 4)`: the position and the calibrated
+        standard deviation of each coordinate (world units)."""
+        return _to_world(self.head(self.features(self.prepare(images))), self.center, self.half_range,
+                         self.sigma_scale, self.clamp and not self.training)
 
     def normalised(self, images: torch.Tensor) -> torch.Tensor:
+        """Raw head outputs: normalised position (and log variances with `uncertainty: gaussian`)."""
         return self.head(self.features(self.prepare(images)))
 
     # -------------------------------------------------------------------------------- training
     def _step(self, batch, stage: str):
         images, pos = batch
         target = (pos - self.center) / self.half_range
-        pred_n = self.normalised(images)
+        out = self.normalised(images)
+        pred_n = out[:, :2]
         loss = self._loss(pred_n, target)
         err_px = (pred_n.detach() - target) * self.half_range * self.px_per_unit
         sync = stage != "train"  # epoch metrics over every rank's share of the split (a no-op on one device)
+        if self.uncertainty == "gaussian":
+            # the variance head learns the squared error of the (detached) position: the position is trained by
+            # `loss` alone, so its accuracy does not trade against the likelihood
+            logvar = out[:, 2:].clamp(*_LOGVAR_RANGE)
+            sq = (pred_n.detach() - target) ** 2
+            nll = gaussian_nll(logvar, sq)
+            loss = loss + self.hparams.nll_weight * nll
+            maha2 = (sq * torch.exp(-logvar)).sum(1)
+            self.log(f"{stage}_nll", nll, on_epoch=True, on_step=False, batch_size=len(pos), sync_dist=sync)
+            self.log(f"{stage}_coverage95", (maha2 <= CHI2_2_95).float().mean(), on_epoch=True, on_step=False,
+                     batch_size=len(pos), sync_dist=sync)
         self.log(f"{stage}_loss", loss, prog_bar=stage != "train", on_epoch=True, on_step=stage == "train",
                  batch_size=len(pos), sync_dist=sync)
         self.log(f"{stage}_mae", err_px.abs().mean(), prog_bar=True, on_epoch=True, on_step=False,
@@ -199,6 +235,16 @@ class PerceptionMap(L.LightningModule):
         return flops
 
 
+def _to_world(z: torch.Tensor, center, half_range, sigma_scale, clamp: bool) -> torch.Tensor:
+    """Head outputs -> world units: `(N, 2)` positions, or `(N, 4)` positions and per-coordinate sigmas."""
+    pos = z[:, :2].clamp(-1.0, 1.0) if clamp else z[:, :2]  # an estimate never leaves the arena the camera sees
+    pos = pos * half_range + center
+    if z.shape[1] == 2:
+        return pos
+    sigma = torch.exp(0.5 * z[:, 2:].clamp(*_LOGVAR_RANGE)) * half_range * sigma_scale
+    return torch.cat([pos, sigma], 1)
+
+
 # -------------------------------------------------------------------------------------- inference
 class FoldedPerceptionNet(nn.Module):
     """The eval-mode `PerceptionMap` rewritten for fast inference (same outputs up to float rounding).
@@ -233,6 +279,7 @@ class FoldedPerceptionNet(nn.Module):
         self.head = nn.Sequential(*[m for m in model.head if not isinstance(m, nn.Flatten | nn.Dropout)])
         self.register_buffer("center", model.center.detach().clone())
         self.register_buffer("half_range", model.half_range.detach().clone())
+        self.register_buffer("sigma_scale", model.sigma_scale.detach().clone())
         self.clamp = model.clamp
         self.image_shape = model.image_shape
         self.to(memory_format=torch.channels_last).requires_grad_(False).eval()
@@ -243,10 +290,7 @@ class FoldedPerceptionNet(nn.Module):
         x = nn.functional.max_pool2d(nn.functional.relu_(x), 2)
         for conv in self.convs:
             x = nn.functional.max_pool2d(nn.functional.relu_(conv(x)), 2)
-        z = self.head(x.flatten(1))
-        if self.clamp:
-            z = z.clamp(-1.0, 1.0)
-        return z * self.half_range + self.center
+        return _to_world(self.head(x.flatten(1)), self.center, self.half_range, self.sigma_scale, self.clamp)
 
 
 def _folded_convs(features: nn.Sequential) -> list[tuple[torch.Tensor, torch.Tensor]]:

@@ -74,11 +74,19 @@ class PerceptionMapPredictor:
         self.name = self.manifest.get("name", model.hparams.get("name"))
         self.image_shape = model.image_shape
         self.px_per_unit = model.px_per_unit
-        self.net = (FoldedPerceptionNet(model) if fold else model).to(self.device)
-        self.compiled = False
+        self.has_uncertainty = getattr(model, "uncertainty", "none") != "none"
+        self._n_out = 4 if self.has_uncertainty else 2
+        self._fold = fold
         if compile == "auto":
             compile = _compiler_present()
-        if compile:
+        self._compile_wanted = bool(compile)
+        self.refresh()
+
+    def refresh(self) -> None:
+        """(Re)build the inference network from the model (after its weights or calibration changed)."""
+        self.net = (FoldedPerceptionNet(self.model) if self._fold else self.model).to(self.device)
+        self.compiled = False
+        if self._compile_wanted:
             self._compile()
 
     def _compile(self) -> None:
@@ -106,6 +114,22 @@ class PerceptionMapPredictor:
         return torch.from_numpy(images).to(self.device, non_blocking=True)
 
     def predict(self, images) -> np.ndarray:
+        """Positions `(N, 2)` (world units)."""
+        return self._run(images)[:, :2]
+
+    def predict_with_sigma(self, images) -> tuple[np.ndarray, np.ndarray | None]:
+        """Positions `(N, 2)` and the map's own calibrated standard deviation per coordinate `(N, 2)` (world
+        units), or `None` for a map trained without `model.uncertainty`."""
+        out = self._run(images)
+        return out[:, :2], (out[:, 2:] if self.has_uncertainty else None)
+
+    def predicted_error(self, images) -> tuple[np.ndarray, np.ndarray | None]:
+        """Positions and the predicted Euclidean error `sqrt(sx^2 + sy^2)` (world units; RMS under the model),
+        or `None` without an uncertainty head."""
+        pos, sigma = self.predict_with_sigma(images)
+        return pos, (None if sigma is None else np.hypot(sigma[:, 0], sigma[:, 1]))
+
+    def _run(self, images) -> np.ndarray:
         if isinstance(images, torch.Tensor):
             shape = tuple(images.shape)
         else:
@@ -116,7 +140,7 @@ class PerceptionMapPredictor:
         if len(shape) != 4 or tuple(shape[1:]) != self.image_shape:
             raise ModelError(f"perception map {self.name}: image shape {tuple(shape[1:])} does not "
                              f"match the model's {self.image_shape}")
-        out = torch.empty((shape[0], 2), dtype=torch.float64)
+        out = torch.empty((shape[0], self._n_out), dtype=torch.float64)
         with torch.inference_mode():
             for s in range(0, shape[0], self.batch_size):
                 batch = self.to_device(images[s : s + self.batch_size])  # one host->device copy per batch
@@ -154,5 +178,7 @@ def load_perception_map(ref, models_dir=None, *, verify: bool = False, device="a
     manifest = tracking.read_manifest(folder)
     blob = torch.load(folder / "model.pt", map_location="cpu", weights_only=True)
     model = PerceptionMap(**blob["hparams"])
-    model.load_state_dict(blob["state_dict"])
+    state = blob["state_dict"]
+    state.setdefault("sigma_scale", torch.ones(()))  # maps saved before the uncertainty option
+    model.load_state_dict(state)
     return PerceptionMapPredictor(model, manifest=manifest, path=folder, device=dev, compile=compile)

@@ -40,6 +40,7 @@ from pipeline.train.metrics import (  # noqa: F401
     error_metrics,
     perception_metrics,
 )
+from pipeline.train.uncertainty import calibrate, flag_metrics
 
 log = logging.getLogger(__name__)
 
@@ -52,6 +53,7 @@ PLACEMENT_KEYS = ("_target_", "accelerator", "strategy", "devices", "num_nodes",
 # DataModule arguments that change speed only.
 DATAMODULE_SPEED_KEYS = ("_target_", "eval_batch_size", "num_workers", "pin_memory")
 # Callbacks that change the saved weights, and which of their arguments do.
+UNCERTAINTY_EVAL = {"error_px": 3.0, "gate_px": 3.0}  # flag rates: real error above error_px, flag above gate_px
 _WEIGHT_CALLBACKS = {"ModelCheckpoint": ("monitor", "mode"), "EarlyStopping": None}  # None = all arguments
 _GPU_ACCELERATORS = ("gpu", "cuda")
 
@@ -136,6 +138,13 @@ def check_config(cfg) -> None:
         if lv not in known_levels:
             raise ConfigError("eval_levels", f"unknown occlusion level {lv!r}; known: {', '.join(known_levels)}")
     resolve_device(cfg.get("device", "auto"))
+    ue = _plain(cfg.get("uncertainty_eval"))
+    if ue is not None:
+        if not isinstance(ue, dict) or set(ue) != set(UNCERTAINTY_EVAL):
+            raise ConfigError("uncertainty_eval", f"must have exactly the keys {', '.join(UNCERTAINTY_EVAL)}, got {ue!r}")
+        for k, v in ue.items():
+            if isinstance(v, bool) or not isinstance(v, int | float) or not v > 0:
+                raise ConfigError(f"uncertainty_eval.{k}", f"must be a number > 0 (px), got {v!r}")
     # model and datamodule: unknown keys, then a dry build with their own value checks
     check_keywords(cfg.model, "model")
     check_keywords(cfg.datamodule, "datamodule")
@@ -215,6 +224,7 @@ def model_identity(cfg, dataset_name: str, dataset_id: str) -> tuple[str, str]:
         {k: v for k, v in model_cfg.items() if k not in ("name", "image_shape")},
         trainer, datamodule, _weight_callbacks(_plain(cfg.get("callbacks"))),
         dataset_id, int(cfg.seed), list(_plain(cfg.get("eval_levels")) or []), tracking.code_version("train"),
+        *([_plain(cfg.uncertainty_eval)] if cfg.get("uncertainty_eval") is not None else []),
     )
     return name, id_
 
@@ -226,9 +236,11 @@ def dataset_camera(ds):
 
 # ------------------------------------------------------------------------------------- evaluation
 def evaluate(predictor, ds, levels, seed: int, occlusions=None, near_radius: float = NEAR_TARGET_RADIUS,
-             hidden_alpha: float = HIDDEN_ALPHA) -> tuple[dict, np.ndarray]:
+             hidden_alpha: float = HIDDEN_ALPHA, uncertainty: dict | None = None) -> tuple[dict, np.ndarray]:
     """Test metrics on the dataset's own test split and on its test positions re-rendered per level (each with
-    the near-target and visible/hidden splits of `perception_metrics`); also returns the test predictions."""
+    the near-target and visible/hidden splits of `perception_metrics`, and for a map with an uncertainty head
+    the coverage and flag rates of `flag_metrics` with `uncertainty = {error_px, gate_px}`); also returns the
+    test predictions."""
     from pipeline.control import Scene
     from pipeline.render import load_occlusion
 
@@ -238,16 +250,23 @@ def evaluate(predictor, ds, levels, seed: int, occlusions=None, near_radius: flo
     split = dict(target=target, near_radius=near_radius, hidden_alpha=hidden_alpha)
     labels = ds.labels[ds.labels["split"] == "test"]
     alpha = labels["leader_alpha"].to_numpy(np.float64) if "leader_alpha" in labels else None
-    test_pred = predictor.predict(images)
-    out["test_split"] = perception_metrics(test_pred, pos, predictor.px_per_unit, leader_alpha=alpha, **split)
+    flags = uncertainty or {}
+
+    def metrics(imgs, leader_alpha):
+        pred, sigma = predictor.predict_with_sigma(imgs)
+        m = perception_metrics(pred, pos, predictor.px_per_unit, leader_alpha=leader_alpha, **split)
+        if sigma is not None:
+            m["uncertainty"] = flag_metrics(pred, sigma, pos, predictor.px_per_unit, **flags)
+        return m, pred
+
+    out["test_split"], test_pred = metrics(images, alpha)
     follower = labels[["follower_x", "follower_y"]].to_numpy(np.float64) if "follower_x" in labels else None
     cam = dataset_camera(ds)
     for level in levels:
         occ = load_occlusion(level, occlusions, field="eval_levels")
         rng = np.random.default_rng(seed)
         res = cam.render(pos, follower, occlusion=occ, rng=rng, return_info=True)
-        out[level] = perception_metrics(predictor.predict(res.images), pos, predictor.px_per_unit,
-                                        leader_alpha=res.leader_alpha, **split)
+        out[level] = metrics(res.images, res.leader_alpha)[0]
     return out, test_pred
 
 
@@ -433,7 +452,11 @@ def run(cfg) -> dict:
     predictor = PerceptionMapPredictor(model, manifest={"dataset_id": ds.id, "scene": ds.manifest["scene"],
                                                         "render": ds.manifest["render"]},
                                        device=resolve_device(cfg.get("device", "auto")))
-    test_metrics, test_pred = evaluate(predictor, ds, levels, int(cfg.get("eval_seed", 123)), cfg.occlusions)
+    calibration = None
+    if predictor.has_uncertainty:  # fit the sigma scale on the validation split, before the test split is seen
+        calibration = calibrate(model, predictor, ds.images("val"), ds.positions("val"))
+    test_metrics, test_pred = evaluate(predictor, ds, levels, int(cfg.get("eval_seed", 123)), cfg.occlusions,
+                                       uncertainty=_plain(cfg.get("uncertainty_eval")) or UNCERTAINTY_EVAL)
     best = ckpt_cb.best_model_score
     batch = int(cfg.datamodule.batch_size)
     metrics = {"dataset": f"{ds.name}-{ds.id}", "epochs": int(trainer.current_epoch),
@@ -441,7 +464,7 @@ def run(cfg) -> dict:
                "train_images_per_s": round(trainer.global_step * batch / max(fit_s, 1e-9), 1),
                "val_mae_px": float(best) if best is not None else None,
                "device": str(trainer.strategy.root_device), "world_size": int(trainer.world_size),
-               **test_metrics}
+               **({"calibration": calibration} if calibration else {}), **test_metrics}
     meta = {"kind": "perception_map", "dataset_id": ds.id, "dataset_name": ds.name, "seed": seed,
             "model": hparams, "trainer": tracking.to_plain(cfg.trainer),
             "datamodule": tracking.to_plain(cfg.datamodule), "eval_levels": levels,
@@ -460,7 +483,7 @@ def run(cfg) -> dict:
         _scatter(test_pred, ds.positions("test"), out / "scatter.png",
                  f"{name}-{id_} on {ds.name}-{ds.id} test: MAE {metrics['test_split']['mae_px']:.3f} px")
     shutil.rmtree(work, ignore_errors=True)
-    line = ", ".join(f"{k} {v['mae_px']:.3f}" for k, v in metrics.items() if isinstance(v, dict))
+    line = ", ".join(f"{k} {v['mae_px']:.3f}" for k, v in metrics.items() if isinstance(v, dict) and "mae_px" in v)
     print(f"[train] {name}-{id_}: test MAE px ({line}); {metrics['epochs']} epochs in {fit_s:.0f} s "
           f"-> {final} ({time.perf_counter() - t_start:.0f} s total)")
     return {"id": id_, "name": name, "path": str(final), "skipped": False, "metrics": metrics,

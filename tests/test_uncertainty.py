@@ -1,0 +1,125 @@
+"""Maps that know when they can't see (issue 11 §2): the Gaussian head, its calibration and the failure gating."""
+
+from __future__ import annotations
+
+import lightning as L
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from pipeline.control import HybridController, Scene
+from pipeline.errors import ConfigError
+from pipeline.experiments.measure import CameraMeasure
+from pipeline.sim import simulate
+from pipeline.train.model import PerceptionMap, gaussian_nll
+from pipeline.train.predict import PerceptionMapPredictor
+from pipeline.train.uncertainty import calibrate, coverage95, flag_metrics
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**31), n=st.integers(1, 64), scale=st.floats(1e-3, 1e2))
+def test_nll_is_minimised_at_the_log_mean_squared_error(seed, n, scale):
+    r2 = torch.tensor(np.random.default_rng(seed).exponential(scale, n), dtype=torch.float64) + 1e-9
+    best = torch.log(r2.mean())
+    s = best.clone().requires_grad_(True)
+    loss = gaussian_nll(s.expand(n), r2)
+    loss.backward()
+    assert abs(float(s.grad)) < 1e-9
+    for d in (-0.3, 0.3):
+        assert gaussian_nll((best + d).expand(n), r2) > loss
+
+
+def _synthetic(n: int, seed: int, sigmas=(0.3, 2.0)):
+    """Two kinds of 16x16 images, dark and bright, both labelled (3, -2) plus Gaussian noise of a known
+    standard deviation per kind (world units): the best answer is the label's mean and the kind's sigma."""
+    rng = np.random.default_rng(seed)
+    bright = rng.random(n) < 0.5
+    images = np.where(bright[:, None, None, None], 200, 30).astype(np.uint8) * np.ones((n, 16, 16, 3), np.uint8)
+    images = (images.astype(np.int16) + rng.integers(-10, 10, images.shape)).clip(0, 255).astype(np.uint8)
+    sigma = np.where(bright, sigmas[1], sigmas[0])
+    pos = np.array([3.0, -2.0]) + rng.normal(size=(n, 2)) * sigma[:, None]
+    return images, pos, bright
+
+
+def test_gaussian_head_learns_the_known_noise_and_calibrates():
+    torch.manual_seed(0)
+    L.seed_everything(0, verbose=False)
+    images, pos, _ = _synthetic(4096, 0)
+    model = PerceptionMap(image_shape=[16, 16, 3], arena=[[-10, 10], [-10, 10]], filters=[4], batch_norm=False,
+                          dropout=0.0, lr=3e-3, uncertainty="gaussian", coord_channels=False)
+    dl = torch.utils.data.DataLoader(torch.utils.data.TensorDataset(torch.from_numpy(images),
+                                                                    torch.from_numpy(pos).float()),
+                                     batch_size=256, shuffle=True)
+    L.Trainer(max_epochs=25, accelerator="cpu", logger=False, enable_checkpointing=False,
+              enable_progress_bar=False, enable_model_summary=False).fit(model, dl)
+    model.eval()
+    pm = PerceptionMapPredictor(model)
+    val_i, val_p, _ = _synthetic(2000, 1)
+    cal = calibrate(model, pm, val_i, val_p)
+    test_i, test_p, bright = _synthetic(4000, 2)
+    pred, sigma = pm.predict_with_sigma(test_i)
+    # the position is the labels' mean, the sigma each kind's noise (within 20%)
+    np.testing.assert_allclose(pred.mean(0), [3.0, -2.0], atol=0.25)  # a short fit: within the smaller sigma
+    assert np.median(sigma[~bright]) == pytest.approx(0.3, rel=0.2)
+    assert np.median(sigma[bright]) == pytest.approx(2.0, rel=0.2)
+    assert cal["val_coverage95"] == pytest.approx(0.95, abs=0.01)
+    assert coverage95(pred, sigma, test_p) == pytest.approx(0.95, abs=0.02)  # held out: calibration generalises
+    # the folded inference network and the training module agree on the sigma, calibration included
+    with torch.no_grad():
+        ref = model(torch.from_numpy(test_i[:64])).double().numpy()
+    np.testing.assert_allclose(sigma[:64], ref[:, 2:], rtol=1e-4)
+    # flags: a 1-unit gate separates the two kinds exactly
+    f = flag_metrics(pred, sigma, test_p, 1.0, error_px=3.0, gate_px=1.0)
+    assert f["flagged"] == pytest.approx(bright.mean(), abs=0.01)
+
+
+class _Identity:
+    """A 'camera' whose image of p is p itself (the map below reads positions)."""
+
+    def render(self, leader, follower=None, occlusion=None, rng=None):
+        return np.asarray(leader, float).copy()
+
+
+class _DoubtfulMap:
+    """Right of x = 0 it answers 20 units off and says so (predicted error 50); left, exact (error 0.1)."""
+
+    name, id, has_uncertainty = "doubtful", "0", True
+
+    def predicted_error(self, images):
+        right = images[:, 0] > 0
+        return images + np.where(right[:, None], [0.0, 20.0], 0.0), np.where(right, 50.0, 0.1)
+
+    def predict(self, images):
+        return self.predicted_error(images)[0]
+
+
+def test_gated_frames_are_failures_the_last_estimate_is_held():
+    scene = Scene(target=(40.0, 0.0), obstacle_center=(0.0, 0.0), obstacle_radius=4.0)
+    x0 = np.array([[-30.0, 15.0], [-20.0, -18.0], [30.0, 10.0]])
+    runs = {}
+    for gate in (None, 5.0):
+        meas = CameraMeasure(_Identity(), _DoubtfulMap(), gate=gate)
+        runs[gate] = (simulate(scene, HybridController(scene), x0, dt=0.01, horizon=6.0, camera_period=0.05,
+                               measure=meas, record_every=5, stop_on_success=False), meas)
+    ungated, _ = runs[None]
+    gated, meas = runs[5.0]
+    off = np.abs(ungated.m[..., 1] - ungated.p[..., 1]) > 10  # the wrong answers reach the controller ungated
+    assert off[1:, :2].any()
+    assert meas.gated > 0
+    # gated: agents 0 and 1 never use an estimate from the right half: their estimate stays where they crossed
+    m = gated.m[1:, :2]
+    assert (m[..., 0] <= 0.5).all()
+    # agent 2 starts on the right: frame 0 is never gated (a vehicle starts with an estimate) ...
+    np.testing.assert_allclose(gated.m[0, 2], x0[2] + [0.0, 20.0])
+    # ... and afterwards it is held: the controller never sees a newer one
+    np.testing.assert_allclose(gated.m[1:, 2], np.broadcast_to(x0[2] + [0.0, 20.0], gated.m[1:, 2].shape))
+
+
+def test_gate_needs_an_uncertainty_head():
+    class NoHead:
+        name, id, has_uncertainty = "plain", "1", False
+
+    with pytest.raises(ConfigError, match="camera.gate"):
+        CameraMeasure(_Identity(), NoHead(), gate=3.0)
