@@ -19,7 +19,8 @@ from pipeline.errors import ConfigError, ModelError
 
 UNCERTAINTY = ("none", "gaussian")
 CHI2_2_95 = 5.991464547107979  # 95% quantile of chi^2 with 2 degrees of freedom: the 95% ellipse of a 2-D Gaussian
-_LOGVAR_RANGE = (-16.0, 4.0)  # normalised coordinates: sigma from ~3e-4 to ~7 half-arenas
+_LOGVAR_RANGE = (-14.0, 2.0)  # normalised coordinates: sigma from ~1e-3 (0.05 px) to ~3 half-arenas
+VAR_HIDDEN = 64  # units of the variance head's hidden layer
 
 
 def gaussian_nll(logvar: torch.Tensor, sq_residual: torch.Tensor) -> torch.Tensor:
@@ -134,14 +135,20 @@ class PerceptionMap(L.LightningModule):
         if fh < 1 or fw < 1:
             raise ConfigError("model.filters", f"{len(filters)} pooling blocks shrink a {h}x{w} image to nothing")
         flat = int(filters[-1]) * fh * fw
-        # `uncertainty: gaussian`: two more outputs, the log variance of each normalised coordinate
         self.uncertainty = uncertainty
-        n_out = 4 if uncertainty == "gaussian" else 2
         head: list[nn.Module] = [nn.Flatten(), nn.Dropout(dropout)]
         if hidden:
-            head += [nn.Linear(flat, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, n_out)]
+            head += [nn.Linear(flat, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, 2)]
         else:
-            head += [nn.Linear(flat, n_out)]
+            head += [nn.Linear(flat, 2)]
+        # `uncertainty: gaussian`: a second head on the DETACHED features predicts the log variance of each
+        # normalised coordinate; it learns from the position's error and never changes the position estimate
+        # (initialised on a forked random stream: dropout masks and everything after are those of a map without it)
+        self.var_head = None
+        if uncertainty == "gaussian":
+            with torch.random.fork_rng(devices=[]):
+                self.var_head = nn.Sequential(nn.Flatten(), nn.Linear(flat, VAR_HIDDEN), nn.ReLU(inplace=True),
+                                              nn.Linear(VAR_HIDDEN, 2))
         # calibration of the predicted sigma on the validation split (set after training; 1 = raw NLL sigma)
         self.register_buffer("sigma_scale", torch.ones(()))
         self.head = nn.Sequential(*head)
@@ -168,12 +175,14 @@ class PerceptionMap(L.LightningModule):
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         """World coordinates `(N, 2)`; with `uncertainty: gaussian`, `(N, 4)`: the position and the calibrated
         standard deviation of each coordinate (world units)."""
-        return _to_world(self.head(self.features(self.prepare(images))), self.center, self.half_range,
-                         self.sigma_scale, self.clamp and not self.training)
+        return _to_world(self.normalised(images), self.center, self.half_range, self.sigma_scale,
+                         self.clamp and not self.training)
 
     def normalised(self, images: torch.Tensor) -> torch.Tensor:
         """Raw head outputs: normalised position (and log variances with `uncertainty: gaussian`)."""
-        return self.head(self.features(self.prepare(images)))
+        f = self.features(self.prepare(images))
+        z = self.head(f)
+        return z if self.var_head is None else torch.cat([z, self.var_head(f.detach())], 1)
 
     # -------------------------------------------------------------------------------- training
     def _step(self, batch, stage: str):
@@ -185,8 +194,8 @@ class PerceptionMap(L.LightningModule):
         err_px = (pred_n.detach() - target) * self.half_range * self.px_per_unit
         sync = stage != "train"  # epoch metrics over every rank's share of the split (a no-op on one device)
         if self.uncertainty == "gaussian":
-            # the variance head learns the squared error of the (detached) position: the position is trained by
-            # `loss` alone, so its accuracy does not trade against the likelihood
+            # the variance head (on detached features) learns the squared error of the detached position: the
+            # position and the features are trained by `loss` alone, their accuracy does not trade against it
             logvar = out[:, 2:].clamp(*_LOGVAR_RANGE)
             sq = (pred_n.detach() - target) ** 2
             nll = gaussian_nll(logvar, sq)
@@ -229,7 +238,7 @@ class PerceptionMap(L.LightningModule):
                 flops += 2 * h * w * m.in_channels * m.out_channels * 9
             elif isinstance(m, nn.MaxPool2d):
                 h, w = h // 2, w // 2
-        for m in self.head:
+        for m in [*self.head, *(self.var_head or [])]:
             if isinstance(m, nn.Linear):
                 flops += 2 * m.in_features * m.out_features
         return flops
@@ -277,6 +286,8 @@ class FoldedPerceptionNet(nn.Module):
                 conv.bias.copy_(bk)
             self.convs.append(conv)
         self.head = nn.Sequential(*[m for m in model.head if not isinstance(m, nn.Flatten | nn.Dropout)])
+        self.var_head = (None if model.var_head is None else
+                         nn.Sequential(*[m for m in model.var_head if not isinstance(m, nn.Flatten)]))
         self.register_buffer("center", model.center.detach().clone())
         self.register_buffer("half_range", model.half_range.detach().clone())
         self.register_buffer("sigma_scale", model.sigma_scale.detach().clone())
@@ -290,7 +301,9 @@ class FoldedPerceptionNet(nn.Module):
         x = nn.functional.max_pool2d(nn.functional.relu_(x), 2)
         for conv in self.convs:
             x = nn.functional.max_pool2d(nn.functional.relu_(conv(x)), 2)
-        return _to_world(self.head(x.flatten(1)), self.center, self.half_range, self.sigma_scale, self.clamp)
+        f = x.flatten(1)
+        z = self.head(f) if self.var_head is None else torch.cat([self.head(f), self.var_head(f)], 1)
+        return _to_world(z, self.center, self.half_range, self.sigma_scale, self.clamp)
 
 
 def _folded_convs(features: nn.Sequential) -> list[tuple[torch.Tensor, torch.Tensor]]:
