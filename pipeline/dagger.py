@@ -97,7 +97,7 @@ def _renamed(err: ConfigError, where: str) -> ConfigError:
     for key in COLLECT:
         if err.field == f"{CL}.{key}" or err.field.startswith(f"{CL}.{key}."):
             return ConfigError(f"dagger.collect.{err.field[len(CL) + 1:]}", err.reason)
-    return ConfigError(err.field, f"{err.reason} (in {where})")
+    return err if f"(in {where}" in err.reason else ConfigError(err.field, f"{err.reason} (in {where})")
 
 
 def _compose(config: str, overrides: list[str], where: str):
@@ -179,7 +179,8 @@ def _row(k: int, out: dict, levels: list[str]) -> dict:
     ds = tracking.read_manifest(out["dataset"])
     metrics = json.loads((out["map"] / "metrics.json").read_text())
     parents = ds.get("parents") or {}
-    visits = (ds.get("closed_loop_visits") or {}).get("map_error") or {}
+    loop = ds.get("closed_loop_visits") or {}
+    visits = loop.get("map_error") or {}
     row = {"round": k, "dataset": out["dataset"].name, "map": out["map"].name,
            "parent_dataset": parents.get("dataset") or "", "parent_map": parents.get("map") or "",
            "train_images": ds["counts"]["train"], "new_train_images": ds["recipe"]["splits"]["train"],
@@ -190,6 +191,7 @@ def _row(k: int, out: dict, levels: list[str]) -> dict:
         row[f"{lv}_near_p95_px"] = metrics[lv]["near_target"]["p95"]
     row["parent_map_visit_err_mean"] = visits.get("mean", float("nan"))
     row["parent_map_visit_err_p95"] = visits.get("p95", float("nan"))
+    row["parent_map_outside_view"] = loop.get("outside_view_share", float("nan"))
     return row
 
 

@@ -140,7 +140,9 @@ def test_aggregated_dataset_keeps_every_parent_position_and_names_its_parents(ro
     m = child.manifest
     assert m["parents"] == {"dataset": round0["dataset"], "map": round0["map"]}
     assert m["aggregation"] == {"parent_train": n, "new_train": 100}
-    assert m["closed_loop_visits"]["positions"] > 0 and m["closed_loop_visits"]["map_error"]["mean"] > 0
+    visits = m["closed_loop_visits"]
+    assert 0 < visits["positions"] <= visits["frames"] and 0 <= visits["outside_view_share"] < 1
+    assert visits["map_error"]["mean"] > 0
     assert m["recipe"]["sampling"]["closed_loop"]["map"] == round0["map"]
     # the inputs are in the id: by id or name-id the same dataset; another parent or map, another dataset
     assert plan(_child(round0, f"data.sampling.parent={round0['dataset'].rsplit('-', 1)[1]}")).id == out["id"]
@@ -198,7 +200,8 @@ def test_dagger_two_rounds_parent_chain_and_rerun_is_a_no_op(tmp_path):
     assert [m["dataset_name"] + "-" + m["dataset_id"] for m in maps] == list(rounds["dataset"])
     assert list(rounds["train_images"]) == [300, 400] and list(rounds["new_train_images"]) == [300, 100]
     assert rounds["test_mae_px"].notna().all() and rounds["none_near_p95_px"].notna().all()
-    assert rounds["parent_map_visit_err_mean"].isna().tolist() == [True, False]
+    for col in ("parent_map_visit_err_mean", "parent_map_outside_view"):
+        assert rounds[col].isna().tolist() == [True, False]
     lock = yaml.safe_load((reports[0] / "dagger.lock.yaml").read_text())
     assert lock["maps"]["round1"]["folder"] == rounds["map"][1] and "rounds.md" in json.dumps(
         tracking.read_manifest(reports[0])["files"])

@@ -2,8 +2,8 @@
 
 - :func:`visitation_pool`: the positions the configured controller + disturbance visit on the **true state**;
 - :func:`map_visitation_pool`: the same loop with the camera and a **perception map** in it (`CameraMeasure`,
-  the recipe's clouds drawn on every frame): each position where a frame was taken, with the map's error
-  there (the DAgger recipe's collection, docs/dagger.md);
+  the recipe's clouds drawn on every frame): each position in the camera's view where a frame was taken, with
+  the map's error there (the DAgger recipe's collection, docs/dagger.md);
 - :class:`Pool`: the candidates and, for a map's visits, the draw probabilities `max(err - min_error, 0) +
   error_floor` (normalised) when `error_weighted`.
 
@@ -30,6 +30,7 @@ class Pool:
 
     positions: np.ndarray
     errors: np.ndarray | None = None
+    frames: int | None = None  # a map's loop: frames taken, including those outside the camera's view
 
     def __len__(self) -> int:
         return len(self.positions)
@@ -44,6 +45,9 @@ class Pool:
     def summary(self, cl: Mapping) -> dict:
         """What the manifest records about a map's visits: count and error statistics (world units)."""
         out = {"positions": len(self)}
+        if self.frames is not None:
+            out["frames"] = self.frames
+            out["outside_view_share"] = 1.0 - len(self) / max(self.frames, 1)
         if self.errors is not None and len(self):
             e = self.errors
             out["map_error"] = {"mean": float(e.mean()), "p95": float(np.percentile(e, 95)), "max": float(e.max()),
@@ -98,15 +102,17 @@ class _FrameLog:
 def map_visitation_pool(recipe, camera, perception_map, occlusion) -> Pool:
     """The recipe's closed loop with the camera and `perception_map` in it (`CameraMeasure`: every agent's
     frame rendered with `occlusion`'s clouds, one batched inference per frame; the disturbance on top): every
-    position where a frame was taken, with the map's error there. Deterministic in `closed_loop.seed` (and the
-    map's weights)."""
+    position where a frame was taken inside the camera's view (a vehicle the map drove out of the arena is on
+    no image), with the map's error there. Deterministic in `closed_loop.seed` (and the map's weights)."""
     from pipeline.experiments.measure import CameraMeasure
 
     log = _FrameLog(CameraMeasure(camera, perception_map, occlusion))
     _simulate(recipe, camera, measure=log)
     p, err = np.concatenate(log.p), np.concatenate(log.err)
-    keep = np.isfinite(p).all(axis=1) & np.isfinite(err)
-    return Pool(p[keep], err[keep])
+    (x0, x1), (y0, y1) = camera.arena
+    with np.errstate(invalid="ignore"):
+        keep = (p[:, 0] >= x0) & (p[:, 0] <= x1) & (p[:, 1] >= y0) & (p[:, 1] <= y1) & np.isfinite(err)
+    return Pool(p[keep], err[keep], frames=len(p))
 
 
 _POOLS: dict = {}
@@ -124,5 +130,5 @@ def pool(recipe, camera, occlusion=None, perception_map=None) -> Pool:
         _POOLS[key] = (map_visitation_pool(recipe, camera, perception_map, occlusion) if perception_map is not None
                        else Pool(visitation_pool(recipe, camera)))
     if not len(_POOLS[key]):
-        raise ConfigError(_F, "the simulated closed loop visited no finite position")
+        raise ConfigError(_F, "the simulated closed loop has no frame in the camera's view")
     return _POOLS[key]

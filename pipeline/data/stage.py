@@ -256,8 +256,9 @@ def _visits(p: Plan) -> tuple[object, dict]:
     summary = visits.summary(cl)
     err = summary.get("map_error", {})
     print(f"data: {p.parents['map']} in the loop ({cl['starts']} starts, {cl['horizon']:g} s, occlusion "
-          f"{p.occlusion.name}): {summary['positions']} frames, map error mean {err.get('mean', float('nan')):.2f} / "
-          f"p95 {err.get('p95', float('nan')):.2f} units ({time.perf_counter() - t0:.1f} s)")
+          f"{p.occlusion.name}): {summary['frames']} frames, {summary['outside_view_share']:.0%} outside the camera's "
+          f"view; in view, map error mean {err.get('mean', float('nan')):.2f} / p95 {err.get('p95', float('nan')):.2f} "
+          f"units ({time.perf_counter() - t0:.1f} s)")
     return pm, {"closed_loop_visits": summary}
 
 
