@@ -142,7 +142,7 @@ def check(cfg: DictConfig) -> None:
 
 
 # ------------------------------------------------------------------------------------------ rounds
-def _round(d: dict, k: int, prev, paths: list[str], timings: dict, cfg) -> dict:
+def _round(d: dict, k: int, prev, paths: list[str], timings: dict) -> dict:
     """Round `k`: the data job, then the train job (each skipped when its output is built)."""
     from pipeline.data.stage import plan
     from pipeline.train.stage import model_identity
@@ -166,7 +166,7 @@ def _round(d: dict, k: int, prev, paths: list[str], timings: dict, cfg) -> dict:
     tcfg = _compose("train", train_args, "dagger.args.train")
     mname, mid = model_identity(tcfg, p.recipe.name, p.id)
     map_ref = f"{mname}-{mid}"
-    map_path = Path(cfg.paths.models_dir) / map_ref
+    map_path = Path(tcfg.paths.models_dir) / map_ref
     if tracking.is_complete(map_path):
         print(f"[dagger] {label}: map {map_ref} is built (nothing to do)")
     elif not run_stage("train", train_args, timings, True, tag="dagger", label=f"train r{k}") or not tracking.is_complete(map_path):
@@ -228,7 +228,7 @@ def run(cfg) -> dict:
     paths, timings = path_overrides(), {}
     outs, prev = [], None
     for k in range(d["rounds"]):
-        outs.append(_round(d, k, prev, paths, timings, cfg))
+        outs.append(_round(d, k, prev, paths, timings))
         prev = (outs[-1]["dataset"].name, outs[-1]["map"].name)
     folder = _report(cfg, d, outs)
     line = ", ".join(f"{k} {v:.0f} s" for k, v in timings.items()) or "every output was built"
