@@ -26,6 +26,9 @@ run: paper ## the main job: regenerate every figure and table of the paper (alia
 paper: $(STAMP) ## data -> train -> errormap -> experiments; writes outputs/paper/
 	$(PY) -m pipeline.paper $(ARGS)
 
+dagger: $(STAMP) ## DAgger-style rounds: data -> train -> closed loop with the map -> aggregated data -> ... (outputs/dagger/)
+	$(PY) -m pipeline.dagger $(ARGS)
+
 simulate: $(STAMP) ## closed-loop simulation demo on the true state (Hydra: make simulate ARGS="controller=smooth")
 	$(PY) -m pipeline.simulate $(ARGS)
 
@@ -62,4 +65,4 @@ lint: $(STAMP) ## ruff
 clean: ## remove generated data and outputs (keeps .venv)
 	rm -rf data/datasets outputs/* && touch outputs/.gitkeep
 
-.PHONY: help setup run paper simulate data verify-data train errormap experiments test test-all bench lint clean
+.PHONY: help setup run paper dagger simulate data verify-data train errormap experiments test test-all bench lint clean

@@ -111,13 +111,14 @@ def lock_entry(folder: Path) -> dict:
             "git_commit": m.get("git_commit"), "package_version": m.get("package_version")}
 
 
-def write_lock(path: Path, sections: dict[str, dict[str, Path]]) -> Path:
+def write_lock(path: Path, sections: dict[str, dict[str, Path]],
+               generated_by: str = "make paper (pipeline.paper)") -> Path:
     """`paper.lock.yaml`: for every dataset, map, error map and experiment result its id, config hash and
     code version (sections: kind -> {name: folder})."""
     import yaml
 
     lock = {kind: {name: lock_entry(folder) for name, folder in items.items()} for kind, items in sections.items()}
-    lock = {"generated_by": "make paper (pipeline.paper)", "git_commit": tracking.git_commit(), **lock}
+    lock = {"generated_by": generated_by, "git_commit": tracking.git_commit(), **lock}
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp")

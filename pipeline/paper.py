@@ -24,8 +24,8 @@ from pipeline.errors import ConfigError, PipelineError
 STAGE_ARGS = ("data", "train", "errormap", "experiments")
 
 
-def _path_overrides() -> list[str]:
-    """`paths.*` overrides given to the paper job are passed on to every stage."""
+def path_overrides() -> list[str]:
+    """`paths.*` overrides given to the paper (or dagger) job are passed on to every stage."""
     try:
         from hydra.core.hydra_config import HydraConfig
 
@@ -63,17 +63,20 @@ def check(cfg: DictConfig) -> None:
     _args(cfg)
 
 
-def _stage(stage: str, argv: list[str], timings: dict, stop: bool) -> bool:
+def run_stage(stage: str, argv: list[str], timings: dict, stop: bool, *, tag: str = "paper",
+              label: str | None = None) -> bool:
+    """Run `python -m pipeline.<stage> <argv>` as its own Hydra job; its time goes to `timings[label or stage]`.
+    A failure raises (`stop`) or prints one line; `tag` names the orchestrator (`[paper]`, `make paper`)."""
     cmd = [sys.executable, "-m", f"pipeline.{stage}", *argv]
-    print(f"\n[paper] === {stage}: {' '.join(cmd[1:])}", flush=True)
+    print(f"\n[{tag}] === {label or stage}: {' '.join(cmd[1:])}", flush=True)
     ts = time.perf_counter()
     proc = subprocess.run(cmd, cwd=REPO_ROOT, check=False)
-    timings[stage] = time.perf_counter() - ts
+    timings[label or stage] = time.perf_counter() - ts
     if proc.returncode != 0:
-        msg = f"stage {stage} failed (exit {proc.returncode}); fix it and re-run `make paper` (done stages are re-used)"
+        msg = f"stage {stage} failed (exit {proc.returncode}); fix it and re-run `make {tag}` (done stages are re-used)"
         if stop:
             raise PipelineError(msg)
-        print(f"[paper] {msg}", flush=True)
+        print(f"[{tag}] {msg}", flush=True)
         return False
     return True
 
@@ -85,21 +88,21 @@ def run(cfg) -> dict:
 
     check(cfg)
     t0 = time.perf_counter()
-    args, paths = _args(cfg), _path_overrides()
+    args, paths = _args(cfg), path_overrides()
     stop = bool(cfg.get("stop_on_error", True))
     timings: dict[str, float] = {}
     datasets, maps, errormaps, experiments = list(cfg.datasets), list(cfg.maps), list(cfg.errormaps), list(cfg.experiments)
     lock: dict[str, dict[str, Path]] = {"datasets": {}, "maps": {}, "errormaps": {}, "experiments": {}}
     ds_root, models_root = Path(cfg.paths.datasets_dir), Path(cfg.paths.models_dir)
 
-    _stage("data", ["-m", f"data={','.join(datasets)}", *paths, *args["data"]], timings, stop)
+    run_stage("data", ["-m", f"data={','.join(datasets)}", *paths, *args["data"]], timings, stop)
     from pipeline.data.stage import plan
 
     for name in datasets:
         lock["datasets"][name] = ds_root / f"{name}-{plan(compose('data', [f'data={name}', *paths, *args['data']])).id}"
     map_refs = {}
     if maps:
-        _stage("train", ["-m", f"data={','.join(maps)}", *paths, *args["train"]], timings, stop)
+        run_stage("train", ["-m", f"data={','.join(maps)}", *paths, *args["train"]], timings, stop)
         for name in maps:
             tcfg = compose("train", [f"data={name}", *paths, *args["train"]])
             mname, mid = model_identity(tcfg, *train_dataset_id(tcfg))
@@ -107,7 +110,7 @@ def run(cfg) -> dict:
             lock["maps"][name] = models_root / map_refs[name]
     em_refs = {}
     if errormaps:
-        _stage("errormap", [f"maps=[{','.join(map_refs[m] for m in errormaps)}]", *paths, *args["errormap"]],
+        run_stage("errormap", [f"maps=[{','.join(map_refs[m] for m in errormaps)}]", *paths, *args["errormap"]],
                timings, stop)
         from pipeline.train import load_perception_map
 
@@ -120,7 +123,7 @@ def run(cfg) -> dict:
         base = compose("experiments", paths)
         pins = [f"maps.{k}={v}" for k, v in map_refs.items() if k in base.maps]
         pins += [f"errormaps.{k}={v}" for k, v in em_refs.items() if k in base.errormaps]
-        _stage("experiments", ["-m", f"experiment={','.join(experiments)}", *pins, *paths, *args["experiments"]],
+        run_stage("experiments", ["-m", f"experiment={','.join(experiments)}", *pins, *paths, *args["experiments"]],
                timings, stop)
         paper_dir = Path(cfg.paths.paper_dir)
         for exp in experiments:

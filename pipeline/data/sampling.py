@@ -2,26 +2,34 @@
 
 Everything random is drawn here, per split, from `np.random.SeedSequence(seed).spawn(3)` (train, val,
 test) in a fixed order (leader, follower presence, follower, clouds), before any rendering, so the bytes
-depend on the recipe and seed only (not on the chunk size).
+depend on the recipe and seed only (not on the chunk size). With a parent dataset (`sampling.parent`, the
+DAgger aggregation) the new train draws use a stream keyed by the parent too, so they never repeat the
+parent's; val and test are drawn as without parent.
 """
 
 from __future__ import annotations
 
+import hashlib
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.data.closed_loop import Pool, visitation_pool  # noqa: F401 - visitation_pool: part of this API
+from pipeline.data.closed_loop import pool as cached_pool
 from pipeline.errors import ConfigError
 from pipeline.render import Camera, CloudSample, Occlusion
 
 SPLITS = ("train", "val", "test")
-VOLATILE = ("chunk_size",)  # recipe keys that do not change the bytes (left out of the id)
+# recipe keys left out of the id: the chunk size does not change the bytes; `closed_loop.device` is where a map
+# runs in the loop (as the train stage leaves the accelerator out of a model's id; see docs/dagger.md)
+VOLATILE = ("chunk_size", "device")
 RECIPE_KEYS = ("name", "occlusion", "splits", "seed", "sampling", "follower", "preview", "chunk_size")
 SAMPLING_MODES = ("uniform", "grid", "closed_loop")
+SAMPLING_KEYS = ("mode", "margin", "exclude_obstacle", "closed_loop", "parent")
 CLOSED_LOOP_KEYS = ("share", "starts", "controller", "disturbance", "horizon", "dt", "camera_period", "jitter",
-                    "stop_at_target", "seed")
+                    "stop_at_target", "seed", "map", "error_weighted", "min_error", "error_floor", "device")
 _MAX_ROUNDS = 64  # rejection-sampling rounds (each vectorised over the rejected rows)
 
 
@@ -61,6 +69,7 @@ class Recipe:
     preview: int
     chunk_size: int
     closed_loop: dict | None = None
+    parent: str | None = None  # a dataset whose train split this one's train split extends (resolved by the stage)
 
     @classmethod
     def from_config(cls, cfg: Mapping) -> Recipe:
@@ -79,10 +88,9 @@ class Recipe:
             raise ConfigError("data.splits", f"needs exactly the sizes of {list(SPLITS)}, got {splits!r}")
         sizes = {s: _int(splits[s], f"data.splits.{s}", 1) for s in SPLITS}
         sampling = cfg.get("sampling") or {}
-        extra = set(sampling) - {"mode", "margin", "exclude_obstacle", "closed_loop"}
+        extra = set(sampling) - set(SAMPLING_KEYS)
         if extra:
-            raise ConfigError("data.sampling", f"unknown key(s) {sorted(extra)}; known: mode, margin, exclude_obstacle, "
-                                               "closed_loop")
+            raise ConfigError(f"data.sampling.{sorted(extra)[0]}", f"unknown key (known: {', '.join(SAMPLING_KEYS)})")
         mode = sampling.get("mode", "uniform")
         if mode not in SAMPLING_MODES:
             raise ConfigError("data.sampling.mode", f"must be one of {SAMPLING_MODES}, got {mode!r}")
@@ -110,11 +118,22 @@ class Recipe:
             preview=_int(cfg.get("preview", 32), "data.preview", 1, 256),
             chunk_size=_int(cfg.get("chunk_size", 4096), "data.chunk_size", 1),
             closed_loop=closed_loop,
+            parent=_ref(sampling.get("parent"), "data.sampling.parent"),
         )
 
 
+def _ref(value, field: str) -> str | None:
+    """A reference to a tracked output (name, id, name-id or folder), or null."""
+    if value is None:
+        return None
+    if not isinstance(value, str) or not value.strip() or value != value.strip():
+        raise ConfigError(field, f"must name a tracked output (name, id, name-id or folder) or be null, got {value!r}")
+    return value
+
+
 def _closed_loop(cl) -> dict:
-    """Validated `data.sampling.closed_loop`: where the simulated closed loop spends its time."""
+    """Validated `data.sampling.closed_loop`: where the simulated closed loop spends its time, and (`map`) whose
+    perception map is in the loop that collects the train split's positions."""
     if not isinstance(cl, Mapping):
         raise ConfigError("data.sampling.closed_loop", "mode closed_loop needs this node (see conf/data/closed_loop.yaml)")
     cl = dict(cl)
@@ -129,55 +148,42 @@ def _closed_loop(cl) -> dict:
            "camera_period": _num(cl.get("camera_period", 0.05), f"{f}.camera_period", 0.0, allow_none=True, open_lo=True),
            "jitter": _num(cl.get("jitter", 1.0), f"{f}.jitter", 0.0),
            "seed": _int(cl.get("seed", 0), f"{f}.seed", 0),
-           "controller": cl.get("controller"), "disturbance": cl.get("disturbance")}
-    stop = cl.get("stop_at_target", False)
-    if not isinstance(stop, bool):
-        raise ConfigError(f"{f}.stop_at_target", f"must be true or false, got {stop!r}")
-    out["stop_at_target"] = stop
+           "controller": cl.get("controller"), "disturbance": cl.get("disturbance"),
+           "map": _ref(cl.get("map"), f"{f}.map"),
+           "min_error": _num(cl.get("min_error", 0.0), f"{f}.min_error", 0.0),
+           "error_floor": _num(cl.get("error_floor", 0.05), f"{f}.error_floor", 0.0, open_lo=True)}
+    for key in ("stop_at_target", "error_weighted"):
+        value = cl.get(key, False)
+        if not isinstance(value, bool):
+            raise ConfigError(f"{f}.{key}", f"must be true or false, got {value!r}")
+        out[key] = value
+    if out["error_weighted"] and out["map"] is None:
+        raise ConfigError(f"{f}.error_weighted", f"weighs positions by a map's error: needs {f}.map (a perception map)")
+    device = cl.get("device", "cpu")
+    if not isinstance(device, str) or not (device in ("auto", "cpu", "cuda") or device.startswith("cuda:")):
+        raise ConfigError(f"{f}.device", f"must be auto, cpu, cuda or cuda:N, got {device!r}")
+    out["device"] = device
     for key in ("controller", "disturbance"):
         if not isinstance(out[key], Mapping) or "_target_" not in out[key]:
             raise ConfigError(f"{f}.{key}", "needs a composed node with `_target_` (conf/controller/, conf/disturbance/)")
     return out
 
 
-def visitation_pool(recipe: Recipe, camera: Camera) -> np.ndarray:
-    """Positions `(M, 2)` the configured closed loop visits, sampled at every step of every simulated run (so
-    the pool's density is the time the loop spends at a place): random starts over the arena, the recipe's
-    controller and disturbance, on the true state. Deterministic in `closed_loop.seed`."""
-    from pipeline.sim import simulate
-    from pipeline.sim.build import build_controller, build_disturbance, initial_conditions
-
-    cl = recipe.closed_loop
-    scene = camera.scene
-    f = "data.sampling.closed_loop"
-    ctrl = build_controller(cl["controller"], scene, path=f"{f}.controller")
-    dist = build_disturbance(cl["disturbance"], f"{f}.disturbance")
-    (x0, x1), (y0, y1) = camera.arena
-    starts = initial_conditions({"mode": "random", "n": cl["starts"], "seed": cl["seed"], "margin": 2.0}, scene,
-                                {"arena": {"x": [x0, x1], "y": [y0, y1]}})
-    res = simulate(scene, ctrl, starts, dt=cl["dt"], horizon=cl["horizon"], camera_period=cl["camera_period"],
-                   disturbance=dist, seed=cl["seed"], record_every=max(1, round((cl["camera_period"] or cl["dt"]) / cl["dt"])),
-                   stop_on_success=cl["stop_at_target"])
-    p = res.p.reshape(-1, 2)
-    if cl["stop_at_target"]:  # drop the frozen rows after an agent stopped
-        moving = np.ones(res.p.shape[:2], dtype=bool)
-        moving[1:] = np.any(res.p[1:] != res.p[:-1], axis=-1)
-        p = res.p[moving]
-    return p[np.isfinite(p).all(axis=1)]
-
-
-def _closed_loop_positions(rng: np.random.Generator, n: int, camera: Camera, recipe: Recipe, pool: np.ndarray):
-    """`share` of `n` positions from the visitation pool (jittered, inside the box), the rest uniform, shuffled."""
+def _closed_loop_positions(rng: np.random.Generator, n: int, camera: Camera, recipe: Recipe, pool: Pool):
+    """`share` of `n` positions from the pool (jittered, inside the box), the rest uniform, shuffled. Pool
+    entries are drawn uniformly, or by the map's error there (`Pool.probabilities`, `error_weighted`)."""
     lo, hi = _box(camera, recipe)
-    m = int(round(recipe.closed_loop["share"] * n))
+    cl = recipe.closed_loop
+    m = int(round(cl["share"] * n))
     out = np.empty((n, 2))
     out[m:] = _uniform(rng, n - m, camera, recipe)
-    jitter = recipe.closed_loop["jitter"]
+    prob = pool.probabilities(cl)
     bad = np.arange(m)
     for _ in range(_MAX_ROUNDS):
         if bad.size == 0:
             break
-        out[bad] = pool[rng.integers(0, len(pool), bad.size)] + rng.normal(0.0, jitter, (bad.size, 2))
+        idx = rng.integers(0, len(pool), bad.size) if prob is None else rng.choice(len(pool), bad.size, p=prob)
+        out[bad] = pool.positions[idx] + rng.normal(0.0, cl["jitter"], (bad.size, 2))
         inside = np.all((out[bad] >= lo) & (out[bad] <= hi), axis=1) & _allowed(out[bad], camera, recipe)
         bad = bad[~inside]
     out[bad] = np.clip(out[bad], lo, hi)
@@ -275,28 +281,37 @@ def _followers(rng: np.random.Generator, leader: np.ndarray, camera: Camera, rec
     return out
 
 
-_POOLS: dict = {}
+def split_pool(recipe: Recipe, split: str, camera: Camera, occlusion: Occlusion, perception_map=None) -> Pool | None:
+    """The pool a split draws its closed-loop share from (None outside closed-loop mode): the train split of a
+    recipe with `closed_loop.map` draws from that map's visits (`perception_map`, loaded by the stage); every
+    other split from the true-state visitation, so val and test do not depend on the map."""
+    if recipe.mode != "closed_loop":
+        return None
+    if split == "train" and recipe.closed_loop["map"] is not None:
+        if perception_map is None:
+            raise ValueError(f"recipe {recipe.name}: closed_loop.map {recipe.closed_loop['map']} is not loaded "
+                             "(pass perception_map)")
+        return cached_pool(recipe, camera, occlusion, perception_map)
+    return cached_pool(recipe, camera)
 
 
-def _pool(recipe: Recipe, camera: Camera) -> np.ndarray:
-    """The visitation pool, simulated once per (recipe, camera) in a process (the three splits share it)."""
-    import json
-
-    sc = camera.scene
-    key = (json.dumps(recipe.closed_loop, sort_keys=True, default=str), repr(camera.arena), repr(sc))
-    if key not in _POOLS:
-        _POOLS.clear()
-        _POOLS[key] = visitation_pool(recipe, camera)
-    return _POOLS[key]
+def split_seed(recipe: Recipe, split: str) -> np.random.SeedSequence:
+    """The split's random stream: `SeedSequence(seed).spawn(3)[split]`; a train split that extends a parent
+    dataset draws from `SeedSequence([seed, hash(parent)])` instead (never the parent's own draws)."""
+    if split == "train" and recipe.parent is not None:
+        key = int(hashlib.sha256(recipe.parent.encode()).hexdigest()[:16], 16)
+        return np.random.SeedSequence([recipe.seed, key])
+    return np.random.SeedSequence(recipe.seed).spawn(len(SPLITS))[SPLITS.index(split)]
 
 
-def plan_split(recipe: Recipe, split: str, camera: Camera, occlusion: Occlusion) -> SplitPlan:
-    """The positions and cloud choices of one split (deterministic in recipe + seed)."""
+def plan_split(recipe: Recipe, split: str, camera: Camera, occlusion: Occlusion, perception_map=None) -> SplitPlan:
+    """The positions and cloud choices of one split's new draws (deterministic in recipe + seed, and the map's
+    weights when the recipe has `closed_loop.map`; a parent's train positions are copied by the stage)."""
     n = recipe.splits[split]
-    seq = np.random.SeedSequence(recipe.seed).spawn(len(SPLITS))[SPLITS.index(split)]
-    rng = np.random.default_rng(seq)
-    if recipe.mode == "closed_loop":
-        leader = _closed_loop_positions(rng, n, camera, recipe, _pool(recipe, camera))
+    rng = np.random.default_rng(split_seed(recipe, split))
+    pool = split_pool(recipe, split, camera, occlusion, perception_map)
+    if pool is not None:
+        leader = _closed_loop_positions(rng, n, camera, recipe, pool)
     else:
         leader = (_uniform if recipe.mode == "uniform" else _grid)(rng, n, camera, recipe)
     present = rng.random(n) < recipe.follower_probability

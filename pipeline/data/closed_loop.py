@@ -1,0 +1,134 @@
+"""Closed-loop-aware sampling (`data.sampling.mode: closed_loop`): where a simulated closed loop spends its time.
+
+- :func:`visitation_pool`: the positions the configured controller + disturbance visit on the **true state**;
+- :func:`map_visitation_pool`: the same loop with the camera and a **perception map** in it (`CameraMeasure`,
+  the recipe's clouds drawn on every frame): each position in the camera's view where a frame was taken, with
+  the map's error there (the DAgger recipe's collection, docs/dagger.md);
+- :class:`Pool`: the candidates and, for a map's visits, the draw probabilities `max(err - min_error, 0) +
+  error_floor` (normalised) when `error_weighted`.
+
+The recipe's keys are validated in :mod:`pipeline.data.sampling`, which draws the positions.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.errors import ConfigError
+
+_F = "data.sampling.closed_loop"
+
+
+@dataclass(frozen=True)
+class Pool:
+    """Candidate positions `(M, 2)` of a simulated closed loop; `errors` `(M,)`: the perception map's error
+    (world units, Euclidean) on the frame taken at each position (None: the true-state loop)."""
+
+    positions: np.ndarray
+    errors: np.ndarray | None = None
+    frames: int | None = None  # a map's loop: frames taken, including those outside the camera's view
+
+    def __len__(self) -> int:
+        return len(self.positions)
+
+    def probabilities(self, cl: Mapping) -> np.ndarray | None:
+        """Draw probabilities: None (uniform over the entries) unless `error_weighted`."""
+        if self.errors is None or not cl["error_weighted"]:
+            return None
+        w = np.maximum(self.errors - cl["min_error"], 0.0) + cl["error_floor"]
+        return w / w.sum()
+
+    def summary(self, cl: Mapping) -> dict:
+        """What the manifest records about a map's visits: count and error statistics (world units)."""
+        out = {"positions": len(self)}
+        if self.frames is not None:
+            out["frames"] = self.frames
+            out["outside_view_share"] = 1.0 - len(self) / max(self.frames, 1)
+        if self.errors is not None and len(self):
+            e = self.errors
+            out["map_error"] = {"mean": float(e.mean()), "p95": float(np.percentile(e, 95)), "max": float(e.max()),
+                                "share_above_min_error": float((e > cl["min_error"]).mean())}
+        return out
+
+
+def _simulate(recipe, camera, measure=None):
+    """The recipe's closed loop from `starts` random starts (controller, disturbance, timing, seed)."""
+    from pipeline.sim import simulate
+    from pipeline.sim.build import build_controller, build_disturbance, initial_conditions
+
+    cl = recipe.closed_loop
+    scene = camera.scene
+    ctrl = build_controller(cl["controller"], scene, path=f"{_F}.controller")
+    dist = build_disturbance(cl["disturbance"], f"{_F}.disturbance")
+    (x0, x1), (y0, y1) = camera.arena
+    starts = initial_conditions({"mode": "random", "n": cl["starts"], "seed": cl["seed"], "margin": 2.0}, scene,
+                                {"arena": {"x": [x0, x1], "y": [y0, y1]}})
+    every = max(1, round((cl["camera_period"] or cl["dt"]) / cl["dt"]))
+    return simulate(scene, ctrl, starts, dt=cl["dt"], horizon=cl["horizon"], camera_period=cl["camera_period"],
+                    disturbance=dist, seed=cl["seed"], record_every=every, record=measure is None,
+                    stop_on_success=cl["stop_at_target"], measure=measure)
+
+
+def visitation_pool(recipe, camera) -> np.ndarray:
+    """Positions `(M, 2)` the configured closed loop visits, sampled at every step of every simulated run (so
+    the pool's density is the time the loop spends at a place): random starts over the arena, the recipe's
+    controller and disturbance, on the true state. Deterministic in `closed_loop.seed`."""
+    res = _simulate(recipe, camera)
+    p = res.p.reshape(-1, 2)
+    if recipe.closed_loop["stop_at_target"]:  # drop the frozen rows after an agent stopped
+        moving = np.ones(res.p.shape[:2], dtype=bool)
+        moving[1:] = np.any(res.p[1:] != res.p[:-1], axis=-1)
+        p = res.p[moving]
+    return p[np.isfinite(p).all(axis=1)]
+
+
+class _FrameLog:
+    """A measurement hook that records every frame's true positions and the map's error on them."""
+
+    def __init__(self, measure):
+        self.measure, self.p, self.err = measure, [], []
+
+    def __call__(self, p, idx, frame, rng):
+        est = self.measure(p, idx, frame, rng)
+        self.p.append(np.array(p, dtype=float))
+        self.err.append(np.hypot(*(np.asarray(est, dtype=float) - p).T))
+        return est
+
+
+def map_visitation_pool(recipe, camera, perception_map, occlusion) -> Pool:
+    """The recipe's closed loop with the camera and `perception_map` in it (`CameraMeasure`: every agent's
+    frame rendered with `occlusion`'s clouds, one batched inference per frame; the disturbance on top): every
+    position where a frame was taken inside the camera's view (a vehicle the map drove out of the arena is on
+    no image), with the map's error there. Deterministic in `closed_loop.seed` (and the map's weights)."""
+    from pipeline.experiments.measure import CameraMeasure
+
+    log = _FrameLog(CameraMeasure(camera, perception_map, occlusion))
+    _simulate(recipe, camera, measure=log)
+    p, err = np.concatenate(log.p), np.concatenate(log.err)
+    (x0, x1), (y0, y1) = camera.arena
+    with np.errstate(invalid="ignore"):
+        keep = (p[:, 0] >= x0) & (p[:, 0] <= x1) & (p[:, 1] >= y0) & (p[:, 1] <= y1) & np.isfinite(err)
+    return Pool(p[keep], err[keep], frames=len(p))
+
+
+_POOLS: dict = {}
+
+
+def pool(recipe, camera, occlusion=None, perception_map=None) -> Pool:
+    """A split's pool, simulated once per (recipe, camera, clouds, map) in a process (the splits share it):
+    the map's visits when `perception_map` is given, else the true-state visitation."""
+    key = (json.dumps(recipe.closed_loop, sort_keys=True, default=str), repr(camera.arena), repr(camera.scene),
+           json.dumps(occlusion.config() if occlusion is not None and perception_map is not None else None,
+                      sort_keys=True, default=str), perception_map is not None)
+    if key not in _POOLS:
+        if len(_POOLS) >= 2:  # a dataset needs at most two: its map's visits (train) and the true-state loop
+            _POOLS.clear()
+        _POOLS[key] = (map_visitation_pool(recipe, camera, perception_map, occlusion) if perception_map is not None
+                       else Pool(visitation_pool(recipe, camera)))
+    if not len(_POOLS[key]):
+        raise ConfigError(_F, "the simulated closed loop has no frame in the camera's view")
+    return _POOLS[key]
