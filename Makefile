@@ -26,6 +26,9 @@ run: paper ## the main job: regenerate every figure and table of the paper (alia
 paper: $(STAMP) ## data -> train -> errormap -> experiments; writes outputs/paper/
 	$(PY) -m pipeline.paper $(ARGS)
 
+generalisation: $(STAMP) ## maps on every cloud level (issue 11): authors + clean_paper maps, tab_perception_generalisation
+	$(PY) -m pipeline.paper --config-name paper_generalisation $(ARGS)
+
 simulate: $(STAMP) ## closed-loop simulation demo on the true state (Hydra: make simulate ARGS="controller=smooth")
 	$(PY) -m pipeline.simulate $(ARGS)
 
@@ -62,4 +65,4 @@ lint: $(STAMP) ## ruff
 clean: ## remove generated data and outputs (keeps .venv)
 	rm -rf data/datasets outputs/* && touch outputs/.gitkeep
 
-.PHONY: help setup run paper simulate data verify-data train errormap experiments test test-all bench lint clean
+.PHONY: help setup run paper generalisation simulate data verify-data train errormap experiments test test-all bench lint clean
