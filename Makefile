@@ -29,6 +29,9 @@ paper: $(STAMP) ## data -> train -> errormap -> experiments; writes outputs/pape
 dagger: $(STAMP) ## DAgger-style rounds: data -> train -> closed loop with the map -> aggregated data -> ... (outputs/dagger/)
 	$(PY) -m pipeline.dagger $(ARGS)
 
+generalisation: $(STAMP) ## maps on every cloud level (issue 11): authors + clean_paper maps, tab_perception_generalisation
+	$(PY) -m pipeline.paper --config-name paper_generalisation $(ARGS)
+
 simulate: $(STAMP) ## closed-loop simulation demo on the true state (Hydra: make simulate ARGS="controller=smooth")
 	$(PY) -m pipeline.simulate $(ARGS)
 
@@ -65,4 +68,4 @@ lint: $(STAMP) ## ruff
 clean: ## remove generated data and outputs (keeps .venv)
 	rm -rf data/datasets outputs/* && touch outputs/.gitkeep
 
-.PHONY: help setup run paper dagger simulate data verify-data train errormap experiments test test-all bench lint clean
+.PHONY: help setup run paper dagger generalisation simulate data verify-data train errormap experiments test test-all bench lint clean

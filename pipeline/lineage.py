@@ -17,13 +17,30 @@ from pipeline.cli import CONF_DIR
 
 COMMANDS = {
     "dataset": "python -m pipeline.data data={name}",
-    "perception map": "python -m pipeline.train data={name}",
     "error map": "python -m pipeline.errormap maps=[{name}]",
 }
 
 
 def _recipe(name: str) -> bool:
     return (CONF_DIR / "data" / f"{name}.yaml").is_file()
+
+
+def map_recipe(name: str) -> tuple[str, list[str]] | None:
+    """(data recipe, train overrides) of the map a name means: `<recipe>` is what `python -m pipeline.train
+    data=<recipe>` trains, `<recipe>_<model>` (e.g. `clean_paper`) what `... data=<recipe> model=<model>` trains
+    (`model` an option of conf/model/); None when no config makes `name`."""
+    if _recipe(name):
+        return name, []
+    for i, ch in enumerate(name):
+        if ch == "_" and _recipe(name[:i]) and (CONF_DIR / "model" / f"{name[i + 1:]}.yaml").is_file():
+            return name[:i], [f"model={name[i + 1:]}"]
+    return None
+
+
+def map_command(name: str) -> str:
+    """The command that trains the map `name` means (see :func:`map_recipe`)."""
+    recipe, extra = map_recipe(name) or (name, [])
+    return " ".join(["python -m pipeline.train", f"data={recipe}", *extra])
 
 
 def expected_dataset_id(name: str, overrides=()) -> str | None:
@@ -50,13 +67,15 @@ def train_dataset_id(cfg) -> tuple[str, str]:
 
 
 def expected_map_id(name: str, overrides=()) -> str | None:
-    """Id of the map `python -m pipeline.train data=<name> [overrides]` trains (None: no config makes `name`)."""
-    if not _recipe(name):
+    """Id of the map `map_command(name) [overrides]` trains (None: no config makes `name`)."""
+    made_by = map_recipe(name)
+    if made_by is None:
         return None
     from pipeline.config import compose
     from pipeline.train.stage import model_identity
 
-    cfg = compose("train", [f"data={name}", *overrides])
+    recipe, extra = made_by
+    cfg = compose("train", [f"data={recipe}", *extra, *overrides])
     ds_name, ds_id = train_dataset_id(cfg)
     model_name, id_ = model_identity(cfg, ds_name, ds_id)
     return id_ if model_name == name else None
@@ -69,7 +88,7 @@ def resolve_dataset(ref, datasets_dir) -> Path:
 
 def resolve_map(ref, models_dir, field: str = "maps") -> Path:
     return tracking.resolve(Path(models_dir), ref, kind="perception map", expected=expected_map_id,
-                            command=COMMANDS["perception map"], field=field)
+                            command=map_command, field=field)
 
 
 def expected_errormap_id(pmap, overrides=()) -> tuple[str, str]:

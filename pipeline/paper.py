@@ -45,21 +45,29 @@ def _args(cfg) -> dict[str, list[str]]:
 
 
 def check(cfg: DictConfig) -> None:
+    from pipeline.lineage import map_recipe
+
     datasets, maps = list(cfg.datasets), list(cfg.maps)
     if not datasets:
         raise ConfigError("datasets", "needs at least one recipe")
-    for field, names in (("datasets", datasets), ("maps", maps), ("errormaps", list(cfg.errormaps))):
-        for name in names:
-            if field == "datasets" and not (CONF_DIR / "data" / f"{name}.yaml").is_file():
-                raise ConfigError("datasets", f"unknown recipe {name!r} (conf/data/)")
-    missing = set(maps) - set(datasets)
+    for name in datasets:
+        if not (CONF_DIR / "data" / f"{name}.yaml").is_file():
+            raise ConfigError("datasets", f"unknown recipe {name!r} (conf/data/)")
+    for name in maps:
+        if map_recipe(name) is None:
+            raise ConfigError("maps", f"unknown map {name!r}: a recipe of conf/data/, or <recipe>_<model> with a "
+                                      "model of conf/model/ (e.g. clean_paper)")
+    missing = {name for name in maps if map_recipe(name)[0] not in datasets}
     if missing:
-        raise ConfigError("maps", f"{sorted(missing)} are not among the datasets {datasets}")
+        raise ConfigError("maps", f"{sorted(missing)} are trained on datasets not among {datasets}")
     if set(cfg.errormaps) - set(maps):
         raise ConfigError("errormaps", f"{sorted(set(cfg.errormaps) - set(maps))} are not among the maps {maps}")
     for exp in cfg.experiments:
         if not (CONF_DIR / "experiment" / f"{exp}.yaml").is_file():
             raise ConfigError("experiments", f"unknown experiment {exp!r} (conf/experiment/)")
+    lock = cfg.lock
+    if not (isinstance(lock, str) and lock.endswith(".yaml") and "/" not in lock):
+        raise ConfigError("lock", f"must be a file name ending in .yaml, got {lock!r}")
     _args(cfg)
 
 
@@ -71,7 +79,8 @@ def run_stage(stage: str, argv: list[str], timings: dict, stop: bool, *, tag: st
     print(f"\n[{tag}] === {label or stage}: {' '.join(cmd[1:])}", flush=True)
     ts = time.perf_counter()
     proc = subprocess.run(cmd, cwd=REPO_ROOT, check=False)
-    timings[label or stage] = time.perf_counter() - ts
+    key = label or stage
+    timings[key] = timings.get(key, 0.0) + time.perf_counter() - ts
     if proc.returncode != 0:
         msg = f"stage {stage} failed (exit {proc.returncode}); fix it and re-run `make {tag}` (done stages are re-used)"
         if stop:
@@ -83,7 +92,7 @@ def run_stage(stage: str, argv: list[str], timings: dict, stop: bool, *, tag: st
 
 def run(cfg) -> dict:
     from pipeline.config import compose
-    from pipeline.lineage import expected_errormap_id, train_dataset_id, write_lock
+    from pipeline.lineage import expected_errormap_id, map_recipe, train_dataset_id, write_lock
     from pipeline.train.stage import model_identity
 
     check(cfg)
@@ -101,10 +110,16 @@ def run(cfg) -> dict:
     for name in datasets:
         lock["datasets"][name] = ds_root / f"{name}-{plan(compose('data', [f'data={name}', *paths, *args['data']])).id}"
     map_refs = {}
+    groups: dict[tuple[str, ...], list[str]] = {}  # maps of the same model overrides: one multirun each
+    for name in maps:
+        recipe, extra = map_recipe(name)
+        groups.setdefault(tuple(extra), []).append(recipe)
+    for extra, recipes in groups.items():
+        run_stage("train", ["-m", f"data={','.join(recipes)}", *extra, *paths, *args["train"]], timings, stop)
     if maps:
-        run_stage("train", ["-m", f"data={','.join(maps)}", *paths, *args["train"]], timings, stop)
         for name in maps:
-            tcfg = compose("train", [f"data={name}", *paths, *args["train"]])
+            recipe, extra = map_recipe(name)
+            tcfg = compose("train", [f"data={recipe}", *extra, *paths, *args["train"]])
             mname, mid = model_identity(tcfg, *train_dataset_id(tcfg))
             map_refs[name] = f"{mname}-{mid}"
             lock["maps"][name] = models_root / map_refs[name]
@@ -131,7 +146,7 @@ def run(cfg) -> dict:
             if entry.is_file():
                 lock["experiments"][exp] = (paper_dir / json.loads(entry.read_text())["cache"]).resolve()
     lock = {k: {n: f for n, f in v.items() if tracking.is_complete(f)} for k, v in lock.items()}
-    lock_path = write_lock(Path(cfg.paths.paper_dir) / "paper.lock.yaml", lock)
+    lock_path = write_lock(Path(cfg.paths.paper_dir) / cfg.lock, lock)
     from pipeline.experiments.figures import FIGURES
     from pipeline.experiments.report import write_index
 

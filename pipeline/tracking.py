@@ -188,15 +188,17 @@ def entries(root: Path, name: str | None = None) -> list[Path]:
     return sorted(out, key=lambda d: (created(d), d.stat().st_mtime), reverse=True)
 
 
-def resolve(root: Path, ref: str | os.PathLike, *, kind: str = "output", expected=None, command: str | None = None,
+def resolve(root: Path, ref: str | os.PathLike, *, kind: str = "output", expected=None, command=None,
             field: str | None = None) -> Path:
     """A tracked folder from a path, `name-id`, an id, or a name (see :mod:`pipeline.lineage`).
 
     A bare name never means "the newest folder": `expected(name) -> id | None` gives the id the upstream
     stage's current config produces, and `<name>-<id>` is returned when it is built. A name that no config
     produces resolves only when exactly one folder has it; several candidates are an error listing them.
-    `command` (with `{name}`) and `field` make the error messages say how to build or pin one.
+    `command` (a string with `{name}`, or `name -> command line`) and `field` make the error messages say how
+    to build or pin one.
     """
+    cmd = _command_fn(command)
     ref_s = str(ref)
     p = Path(ref_s)
     if p.is_dir() and (p / MANIFEST).is_file():
@@ -210,9 +212,9 @@ def resolve(root: Path, ref: str | os.PathLike, *, kind: str = "output", expecte
     others = f"; other builds: {', '.join(d.name for d in named)}{pin}" if named else ""
     base = re.fullmatch(rf"(.+)-[0-9a-f]{{{ID_LEN}}}", ref_s)
     if base and expected is not None:  # a pinned `name-id` that is not built: say so, and what makes `name`
-        make = f"; `{command.format(name=base.group(1))}` makes the current config's" if command else ""
+        make = f"; `{cmd(base.group(1))}` makes the current config's" if cmd else ""
         raise DatasetError(f"{kind} {ref_s} is not built under {root}{make}")
-    make = f"; run `{command.format(name=ref_s)}`" if command else ""
+    make = f"; run `{cmd(ref_s)}`" if cmd else ""
     want = expected(ref_s) if expected is not None else None
     if want is not None:
         folder = Path(root) / f"{ref_s}-{want}"
@@ -227,6 +229,17 @@ def resolve(root: Path, ref: str | os.PathLike, *, kind: str = "output", expecte
     known = sorted({d.name.rsplit("-", 1)[0] for d in all_entries})
     hint = f"known: {', '.join(known)}" if known else f"none under {root}"
     raise DatasetError(f"unknown {kind} {ref_s!r} ({hint}){make}")
+
+
+def _command_fn(command):
+    """`name -> command line` from a template with `{name}`, a function, or None."""
+    if command is None or callable(command):
+        return command
+
+    def fmt(name: str) -> str:
+        return command.format(name=name)
+
+    return fmt
 
 
 def stale_temporaries(root: Path, remove: bool = True, echo=print) -> list[Path]:

@@ -180,10 +180,11 @@ class Context:
         return float(s["levels"][level]["p95"]), s["path"].name
 
     @functools.cache  # noqa: B019
-    def camera(self):
+    def camera(self, kind: str = "clean"):
+        """The camera that rendered map `kind`'s training images (a perfect map: the composed render config)."""
         from pipeline.render import Camera
 
-        pm = self.perception_map("clean")
+        pm = self.perception_map(kind)
         if isinstance(pm, OracleMap):
             return Camera.from_config(self.cfg.render, self.scene_cfg)
         return pm.camera()
@@ -209,7 +210,7 @@ class Context:
         pm = self.perception_map(kind)
         if isinstance(pm, OracleMap):
             return true_state
-        return CameraMeasure(self.camera(), pm, self.occlusion(level), gate=self.gate)
+        return CameraMeasure(self.camera(kind), pm, self.occlusion(level), gate=self.gate)
 
     def leader_follower(self, leader_x0, follower_x0, *, kind: str = "clean", level: str | None = None,
                         sigma: float = 0.0, p_fail: float = 0.0, seed: int | None = None,
@@ -223,7 +224,7 @@ class Context:
                              record_every=every)
         track = LeaderTrack(lead.t, lead.p)
         pm = self.perception_map(kind)
-        target = FollowerTarget(track, None if isinstance(pm, OracleMap) else self.camera(), pm,
+        target = FollowerTarget(track, None if isinstance(pm, OracleMap) else self.camera(kind), pm,
                                 self.occlusion(level), gate=self.gate)
         foll = self.simulate(self.controller(follower_controller), follower_x0, disturbance=noise,
                              target_fn=target, p_fail=p_fail, seed=seed + 1, record_every=every)

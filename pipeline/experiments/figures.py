@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from pipeline.experiments import generalisation as G
 from pipeline.experiments import scenarios as S
 from pipeline.experiments.report import draw_frame
 
@@ -26,6 +27,8 @@ FIGURES = {
     "fig10_authors_code_vs_default": ("authors_code", "not in the paper: the authors' released-code scene"),
     "fig11_hysteresis_margin": ("hysteresis_margin", "not in the paper: Theorem 1's robustness margin over (χ, λ)"),
     "fig12_sample_and_hold": ("sample_and_hold", "not in the paper: the 20 Hz sample-and-hold vs continuous time"),
+    "fig13_perception_generalisation": ("perception_generalisation",
+                                        "not in the paper: every perception map on every cloud level (issue 11)"),
 }
 
 
@@ -321,6 +324,44 @@ def draw_sample_and_hold(scen, ctx, res, out) -> None:
                                          "dt = period -> 0 limit; relative errors of the first two against the limit.")
 
 
+def draw_perception_generalisation(scen, ctx, res, out) -> None:
+    plt = _plt()
+    df = res.tables["summary"]
+    levels = list(dict.fromkeys(df["level"]))
+    xs = np.arange(len(levels))
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4))
+    for i, (name, g) in enumerate(df.groupby("map", sort=False)):
+        g = g.set_index("level").reindex(levels)
+        color = f"C{i}"
+        axes[0].semilogy(xs, g["mae_px"].clip(lower=1e-3), "o-", color=color, label=f"{name}: MAE")
+        axes[0].semilogy(xs, g["near_target_p95_px"].clip(lower=1e-3), "s--", color=color, alpha=0.7,
+                         label=f"{name}: near-target p95")
+        axes[1].plot(xs, g["follower_success_rate"], "o-", color=color, label=f"{name}: |p - p_T| <= {res.info['delta']:g}")
+        axes[1].plot(xs, g["follower_success_practical"], "s--", color=color, alpha=0.7,
+                     label=f"{name}: within {res.info['delta_practical']:g}")
+    axes[0].set(ylabel="error (px, log)", title="perception error on fresh test positions")
+    axes[1].set(ylabel="follower success", ylim=(-0.03, 1.03), title="follower of the occlusion scenario")
+    for ax in axes:
+        ax.set_xticks(xs, levels)
+        ax.set_xlabel("cloud level")
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=6, ncol=2)
+    out.figure(fig, "fig13_perception_generalisation",
+               "Each perception map (trained on clean images, the authors' clouds, heavy clouds; and the paper's "
+               "network on clean images) on each cloud level: MAE and near-target p95 (px, log scale), and the "
+               "follower's success in the occlusion scenario.")
+    cols = ["map", "level", "mae_px", "p95_px", "near_target_p95_px", "hidden_mae_px", "hidden_share",
+            "follower_n", "follower_success_rate", "follower_success_lo", "follower_success_hi",
+            "follower_success_practical", "follower_collision_rate", "follower_final_error_median"]
+    out.table(df[cols], "tab_perception_generalisation",
+              f"Perception maps across cloud levels: MAE (per coordinate), p95 and near-target p95 (within "
+              f"{scen.near_radius:g} units of the target) of the Euclidean error in px on fresh test positions; "
+              f"MAE on hidden frames (cloud opacity over the leader >= {scen.hidden_alpha:g}) and their share; the "
+              f"occlusion scenario's follower with the map under the level: success (|p - p_T| <= "
+              f"{res.info['delta']:g}, 95% Wilson CI), within {res.info['delta_practical']:g} units, collisions, "
+              "median final distance.")
+
+
 def _gif(ctx, out, stem: str, caption: str, t, lead, foll, perceived, level=None) -> None:
     """The arena with both vehicles, the follower's camera frame (with its clouds) and the perceived leader."""
     from pipeline.experiments.animation import leader_follower_gif
@@ -343,4 +384,5 @@ _DRAWERS = {
     S.PerceptionCloseness: draw_perception_closeness, S.RobustnessSweep: draw_robustness_sweep,
     S.MonteCarlo: draw_monte_carlo, S.AuthorsCode: draw_authors_code, S.HysteresisMargin: draw_hysteresis_margin,
     S.Scheme: draw_scheme, S.SampleAndHold: draw_sample_and_hold,
+    G.PerceptionGeneralisation: draw_perception_generalisation,
 }

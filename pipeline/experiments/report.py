@@ -74,9 +74,10 @@ def write_index(paper_dir: Path, figures: dict | None = None) -> Path:
     lines = ["# Regenerated figures and tables", "",
              "Made by `make paper` (or each experiment alone with the command shown). Ids name the tracked",
              "datasets, perception maps and error maps each result used."]
-    if (paper_dir / "paper.lock.yaml").is_file():
+    locks = sorted(p.name for p in paper_dir.glob("*.lock.yaml"))
+    if locks:
         lines.append("Every input of this folder, with its config hash and code version: "
-                     "[paper.lock.yaml](paper.lock.yaml).")
+                     + ", ".join(f"[{name}]({name})" for name in locks) + ".")
     lines.append("")
     for exp in order:
         e = entries.get(exp)

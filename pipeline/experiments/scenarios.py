@@ -208,33 +208,49 @@ class Occlusion(Scenario):
     def uses(self):
         return {"controllers": ["hybrid"], "disturbances": [], "occlusions": [self.occlusion]}
 
-    def compute(self, ctx: Context) -> Results:
-        level = self.occlusion
+    def starts(self, ctx: Context) -> tuple[np.ndarray, np.ndarray]:
+        """Leaders (all at the first initial condition) and followers (random, the first at the last one)."""
         ics = np.asarray(self.initial_conditions, float)
         n_mc = ctx.n(self.n_agents)
         leaders = np.repeat(ics[:1], n_mc, 0)
         followers = initial_conditions({"mode": "random", "n": n_mc, "seed": ctx.seed, "margin": 3.0},
                                        ctx.scene, ctx.scene_cfg)
         followers[0] = ics[-1]
+        return leaders, followers
+
+    def follow(self, ctx: Context, kind: str, level: str | None, leaders, followers):
+        """The followers with map `kind` on `level` clouds: per-agent rows (with the mean tracking error of the
+        perceived leader), the leader and follower runs and the tracking errors (T, N)."""
+        lead, foll, track = ctx.leader_follower(leaders, followers, kind=kind, level=level)
+        err = np.hypot(*(foll.target - track.position(foll.t)).transpose(2, 0, 1))
+        df = _agent_rows(foll, map=kind, occlusion=level)
+        df["tracking_error_mean"] = np.nanmean(err, axis=0)
+        return df, lead, foll, err
+
+    @staticmethod
+    def summary(metrics: pd.DataFrame, by: list[str], seed: int, delta_practical: float) -> pd.DataFrame:
+        table = summarise(metrics, by, seed=seed, delta_practical=delta_practical)
+        g = metrics.groupby(by, sort=False)
+        table["tracking_error_mean"] = g["tracking_error_mean"].mean().to_numpy()
+        # the follower stops next to a leader it only sees through clouds: how close it gets matters more
+        # than the strict |p - p_T| <= delta success
+        table["final_error_median"] = g["final_error"].median().to_numpy()
+        table["within_3_units"] = g["final_error"].apply(lambda e: float((e <= 3.0).mean())).to_numpy()
+        return table
+
+    def compute(self, ctx: Context) -> Results:
+        level = self.occlusion
+        leaders, followers = self.starts(ctx)
         rows, arrays = [], {}
         for kind in ("clean", "occluded"):
-            lead, foll, track = ctx.leader_follower(leaders, followers, kind=kind, level=level)
-            err = np.hypot(*(foll.target - track.position(foll.t)).transpose(2, 0, 1))
-            df = _agent_rows(foll, map=kind, occlusion=level)
-            df["tracking_error_mean"] = np.nanmean(err, axis=0)
+            df, lead, foll, err = self.follow(ctx, kind, level, leaders, followers)
             rows.append(df)
             arrays[f"{kind}_foll_p"] = foll.p[:, 0]
             arrays[f"{kind}_foll_target"] = foll.target[:, 0]
             arrays[f"{kind}_lead_p"] = lead.p[:, 0]
             arrays[f"{kind}_err"] = err[:, 0]
         metrics = pd.concat(rows, ignore_index=True)
-        table = summarise(metrics, ["map", "occlusion"], seed=ctx.seed, delta_practical=self.delta_practical)
-        g = metrics.groupby("map", sort=False)
-        table["tracking_error_mean"] = g["tracking_error_mean"].mean().to_numpy()
-        # the follower stops next to a leader it only sees through clouds: how close it gets matters more
-        # than the strict |p - p_T| <= delta success
-        table["final_error_median"] = g["final_error"].median().to_numpy()
-        table["within_3_units"] = g["final_error"].apply(lambda e: float((e <= 3.0).mean())).to_numpy()
+        table = self.summary(metrics, ["map", "occlusion"], ctx.seed, self.delta_practical)
         return Results({"metrics": metrics, "summary": table}, arrays, {"level": level})
 
 

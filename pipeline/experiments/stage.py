@@ -26,7 +26,8 @@ from pipeline.experiments.report import Outputs, write_index
 from pipeline.experiments.scenarios import Scenario
 
 # the code whose changes change the numbers (figures.py and report.py only draw)
-COMPUTE_CODE = ("experiments/scenarios", "experiments/context", "experiments/measure", "control", "sim", "render")
+COMPUTE_CODE = ("experiments/scenarios", "experiments/generalisation", "experiments/context", "experiments/measure",
+                "control", "sim", "render", "train/metrics", "data/sampling")
 
 
 def _command(cfg, exp_id: str) -> str:
