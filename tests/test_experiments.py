@@ -221,3 +221,16 @@ def test_camera_in_the_loop_is_the_same_on_every_device(tiny_maps):
     for device, res in runs.items():
         np.testing.assert_allclose(res.m, runs["cpu"].m, atol=1e-3, err_msg=device)
         np.testing.assert_allclose(res.p, runs["cpu"].p, atol=1e-3, err_msg=device)
+
+
+def test_leader_keeps_regulating_after_success(tmp_path):
+    """Bug fix: the leader (the follower's moving target) used to stop on success on the delta-circle, so with a
+    perfect map the followers' target sat ~delta from p_T and their strict success hung on which side of the
+    circle perception noise pushed them. It now settles at p_T."""
+    from pipeline.experiments.stage import run
+
+    out = run(_cfg(tmp_path, "experiment=occlusion", "perception=oracle", "scale=0.1"))
+    lead = out["results"].arrays["occluded_lead_p"]
+    assert np.hypot(*(lead[-1] - np.array([40.0, 0.0]))) < 0.05
+    t = out["results"].tables["summary"]
+    assert (t["success_rate"] == 1.0).all(), t

@@ -192,8 +192,10 @@ class Context:
     # simulation ------------------------------------------------------------------------------
     def simulate(self, controller, x0, *, scene: Scene | None = None, disturbance=None, measure=None,
                  target_fn=None, p_fail: float = 0.0, seed: int | None = None, record: bool = True,
-                 record_every: int | None = None, horizon: float | None = None, model: str | None = None):
-        """One batched run; `model` (sampled | continuous) overrides `sim.model` (the camera is sampled-only)."""
+                 record_every: int | None = None, horizon: float | None = None, model: str | None = None,
+                 stop_on_success: bool | None = None):
+        """One batched run; `model` (sampled | continuous) overrides `sim.model` (the camera is sampled-only),
+        `stop_on_success` overrides `sim.stop_on_success`."""
         sim = self.cfg.sim
         kw = sim_model_kwargs(sim)
         kw["model"] = model or kw.get("model", "sampled")
@@ -202,7 +204,7 @@ class Context:
             delta=self.delta, camera_period=self.frame_period, p_fail=p_fail, disturbance=disturbance,
             measure=measure, target_fn=target_fn, seed=self.seed if seed is None else seed,
             record_every=record_every or int(self.cfg.sim.record_every), record=record,
-            stop_on_success=bool(self.cfg.sim.stop_on_success),
+            stop_on_success=bool(self.cfg.sim.stop_on_success if stop_on_success is None else stop_on_success),
             progress=len(x0) >= 2000 and sys.stderr.isatty(), **kw,
         )
 
@@ -216,12 +218,16 @@ class Context:
                         sigma: float = 0.0, p_fail: float = 0.0, seed: int | None = None,
                         follower_controller: str = "hybrid"):
         """Leader: hybrid on its own noisy state towards p_T. Follower: its own noisy state, target = the
-        leader's position seen by its camera through the map (failures hold the last estimate)."""
+        leader's position seen by its camera through the map (failures hold the last estimate).
+
+        The leader never stops on success: it is the follower's target, and it keeps regulating to p_T after
+        it first comes within delta. (Frozen on the delta-circle, it would leave the follower's own success,
+        |p - p_T| <= delta, to the side of the circle the perception error pushes the follower to.)"""
         seed = self.seed if seed is None else seed
         noise = self.disturbance("gaussian", sigma=sigma) if sigma > 0 else None
         every = max(1, round((self.frame_period or self.dt) / self.dt))
         lead = self.simulate(self.controller("hybrid"), leader_x0, disturbance=noise, seed=seed,
-                             record_every=every)
+                             record_every=every, stop_on_success=False)
         track = LeaderTrack(lead.t, lead.p)
         pm = self.perception_map(kind)
         target = FollowerTarget(track, None if isinstance(pm, OracleMap) else self.camera(kind), pm,
