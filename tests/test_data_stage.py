@@ -239,3 +239,27 @@ def test_closed_loop_sampling_over_represents_visited_positions_by_the_share(tmp
     a = plan(cfg_for(tmp_path, "closed_loop"))
     b = plan(cfg_for(tmp_path, "closed_loop", "data.sampling.closed_loop.controller.k=2"))
     assert a.id != b.id
+
+
+def test_near_followers_take_their_share_and_share_zero_draws_nothing(tmp_path):
+    """`data.follower.near_share` moves that share of the followers within `near_distance` of the leader
+    (overlapping squares included); at 0 the plan is byte for byte the one without the keys."""
+    from pipeline.data.sampling import plan_split
+    from pipeline.data.stage import plan
+
+    def followers(*extra):
+        p = plan(cfg_for(tmp_path, "clean", "data.splits.train=4000", "data.sampling.mode=uniform",
+                         "data.follower.probability=1.0", *extra))
+        sp = plan_split(p.recipe, "train", p.camera, p.occlusion)
+        return sp.leader.astype(float), sp.follower.astype(float)
+
+    lead, fol = followers("data.follower.near_share=0.3", "data.follower.near_distance=2.0")
+    d = np.hypot(*(fol - lead).T)
+    assert abs((d <= 2.0).mean() - 0.3) < 0.03            # the share, within ~4 sigma of binomial noise
+    assert not ((d > 2.0) & (d < 5.0)).any()              # the others keep min_distance = 5
+    assert (d < 0.5).mean() > 0.01                         # overlapping squares do occur
+    base = followers("data.follower.near_share=0.0")
+    for a, b in zip(base, followers("~data.follower.near_share", "~data.follower.near_distance"), strict=True):
+        np.testing.assert_array_equal(a, b)
+    with pytest.raises(ConfigError, match="data.follower.near_share"):
+        followers("data.follower.near_share=1.5")

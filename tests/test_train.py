@@ -57,6 +57,15 @@ def test_fast_dev_run_reload_and_noop(tiny):
     saved = json.loads((folder / "metrics.json").read_text())["test_split"]
     assert again["mae_px"] == pytest.approx(saved["mae_px"], rel=1e-6)
     assert np.array_equal(pred, pm.predict(ds.images("test")))  # inference is deterministic
+    # the flag operating point: the gate is fitted on the validation positions re-rendered without clouds
+    from pipeline.train.stage import render_split
+    from pipeline.train.uncertainty import clean_gate
+
+    metrics = json.loads((folder / "metrics.json").read_text())
+    _, sigma = pm.predict_with_sigma(render_split(ds, "val", None, 123).images)
+    gate = clean_gate(sigma, pm.px_per_unit, cfg.uncertainty_eval.clean_false_alarm)
+    assert metrics["calibration"]["clean_gate_px"] == pytest.approx(gate, rel=1e-5)
+    assert metrics["heavy"]["uncertainty"]["at_clean_gate"]["gate_px"] == metrics["calibration"]["clean_gate_px"]
     # by name: the map the *default* train config makes (not built here), never the newest folder
     with pytest.raises(ModelError, match="current config makes") as err:
         load_perception_map(out["name"], models_dir=tiny["models"])

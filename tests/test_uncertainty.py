@@ -15,7 +15,7 @@ from pipeline.experiments.measure import CameraMeasure
 from pipeline.sim import simulate
 from pipeline.train.model import PerceptionMap, gaussian_nll
 from pipeline.train.predict import PerceptionMapPredictor
-from pipeline.train.uncertainty import calibrate, coverage95, flag_metrics
+from pipeline.train.uncertainty import calibrate, clean_gate, coverage95, flag_metrics
 
 
 @settings(max_examples=40, deadline=None)
@@ -73,6 +73,32 @@ def test_gaussian_head_learns_the_known_noise_and_calibrates():
     # flags: a 1-unit gate separates the two kinds exactly
     f = flag_metrics(pred, sigma, test_p, 1.0, error_px=3.0, gate_px=1.0)
     assert f["flagged"] == pytest.approx(bright.mean(), abs=0.01)
+    # the operating point: a gate fitted on the "clean" (dim) validation images at 10% false alarms catches the
+    # bright frames' large errors and flags about 10% of the dim test images
+    _, val_sigma = pm.predict_with_sigma(val_i)
+    _, _, val_bright = _synthetic(2000, 1)
+    g = clean_gate(val_sigma[~val_bright], 1.0, 0.1)
+    f = flag_metrics(pred, sigma, test_p, 1.0, error_px=3.0, gate_px=1.0, clean_gate_px=g)
+    assert f["at_clean_gate"]["detected"] > 0.95
+    dim = flag_metrics(pred[~bright], sigma[~bright], test_p[~bright], 1.0, error_px=3.0, gate_px=1.0,
+                       clean_gate_px=g)["at_clean_gate"]
+    assert dim["flagged"] == pytest.approx(0.1, abs=0.03)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**31), n=st.integers(20, 500), fa=st.floats(0.01, 0.5), px=st.floats(0.1, 10.0))
+def test_clean_gate_flags_the_requested_share_of_clean_images(seed, n, fa, px):
+    rng = np.random.default_rng(seed)
+    sigma = rng.lognormal(0.0, 1.0, (n, 2))
+    g = clean_gate(sigma, px, fa)
+    share = float((np.hypot(*(sigma * px).T) > g).mean())
+    assert fa - 1.0 / n - 1e-12 <= share <= fa + 1e-12
+    # at_clean_gate is the flag rates at that gate: the same numbers as gate_px = g
+    true = rng.normal(0.0, 1.0, (n, 2))
+    pred = true + rng.normal(0.0, 1.0, (n, 2)) * sigma
+    f = flag_metrics(pred, sigma, true, px, error_px=3.0, gate_px=g, clean_gate_px=g)
+    assert {k: f[k] for k in ("flagged", "detected", "false_alarm")} == \
+        {k: f["at_clean_gate"][k] for k in ("flagged", "detected", "false_alarm")}
 
 
 class _Identity:

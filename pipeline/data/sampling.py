@@ -68,6 +68,8 @@ class Recipe:
     follower_max_distance: float | None
     preview: int
     chunk_size: int
+    follower_near_share: float = 0.0
+    follower_near_distance: float = 5.0
     closed_loop: dict | None = None
     parent: str | None = None  # a dataset whose train split this one's train split extends (resolved by the stage)
 
@@ -99,9 +101,10 @@ class Recipe:
         if not isinstance(excl, bool):
             raise ConfigError("data.sampling.exclude_obstacle", f"must be true or false, got {excl!r}")
         fol = cfg.get("follower") or {}
-        extra = set(fol) - {"probability", "min_distance", "max_distance"}
+        known = ("probability", "min_distance", "max_distance", "near_share", "near_distance")
+        extra = set(fol) - set(known)
         if extra:
-            raise ConfigError("data.follower", f"unknown key(s) {sorted(extra)}; known: probability, min_distance, max_distance")
+            raise ConfigError("data.follower", f"unknown key(s) {sorted(extra)}; known: {', '.join(known)}")
         min_d = _num(fol.get("min_distance", 5.0), "data.follower.min_distance", 0.0)
         max_d = _num(fol.get("max_distance"), "data.follower.max_distance", min_d, allow_none=True, open_lo=True)
         return cls(
@@ -115,6 +118,9 @@ class Recipe:
             follower_probability=_num(fol.get("probability", 0.5), "data.follower.probability", 0.0, 1.0),
             follower_min_distance=min_d,
             follower_max_distance=max_d,
+            follower_near_share=_num(fol.get("near_share", 0.0), "data.follower.near_share", 0.0, 1.0),
+            follower_near_distance=_num(fol.get("near_distance", 5.0), "data.follower.near_distance", 0.0,
+                                        open_lo=True),
             preview=_int(cfg.get("preview", 32), "data.preview", 1, 256),
             chunk_size=_int(cfg.get("chunk_size", 4096), "data.chunk_size", 1),
             closed_loop=closed_loop,
@@ -253,7 +259,9 @@ def _grid(rng: np.random.Generator, n: int, camera: Camera, recipe: Recipe) -> n
 
 def _followers(rng: np.random.Generator, leader: np.ndarray, camera: Camera, recipe: Recipe) -> np.ndarray:
     """Follower positions: uniform over the box (or within `max_distance` of the leader), at least
-    `min_distance` from the leader so that the two squares do not overlap."""
+    `min_distance` from the leader so that the two squares do not overlap; then a share `near_share` of the
+    rows moved uniformly into the disc of radius `near_distance` around the leader (overlapping squares
+    included: where every leader-follower run ends, the follower on its target). No extra draws at share 0."""
     lo, hi = _box(camera, recipe)
     n = len(leader)
     out = np.empty_like(leader)
@@ -274,10 +282,24 @@ def _followers(rng: np.random.Generator, leader: np.ndarray, camera: Camera, rec
     bad = np.arange(n)
     for _ in range(_MAX_ROUNDS):
         if bad.size == 0:
-            return out
+            break
         out[bad] = draw(bad)
         bad = bad[~ok(bad)]
     out[bad] = np.clip(out[bad], lo, hi)  # a leader in a corner with a tight annulus: clip the few left
+    return _near_followers(rng, out, leader, camera, recipe)
+
+
+def _near_followers(rng: np.random.Generator, out: np.ndarray, leader: np.ndarray, camera: Camera,
+                    recipe: Recipe) -> np.ndarray:
+    if recipe.follower_near_share <= 0:
+        return out
+    lo, hi = _box(camera, recipe)
+    rows = np.flatnonzero(rng.random(len(leader)) < recipe.follower_near_share)
+    r = recipe.follower_near_distance * np.sqrt(rng.uniform(0.0, 1.0, rows.size))
+    ang = rng.uniform(0, 2 * math.pi, rows.size)
+    near = np.clip(leader[rows] + np.stack([r * np.cos(ang), r * np.sin(ang)], axis=1), lo, hi)
+    keep = _allowed(near, camera, recipe)  # off the obstacle when the recipe excludes it: the far draw stays
+    out[rows[keep]] = near[keep]
     return out
 
 

@@ -40,7 +40,7 @@ from pipeline.train.metrics import (  # noqa: F401
     error_metrics,
     perception_metrics,
 )
-from pipeline.train.uncertainty import calibrate, flag_metrics
+from pipeline.train.uncertainty import calibrate, clean_gate, flag_metrics
 
 log = logging.getLogger(__name__)
 
@@ -53,7 +53,9 @@ PLACEMENT_KEYS = ("_target_", "accelerator", "strategy", "devices", "num_nodes",
 # DataModule arguments that change speed only.
 DATAMODULE_SPEED_KEYS = ("_target_", "eval_batch_size", "num_workers", "pin_memory")
 # Callbacks that change the saved weights, and which of their arguments do.
-UNCERTAINTY_EVAL = {"error_px": 3.0, "gate_px": 3.0}  # flag rates: real error above error_px, flag above gate_px
+# flag rates: real error above error_px, flag above gate_px; and at the gate that flags clean_false_alarm of the
+# clean validation images (the operating point of issue 11: detection at <= 10% false alarms on clean images)
+UNCERTAINTY_EVAL = {"error_px": 3.0, "gate_px": 3.0, "clean_false_alarm": 0.1}
 _WEIGHT_CALLBACKS = {"ModelCheckpoint": ("monitor", "mode"), "EarlyStopping": None}  # None = all arguments
 _GPU_ACCELERATORS = ("gpu", "cuda")
 
@@ -144,7 +146,9 @@ def check_config(cfg) -> None:
             raise ConfigError("uncertainty_eval", f"must have exactly the keys {', '.join(UNCERTAINTY_EVAL)}, got {ue!r}")
         for k, v in ue.items():
             if isinstance(v, bool) or not isinstance(v, int | float) or not v > 0:
-                raise ConfigError(f"uncertainty_eval.{k}", f"must be a number > 0 (px), got {v!r}")
+                raise ConfigError(f"uncertainty_eval.{k}", f"must be a number > 0, got {v!r}")
+        if not ue["clean_false_alarm"] < 1:
+            raise ConfigError("uncertainty_eval.clean_false_alarm", f"must be a share in (0, 1), got {ue['clean_false_alarm']!r}")
     # model and datamodule: unknown keys, then a dry build with their own value checks
     check_keywords(cfg.model, "model")
     check_keywords(cfg.datamodule, "datamodule")
@@ -260,14 +264,21 @@ def evaluate(predictor, ds, levels, seed: int, occlusions=None, near_radius: flo
         return m, pred
 
     out["test_split"], test_pred = metrics(images, alpha)
-    follower = labels[["follower_x", "follower_y"]].to_numpy(np.float64) if "follower_x" in labels else None
-    cam = dataset_camera(ds)
     for level in levels:
-        occ = load_occlusion(level, occlusions, field="eval_levels")
-        rng = np.random.default_rng(seed)
-        res = cam.render(pos, follower, occlusion=occ, rng=rng, return_info=True)
+        res = render_split(ds, "test", load_occlusion(level, occlusions, field="eval_levels"), seed)
         out[level] = metrics(res.images, res.leader_alpha)[0]
     return out, test_pred
+
+
+def render_split(ds, split: str, occlusion, seed: int):
+    """A split's positions (leader and follower) re-rendered by the dataset's camera under `occlusion`
+    (None: no clouds), clouds drawn from `seed`; returns the camera's render result (images, leader_alpha)."""
+    from pipeline.render import Occlusion
+
+    labels = ds.labels[ds.labels["split"] == split]
+    follower = labels[["follower_x", "follower_y"]].to_numpy(np.float64) if "follower_x" in labels else None
+    return dataset_camera(ds).render(ds.positions(split), follower, occlusion=occlusion or Occlusion(),
+                                     rng=np.random.default_rng(seed), return_info=True)
 
 
 # ------------------------------------------------------------------------------------------ figures
@@ -453,10 +464,16 @@ def run(cfg) -> dict:
                                                         "render": ds.manifest["render"]},
                                        device=resolve_device(cfg.get("device", "auto")))
     calibration = None
-    if predictor.has_uncertainty:  # fit the sigma scale on the validation split, before the test split is seen
+    flags = dict(_plain(cfg.get("uncertainty_eval")) or UNCERTAINTY_EVAL)
+    false_alarm = flags.pop("clean_false_alarm")
+    if predictor.has_uncertainty:  # fit the sigma scale and the clean-image gate on the validation split
         calibration = calibrate(model, predictor, ds.images("val"), ds.positions("val"))
+        calibration["clean_false_alarm"] = false_alarm
+        calibration["clean_gate_px"] = flags["clean_gate_px"] = clean_gate(
+            predictor.predict_with_sigma(render_split(ds, "val", None, int(cfg.get("eval_seed", 123))).images)[1],
+            predictor.px_per_unit, false_alarm)
     test_metrics, test_pred = evaluate(predictor, ds, levels, int(cfg.get("eval_seed", 123)), cfg.occlusions,
-                                       uncertainty=_plain(cfg.get("uncertainty_eval")) or UNCERTAINTY_EVAL)
+                                       uncertainty=flags)
     best = ckpt_cb.best_model_score
     batch = int(cfg.datamodule.batch_size)
     metrics = {"dataset": f"{ds.name}-{ds.id}", "epochs": int(trainer.current_epoch),

@@ -9,6 +9,10 @@ A map trained with `model.uncertainty: gaussian` predicts, per image, a standard
   `gate_px`; reported are the share flagged, the share of frames with a real error above `error_px` that are
   flagged (detection) and the share of the others that are flagged (false alarms). In the closed loop a flagged
   frame is a camera failure (`camera.gate`): the last estimate is held.
+- **Operating point** (`clean_gate`): the gate at which a given share of *clean* images (the validation
+  positions re-rendered without clouds) is flagged, fitted on the validation split like the sigma scale; the
+  test levels then report their detection at that gate (`at_clean_gate`), i.e. the ROC point "detect the bad
+  frames at <= x% false alarms on clean images" measured without looking at the test split.
 """
 
 from __future__ import annotations
@@ -46,21 +50,36 @@ def calibrate(model, predictor, images, true: np.ndarray) -> dict:
             "val_coverage95": coverage95(pred, sigma * scale, true), "n": int(len(true))}
 
 
+def clean_gate(sigma_clean: np.ndarray, px_per_unit: float, false_alarm: float) -> float:
+    """The gate (px of predicted error) that flags a share `false_alarm` of the clean images whose predicted
+    sigmas are `sigma_clean` (at most that share; exactly, up to one image, without ties)."""
+    pred_err = np.hypot(*(np.asarray(sigma_clean, np.float64) * px_per_unit).T)
+    k = int(np.floor(false_alarm * len(pred_err) + 1e-9))  # images it may flag: those strictly above the gate
+    return float(np.sort(pred_err)[len(pred_err) - k - 1])
+
+
+def _rates(flagged: np.ndarray, bad: np.ndarray) -> dict:
+    return {"flagged": float(flagged.mean()) if len(flagged) else None,
+            "detected": float(flagged[bad].mean()) if bad.any() else None,  # flagged among frames with error > error_px
+            "false_alarm": float(flagged[~bad].mean()) if (~bad).any() else None}  # flagged among the others
+
+
 def flag_metrics(pred: np.ndarray, sigma: np.ndarray, true: np.ndarray, px_per_unit: float, *,
-                 error_px: float, gate_px: float) -> dict:
-    """Coverage of the 95% ellipse, and how well `predicted error > gate_px` flags `real error > error_px`."""
+                 error_px: float, gate_px: float, clean_gate_px: float | None = None) -> dict:
+    """Coverage of the 95% ellipse, and how well `predicted error > gate_px` flags `real error > error_px`
+    (and, given `clean_gate_px` from :func:`clean_gate`, the same rates at that gate under `at_clean_gate`)."""
     err = np.hypot(*((np.asarray(pred) - np.asarray(true)) * px_per_unit).T)
     pred_err = np.hypot(*(np.asarray(sigma) * px_per_unit).T)
     flagged = pred_err > gate_px
     bad = err > error_px
+    extra = {} if clean_gate_px is None else {
+        "at_clean_gate": {"gate_px": float(clean_gate_px), **_rates(pred_err > clean_gate_px, bad)}}
     return {
         "coverage95": coverage95(pred, sigma, true),
         "predicted_error_median_px": float(np.median(pred_err)) if len(err) else None,
-        "flagged": float(flagged.mean()) if len(err) else None,
-        "detected": float(flagged[bad].mean()) if bad.any() else None,  # flagged among frames with error > error_px
-        "false_alarm": float(flagged[~bad].mean()) if (~bad).any() else None,  # flagged among the others
+        **_rates(flagged, bad),
         "bad_share": float(bad.mean()) if len(err) else None,
         "mae_unflagged_px": float(np.abs((np.asarray(pred) - np.asarray(true))[~flagged] * px_per_unit).mean())
         if (~flagged).any() else None,
-        "error_px": float(error_px), "gate_px": float(gate_px),
+        "error_px": float(error_px), "gate_px": float(gate_px), **extra,
     }
