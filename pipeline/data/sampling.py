@@ -260,8 +260,9 @@ def _grid(rng: np.random.Generator, n: int, camera: Camera, recipe: Recipe) -> n
 def _followers(rng: np.random.Generator, leader: np.ndarray, camera: Camera, recipe: Recipe) -> np.ndarray:
     """Follower positions: uniform over the box (or within `max_distance` of the leader), at least
     `min_distance` from the leader so that the two squares do not overlap; then a share `near_share` of the
-    rows moved uniformly into the disc of radius `near_distance` around the leader (overlapping squares
-    included: where every leader-follower run ends, the follower on its target). No extra draws at share 0."""
+    rows moved within `near_distance` of the leader, the distance uniform (so squares that overlap, even
+    exactly, are as common as near misses: every leader-follower run ends with the follower on its target,
+    and a green fringe around the leader moved a map's estimate by 2 units). No extra draws at share 0."""
     lo, hi = _box(camera, recipe)
     n = len(leader)
     out = np.empty_like(leader)
@@ -295,7 +296,7 @@ def _near_followers(rng: np.random.Generator, out: np.ndarray, leader: np.ndarra
         return out
     lo, hi = _box(camera, recipe)
     rows = np.flatnonzero(rng.random(len(leader)) < recipe.follower_near_share)
-    r = recipe.follower_near_distance * np.sqrt(rng.uniform(0.0, 1.0, rows.size))
+    r = recipe.follower_near_distance * rng.uniform(0.0, 1.0, rows.size)  # uniform in distance: overlaps are common
     ang = rng.uniform(0, 2 * math.pi, rows.size)
     near = np.clip(leader[rows] + np.stack([r * np.cos(ang), r * np.sin(ang)], axis=1), lo, hi)
     keep = _allowed(near, camera, recipe)  # off the obstacle when the recipe excludes it: the far draw stays
