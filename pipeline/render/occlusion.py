@@ -302,7 +302,14 @@ def load_occlusion(level, levels=None, field: str = "occlusion") -> Occlusion:
             raise ConfigError(field, f"unknown occlusion level {level!r}; known: {', '.join(levels.keys())}")
         from pipeline.config import build
 
-        return build(levels[level], f"occlusions.{level}")
+        try:
+            return build(levels[level], f"occlusions.{level}")
+        except ConfigError as err:  # a key that follows another level (heavy_mix: ${..heavy.opacity}): name that one
+            key = err.field.rsplit(".", 1)[-1]
+            raw = levels[level]._get_node(key)._value() if key in levels[level] else None
+            if isinstance(raw, str) and raw.startswith("${..") and raw.endswith("}"):
+                raise ConfigError(f"occlusions.{raw[4:-1]}", f"{err.reason} (used by occlusions.{level})") from None
+            raise
     from pipeline.tracking import to_plain
 
     return Occlusion.from_config({k: v for k, v in (to_plain(level) or {}).items() if k != "_target_"})
