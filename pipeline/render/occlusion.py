@@ -306,7 +306,9 @@ def load_occlusion(level, levels=None, field: str = "occlusion") -> Occlusion:
             return build(levels[level], f"occlusions.{level}")
         except ConfigError as err:  # a key that follows another level (heavy_mix: ${..heavy.opacity}): name that one
             key = err.field.rsplit(".", 1)[-1]
-            raw = levels[level]._get_node(key)._value() if key in levels[level] else None
+            from omegaconf import OmegaConf
+
+            raw = (OmegaConf.to_container(levels[level], resolve=False) or {}).get(key)
             if isinstance(raw, str) and raw.startswith("${..") and raw.endswith("}"):
                 raise ConfigError(f"occlusions.{raw[4:-1]}", f"{err.reason} (used by occlusions.{level})") from None
             raise

@@ -52,10 +52,10 @@ PLACEMENT_KEYS = ("_target_", "accelerator", "strategy", "devices", "num_nodes",
                   "plugins", "enable_autolog_hparams", "model_registry")
 # DataModule arguments that change speed only.
 DATAMODULE_SPEED_KEYS = ("_target_", "eval_batch_size", "num_workers", "pin_memory")
-# Callbacks that change the saved weights, and which of their arguments do.
 # flag rates: real error above error_px, flag above gate_px; and at the gate that flags clean_false_alarm of the
 # clean validation images (the operating point of issue 11: detection at <= 10% false alarms on clean images)
 UNCERTAINTY_EVAL = {"error_px": 3.0, "gate_px": 3.0, "clean_false_alarm": 0.1}
+# Callbacks that change the saved weights, and which of their arguments do.
 _WEIGHT_CALLBACKS = {"ModelCheckpoint": ("monitor", "mode"), "EarlyStopping": None}  # None = all arguments
 _GPU_ACCELERATORS = ("gpu", "cuda")
 
