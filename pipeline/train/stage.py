@@ -243,7 +243,7 @@ def evaluate(predictor, ds, levels, seed: int, occlusions=None, near_radius: flo
              hidden_alpha: float = HIDDEN_ALPHA, uncertainty: dict | None = None) -> tuple[dict, np.ndarray]:
     """Test metrics on the dataset's own test split and on its test positions re-rendered per level (each with
     the near-target and visible/hidden splits of `perception_metrics`, and for a map with an uncertainty head
-    the coverage and flag rates of `flag_metrics` with `uncertainty = {error_px, gate_px}`); also returns the
+    the coverage and flag rates of `flag_metrics` with `uncertainty = {error_px, gate_px[, clean_gate_px]}`); also returns the
     test predictions."""
     from pipeline.control import Scene
     from pipeline.render import load_occlusion
