@@ -62,6 +62,8 @@ def test_fast_dev_run_reload_and_noop(tiny):
     from pipeline.train.uncertainty import clean_gate
 
     metrics = json.loads((folder / "metrics.json").read_text())
+    # the variance head is fitted after the position network, on every training image
+    assert metrics["calibration"]["variance_head"]["images"] == len(ds.positions("train"))
     _, sigma = pm.predict_with_sigma(render_split(ds, "val", None, 123).images)
     gate = clean_gate(sigma, pm.px_per_unit, cfg.uncertainty_eval.clean_false_alarm)
     assert metrics["calibration"]["clean_gate_px"] == pytest.approx(gate, rel=1e-5)

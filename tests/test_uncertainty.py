@@ -15,7 +15,7 @@ from pipeline.experiments.measure import CameraMeasure
 from pipeline.sim import simulate
 from pipeline.train.model import PerceptionMap, gaussian_nll
 from pipeline.train.predict import PerceptionMapPredictor
-from pipeline.train.uncertainty import calibrate, clean_gate, coverage95, flag_metrics
+from pipeline.train.uncertainty import calibrate, clean_gate, coverage95, fit_variance_head, flag_metrics
 
 
 @settings(max_examples=40, deadline=None)
@@ -54,6 +54,13 @@ def test_gaussian_head_learns_the_known_noise_and_calibrates():
                                      batch_size=256, shuffle=True)
     L.Trainer(max_epochs=25, accelerator="cpu", logger=False, enable_checkpointing=False,
               enable_progress_bar=False, enable_model_summary=False).fit(model, dl)
+    head_before = [p.clone() for p in model.var_head.parameters()]
+    position_before = [p.clone() for p in model.head.parameters()]
+    fit = fit_variance_head(model, images, pos, seed=0, log=lambda _: None)
+    assert fit["images"] == len(images) and np.isfinite(fit["train_nll"])
+    # the fit moves the variance head only
+    assert any(not torch.equal(a, b) for a, b in zip(head_before, model.var_head.parameters()))
+    assert all(torch.equal(a, b) for a, b in zip(position_before, model.head.parameters()))
     model.eval()
     pm = PerceptionMapPredictor(model)
     val_i, val_p, _ = _synthetic(2000, 1)
@@ -167,3 +174,27 @@ def test_the_head_never_changes_the_position_estimate():
                   enable_progress_bar=False, enable_model_summary=False).fit(model, dl)
         preds.append(PerceptionMapPredictor(model.eval()).predict(images))
     np.testing.assert_allclose(preds[0], preds[1], atol=1e-5)
+
+
+def test_maps_saved_before_the_fitted_head_load_or_say_why(tmp_path):
+    """Maps saved when the variance head trained beside the position carry `nll_weight`: one without the head
+    loads and predicts as saved; one with the earlier head is refused with its name, not a state-dict error."""
+    import json
+
+    from pipeline.errors import ModelError
+    from pipeline.train.predict import load_perception_map
+
+    images = _synthetic(8, 4)[0]
+    for unc in ("none", "gaussian"):
+        model = PerceptionMap(image_shape=[16, 16, 3], arena=[[-10, 10], [-10, 10]], filters=[4], uncertainty=unc)
+        folder = tmp_path / f"old_{unc}-0123456789"
+        folder.mkdir()
+        torch.save({"hparams": {**dict(model.hparams), "nll_weight": 1.0}, "state_dict": model.state_dict()},
+                   folder / "model.pt")
+        (folder / "manifest.json").write_text(json.dumps({"id": "0123456789"}))
+        if unc == "none":
+            np.testing.assert_array_equal(load_perception_map(folder, device="cpu").predict(images),
+                                          PerceptionMapPredictor(model.eval()).predict(images))
+        else:
+            with pytest.raises(ModelError, match="old_gaussian-0123456789.*earlier uncertainty head"):
+                load_perception_map(folder, device="cpu")

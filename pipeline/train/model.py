@@ -19,8 +19,15 @@ from pipeline.errors import ConfigError, ModelError
 
 UNCERTAINTY = ("none", "gaussian")
 CHI2_2_95 = 5.991464547107979  # 95% quantile of chi^2 with 2 degrees of freedom: the 95% ellipse of a 2-D Gaussian
-_LOGVAR_RANGE = (-14.0, 2.0)  # normalised coordinates: sigma from ~1e-3 (0.05 px) to ~3 half-arenas
+LOGVAR_RANGE = (-14.0, 2.0)  # normalised coordinates: sigma from ~1e-3 (0.05 px) to ~3 half-arenas
 VAR_HIDDEN = 64  # units of the variance head's hidden layer
+THUMB_SCALE = 10.0  # the variance head's thumbnail (input in [-0.5, 0.5]) scaled to the features' magnitude
+
+
+def thumbnail(x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+    """The colour image `x` (N, 3+, H, W, in [-0.5, 0.5]) averaged down to the feature grid `size`, flattened
+    and scaled: where the clouds are, for the variance head (the position's features learn to ignore them)."""
+    return nn.functional.adaptive_avg_pool2d(x[:, :3], size).flatten(1).mul_(THUMB_SCALE)
 
 
 def gaussian_nll(logvar: torch.Tensor, sq_residual: torch.Tensor) -> torch.Tensor:
@@ -35,7 +42,8 @@ def _is_num(v) -> bool:
 
 
 def _validate(*, image_shape, arena, filters, batch_norm, hidden, dropout, lr, weight_decay, schedule, loss,
-              coord_channels, clamp, name, uncertainty, nll_weight) -> None:
+              coord_channels, clamp, name, uncertainty, uncertainty_epochs, uncertainty_lr,
+              uncertainty_batch_size) -> None:
     """Every constructor argument checked before anything is built: one `ConfigError` naming the field."""
     def bad(field: str, reason: str, value) -> ConfigError:
         return ConfigError(f"model.{field}", f"{reason}, got {value!r}")
@@ -70,8 +78,13 @@ def _validate(*, image_shape, arena, filters, batch_norm, hidden, dropout, lr, w
         raise bad("loss", "must be mse, l1 or smooth_l1", loss)
     if uncertainty not in UNCERTAINTY:
         raise bad("uncertainty", f"must be one of {', '.join(UNCERTAINTY)}", uncertainty)
-    if not _is_num(nll_weight) or not nll_weight > 0:
-        raise bad("nll_weight", "must be a positive number", nll_weight)
+    if isinstance(uncertainty_epochs, bool) or not isinstance(uncertainty_epochs, int) or uncertainty_epochs < 1:
+        raise bad("uncertainty_epochs", "must be an integer >= 1", uncertainty_epochs)
+    if not _is_num(uncertainty_lr) or not uncertainty_lr > 0:
+        raise bad("uncertainty_lr", "must be a positive number", uncertainty_lr)
+    if (isinstance(uncertainty_batch_size, bool) or not isinstance(uncertainty_batch_size, int)
+            or uncertainty_batch_size < 1):
+        raise bad("uncertainty_batch_size", "must be an integer >= 1", uncertainty_batch_size)
     if not isinstance(name, str) or not name or "/" in name or "\\" in name or name.startswith("."):
         raise bad("name", "must be a non-empty name without '/', '\\' or a leading '.'", name)
 
@@ -106,13 +119,16 @@ class PerceptionMap(L.LightningModule):
         clamp: bool = True,
         name: str = "perception_map",
         uncertainty: str = "none",
-        nll_weight: float = 1.0,
+        uncertainty_epochs: int = 10,
+        uncertainty_lr: float = 2e-3,
+        uncertainty_batch_size: int = 128,
     ):
         super().__init__()
         _validate(image_shape=image_shape, arena=arena, filters=filters, batch_norm=batch_norm, hidden=hidden,
                   dropout=dropout, lr=lr, weight_decay=weight_decay, schedule=schedule, loss=loss,
                   coord_channels=coord_channels, clamp=clamp, name=name, uncertainty=uncertainty,
-                  nll_weight=nll_weight)
+                  uncertainty_epochs=uncertainty_epochs, uncertainty_lr=uncertainty_lr,
+                  uncertainty_batch_size=uncertainty_batch_size)
         self.save_hyperparameters()
         h, w, _ = (int(s) for s in image_shape)
         self.image_shape = (h, w, 3)
@@ -141,14 +157,19 @@ class PerceptionMap(L.LightningModule):
             head += [nn.Linear(flat, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, 2)]
         else:
             head += [nn.Linear(flat, 2)]
-        # `uncertainty: gaussian`: a second head on the DETACHED features predicts the log variance of each
-        # normalised coordinate; it learns from the position's error and never changes the position estimate
-        # (initialised on a forked random stream: dropout masks and everything after are those of a map without it)
+        # `uncertainty: gaussian`: a second head on the features predicts the log variance of each normalised
+        # coordinate. It is fitted AFTER the position network (`pipeline.train.uncertainty.fit_variance_head`, on
+        # the trained network's eval-mode features and errors), so it is frozen during training and never changes
+        # the position estimate (initialised on a forked random stream: dropout masks and everything after are
+        # those of a map without it)
+        # It reads the features and a thumbnail of the image on the feature grid (`thumbnail`).
         self.var_head = None
+        self.thumb_size = (fh, fw)
         if uncertainty == "gaussian":
             with torch.random.fork_rng(devices=[]):
-                self.var_head = nn.Sequential(nn.Flatten(), nn.Linear(flat, VAR_HIDDEN), nn.ReLU(inplace=True),
+                self.var_head = nn.Sequential(nn.Linear(flat + 3 * fh * fw, VAR_HIDDEN), nn.ReLU(inplace=True),
                                               nn.Linear(VAR_HIDDEN, 2))
+            self.var_head.requires_grad_(False)  # not a parameter of the position fit (DDP ignores frozen ones)
         # calibration of the predicted sigma on the validation split (set after training; 1 = raw NLL sigma)
         self.register_buffer("sigma_scale", torch.ones(()))
         self.head = nn.Sequential(*head)
@@ -180,30 +201,23 @@ class PerceptionMap(L.LightningModule):
 
     def normalised(self, images: torch.Tensor) -> torch.Tensor:
         """Raw head outputs: normalised position (and log variances with `uncertainty: gaussian`)."""
-        f = self.features(self.prepare(images))
+        x = self.prepare(images)
+        f = self.features(x)
         z = self.head(f)
-        return z if self.var_head is None else torch.cat([z, self.var_head(f.detach())], 1)
+        return z if self.var_head is None else torch.cat([z, self.var_head(self.variance_inputs(x, f))], 1)
+
+    def variance_inputs(self, x: torch.Tensor, f: torch.Tensor) -> torch.Tensor:
+        """What the variance head reads: the (detached) features and the thumbnail of the prepared images `x`."""
+        return torch.cat([f.detach().flatten(1), thumbnail(x, self.thumb_size)], 1)
 
     # -------------------------------------------------------------------------------- training
     def _step(self, batch, stage: str):
         images, pos = batch
         target = (pos - self.center) / self.half_range
-        out = self.normalised(images)
-        pred_n = out[:, :2]
+        pred_n = self.head(self.features(self.prepare(images)))  # the variance head is fitted afterwards
         loss = self._loss(pred_n, target)
         err_px = (pred_n.detach() - target) * self.half_range * self.px_per_unit
         sync = stage != "train"  # epoch metrics over every rank's share of the split (a no-op on one device)
-        if self.uncertainty == "gaussian":
-            # the variance head (on detached features) learns the squared error of the detached position: the
-            # position and the features are trained by `loss` alone, their accuracy does not trade against it
-            logvar = out[:, 2:].clamp(*_LOGVAR_RANGE)
-            sq = (pred_n.detach() - target) ** 2
-            nll = gaussian_nll(logvar, sq)
-            loss = loss + self.hparams.nll_weight * nll
-            maha2 = (sq * torch.exp(-logvar)).sum(1)
-            self.log(f"{stage}_nll", nll, on_epoch=True, on_step=False, batch_size=len(pos), sync_dist=sync)
-            self.log(f"{stage}_coverage95", (maha2 <= CHI2_2_95).float().mean(), on_epoch=True, on_step=False,
-                     batch_size=len(pos), sync_dist=sync)
         self.log(f"{stage}_loss", loss, prog_bar=stage != "train", on_epoch=True, on_step=stage == "train",
                  batch_size=len(pos), sync_dist=sync)
         self.log(f"{stage}_mae", err_px.abs().mean(), prog_bar=True, on_epoch=True, on_step=False,
@@ -250,7 +264,7 @@ def _to_world(z: torch.Tensor, center, half_range, sigma_scale, clamp: bool) -> 
     pos = pos * half_range + center
     if z.shape[1] == 2:
         return pos
-    sigma = torch.exp(0.5 * z[:, 2:].clamp(*_LOGVAR_RANGE)) * half_range * sigma_scale
+    sigma = torch.exp(0.5 * z[:, 2:].clamp(*LOGVAR_RANGE)) * half_range * sigma_scale
     return torch.cat([pos, sigma], 1)
 
 
@@ -286,8 +300,8 @@ class FoldedPerceptionNet(nn.Module):
                 conv.bias.copy_(bk)
             self.convs.append(conv)
         self.head = nn.Sequential(*[m for m in model.head if not isinstance(m, nn.Flatten | nn.Dropout)])
-        self.var_head = (None if model.var_head is None else
-                         nn.Sequential(*[m for m in model.var_head if not isinstance(m, nn.Flatten)]))
+        self.var_head = None if model.var_head is None else nn.Sequential(*model.var_head)
+        self.thumb_size = model.thumb_size
         self.register_buffer("center", model.center.detach().clone())
         self.register_buffer("half_range", model.half_range.detach().clone())
         self.register_buffer("sigma_scale", model.sigma_scale.detach().clone())
@@ -296,13 +310,18 @@ class FoldedPerceptionNet(nn.Module):
         self.to(memory_format=torch.channels_last).requires_grad_(False).eval()
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
-        x = images.permute(0, 3, 1, 2).to(torch.float32)  # NHWC uint8 -> NCHW float in channels_last memory
-        x = nn.functional.conv2d(x, self.w0, None, padding=1).add_(self.bias_map)
+        img = images.permute(0, 3, 1, 2).to(torch.float32)  # NHWC uint8 -> NCHW float in channels_last memory
+        x = nn.functional.conv2d(img, self.w0, None, padding=1).add_(self.bias_map)
         x = nn.functional.max_pool2d(nn.functional.relu_(x), 2)
         for conv in self.convs:
             x = nn.functional.max_pool2d(nn.functional.relu_(conv(x)), 2)
         f = x.flatten(1)
-        z = self.head(f) if self.var_head is None else torch.cat([self.head(f), self.var_head(f)], 1)
+        if self.var_head is None:
+            z = self.head(f)
+        else:
+            thumb = nn.functional.adaptive_avg_pool2d(img, self.thumb_size).flatten(1)  # `thumbnail` of [0, 255]
+            thumb = (thumb * (1.0 / 255.0) - 0.5) * THUMB_SCALE
+            z = torch.cat([self.head(f), self.var_head(torch.cat([f, thumb], 1))], 1)
         return _to_world(z, self.center, self.half_range, self.sigma_scale, self.clamp)
 
 

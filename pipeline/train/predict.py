@@ -177,7 +177,13 @@ def load_perception_map(ref, models_dir=None, *, verify: bool = False, device="a
             raise ModelError(f"perception map {folder.name} fails verification: {problems[0]}")
     manifest = tracking.read_manifest(folder)
     blob = torch.load(folder / "model.pt", map_location="cpu", weights_only=True)
-    model = PerceptionMap(**blob["hparams"])
+    hparams = dict(blob["hparams"])
+    if "nll_weight" in hparams:  # saved when the variance head trained beside the position (PerceptionMap's history)
+        if hparams.get("uncertainty") == "gaussian":
+            raise ModelError(f"perception map {folder.name} has the earlier uncertainty head (trained beside the "
+                             "position, on the features alone); retrain it with the current config")
+        del hparams["nll_weight"]  # a map without the head: the key only weighted a loss it never had
+    model = PerceptionMap(**hparams)
     state = blob["state_dict"]
     state.setdefault("sigma_scale", torch.ones(()))  # maps saved before the uncertainty option
     model.load_state_dict(state)

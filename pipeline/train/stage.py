@@ -40,7 +40,7 @@ from pipeline.train.metrics import (  # noqa: F401
     error_metrics,
     perception_metrics,
 )
-from pipeline.train.uncertainty import calibrate, clean_gate, flag_metrics
+from pipeline.train.uncertainty import calibrate, clean_gate, fit_variance_head, flag_metrics
 
 log = logging.getLogger(__name__)
 
@@ -458,16 +458,21 @@ def run(cfg) -> dict:
     if best_path and Path(best_path).is_file():
         state = torch.load(best_path, map_location="cpu", weights_only=False)["state_dict"]
         model.load_state_dict(state)
+    device = resolve_device(cfg.get("device", "auto"))
+    variance_fit = None
+    if model.var_head is not None:  # the uncertainty head learns the trained network's own errors
+        variance_fit = fit_variance_head(model, ds.images("train"), ds.positions("train"), seed=seed, device=device)
     model = model.to("cpu").eval()
     hparams = {k: v for k, v in _plain(model.hparams).items() if k not in ("image_shape", "arena")}
     predictor = PerceptionMapPredictor(model, manifest={"dataset_id": ds.id, "scene": ds.manifest["scene"],
                                                         "render": ds.manifest["render"]},
-                                       device=resolve_device(cfg.get("device", "auto")))
+                                       device=device)
     calibration = None
     flags = dict(_plain(cfg.get("uncertainty_eval")) or UNCERTAINTY_EVAL)
     false_alarm = flags.pop("clean_false_alarm")
     if predictor.has_uncertainty:  # fit the sigma scale and the clean-image gate on the validation split
-        calibration = calibrate(model, predictor, ds.images("val"), ds.positions("val"))
+        calibration = {"variance_head": variance_fit,
+                       **calibrate(model, predictor, ds.images("val"), ds.positions("val"))}
         calibration["clean_false_alarm"] = false_alarm
         calibration["clean_gate_px"] = flags["clean_gate_px"] = clean_gate(
             predictor.predict_with_sigma(render_split(ds, "val", None, int(cfg.get("eval_seed", 123))).images)[1],

@@ -1,6 +1,12 @@
 """Maps that know when they can't see (issue 11 §2): calibration of the predicted sigma, and its use as a flag.
 
 A map trained with `model.uncertainty: gaussian` predicts, per image, a standard deviation for each coordinate.
+- **Fit** (`fit_variance_head`, after the position network is trained): the variance head learns, by Gaussian
+  negative log-likelihood, the squared error of the *trained* network on the training split, in eval mode
+  (BatchNorm's running statistics, no dropout): the error the closed loop will see. Trained side by side with
+  the position instead, it learned the error of a moving, dropout-noised network, which hides what makes a
+  frame hard: on heavy clouds it caught 66% of the frames with > 3 px error at the clean-image gate, against
+  about 90% for the same head fitted afterwards (docs/train.md).
 - **Calibration** (`calibrate`, on the validation split after training): the share of validation images whose
   error falls inside the predicted 95% ellipse (`sum((e_i / s_i)^2) <= chi2_2(0.95)`) is measured with the raw
   sigmas, then one scale factor `c` is fitted so that exactly 95% do (`c^2 = q95(mahalanobis^2) / chi2_2(0.95)`)
@@ -17,10 +23,68 @@ A map trained with `model.uncertainty: gaussian` predicts, per image, a standard
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import torch
 
-from pipeline.train.model import CHI2_2_95
+from pipeline.train.model import CHI2_2_95, LOGVAR_RANGE, gaussian_nll
+
+_FEATURE_BATCH = 1024  # images per forward pass while collecting the features
+
+
+@torch.no_grad()
+def _features_and_errors(model, images, positions, device) -> tuple[torch.Tensor, torch.Tensor]:
+    """The variance head's eval-mode inputs `(N, F)` (features and thumbnail) and the squared normalised position
+    errors `(N, 2)`, on the CPU."""
+    n = len(images)
+    feats = sq = None
+    for i in range(0, n, _FEATURE_BATCH):
+        x = torch.from_numpy(np.asarray(images[i:i + _FEATURE_BATCH])).to(device)
+        xp = model.prepare(x)
+        f = model.features(xp)
+        target = (torch.as_tensor(np.asarray(positions[i:i + _FEATURE_BATCH]), dtype=torch.float32, device=device)
+                  - model.center) / model.half_range
+        inputs = model.variance_inputs(xp, f)
+        if feats is None:  # preallocated: the inputs of a large split are held once, not twice
+            feats, sq = torch.empty(n, inputs.shape[1]), torch.empty(n, 2)
+        feats[i:i + len(f)] = inputs.cpu()
+        sq[i:i + len(f)] = ((model.head(f) - target) ** 2).cpu()
+    return feats, sq
+
+
+def fit_variance_head(model, images, positions, *, seed: int, device="cpu", log=print) -> dict:
+    """Fit `model.var_head` (Gaussian NLL of the trained network's own errors) on `images`/`positions` (the
+    training split), with the model's `uncertainty_epochs`, `uncertainty_lr` (one-cycle) and
+    `uncertainty_batch_size`; the position network is not touched. Deterministic for a seed. The features are
+    held in memory: `N x F x 4` bytes (48k images of the default map: 1 GB). Returns a summary for metrics.json."""
+    hp = model.hparams
+    t0 = time.perf_counter()
+    model.eval().to(device)
+    feats, sq = _features_and_errors(model, images, positions, device)
+    n, bs, epochs = len(feats), int(hp.uncertainty_batch_size), int(hp.uncertainty_epochs)
+    steps = max(1, n // bs)
+    head = model.var_head.to(device).requires_grad_(True)
+    opt = torch.optim.Adam(head.parameters(), lr=float(hp.uncertainty_lr))
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=float(hp.uncertainty_lr),
+                                                total_steps=max(2, epochs * steps), pct_start=0.15)
+    gen = torch.Generator().manual_seed(int(seed))
+    log(f"[train] fitting the uncertainty head on {n} training images ({epochs} epochs)")
+    nll = float("nan")
+    for _ in range(epochs):
+        perm, total = torch.randperm(n, generator=gen), 0.0
+        for k in range(steps):
+            idx = perm[k * bs:(k + 1) * bs] if n >= bs else perm
+            logvar = head(feats[idx].to(device)).clamp(*LOGVAR_RANGE)
+            loss = gaussian_nll(logvar, sq[idx].to(device))
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            sched.step()
+            total += float(loss.detach())
+        nll = total / steps
+    head.requires_grad_(False)
+    return {"images": n, "epochs": epochs, "train_nll": nll, "seconds": round(time.perf_counter() - t0, 1)}
 
 
 def mahalanobis2(pred: np.ndarray, sigma: np.ndarray, true: np.ndarray) -> np.ndarray:
