@@ -40,7 +40,7 @@ def _features_and_errors(model, images, positions, device) -> tuple[torch.Tensor
     n = len(images)
     feats = sq = None
     for i in range(0, n, _FEATURE_BATCH):
-        x = torch.from_numpy(np.asarray(images[i:i + _FEATURE_BATCH])).to(device)
+        x = torch.from_numpy(np.array(images[i:i + _FEATURE_BATCH])).to(device)  # a copy: memmaps are read-only
         xp = model.prepare(x)
         f = model.features(xp)
         target = (torch.as_tensor(np.asarray(positions[i:i + _FEATURE_BATCH]), dtype=torch.float32, device=device)
