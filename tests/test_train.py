@@ -64,8 +64,10 @@ def test_fast_dev_run_reload_and_noop(tiny):
     metrics = json.loads((folder / "metrics.json").read_text())
     # the variance head is fitted after the position network, on every training image
     assert metrics["calibration"]["variance_head"]["images"] == len(ds.positions("train"))
-    _, sigma = pm.predict_with_sigma(render_split(ds, "val", None, 123).images)
-    gate = clean_gate(sigma, pm.px_per_unit, cfg.uncertainty_eval.clean_false_alarm)
+    pred, sigma = pm.predict_with_sigma(render_split(ds, "val", None, 123).images)
+    good = np.hypot(*((pred - ds.positions("val")) * pm.px_per_unit).T) <= cfg.uncertainty_eval.error_px
+    assert 0 < good.sum()
+    gate = clean_gate(sigma, pm.px_per_unit, cfg.uncertainty_eval.clean_false_alarm, good)
     assert metrics["calibration"]["clean_gate_px"] == pytest.approx(gate, rel=1e-5)
     assert metrics["heavy"]["uncertainty"]["at_clean_gate"]["gate_px"] == metrics["calibration"]["clean_gate_px"]
     # by name: the map the *default* train config makes (not built here), never the newest folder

@@ -100,6 +100,12 @@ def test_clean_gate_flags_the_requested_share_of_clean_images(seed, n, fa, px):
     g = clean_gate(sigma, px, fa)
     share = float((np.hypot(*(sigma * px).T) > g).mean())
     assert fa - 1.0 / n - 1e-12 <= share <= fa + 1e-12
+    # with a `good` mask the share is that of the good frames (the false alarms); the others do not count
+    good = rng.random(n) < 0.7
+    if good.any():
+        g_good = clean_gate(sigma, px, fa, good)
+        flagged_good = np.hypot(*(sigma[good] * px).T) > g_good
+        assert fa - 1.0 / good.sum() - 1e-12 <= flagged_good.mean() <= fa + 1e-12
     # at_clean_gate is the flag rates at that gate: the same numbers as gate_px = g
     true = rng.normal(0.0, 1.0, (n, 2))
     pred = true + rng.normal(0.0, 1.0, (n, 2)) * sigma

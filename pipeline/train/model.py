@@ -25,8 +25,8 @@ THUMB_SCALE = 10.0  # the variance head's thumbnail (input in [-0.5, 0.5]) scale
 
 
 def thumbnail(x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
-    """The colour image `x` (N, 3+, H, W, in [-0.5, 0.5]) averaged down to the feature grid `size`, flattened
-    and scaled: where the clouds are, for the variance head (the position's features learn to ignore them)."""
+    """The colour image `x` (N, 3+, H, W, in [-0.5, 0.5]) averaged down to `size`, flattened and scaled: where
+    the clouds are, for the variance head (the position's features learn to ignore them)."""
     return nn.functional.adaptive_avg_pool2d(x[:, :3], size).flatten(1).mul_(THUMB_SCALE)
 
 
@@ -43,7 +43,7 @@ def _is_num(v) -> bool:
 
 def _validate(*, image_shape, arena, filters, batch_norm, hidden, dropout, lr, weight_decay, schedule, loss,
               coord_channels, clamp, name, uncertainty, uncertainty_epochs, uncertainty_lr,
-              uncertainty_batch_size) -> None:
+              uncertainty_batch_size, uncertainty_thumbnail) -> None:
     """Every constructor argument checked before anything is built: one `ConfigError` naming the field."""
     def bad(field: str, reason: str, value) -> ConfigError:
         return ConfigError(f"model.{field}", f"{reason}, got {value!r}")
@@ -85,6 +85,10 @@ def _validate(*, image_shape, arena, filters, batch_norm, hidden, dropout, lr, w
     if (isinstance(uncertainty_batch_size, bool) or not isinstance(uncertainty_batch_size, int)
             or uncertainty_batch_size < 1):
         raise bad("uncertainty_batch_size", "must be an integer >= 1", uncertainty_batch_size)
+    if (isinstance(uncertainty_thumbnail, bool) or not isinstance(uncertainty_thumbnail, int)
+            or not 1 <= uncertainty_thumbnail <= min(image_shape[:2])):
+        raise bad("uncertainty_thumbnail", f"must be an integer in [1, {min(image_shape[:2])}] (pixels per side of "
+                  "a thumbnail cell)", uncertainty_thumbnail)
     if not isinstance(name, str) or not name or "/" in name or "\\" in name or name.startswith("."):
         raise bad("name", "must be a non-empty name without '/', '\\' or a leading '.'", name)
 
@@ -122,13 +126,14 @@ class PerceptionMap(L.LightningModule):
         uncertainty_epochs: int = 10,
         uncertainty_lr: float = 2e-3,
         uncertainty_batch_size: int = 128,
+        uncertainty_thumbnail: int = 4,
     ):
         super().__init__()
         _validate(image_shape=image_shape, arena=arena, filters=filters, batch_norm=batch_norm, hidden=hidden,
                   dropout=dropout, lr=lr, weight_decay=weight_decay, schedule=schedule, loss=loss,
                   coord_channels=coord_channels, clamp=clamp, name=name, uncertainty=uncertainty,
                   uncertainty_epochs=uncertainty_epochs, uncertainty_lr=uncertainty_lr,
-                  uncertainty_batch_size=uncertainty_batch_size)
+                  uncertainty_batch_size=uncertainty_batch_size, uncertainty_thumbnail=uncertainty_thumbnail)
         self.save_hyperparameters()
         h, w, _ = (int(s) for s in image_shape)
         self.image_shape = (h, w, 3)
@@ -162,12 +167,13 @@ class PerceptionMap(L.LightningModule):
         # the trained network's eval-mode features and errors), so it is frozen during training and never changes
         # the position estimate (initialised on a forked random stream: dropout masks and everything after are
         # those of a map without it)
-        # It reads the features and a thumbnail of the image on the feature grid (`thumbnail`).
+        # It reads the features and a thumbnail of the image (`thumbnail`: cells of uncertainty_thumbnail px).
         self.var_head = None
-        self.thumb_size = (fh, fw)
+        self.thumb_size = (h // int(uncertainty_thumbnail), w // int(uncertainty_thumbnail))
         if uncertainty == "gaussian":
+            thumb = 3 * self.thumb_size[0] * self.thumb_size[1]
             with torch.random.fork_rng(devices=[]):
-                self.var_head = nn.Sequential(nn.Linear(flat + 3 * fh * fw, VAR_HIDDEN), nn.ReLU(inplace=True),
+                self.var_head = nn.Sequential(nn.Linear(flat + thumb, VAR_HIDDEN), nn.ReLU(inplace=True),
                                               nn.Linear(VAR_HIDDEN, 2))
             self.var_head.requires_grad_(False)  # not a parameter of the position fit (DDP ignores frozen ones)
         # calibration of the predicted sigma on the validation split (set after training; 1 = raw NLL sigma)

@@ -15,10 +15,12 @@ A map trained with `model.uncertainty: gaussian` predicts, per image, a standard
   `gate_px`; reported are the share flagged, the share of frames with a real error above `error_px` that are
   flagged (detection) and the share of the others that are flagged (false alarms). In the closed loop a flagged
   frame is a camera failure (`camera.gate`): the last estimate is held.
-- **Operating point** (`clean_gate`): the gate at which a given share of *clean* images (the validation
-  positions re-rendered without clouds) is flagged, fitted on the validation split like the sigma scale; the
-  test levels then report their detection at that gate (`at_clean_gate`), i.e. the ROC point "detect the bad
-  frames at <= x% false alarms on clean images" measured without looking at the test split.
+- **Operating point** (`clean_gate`): the gate at which a given share of the *clean* images' good frames (the
+  validation positions re-rendered without clouds, whose real error is at most `error_px`) is flagged: the
+  false-alarm rate on clean images. A clean frame with a large error is a frame worth flagging, not a false
+  alarm. Fitted on the validation split like the sigma scale; the test levels then report their detection at
+  that gate (`at_clean_gate`), i.e. the ROC point "detect the bad frames at <= x% false alarms on clean
+  images" measured without looking at the test split.
 """
 
 from __future__ import annotations
@@ -114,10 +116,16 @@ def calibrate(model, predictor, images, true: np.ndarray) -> dict:
             "val_coverage95": coverage95(pred, sigma * scale, true), "n": int(len(true))}
 
 
-def clean_gate(sigma_clean: np.ndarray, px_per_unit: float, false_alarm: float) -> float:
+def clean_gate(sigma_clean: np.ndarray, px_per_unit: float, false_alarm: float, good: np.ndarray | None = None) -> float:
     """The gate (px of predicted error) that flags a share `false_alarm` of the clean images whose predicted
-    sigmas are `sigma_clean` (at most that share; exactly, up to one image, without ties)."""
+    sigmas are `sigma_clean` (at most that share; exactly, up to one image, without ties). With `good` (a mask:
+    the frames whose real error is at most `error_px`), the share is taken among those frames only: the
+    false alarms."""
     pred_err = np.hypot(*(np.asarray(sigma_clean, np.float64) * px_per_unit).T)
+    if good is not None:
+        pred_err = pred_err[np.asarray(good, bool)]
+    if not len(pred_err):
+        raise ValueError("clean_gate needs at least one frame")
     k = int(np.floor(false_alarm * len(pred_err) + 1e-9))  # images it may flag: those strictly above the gate
     return float(np.sort(pred_err)[len(pred_err) - k - 1])
 
