@@ -180,6 +180,7 @@ BAD_INPUTS = [
     (["datamodule.batch_size=100000"], "datamodule.batch_size"),  # larger than the 512-image split
     (["datamodule.batch_size=0"], "datamodule.batch_size"),
     (["datamodule.limit_train_samples=-3"], "datamodule.limit_train_samples"),
+    (["datamodule.limit_val_samples=0"], "datamodule.limit_val_samples"),
     (["datamodule.limit_train_samples=8"], "datamodule.batch_size"),  # 8 samples < one batch of 32
     (["name=a/b"], "name"),
     (["model.name=a/b"], "model.name"),

@@ -269,3 +269,25 @@ def test_default_training_does_not_depend_on_the_clock():
     for option in ("default", "cpu", "paper"):
         cfg = compose("train", [f"trainer={option}", "paths.output_dir=/nonexistent"])
         assert cfg.trainer.get("max_time") is None, option
+
+
+def test_the_epoch_validation_reads_the_first_limit_val_samples():
+    """`limit_val_samples` caps the per-epoch validation at the split's first N images (the rest of the split is
+    for calibration); the training and test splits are untouched."""
+    from pipeline.train.datamodule import PerceptionDataModule
+
+    class Split:
+        def __init__(self, n):
+            self.sizes = {"train": n, "val": n, "test": n}
+
+        def images(self, name):
+            return np.zeros((self.sizes[name], 4, 4, 3), np.uint8)
+
+        def positions(self, name):
+            return np.arange(2 * self.sizes[name], dtype=np.float32).reshape(-1, 2)
+
+    dm = PerceptionDataModule(Split(100), batch_size=8, limit_val_samples=30, eval_batch_size=16)
+    seen = np.concatenate([pos.numpy() for _, pos in dm.val_dataloader()])
+    np.testing.assert_array_equal(seen, Split(100).positions("val")[:30])
+    assert sum(len(pos) for _, pos in dm.test_dataloader()) == 100
+    assert dm.train_size() == 100

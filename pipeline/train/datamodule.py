@@ -88,7 +88,8 @@ class PerceptionDataModule(L.LightningDataModule):
     """
 
     def __init__(self, dataset=None, batch_size: int = 32, limit_train_samples: int | None = None,
-                 eval_batch_size: int = 512, num_workers: int = 0, pin_memory: bool = False, seed: int = 0):
+                 limit_val_samples: int | None = None, eval_batch_size: int = 512, num_workers: int = 0,
+                 pin_memory: bool = False, seed: int = 0):
         super().__init__()
         for field, value, lo in (("batch_size", batch_size, 1), ("eval_batch_size", eval_batch_size, 1),
                                  ("num_workers", num_workers, 0)):
@@ -99,10 +100,15 @@ class PerceptionDataModule(L.LightningDataModule):
                                                 or limit_train_samples <= 0):
             raise ConfigError("datamodule.limit_train_samples",
                               f"must be a positive integer or null (all), got {limit_train_samples!r}")
+        if limit_val_samples is not None and (isinstance(limit_val_samples, bool)
+                                              or not isinstance(limit_val_samples, int) or limit_val_samples <= 0):
+            raise ConfigError("datamodule.limit_val_samples",
+                              f"must be a positive integer or null (all), got {limit_val_samples!r}")
         if not isinstance(pin_memory, bool):
             raise ConfigError("datamodule.pin_memory", f"must be true or false, got {pin_memory!r}")
         self.batch_size = batch_size
         self.limit_train = limit_train_samples
+        self.limit_val = limit_val_samples
         self.eval_batch_size = eval_batch_size
         self.num_workers = num_workers
         self.pin_memory = pin_memory
@@ -130,8 +136,9 @@ class PerceptionDataModule(L.LightningDataModule):
     def split(self, name: str) -> BatchArrays:
         if name not in self._splits:
             images, pos = self.dataset.images(name), self.dataset.positions(name)
-            if name == "train" and self.limit_train:
-                images, pos = images[: self.limit_train], pos[: self.limit_train]
+            limit = {"train": self.limit_train, "val": self.limit_val}.get(name)
+            if limit:
+                images, pos = images[:limit], pos[:limit]
             self._splits[name] = BatchArrays(images, pos)
         return self._splits[name]
 
