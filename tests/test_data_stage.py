@@ -265,3 +265,27 @@ def test_near_followers_take_their_share_and_share_zero_draws_nothing(tmp_path):
         np.testing.assert_array_equal(a, b)
     with pytest.raises(ConfigError, match="data.follower.near_share"):
         followers("data.follower.near_share=1.5")
+
+
+def test_the_gate_stream_draws_fresh_positions_and_leaves_every_split_alone(tmp_path):
+    """The `gate` stream (fresh positions for a map's flag gate, `pipeline.train.stage.gate_frames`) takes the next
+    child of the recipe's seed sequence: every split keeps the stream it had before the stream existed (the first
+    three children of `SeedSequence(seed)`), the gate's positions are none of a split's, follow the recipe's
+    distribution (the closed-loop share near the target), and an unknown stream or a missing size is refused."""
+    from pipeline.data.sampling import SPLITS, plan_split, split_seed
+    from pipeline.data.stage import plan
+
+    p = plan(cfg_for(tmp_path, "closed_loop", "data.splits.val=3000"))
+    before = np.random.SeedSequence(p.recipe.seed).spawn(3)
+    for i, split in enumerate(SPLITS):
+        assert np.array_equal(split_seed(p.recipe, split).generate_state(4), before[i].generate_state(4))
+    val = plan_split(p.recipe, "val", p.camera, p.occlusion)
+    gate = plan_split(p.recipe, "gate", p.camera, p.occlusion, n=3000)
+    assert np.array_equal(gate.leader, plan_split(p.recipe, "gate", p.camera, p.occlusion, n=3000).leader)  # deterministic
+    assert not (gate.leader[:, None, :] == val.leader[None, :, :]).all(-1).any()
+    near = [float((np.hypot(s.leader[:, 0] - 40.0, s.leader[:, 1]) <= 5.0).mean()) for s in (val, gate)]
+    assert near[0] > 0.1 and abs(near[0] - near[1]) < 4 * np.sqrt(near[0] * (1 - near[0]) / 1500)
+    with pytest.raises(ValueError, match="needs n"):
+        plan_split(p.recipe, "gate", p.camera, p.occlusion)
+    with pytest.raises(ValueError, match="unknown split"):
+        split_seed(p.recipe, "calibration")

@@ -58,17 +58,27 @@ def test_fast_dev_run_reload_and_noop(tiny):
     assert again["mae_px"] == pytest.approx(saved["mae_px"], rel=1e-6)
     assert np.array_equal(pred, pm.predict(ds.images("test")))  # inference is deterministic
     # the flag operating point: the gate is fitted on the validation positions re-rendered without clouds
-    from pipeline.train.stage import render_split
+    from pipeline.train.stage import gate_frames, render_split
     from pipeline.train.uncertainty import clean_gate
 
     metrics = json.loads((folder / "metrics.json").read_text())
     # the variance head is fitted after the position network, on every training image
     assert metrics["calibration"]["variance_head"]["images"] == len(ds.positions("train"))
-    pred, sigma = pm.predict_with_sigma(render_split(ds, "val", None, 123).images)
-    good = np.hypot(*((pred - ds.positions("val")) * pm.px_per_unit).T) <= cfg.uncertainty_eval.error_px
+    # and on gate_per_val fresh positions per validation image from the recipe's `gate` stream, with the bound
+    ue = cfg.uncertainty_eval
+    fresh, fresh_pos = gate_frames(ds, ue.gate_per_val * len(ds.positions("val")), 123)
+    assert len(fresh_pos) == ue.gate_per_val * len(ds.positions("val")) > 0
+    images = np.concatenate([render_split(ds, "val", None, 123).images, fresh.images])
+    pred, sigma = pm.predict_with_sigma(images)
+    good = np.hypot(*((pred - np.concatenate([ds.positions("val"), fresh_pos])) * pm.px_per_unit).T) <= ue.error_px
     assert 0 < good.sum()
-    gate = clean_gate(sigma, pm.px_per_unit, cfg.uncertainty_eval.clean_false_alarm, good)
+    gate = clean_gate(sigma, pm.px_per_unit, ue.clean_false_alarm, good, confidence=ue.gate_confidence)
     assert metrics["calibration"]["clean_gate_px"] == pytest.approx(gate, rel=1e-5)
+    fit = metrics["calibration"]["clean_gate"]
+    assert (fit["frames"], fit["fresh_images"], fit["confidence"]) == (int(good.sum()), len(fresh_pos), ue.gate_confidence)
+    assert fit["false_alarm"] <= fit["false_alarm_upper"]
+    # the bound is within the target, unless even flagging nothing cannot certify it (this smoke run's few frames)
+    assert fit["false_alarm_upper"] <= ue.clean_false_alarm or fit["false_alarm"] == 0
     assert metrics["heavy"]["uncertainty"]["at_clean_gate"]["gate_px"] == metrics["calibration"]["clean_gate_px"]
     # by name: the map the *default* train config makes (not built here), never the newest folder
     with pytest.raises(ModelError, match="current config makes") as err:
@@ -187,6 +197,10 @@ BAD_INPUTS = [
     (["trainer.max_epochs=0"], "trainer.max_epochs"),
     (["device=tpu"], "device"),
     (["num_threads=0"], "num_threads"),
+    (["uncertainty_eval.gate_per_val=-1"], "uncertainty_eval.gate_per_val"),
+    (["uncertainty_eval.gate_per_val=1.5"], "uncertainty_eval.gate_per_val"),
+    (["uncertainty_eval.gate_confidence=1.0"], "uncertainty_eval.gate_confidence"),
+    (["uncertainty_eval.clean_false_alarm=1.5"], "uncertainty_eval.clean_false_alarm"),
 ]
 
 

@@ -15,7 +15,14 @@ from pipeline.experiments.measure import CameraMeasure
 from pipeline.sim import simulate
 from pipeline.train.model import PerceptionMap, gaussian_nll
 from pipeline.train.predict import PerceptionMapPredictor
-from pipeline.train.uncertainty import calibrate, clean_gate, coverage95, fit_variance_head, flag_metrics
+from pipeline.train.uncertainty import (
+    calibrate,
+    clean_gate,
+    coverage95,
+    false_alarm_upper_bound,
+    fit_variance_head,
+    flag_metrics,
+)
 
 
 @settings(max_examples=40, deadline=None)
@@ -113,6 +120,41 @@ def test_clean_gate_flags_the_requested_share_of_clean_images(seed, n, fa, px):
     assert {k: f[k] for k in ("flagged", "detected", "false_alarm")} == \
         {k: f["at_clean_gate"][k] for k in ("flagged", "detected", "false_alarm")}
 
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**31), n=st.integers(20, 3000), fa=st.floats(0.01, 0.5), conf=st.floats(0.6, 0.99))
+def test_the_confident_gate_flags_the_largest_share_whose_upper_bound_is_within_target(seed, n, fa, conf):
+    """With `confidence`, the gate flags k of n frames: the largest k whose one-sided upper bound is at most the
+    target, so never more than the plain quantile flags; at confidence 0.5 the bound is the share itself."""
+    rng = np.random.default_rng(seed)
+    sigma = rng.lognormal(0.0, 1.0, (n, 2))
+    err = np.hypot(*sigma.T)
+    g = clean_gate(sigma, 1.0, fa, confidence=conf)
+    k = int((err > g).sum())
+    assert false_alarm_upper_bound(k, n, conf) <= fa + 1e-12
+    assert k == n - 1 or false_alarm_upper_bound(k + 1, n, conf) > fa or k + 1 > fa * n
+    assert k <= int((err > clean_gate(sigma, 1.0, fa)).sum())
+    assert false_alarm_upper_bound(k, n, 0.5) == pytest.approx(k / n)
+    bounds = false_alarm_upper_bound(np.arange(n + 1), n, conf)
+    assert np.all(np.diff(bounds) > 0) and np.all(bounds >= np.arange(n + 1) / n - 1e-12)
+
+
+def test_the_confident_gate_keeps_new_frames_within_the_target_at_its_confidence():
+    """The gate is fitted on a sample; on new frames its false-alarm rate (known here: predicted errors uniform on
+    [0, 1], so the rate at gate g is 1 - g) exceeds the target in about half of the draws for the plain quantile,
+    and in at most 1 - confidence of them (within noise) with the bound."""
+    rng = np.random.default_rng(0)
+    fa, n, reps = 0.1, 2000, 400
+    over = {0.5: 0, 0.95: 0}
+    for _ in range(reps):
+        u = rng.uniform(0.0, 1.0, n)
+        sigma = np.stack([u, np.zeros(n)], axis=1)
+        for conf in over:
+            over[conf] += (1.0 - clean_gate(sigma, 1.0, fa, confidence=conf)) > fa
+    assert over[0.5] / reps > 0.3
+    assert over[0.95] / reps < 0.05 + 3 * np.sqrt(0.05 * 0.95 / reps)
+    with pytest.raises(ValueError, match="confidence"):
+        clean_gate(sigma, 1.0, fa, confidence=1.0)
 
 class _Identity:
     """A 'camera' whose image of p is p itself (the map below reads positions)."""

@@ -4,7 +4,9 @@ Everything random is drawn here, per split, from `np.random.SeedSequence(seed).s
 test) in a fixed order (leader, follower presence, follower, clouds), before any rendering, so the bytes
 depend on the recipe and seed only (not on the chunk size). With a parent dataset (`sampling.parent`, the
 DAgger aggregation) the new train draws use a stream keyed by the parent too, so they never repeat the
-parent's; val and test are drawn as without parent.
+parent's; val and test are drawn as without parent. Draws that belong to no split (`STREAMS`: "gate", the fresh
+clean positions a map's flag gate is fitted on, `pipeline.train.stage.gate_frames`) take the next children of
+the same sequence, so they never repeat a split's draws and never change them.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from pipeline.errors import ConfigError
 from pipeline.render import Camera, CloudSample, Occlusion
 
 SPLITS = ("train", "val", "test")
+STREAMS = (*SPLITS, "gate")  # a split's draws, or fresh draws from the recipe's distribution for no split
 # recipe keys left out of the id: the chunk size does not change the bytes; `closed_loop.device` is where a map
 # runs in the loop (as the train stage leaves the accelerator out of a model's id; see docs/dagger.md)
 VOLATILE = ("chunk_size", "device")
@@ -319,18 +322,27 @@ def split_pool(recipe: Recipe, split: str, camera: Camera, occlusion: Occlusion,
 
 
 def split_seed(recipe: Recipe, split: str) -> np.random.SeedSequence:
-    """The split's random stream: `SeedSequence(seed).spawn(3)[split]`; a train split that extends a parent
+    """The split's random stream: `SeedSequence(seed).spawn(4)[i]`, `i` its place in `STREAMS` (train, val,
+    test, gate); a train split that extends a parent
     dataset draws from `SeedSequence([seed, hash(parent)])` instead (never the parent's own draws)."""
     if split == "train" and recipe.parent is not None:
         key = int(hashlib.sha256(recipe.parent.encode()).hexdigest()[:16], 16)
         return np.random.SeedSequence([recipe.seed, key])
-    return np.random.SeedSequence(recipe.seed).spawn(len(SPLITS))[SPLITS.index(split)]
+    if split not in STREAMS:
+        raise ValueError(f"unknown split or stream {split!r}; known: {', '.join(STREAMS)}")
+    # spawn(k)[:3] are the same children for every k >= 3: an extra stream changes no split
+    return np.random.SeedSequence(recipe.seed).spawn(len(STREAMS))[STREAMS.index(split)]
 
 
-def plan_split(recipe: Recipe, split: str, camera: Camera, occlusion: Occlusion, perception_map=None) -> SplitPlan:
+def plan_split(recipe: Recipe, split: str, camera: Camera, occlusion: Occlusion, perception_map=None,
+               n: int | None = None) -> SplitPlan:
     """The positions and cloud choices of one split's new draws (deterministic in recipe + seed, and the map's
-    weights when the recipe has `closed_loop.map`; a parent's train positions are copied by the stage)."""
-    n = recipe.splits[split]
+    weights when the recipe has `closed_loop.map`; a parent's train positions are copied by the stage). `n`:
+    how many (default: the split's size; required for a stream of `STREAMS` that is no split)."""
+    if n is None:
+        if split not in recipe.splits:
+            raise ValueError(f"plan_split({split!r}) needs n: {split!r} is no split of the recipe")
+        n = recipe.splits[split]
     rng = np.random.default_rng(split_seed(recipe, split))
     pool = split_pool(recipe, split, camera, occlusion, perception_map)
     if pool is not None:

@@ -15,17 +15,21 @@ A map trained with `model.uncertainty: gaussian` predicts, per image, a standard
   `gate_px`; reported are the share flagged, the share of frames with a real error above `error_px` that are
   flagged (detection) and the share of the others that are flagged (false alarms). In the closed loop a flagged
   frame is a camera failure (`camera.gate`): the last estimate is held.
-- **Operating point** (`clean_gate`): the gate at which a given share of the *clean* images' good frames (the
-  validation positions re-rendered without clouds, whose real error is at most `error_px`) is flagged: the
-  false-alarm rate on clean images. A clean frame with a large error is a frame worth flagging, not a false
-  alarm. Fitted on the validation split like the sigma scale; the test levels then report their detection at
-  that gate (`at_clean_gate`), i.e. the ROC point "detect the bad frames at <= x% false alarms on clean
-  images" measured without looking at the test split.
+- **Operating point** (`clean_gate`): the gate at which a given share of the *clean* images' good frames (whose
+  real error is at most `error_px`) is flagged: the false-alarm rate on clean images. A clean frame with a
+  large error is a frame worth flagging, not a false alarm. The gate is a tail quantile of a sample, so its
+  rate on new frames misses the share by the sampling error; with `confidence` it flags the largest share
+  whose one-sided upper bound (Wilson) is within the target, so that the rate on new frames is within it with
+  that confidence. The train stage fits it on the validation positions and fresh positions from the recipe's
+  own distribution, all rendered without clouds (`pipeline.train.stage.fit_clean_gate`); the test levels then
+  report their detection at that gate (`at_clean_gate`), i.e. the ROC point "detect the bad frames at <= x%
+  false alarms on clean images" measured without looking at the test split.
 """
 
 from __future__ import annotations
 
 import time
+from statistics import NormalDist
 
 import numpy as np
 import torch
@@ -116,18 +120,40 @@ def calibrate(model, predictor, images, true: np.ndarray) -> dict:
             "val_coverage95": coverage95(pred, sigma * scale, true), "n": int(len(true))}
 
 
-def clean_gate(sigma_clean: np.ndarray, px_per_unit: float, false_alarm: float, good: np.ndarray | None = None) -> float:
+def false_alarm_upper_bound(flagged: int | np.ndarray, n: int, confidence: float) -> np.ndarray:
+    """One-sided upper confidence bound on a false-alarm rate from `flagged` of `n` frames: the Wilson score
+    bound at `confidence` (0.5: the share itself). Vectorised over `flagged`."""
+    k = np.asarray(flagged, np.float64)
+    z = NormalDist().inv_cdf(confidence) if confidence > 0.5 else 0.0
+    p, z2 = k / n, z * z
+    return (p + z2 / (2 * n) + z * np.sqrt(p * (1 - p) / n + z2 / (4 * n * n))) / (1 + z2 / n)
+
+
+def clean_gate(sigma_clean: np.ndarray, px_per_unit: float, false_alarm: float, good: np.ndarray | None = None,
+               confidence: float = 0.5) -> float:
     """The gate (px of predicted error) that flags a share `false_alarm` of the clean images whose predicted
     sigmas are `sigma_clean` (at most that share; exactly, up to one image, without ties). With `good` (a mask:
     the frames whose real error is at most `error_px`), the share is taken among those frames only: the
-    false alarms."""
+    false alarms.
+
+    The gate is estimated from a sample, so the rate it gives on new frames misses `false_alarm` by the sampling
+    error of a tail quantile. With `confidence` > 0.5 the gate flags the largest share whose one-sided upper
+    confidence bound (:func:`false_alarm_upper_bound`) is at most `false_alarm`: the false-alarm rate on new
+    frames from the same distribution is then at most `false_alarm` with that confidence (0.5: the share itself,
+    the plain quantile)."""
     pred_err = np.hypot(*(np.asarray(sigma_clean, np.float64) * px_per_unit).T)
     if good is not None:
         pred_err = pred_err[np.asarray(good, bool)]
-    if not len(pred_err):
+    n = len(pred_err)
+    if not n:
         raise ValueError("clean_gate needs at least one frame")
-    k = int(np.floor(false_alarm * len(pred_err) + 1e-9))  # images it may flag: those strictly above the gate
-    return float(np.sort(pred_err)[len(pred_err) - k - 1])
+    if not 0.5 <= confidence < 1:
+        raise ValueError(f"clean_gate: confidence must be in [0.5, 1), got {confidence!r}")
+    k = int(np.floor(false_alarm * n + 1e-9))  # images it may flag: those strictly above the gate
+    if confidence > 0.5:  # the largest k whose upper bound stays within false_alarm (the bound grows with k)
+        ks = np.arange(k + 1)
+        k = int(ks[false_alarm_upper_bound(ks, n, confidence) <= false_alarm + 1e-12].max(initial=0))
+    return float(np.sort(pred_err)[n - k - 1])
 
 
 def _rates(flagged: np.ndarray, bad: np.ndarray) -> dict:
