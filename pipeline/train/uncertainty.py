@@ -6,7 +6,7 @@ A map trained with `model.uncertainty: gaussian` predicts, per image, a standard
   (BatchNorm's running statistics, no dropout): the error the closed loop will see. Trained side by side with
   the position instead, it learned the error of a moving, dropout-noised network, which hides what makes a
   frame hard: on heavy clouds it caught 66% of the frames with > 3 px error at the clean-image gate; fitted
-  afterwards (and reading a thumbnail of the image, `PerceptionMap.variance_inputs`) 93% (docs/train.md).
+  afterwards (and reading a thumbnail of the image, `PerceptionMap.variance_inputs`) 92.5% (docs/train.md).
 - **Calibration** (`calibrate`, on the validation split after training): the share of validation images whose
   error falls inside the predicted 95% ellipse (`sum((e_i / s_i)^2) <= chi2_2(0.95)`) is measured with the raw
   sigmas, then one scale factor `c` is fitted so that exactly 95% do (`c^2 = q95(mahalanobis^2) / chi2_2(0.95)`)
