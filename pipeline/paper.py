@@ -138,7 +138,8 @@ def run(cfg) -> dict:
         base = compose("experiments", paths)
         pins = [f"maps.{k}={v}" for k, v in map_refs.items() if k in base.maps]
         pins += [f"errormaps.{k}={v}" for k, v in em_refs.items() if k in base.errormaps]
-        run_stage("experiments", ["-m", f"experiment={','.join(experiments)}", *pins, *paths, *args["experiments"]],
+        run_stage("experiments", ["-m", f"experiment={','.join(experiments)}", *pins, *paths, "publish=true",
+                                  *args["experiments"]],
                timings, stop)
         paper_dir = Path(cfg.paths.paper_dir)
         for exp in experiments:

@@ -234,3 +234,38 @@ def test_leader_keeps_regulating_after_success(tmp_path):
     assert np.hypot(*(lead[-1] - np.array([40.0, 0.0]))) < 0.05
     t = out["results"].tables["summary"]
     assert (t["success_rate"] == 1.0).all(), t
+
+
+def test_a_run_on_the_side_never_replaces_a_pinned_paper_figure(tmp_path):
+    """Once make paper has pinned an experiment's computation (`paper.lock.yaml`), a run of it with another config
+    writes to `paths.side_dir/<experiment>-<id>/` and leaves the paper's figure, table and index entry as pinned;
+    the pinned computation itself, and `publish=true` (what make paper passes), still write to the paper."""
+    import json
+
+    from omegaconf import OmegaConf
+
+    from pipeline.experiments.stage import run
+
+    paper = tmp_path / "paper"
+    fig = paper / "fig3_coverings.png"
+    pinned = run(_cfg(tmp_path, "experiment=coverings", "debug=tiny"))
+    assert fig.is_file() and pinned["files"][0].parent == paper
+    OmegaConf.save({"experiments": {"coverings": {"id": pinned["cache"].name.split("-")[-1],
+                                                  "folder": pinned["cache"].name}}}, paper / "paper.lock.yaml")
+    before, entry = fig.read_bytes(), (paper / "index" / "coverings.json").read_text()
+
+    side = run(_cfg(tmp_path, "experiment=coverings", "debug=tiny", "experiment.grid_step=0.5"))
+    assert side["cache"] != pinned["cache"]
+    assert fig.read_bytes() == before and (paper / "index" / "coverings.json").read_text() == entry
+    side_dir = tmp_path / "out" / "side" / side["cache"].name
+    assert (side_dir / "fig3_coverings.png").is_file() and all(f.parent == side_dir for f in side["files"])
+    assert json.loads((side_dir / "index" / "coverings.json").read_text())["cache"].endswith(side["cache"].name)
+
+    again = run(_cfg(tmp_path, "experiment=coverings", "debug=tiny"))  # the pinned computation: the paper
+    assert again["cached"] and again["files"][0].parent == paper
+    run(_cfg(tmp_path, "experiment=coverings", "debug=tiny", "experiment.grid_step=0.5", "publish=true"))
+    assert fig.read_bytes() != before
+    assert run(_cfg(tmp_path, "experiment=coverings", "debug=tiny", "publish=false"))["files"][0].parent == \
+        tmp_path / "out" / "side" / pinned["cache"].name
+    with pytest.raises(ConfigError, match="publish"):
+        run(_cfg(tmp_path, "experiment=coverings", "debug=tiny", "publish=maybe"))

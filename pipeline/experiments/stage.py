@@ -7,7 +7,9 @@ computation reads: the scenario's parameters (not its title), the scene(s), the 
 cloud levels it uses, camera, sim and render settings, the ids of its perception and error maps, and the code
 that computes (not the drawing code). Re-running with nothing changed only re-draws; changing a baseline's
 parameter recomputes. Figures (PNG + PDF) and tables (CSV + Markdown + LaTeX) go to `outputs/paper/`, with an
-`index.md` in the paper's figure order.
+`index.md` in the paper's figure order, unless the paper there is pinned to another computation of the
+experiment (`view_dir`): a run on the side then writes to `outputs/side/<experiment>-<id>/` instead, so that it
+never replaces a figure of the paper that `make paper` pinned.
 """
 
 from __future__ import annotations
@@ -42,6 +44,35 @@ def _command(cfg, exp_id: str) -> str:
     return "python -m pipeline.experiments " + " ".join(overrides)
 
 
+PUBLISH = ("auto", True, False)
+
+
+def _publish(cfg):
+    value = cfg.get("publish", "auto")
+    if value not in PUBLISH or isinstance(value, int) and not isinstance(value, bool):
+        raise ConfigError("publish", f"must be auto, true or false, got {value!r}")
+    return value
+
+
+def view_dir(cfg, exp_id: str, folder: Path) -> tuple[Path, Path | None]:
+    """Where a run's figures and tables go, and the lock file that sent them aside (or None).
+
+    `publish: true` (make paper): `paths.paper_dir`; `false`: `paths.side_dir/<experiment>-<id>/`; `auto` (the
+    default): the paper dir, unless a lock there (`*.lock.yaml`, written by make paper) pins another
+    computation of this experiment; then the side dir, and the pinned paper's figure stays as it is."""
+    from omegaconf import OmegaConf
+
+    publish = _publish(cfg)
+    paper_dir, side = Path(cfg.paths.paper_dir), Path(cfg.paths.side_dir) / folder.name
+    if publish is not False and publish is not True:
+        for lock in sorted(paper_dir.glob("*.lock.yaml")):
+            pinned = (OmegaConf.to_container(OmegaConf.load(lock)) or {}).get("experiments") or {}
+            if exp_id in pinned and (pinned[exp_id] or {}).get("folder") != folder.name:
+                return side, lock
+        return paper_dir, None
+    return (paper_dir if publish else side), None
+
+
 def build_scenario(cfg) -> Scenario:
     node = cfg.get("experiment")
     if node is None or "_target_" not in node:
@@ -54,6 +85,7 @@ def build_scenario(cfg) -> Scenario:
 
 def check(cfg) -> None:
     """Preflight: the scenario, every object it uses and its inputs (maps and error maps, by id)."""
+    _publish(cfg)
     scen = build_scenario(cfg)
     ctx = Context(cfg)
     scen.check(ctx)
@@ -88,6 +120,7 @@ def run(cfg) -> dict:
     from pipeline.experiments.figures import FIGURES, draw
 
     t0 = time.perf_counter()
+    _publish(cfg)
     scen = build_scenario(cfg)
     ctx = Context(cfg)
     scen.check(ctx)
@@ -104,7 +137,10 @@ def run(cfg) -> dict:
         with tracking.tracked_output(root, scen.id, cid, {"kind": "experiment", "code_version": key_parts["code"],
                                                           **key_parts}) as tmp:
             res.save(tmp)
-    paper_dir = Path(cfg.paths.paper_dir)
+    paper_dir, lock = view_dir(cfg, scen.id, folder)
+    if lock is not None:
+        print(f"[experiments] {scen.id}: {lock} pins another computation of {scen.id}; this run ({folder.name}) writes "
+              f"to {paper_dir} and leaves the paper's figures as pinned (publish=true: write there anyway)")
     out = Outputs(paper_dir, scen.id)
     draw(scen, ctx, res, out)
     # the raw per-agent metrics of the scenario, next to its figures
