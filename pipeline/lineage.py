@@ -144,3 +144,15 @@ def write_lock(path: Path, sections: dict[str, dict[str, Path]],
     tmp.write_text(yaml.safe_dump(lock, sort_keys=False))
     tmp.replace(path)
     return path
+
+
+def pinned_folders(paper_dir: Path, kind: str) -> dict[str, str]:
+    """`{name: folder}` of the `kind` section (e.g. "experiments") of every lock in `paper_dir` (`*.lock.yaml`,
+    written by :func:`write_lock`); empty when there is none."""
+    import yaml
+
+    out: dict[str, str] = {}
+    for path in sorted(Path(paper_dir).glob("*.lock.yaml")):
+        section = (yaml.safe_load(path.read_text()) or {}).get(kind) or {}
+        out.update({name: entry.get("folder") for name, entry in section.items() if isinstance(entry, dict)})
+    return out

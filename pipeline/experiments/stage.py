@@ -54,23 +54,21 @@ def _publish(cfg):
     return value
 
 
-def view_dir(cfg, exp_id: str, folder: Path) -> tuple[Path, Path | None]:
-    """Where a run's figures and tables go, and the lock file that sent them aside (or None).
+def view_dir(cfg, exp_id: str, folder: Path) -> tuple[Path, bool]:
+    """Where a run's figures and tables go, and whether a lock sent them aside.
 
     `publish: true` (make paper): `paths.paper_dir`; `false`: `paths.side_dir/<experiment>-<id>/`; `auto` (the
     default): the paper dir, unless a lock there (`*.lock.yaml`, written by make paper) pins another
     computation of this experiment; then the side dir, and the pinned paper's figure stays as it is."""
-    from omegaconf import OmegaConf
+    from pipeline.lineage import pinned_folders
 
     publish = _publish(cfg)
     paper_dir, side = Path(cfg.paths.paper_dir), Path(cfg.paths.side_dir) / folder.name
-    if publish is not False and publish is not True:
-        for lock in sorted(paper_dir.glob("*.lock.yaml")):
-            pinned = (OmegaConf.to_container(OmegaConf.load(lock)) or {}).get("experiments") or {}
-            if exp_id in pinned and (pinned[exp_id] or {}).get("folder") != folder.name:
-                return side, lock
-        return paper_dir, None
-    return (paper_dir if publish else side), None
+    if publish == "auto":
+        pinned = pinned_folders(paper_dir, "experiments")
+        aside = exp_id in pinned and pinned[exp_id] != folder.name
+        return (side if aside else paper_dir), aside
+    return (paper_dir if publish else side), False
 
 
 def build_scenario(cfg) -> Scenario:
@@ -137,10 +135,11 @@ def run(cfg) -> dict:
         with tracking.tracked_output(root, scen.id, cid, {"kind": "experiment", "code_version": key_parts["code"],
                                                           **key_parts}) as tmp:
             res.save(tmp)
-    paper_dir, lock = view_dir(cfg, scen.id, folder)
-    if lock is not None:
-        print(f"[experiments] {scen.id}: {lock} pins another computation of {scen.id}; this run ({folder.name}) writes "
-              f"to {paper_dir} and leaves the paper's figures as pinned (publish=true: write there anyway)")
+    paper_dir, aside = view_dir(cfg, scen.id, folder)
+    if aside:
+        print(f"[experiments] {scen.id}: the lock in {cfg.paths.paper_dir} pins another computation of {scen.id}; this "
+              f"run ({folder.name}) writes to {paper_dir} and leaves the paper's figures as pinned (publish=true: "
+              "write there anyway)")
     out = Outputs(paper_dir, scen.id)
     draw(scen, ctx, res, out)
     # the raw per-agent metrics of the scenario, next to its figures
