@@ -44,12 +44,9 @@ def _command(cfg, exp_id: str) -> str:
     return "python -m pipeline.experiments " + " ".join(overrides)
 
 
-PUBLISH = ("auto", True, False)
-
-
 def _publish(cfg):
     value = cfg.get("publish", "auto")
-    if value not in PUBLISH or isinstance(value, int) and not isinstance(value, bool):
+    if not (value == "auto" or isinstance(value, bool)):
         raise ConfigError("publish", f"must be auto, true or false, got {value!r}")
     return value
 
