@@ -9,6 +9,15 @@ Images are `uint8 (N, H, W, 3)` in **RGB** order. The static part (background, o
 marker) is rendered once per camera with supersampled anti-aliasing; each batch copies it and draws the
 robots as filled squares with exact-area coverage (the separable overlap of the square with each pixel),
 so the intensity centroid of a robot is its true sub-pixel position. Clouds (:mod:`.occlusion`) go on top.
+
+Several obstacles (SPEC §1, §3.6): a scene with an `obstacles` list (items with `.center` and `.radius`)
+has every disc drawn (their union, one layer); otherwise the single `obstacle_center` / `obstacle_radius`.
+
+Unicycle (SPEC §1, §3.7): with `heading` the leader is an oriented isosceles triangle instead of the square
+(:func:`heading_marker`): with `L = robot_size` px, apex `4/3 L` ahead of the position along the heading,
+base `2/3 L` behind it, base width `L` (length `2 L`, area `L^2` = the square's area). Its area centroid is
+the position, so the intensity centroid stays the position; its coverage is the exact triangle-pixel
+overlap area, so the image's second and third moments carry the heading.
 """
 
 from __future__ import annotations
@@ -90,6 +99,82 @@ def _color(value, field: str) -> np.ndarray:
     if arr.shape != (3,) or not np.all((arr >= 0) & (arr <= 255)):
         raise ConfigError(field, f"must be an RGB triple of numbers in [0, 255], got {value!r}")
     return arr
+
+
+def _field(obj, name: str):
+    """`obj.name`, or `obj[name]` for a mapping (obstacle items may be either)."""
+    if isinstance(obj, Mapping):
+        return obj[name]
+    return getattr(obj, name)
+
+
+# ------------------------------------------------------------------------------------------ marker
+# The unicycle's marker, in units of L = robot_size px, in the vehicle frame (x ahead, y to the left):
+# apex (4/3, 0), base corners (-2/3, +-1/2). Area L^2 (the square's); area centroid at the origin.
+_MARKER = np.array([[4.0 / 3.0, 0.0], [-2.0 / 3.0, 0.5], [-2.0 / 3.0, -0.5]])
+_MARKER_REACH = 4.0 / 3.0  # farthest vertex from the centroid, in units of L
+
+
+def heading_marker(uv, heading, size: float) -> np.ndarray:
+    """Vertices `(N, 3, 2)` in pixel coordinates `(u, v)` of the unicycle marker (apex first).
+
+    `uv (N, 2)`: the vehicle's position in pixels; `heading (N,)`: world-frame angle (radians, from +x
+    towards +y); `size`: L = robot_size in pixels. Apex `4/3 L` ahead, base `2/3 L` behind, base width `L`.
+    The image's row axis points down (-y), so the world direction `(cos t, sin t)` is `(cos t, -sin t)` in
+    `(u, v)`.
+    """
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    t = np.asarray(heading, dtype=np.float64).reshape(-1)
+    c, s = np.cos(t)[:, None], np.sin(t)[:, None]
+    ax, ay = _MARKER[None, :, 0] * size, _MARKER[None, :, 1] * size  # (1, 3) vehicle frame
+    # world rotation (x', y') = R(t) (ax, ay); pixels: u = u0 + x', v = v0 - y'
+    du = c * ax - s * ay
+    dv = -(s * ax + c * ay)
+    return np.stack([uv[:, 0, None] + du, uv[:, 1, None] + dv], axis=-1)
+
+
+def _ramp_integral(t: np.ndarray) -> np.ndarray:
+    """Antiderivative of clip(t, 0, 1): 0 for t <= 0, t^2/2 on [0, 1], t - 1/2 for t >= 1."""
+    tc = np.clip(t, 0.0, 1.0)
+    return 0.5 * tc * tc + np.maximum(t - 1.0, 0.0)
+
+
+def polygon_coverage(verts: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """Exact area of each polygon inside each pixel of its window: `(N, k, k)` in [0, 1].
+
+    `verts (N, m, 2)`: simple polygons in pixel coordinates `(u, v)` (either orientation); `rows (N, k)`,
+    `cols (N, k)`: the integer pixel indices of each window. Green's theorem column by column: for every
+    edge, the integral over the pixel's `u`-range (clipped to the edge's) of the clipped height
+    `clip(v_edge(u) - r, 0, 1)`, signed by the edge's `u`-direction; summed over the edges this is the
+    length of the polygon's vertical section inside `[r, r + 1]` integrated over `u`, i.e. the area.
+    """
+    a = verts
+    b = np.roll(verts, -1, axis=1)
+    ua, va, ub, vb = a[..., 0], a[..., 1], b[..., 0], b[..., 1]  # (N, m)
+    lo, hi = np.minimum(ua, ub), np.maximum(ua, ub)
+    sign = np.sign(ub - ua)  # 0 for vertical edges (they bound no u-range)
+    du = np.where(ub != ua, ub - ua, 1.0)
+    c = cols[:, None, :].astype(np.float64)  # (N, 1, k)
+    x0 = np.maximum(c, lo[..., None])  # (N, m, k): the part of [c, c+1] under the edge
+    x1 = np.minimum(c + 1.0, hi[..., None])
+    width = np.maximum(x1 - x0, 0.0)
+
+    def v_at(x):  # the edge's v at x (interpolated, clipped to the edge so near-vertical edges stay tame)
+        t = np.clip((x - ua[..., None]) / du[..., None], 0.0, 1.0)
+        return va[..., None] + t * (vb - va)[..., None]
+
+    r = rows[:, None, :, None].astype(np.float64)  # (N, 1, k, 1)
+    g0 = v_at(x0)[:, :, None, :] - r  # (N, m, k, k): height above the row's top at both ends
+    g1 = v_at(x1)[:, :, None, :] - r
+    dg = g1 - g0
+    flat = np.abs(dg) < 1e-9
+    mean_h = np.clip(0.5 * (g0 + g1), 0.0, 1.0)
+    slope_part = (_ramp_integral(g1) - _ramp_integral(g0)) / np.where(flat, 1.0, dg)
+    part = np.where(flat, mean_h, slope_part) * width[:, :, None, :]
+    area = np.einsum("nm,nmij->nij", sign, part)
+    # orientation: the sum is -(shoelace signed area) restricted to the pixel, so its sign fixes the overall one
+    orient = -np.sign(np.sum(ua * vb - ub * va, axis=1))
+    return np.clip(area * orient[:, None, None], 0.0, 1.0)
 
 
 # ------------------------------------------------------------------------------------------ camera
@@ -194,8 +279,26 @@ class Camera:
         return pixel_to_world(uv, self.arena, self.shape)
 
     # --------------------------------------------------------------------------------- background
+    def _obstacle_discs(self) -> list[tuple[float, float, float]]:
+        """`(u, v, radius)` in pixels of every obstacle disc of the scene."""
+        obstacles = getattr(self.scene, "obstacles", None)
+        if obstacles is None:
+            items = [(self.scene.obstacle_center, self.scene.obstacle_radius)]
+        else:
+            items = [(_field(o, "center"), _field(o, "radius")) for o in obstacles]
+        discs = []
+        for center, radius in items:
+            (cu, cv), = self.world_to_pixel([center])
+            discs.append((float(cu), float(cv), float(radius) * self.scale))
+        return discs
+
     def _render_background(self) -> np.ndarray:
-        """Background + obstacle disc + target ring, anti-aliased by supersampling (once per camera)."""
+        """Background + obstacle discs + target ring, anti-aliased by supersampling (once per camera).
+
+        The discs are one layer: a sub-sample is obstacle when it lies in any disc (overlapping discs do not
+        darken). Only the pixels of each disc's bounding box are tested, so many discs in a large arena stay
+        cheap; the result is the same bytes as testing every sub-sample of the image.
+        """
         h, w, s = self.height, self.width, _SUPERSAMPLE
         offs = (np.arange(s) + 0.5) / s
         u = (np.arange(w)[:, None] + offs).reshape(-1)  # sub-sample centres, pixel units
@@ -207,10 +310,17 @@ class Camera:
         img = np.broadcast_to(self.colors["background"], (h, w, 3)).astype(np.float64)
         layers = []
         if self.scene is not None:
-            (cu, cv), = self.world_to_pixel([self.scene.obstacle_center])
-            rad = float(self.scene.obstacle_radius) * self.scale
-            d2 = (u[None, :] - cu) ** 2 + (v[:, None] - cv) ** 2
-            layers.append((coverage(d2 <= rad * rad), self.colors["obstacle"]))
+            inside = np.zeros((h * s, w * s), dtype=bool)
+            for cu, cv, rad in self._obstacle_discs():
+                # pixels whose sub-samples can lie in the disc (one spare pixel each side)
+                c0, c1 = max(int(math.floor(cu - rad)) - 1, 0), min(int(math.floor(cu + rad)) + 2, w)
+                r0, r1 = max(int(math.floor(cv - rad)) - 1, 0), min(int(math.floor(cv + rad)) + 2, h)
+                if c0 >= c1 or r0 >= r1:
+                    continue
+                uu, vv = u[c0 * s : c1 * s], v[r0 * s : r1 * s]
+                d2 = (uu[None, :] - cu) ** 2 + (vv[:, None] - cv) ** 2
+                inside[r0 * s : r1 * s, c0 * s : c1 * s] |= d2 <= rad * rad
+            layers.append((coverage(inside), self.colors["obstacle"]))
             if self.target_radius > 0:
                 (tu, tv), = self.world_to_pixel([self.scene.target])
                 d = np.sqrt((u[None, :] - tu) ** 2 + (v[:, None] - tv) ** 2)
@@ -251,6 +361,30 @@ class Camera:
         old = flat[pix].astype(np.float64)
         flat[pix] = np.floor(old + a * (color - old) + 0.5).astype(np.uint8)
 
+    def _draw_triangles(self, flat: np.ndarray, centres: np.ndarray, heading: np.ndarray, color: np.ndarray) -> None:
+        """Alpha-blend the oriented unicycle markers (exact-area coverage) into `flat` (images as (N*H*W, 3))."""
+        ok = np.all(np.isfinite(centres), axis=1)
+        idx = np.flatnonzero(ok)
+        if idx.size == 0:
+            return
+        h, w = self.height, self.width
+        uv = self.world_to_pixel(centres[idx])
+        verts = heading_marker(uv, heading[idx], self.robot_size)
+        reach = _MARKER_REACH * self.robot_size
+        k = int(math.ceil(2 * reach)) + 1  # pixels an interval of this length can touch
+        start = np.floor(verts.min(axis=1)).astype(np.int64)  # (n, 2): the bounding box's first pixel
+        steps = np.arange(k)
+        rows = start[:, 1, None] + steps  # (n, k)
+        cols = start[:, 0, None] + steps
+        alpha = polygon_coverage(verts, rows, cols)  # (n, k, k)
+        alpha[((rows < 0) | (rows >= h))[:, :, None] | ((cols < 0) | (cols >= w))[:, None, :]] = 0.0
+        sel = alpha > 0
+        pix = (idx[:, None, None] * h + rows[:, :, None]) * w + cols[:, None, :]
+        pix = pix[sel]
+        a = alpha[sel][:, None]
+        old = flat[pix].astype(np.float64)
+        flat[pix] = np.floor(old + a * (color - old) + 0.5).astype(np.uint8)
+
     # ------------------------------------------------------------------------------------- render
     def render(
         self,
@@ -259,6 +393,7 @@ class Camera:
         occlusion: Occlusion | None = None,
         rng: np.random.Generator | None = None,
         *,
+        heading=None,
         clouds: CloudSample | None = None,
         out: np.ndarray | None = None,
         return_info: bool = False,
@@ -267,6 +402,9 @@ class Camera:
 
         - `follower`: `(N, 2)` or None; rows with NaN mean "no follower in this image".
           Rows of `leader` with NaN draw no leader.
+        - `heading`: `(N,)` world-frame headings in radians (a unicycle): the leader is drawn as the oriented
+          triangle of :func:`heading_marker` instead of the square (same colour, dimensions from
+          `robot_size`). A finite leader row needs a finite heading. The follower stays a square.
         - `occlusion`: clouds drawn over everything (None or level `none`: no clouds). The per-image
           cloud choices come from `clouds` when given (see :meth:`Occlusion.sample`), else are drawn from
           `rng` (None: `np.random.default_rng(0)`, so calls without an rng are reproducible).
@@ -281,6 +419,13 @@ class Camera:
             follower = np.asarray(follower, dtype=np.float64).reshape(-1, 2)
             if len(follower) != n:
                 raise ValueError(f"follower has {len(follower)} rows, leader {n}")
+        if heading is not None:
+            heading = np.asarray(heading, dtype=np.float64).reshape(-1)
+            if len(heading) != n:
+                raise ValueError(f"heading has {len(heading)} rows, leader {n}")
+            bad = np.all(np.isfinite(leader), axis=1) & ~np.isfinite(heading)
+            if bad.any():
+                raise ValueError(f"heading is not finite for {int(bad.sum())} drawn leader(s), e.g. row {int(np.argmax(bad))}")
         h, w = self.height, self.width
         if out is None:
             out = np.empty((n, h, w, 3), dtype=np.uint8)
@@ -300,7 +445,10 @@ class Camera:
             flat = block.reshape(-1, 3)
             if follower is not None:
                 self._draw_squares(flat, follower[s:e], self.colors["follower"])
-            self._draw_squares(flat, leader[s:e], self.colors["leader"])
+            if heading is None:
+                self._draw_squares(flat, leader[s:e], self.colors["leader"])
+            else:
+                self._draw_triangles(flat, leader[s:e], heading[s:e], self.colors["leader"])
             if active:
                 f, la = occlusion.apply(block, clouds[s:e], self.world_to_pixel(leader[s:e]))
                 frac[s:e], lead_alpha[s:e] = f, la

@@ -1,0 +1,372 @@
+"""Attacks through the camera (SPEC §3.5's Proposition-1 attack, moved from the state into the image).
+
+SPEC §3.5's `adversarial` disturbance adds `e = -eps sign(b(p)) e_b` to the *measured state*. The attacks
+here reach the same goal through the image the perception map reads: each frame they push the map's estimate
+along a caller-given direction per agent, normally that same `-sign(b(p)) e_b` (:func:`proposition1_direction`),
+i.e. across the line `b = 0` behind the obstacle, where the smooth controllers stall and the hybrid one must not.
+
+- :func:`pixel_attack`: an L-infinity bounded perturbation of the rendered uint8 image (`|delta| <= kappa`
+  intensity levels per channel and pixel), found by projected gradient ascent (PGD with sign steps) through
+  a differentiable network;
+- :func:`worst_cloud`: a physical adversary: among `K` cloud layouts drawn from an occlusion level's own ranges
+  it picks the one that moves the estimate furthest along the direction (batched rendering and inference, a
+  search: no gradients, any `predict` works);
+- :class:`AttackedCamera`: the measurement hook of the closed loop (`measure(p, idx, frame, rng)`, the
+  signature of `pipeline.experiments.measure.CameraMeasure`) that renders, attacks, infers and keeps per-frame
+  statistics of the error the attack induces.
+
+**The network contract** (for :func:`pixel_attack`): any `torch.nn.Module` mapping float NHWC images with
+intensities in `[0, 255]` (shape `(N, H, W, 3)`) to world coordinates `(N, >= 2)`; columns 0-1 are the
+position (further columns, e.g. an uncertainty head's sigmas, are ignored), and the output must be
+differentiable w.r.t. the input.
+
+- `pipeline.train.model.FoldedPerceptionNet` (the inference network of `PerceptionMapPredictor.net`) satisfies
+  it as is: its first convolution reads the float image in `[0, 255]` (the `/255 - 0.5` scaling is folded into
+  its weights and bias map), nothing in it is in-place on the input, and although its parameters have
+  `requires_grad=False` the gradient w.r.t. the input flows (checked in the tests). A `torch.compile`d
+  predictor net works too but recompiles for autograd: pass the eager `FoldedPerceptionNet`.
+- `pipeline.train.model.PerceptionMap` does **not** satisfy it directly: its float input is read in `[0, 1]`
+  (only uint8 input is divided by 255), so wrap it: `ScaledInput(model)` (multiplies by 1/255 first; this also
+  avoids its in-place `sub_` on a view of a leaf tensor, which autograd refuses).
+- In eval mode both clamp the estimate to the arena (`model.clamp`), so the gradient of a coordinate vanishes
+  once the estimate sits on the arena's edge (the attack cannot push it further there anyway).
+
+This module takes the network, predictor and camera as arguments; it imports only `pipeline.render`,
+`pipeline.errors` and third-party libraries.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from torch import nn
+
+from pipeline.errors import ConfigError
+from pipeline.render import CloudSample
+
+ATTACKS = ("pixel", "cloud")
+
+
+# -------------------------------------------------------------------------------------------- result
+@dataclass
+class AttackResult:
+    """What an attack did to a batch of `N` frames.
+
+    - `images`: the attacked uint8 images `(N, H, W, 3)` (what the camera delivers), or None when not kept;
+    - `clean`: the estimate `(N, 2)` on the unattacked image (pixel attack: the given image; worst cloud: the
+      same scene without clouds);
+    - `attacked`: the estimate `(N, 2)` on the attacked image;
+    - `direction`: the unit attack direction `(N, 2)` (zero rows where the caller's direction was zero);
+    - worst cloud only: `scores (N, K)` (the candidates' error along the direction, `d . (est_k - p)`),
+      `chosen (N,)` (the argmax, the first on ties), `clouds` (the chosen `CloudSample`, length N) and
+      `candidates` (all `N * K` layouts, agent-major: row `i * K + k`).
+
+    `induced = attacked - clean` is the estimate error the attack induces; `along` its component along the
+    direction, `norm` its length; `error(p)` is the attacked estimate's error w.r.t. the true positions.
+    """
+
+    images: np.ndarray | None
+    clean: np.ndarray
+    attacked: np.ndarray
+    direction: np.ndarray
+    scores: np.ndarray | None = None
+    chosen: np.ndarray | None = None
+    clouds: CloudSample | None = None
+    candidates: CloudSample | None = None
+
+    @property
+    def induced(self) -> np.ndarray:
+        return self.attacked - self.clean
+
+    @property
+    def along(self) -> np.ndarray:
+        """`d . (attacked - clean)` per frame (world units)."""
+        return np.einsum("ij,ij->i", self.induced, self.direction)
+
+    @property
+    def norm(self) -> np.ndarray:
+        """`|attacked - clean|` per frame (world units)."""
+        return np.hypot(self.induced[:, 0], self.induced[:, 1])
+
+    def error(self, positions) -> np.ndarray:
+        """`attacked - p` `(N, 2)`: the measurement error w.r.t. the true positions."""
+        return self.attacked - np.asarray(positions, dtype=np.float64).reshape(-1, 2)
+
+    def __len__(self) -> int:
+        return len(self.attacked)
+
+
+# ----------------------------------------------------------------------------------------- helpers
+class ScaledInput(nn.Module):
+    """`module(x * scale)`: adapts a network that reads float images in `[0, 1]` (e.g. `PerceptionMap`) to
+    the `[0, 255]` contract of :func:`pixel_attack`."""
+
+    def __init__(self, module: nn.Module, scale: float = 1.0 / 255.0):
+        super().__init__()
+        self.module = module
+        self.scale = float(scale)
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        return self.module(images * self.scale)
+
+
+def proposition1_direction(scene) -> Callable[[np.ndarray], np.ndarray]:
+    """`direction_fn(p) -> (N, 2)`: `-sign(b(p)) e_b` of SPEC §3.5 for a `pipeline.control.Scene` (duck-typed:
+    `scene.to_frame(p) -> (a, b)` and `scene.e_b`), with `sign(0) = +1` as in `sim.disturbances.Adversarial`."""
+
+    def direction(p: np.ndarray) -> np.ndarray:
+        p = np.asarray(p, dtype=np.float64).reshape(-1, 2)
+        _, b = scene.to_frame(p)
+        sign = np.where(np.asarray(b) >= 0, 1.0, -1.0)
+        return -sign[:, None] * np.asarray(scene.e_b, dtype=np.float64)[None, :]
+
+    return direction
+
+
+def _unit_directions(direction, n: int) -> np.ndarray:
+    d = np.asarray(direction, dtype=np.float64)
+    if d.shape == (2,):
+        d = np.broadcast_to(d, (n, 2))
+    if d.shape != (n, 2):
+        raise ValueError(f"direction must be (2,) or ({n}, 2), got {d.shape}")
+    if not np.all(np.isfinite(d)):
+        raise ValueError("direction has non-finite entries")
+    nrm = np.hypot(d[:, 0], d[:, 1])
+    return np.where(nrm[:, None] > 0, d / np.where(nrm > 0, nrm, 1.0)[:, None], 0.0)
+
+
+def _check_kappa(kappa) -> float:
+    if isinstance(kappa, bool) or not isinstance(kappa, int | float | np.integer | np.floating) \
+            or not math.isfinite(kappa) or not 0 <= kappa <= 255:
+        raise ConfigError("attack.kappa", f"must be a number of intensity levels in [0, 255], got {kappa!r}")
+    return float(kappa)
+
+
+def _check_count(value, field_name: str, lo: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < lo:
+        raise ConfigError(field_name, f"must be an integer >= {lo}, got {value!r}")
+    return int(value)
+
+
+# ------------------------------------------------------------------------------------ pixel attack
+def pixel_attack(net: nn.Module, images, direction, *, kappa: float, steps: int = 5,
+                 step_size: float | None = None, device="cpu", batch_size: int = 512,
+                 rng: np.random.Generator | None = None) -> AttackResult:
+    """L-infinity PGD on the camera image, pushing the estimate along `direction` (one row per image).
+
+    With `x` the clean image (float, `[0, 255]`), `l = net(.)[:, :2]` the estimate (world units) and
+    `d_n = direction_n / |direction_n|`, each image's perturbation solves (approximately)
+
+        max_delta  d_n . l(x_n + delta_n)    s.t.  |delta_n|_inf <= kappa,   0 <= x_n + delta_n <= 255,
+
+    the image-space counterpart of SPEC §3.5's Proposition-1 attack `e = -eps sign(b(p)) e_b`: pass
+    `direction = -sign(b(p)) e_b` (:func:`proposition1_direction`). The objective is the sum over the batch
+    (images are independent, so this is each image's own ascent). Steps: `delta <- P(delta + alpha
+    sign(grad))`, `alpha = step_size` (default `2.5 kappa / steps`), `P` the projection onto the ball and the
+    box. `rng` given: a uniform random start inside the ball (drawn in image order, so batching does not
+    change it); None: start at `delta = 0`.
+
+    The result is what a camera delivers: `round(x + delta)` as uint8, re-clipped to
+    `[x - floor(kappa), x + floor(kappa)]` so the budget holds exactly in integer levels. Where the rounded
+    image does worse along `d` than the clean one, the clean image is kept (`delta = 0` is feasible), so the
+    attack never helps the controller. Runs in eval mode (restored afterwards) in batches of `batch_size` on
+    `device`; only the input gets gradients (`torch.autograd.grad`), nothing accumulates in the network's
+    parameters. See the module docstring for the network contract.
+    """
+    kappa = _check_kappa(kappa)
+    steps = _check_count(steps, "attack.steps", 0)
+    batch_size = _check_count(batch_size, "attack.batch_size", 1)
+    alpha = 2.5 * kappa / max(steps, 1) if step_size is None else float(step_size)
+    if not (math.isfinite(alpha) and alpha >= 0):
+        raise ConfigError("attack.step_size", f"must be a number >= 0, got {step_size!r}")
+    imgs = images.detach().cpu().numpy() if isinstance(images, torch.Tensor) else np.asarray(images)
+    if imgs.ndim != 4 or imgs.shape[-1] != 3 or imgs.dtype != np.uint8:
+        raise ValueError(f"images must be uint8 (N, H, W, 3), got {imgs.dtype} {imgs.shape}")
+    n = len(imgs)
+    d = _unit_directions(direction, n)
+    dev = torch.device(device)
+    budget = math.floor(kappa)  # the integer levels a uint8 image can move within the budget
+    out = np.empty_like(imgs)
+    clean = np.empty((n, 2))
+    attacked = np.empty((n, 2))
+    was_training = net.training
+    net.eval()
+    try:
+        with torch.inference_mode(False), torch.enable_grad():
+            for s in range(0, n, batch_size):
+                e = min(s + batch_size, n)
+                x0 = torch.from_numpy(np.ascontiguousarray(imgs[s:e])).to(dev).to(torch.float32)
+                db = torch.from_numpy(d[s:e]).to(dev, torch.float32)
+                if rng is not None and kappa > 0:
+                    u = rng.random(tuple(x0.shape))  # float64: one 64-bit draw each, batch-invariant
+                    delta = torch.from_numpy(u).to(dev, torch.float32).mul_(2 * kappa).sub_(kappa)
+                    delta = (x0 + delta).clamp_(0.0, 255.0).sub_(x0)
+                else:
+                    delta = torch.zeros_like(x0)
+                for _ in range(steps):
+                    delta.requires_grad_(True)
+                    est = net(x0 + delta)[:, :2]
+                    (grad,) = torch.autograd.grad((est * db).sum(), delta)
+                    with torch.no_grad():
+                        delta = delta.detach().add_(grad.sign(), alpha=alpha).clamp_(-kappa, kappa)
+                        delta = (x0 + delta).clamp_(0.0, 255.0).sub_(x0)
+                with torch.no_grad():
+                    adv = torch.round(x0 + delta)
+                    adv = torch.minimum(torch.maximum(adv, x0 - budget), x0 + budget).clamp_(0.0, 255.0)
+                    est_clean = net(x0)[:, :2]
+                    est_adv = net(adv)[:, :2]
+                    worse = ((est_adv - est_clean) * db).sum(1) < 0
+                    adv[worse] = x0[worse]
+                    est_adv[worse] = est_clean[worse]
+                out[s:e] = adv.to(torch.uint8).cpu().numpy()
+                clean[s:e] = est_clean.double().cpu().numpy()
+                attacked[s:e] = est_adv.double().cpu().numpy()
+    finally:
+        net.train(was_training)
+    return AttackResult(out, clean, attacked, d)
+
+
+# ------------------------------------------------------------------------------------- worst cloud
+def worst_cloud(camera, occlusion, positions, direction, predict: Callable, *, candidates: int = 16,
+                rng: np.random.Generator, follower=None, chunk: int = 4096, always: bool = True,
+                keep_images: bool = True) -> AttackResult:
+    """The worst of `candidates` cloud layouts per agent: a physical adversary searching the level's own clouds.
+
+    For each agent `i` at true position `p_i`, `K = candidates` layouts are drawn with `occlusion.sample(N * K,
+    rng, camera.shape)` (agent-major: row `i * K + k`), so the adversary's budget is the level itself: its
+    bank of fields (number, size, opacity and shape of blobs from the level's ranges) and their cyclic shifts
+    (where the clouds lie). `always=True` (default): every candidate's `mask` is set, i.e. the adversary always
+    gets to place a cloud when the level allows one at all (`occlusion.active`, probability > 0; a level with
+    probability `p` puts clouds on a share `p` of the images, and the worst case is the adversary choosing
+    those frames); `always=False` keeps the level's own mask draws (a candidate may then be a clear image).
+    An inactive level yields clear images only.
+
+    All `N * K` images are rendered with `camera.render(..., clouds=...)` and predicted with `predict(images)
+    -> (n, 2)` in chunks of `chunk` images (memory `chunk * H * W * 3` bytes); per agent the candidate with the
+    largest `d_i . (est_k - p_i)` is kept (`d_i` the unit direction; first on ties). `clean` is the estimate of
+    the same scene without clouds, `attacked` the chosen candidate's; the chosen images are re-rendered
+    (bytes identical) when `keep_images`. Same inputs and rng state -> same result, whatever `chunk`.
+    """
+    k = _check_count(candidates, "attack.candidates", 1)
+    chunk = _check_count(chunk, "attack.chunk", 1)
+    p = np.asarray(positions, dtype=np.float64).reshape(-1, 2)
+    n = len(p)
+    d = _unit_directions(direction, n)
+    fol = None if follower is None else np.asarray(follower, dtype=np.float64).reshape(-1, 2)
+    if fol is not None and len(fol) != n:
+        raise ValueError(f"follower has {len(fol)} rows, positions {n}")
+    active = occlusion is not None and occlusion.active
+    if active:
+        cand = occlusion.sample(n * k, rng, camera.shape)
+        if always:
+            cand = CloudSample(np.ones(n * k, dtype=bool), cand.field, cand.dy, cand.dx)
+    else:
+        z = np.zeros(n * k, dtype=np.int64)
+        cand = CloudSample(np.zeros(n * k, dtype=bool), z, z, z)
+    est = np.empty((n * k, 2))
+    agent = np.repeat(np.arange(n), k)
+    for s in range(0, n * k, chunk):
+        e = min(s + chunk, n * k)
+        rows = agent[s:e]
+        imgs = camera.render(p[rows], None if fol is None else fol[rows], occlusion=occlusion if active else None,
+                             clouds=cand[s:e] if active else None)
+        est[s:e] = np.asarray(predict(imgs), dtype=np.float64)[:, :2]
+    scores = np.einsum("ikj,ij->ik", est.reshape(n, k, 2) - p[:, None, :], d)
+    chosen = np.argmax(scores, axis=1)
+    pick = np.arange(n) * k + chosen
+    clouds = cand[pick]
+    clean = np.empty((n, 2))
+    images = np.empty((n, camera.height, camera.width, 3), dtype=np.uint8) if keep_images else None
+    for s in range(0, n, chunk):
+        e = min(s + chunk, n)
+        f = None if fol is None else fol[s:e]
+        clean[s:e] = np.asarray(predict(camera.render(p[s:e], f)), dtype=np.float64)[:, :2]
+        if keep_images:
+            camera.render(p[s:e], f, occlusion=occlusion if active else None,
+                          clouds=clouds[s:e] if active else None, out=images[s:e])
+    return AttackResult(images, clean, est[pick], d, scores=scores, chosen=chosen, clouds=clouds,
+                        candidates=cand)
+
+
+# --------------------------------------------------------------------------------- closed-loop hook
+@dataclass
+class AttackedCamera:
+    """`measure(p (n, 2), idx, frame, rng) -> estimates (n, 2)`: the camera in the loop, under attack.
+
+    Each frame: `direction_fn(p)` gives the attack direction per agent from the true positions (e.g.
+    :func:`proposition1_direction`); then
+    - `attack="pixel"`: render with the scenario's `occlusion` (clouds drawn from `rng`, as `CameraMeasure`
+      does), run :func:`pixel_attack` through `net` (default `perception_map.net`, the predictor's eager
+      folded network) on `perception_map.device`, and measure the attacked images with `perception_map.predict`;
+    - `attack="cloud"`: :func:`worst_cloud` over `candidates` layouts of `occlusion` (the adversary's level;
+      drawn from `rng`), measured with `perception_map.predict`.
+    The estimate returned is the perception map's on the attacked image. Statistics: `frames`, `images`, and
+    per frame the mean of the induced error (`attacked - clean`) along the direction and in norm
+    (`per_frame`), with running sums for the means (`mean_along`, `mean_norm`); `error_along` sums
+    `d . (estimate - p)`, the measured error w.r.t. the truth along the direction.
+    """
+
+    camera: object
+    perception_map: object
+    direction_fn: Callable[[np.ndarray], np.ndarray]
+    attack: str = "pixel"
+    occlusion: object | None = None
+    kappa: float = 4.0
+    steps: int = 5
+    step_size: float | None = None
+    random_start: bool = False
+    candidates: int = 16
+    net: nn.Module | None = None
+    frames: int = 0
+    images: int = 0
+    sum_along: float = 0.0
+    sum_norm: float = 0.0
+    error_along: float = 0.0
+    per_frame: list = field(default_factory=list)
+
+    def __post_init__(self):
+        if self.attack not in ATTACKS:
+            raise ConfigError("attack.kind", f"must be one of {', '.join(ATTACKS)}, got {self.attack!r}")
+        if self.attack == "pixel":
+            _check_kappa(self.kappa)
+            _check_count(self.steps, "attack.steps", 0)
+        else:
+            _check_count(self.candidates, "attack.candidates", 1)
+
+    def __call__(self, p: np.ndarray, idx: np.ndarray, frame: int, rng: np.random.Generator) -> np.ndarray:
+        p = np.asarray(p, dtype=np.float64).reshape(-1, 2)
+        direction = self.direction_fn(p)
+        pm = self.perception_map
+        if self.attack == "pixel":
+            imgs = self.camera.render(p, None, occlusion=self.occlusion, rng=rng)
+            net = self.net if self.net is not None else pm.net
+            res = pixel_attack(net, imgs, direction, kappa=self.kappa, steps=self.steps, step_size=self.step_size,
+                               device=getattr(pm, "device", "cpu"), rng=rng if self.random_start else None)
+            est = np.asarray(pm.predict(res.images), dtype=np.float64)[:, :2]
+        else:
+            res = worst_cloud(self.camera, self.occlusion, p, direction, pm.predict, candidates=self.candidates,
+                              rng=rng, keep_images=False)
+            est = res.attacked  # already the perception map's estimate of the chosen image
+        along, norm = res.along, res.norm
+        self.frames += 1
+        self.images += len(p)
+        self.sum_along += float(along.sum())
+        self.sum_norm += float(norm.sum())
+        self.error_along += float(np.einsum("ij,ij->", est - p, res.direction))
+        self.per_frame.append({"frame": int(frame), "n": len(p), "along": float(along.mean()) if len(p) else 0.0,
+                               "norm": float(norm.mean()) if len(p) else 0.0})
+        return est
+
+    @property
+    def mean_along(self) -> float:
+        """Mean induced error along the direction over all attacked images (world units)."""
+        return self.sum_along / self.images if self.images else 0.0
+
+    @property
+    def mean_norm(self) -> float:
+        """Mean norm of the induced error over all attacked images (world units)."""
+        return self.sum_norm / self.images if self.images else 0.0

@@ -1,0 +1,680 @@
+"""Fields of several obstacles (SPEC §3.6): derived quantities, the validity conditions V1–V3, random valid
+fields, and the authors' 12-disc field.
+
+Pure numpy on plain arrays, no Hydra, no I/O; the multi-obstacle scene calls these functions.
+
+Per obstacle `i` (0-based, as in the config list `scene.obstacles`): centre `c_i`, radius `r_i`, covering
+apex `c^a_i` (default `2 sqrt(2) r_i`, which must exceed `sqrt(2) r_i` so that the diamond
+`|a| + |b| <= c^a_i` contains the disc), barrier reach `rho_i = sqrt(rho_b) l_i` (`l_i` the barrier scale,
+default `r_i`) and influence radius `R_i = c^a_i + sqrt(2) rho_i`: outside `disc(c_i, R_i)` both of obstacle
+`i`'s barriers vanish. The obstacle frame has origin `c_i`, axis `e_a` from `c_i` towards `p_T` and `e_b` its
+left-hand normal (SPEC §3.1).
+
+Conditions (SPEC §3.6), reported by `field_violations` in this order:
+
+- `arena`: every obstacle disc (radius `r_i`, not inflated) lies in the arena (closed); so do the target and
+  every start;
+- `V1`: `|p_T - c_i| > R_i` (the target outside obstacle `i`'s influence disc);
+- `V2`: `|c_i - c_j| > R_i + R_j + h` for every pair (the cell switching locus outside both influence discs);
+- `V3`: `(|c_i - c_j| - R_i - R_j - h) / 2 > u_max T_s` (sampled loop only: a held frame cannot carry the
+  vehicle across the hysteresis band);
+- `start`: every start lies outside every diamond, by more than `start_clearance` (Euclidean distance).
+
+Unicycle (SPEC §3.7): `inflation = d` builds every covering for the disc of radius `r_i + d` (the apex and
+barrier-scale defaults scale with `r_i + d`); the arena check keeps the real disc, and the start clearance
+defaults to `d`, so that the look-ahead point `z`, within `d` of the axle point, is outside the diamond
+whatever the heading.
+
+Every shortfall is in world units: how far the quantity misses its bound (`>= 0` for a violation; the bound is
+strict for V1–V3 and the start, closed for the arena).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from pipeline.errors import ConfigError
+
+SQRT2 = math.sqrt(2.0)
+DEFAULT_APEX_FACTOR = 2.0 * SQRT2
+DEFAULT_BARRIER_RHO = 0.5
+DEFAULT_ARENA = ((-50.0, 50.0), (-30.0, 30.0))
+CONDITIONS = ("arena", "V1", "V2", "V3", "start")
+
+# Config fields named in errors (SPEC's config layout: conf/controller, conf/camera, conf/init).
+OBSTACLES_FIELD = "scene.obstacles"
+TARGET_FIELD = "scene.target"
+ARENA_FIELD = "scene.arena"
+STARTS_FIELD = "init.points"
+HYSTERESIS_FIELD = "controller.cell_hysteresis"
+U_MAX_FIELD = "controller.u_max"
+PERIOD_FIELD = "camera.period"
+RANDOM_FIELD = "scene.random"
+
+
+# ----------------------------------------------------------------------------- derived quantities
+def default_apex(radii, apex=None) -> np.ndarray:
+    """Covering apex per obstacle, `(M,)`: `apex` where given, `2 sqrt(2) r_i` where `apex` is None or NaN.
+    `apex` may be a scalar (every obstacle) or `(M,)`."""
+    r = np.asarray(radii, dtype=float).reshape(-1)
+    if apex is None:
+        return DEFAULT_APEX_FACTOR * r
+    a = np.broadcast_to(np.asarray(apex, dtype=float), r.shape).copy()
+    missing = np.isnan(a)
+    a[missing] = DEFAULT_APEX_FACTOR * r[missing]
+    return a
+
+
+def barrier_reach(rho_b, scale) -> np.ndarray:
+    """Reach of SPEC's squared barrier `B(d_q / l^2)`: `rho = sqrt(rho_b) l` (Euclidean distance from the wedge
+    beyond which it vanishes). Broadcasts."""
+    return np.sqrt(np.asarray(rho_b, dtype=float)) * np.asarray(scale, dtype=float)
+
+
+def influence_radius(apex, reach) -> np.ndarray:
+    """`R_i = c^a_i + sqrt(2) rho_i` (SPEC §3.6): outside `disc(c_i, R_i)` both barriers of obstacle i vanish
+    (the diamond's vertices are at distance `c^a_i`, the wedges' faces meet at 90 degrees, so the reach `rho`
+    past the apex is `sqrt(2) rho` along the axis)."""
+    return np.asarray(apex, dtype=float) + SQRT2 * np.asarray(reach, dtype=float)
+
+
+def cell_distance(points, centers, R) -> np.ndarray:
+    """`dist_i(p) = |p - c_i| - R_i` for `(N, 2)` points and M obstacles: `(N, M)`."""
+    p = np.asarray(points, dtype=float).reshape(-1, 2)
+    c = np.asarray(centers, dtype=float).reshape(-1, 2)
+    return np.hypot(*np.moveaxis(p[:, None, :] - c[None, :, :], -1, 0)) - np.asarray(R, dtype=float)
+
+
+def obstacle_frames(centers, target) -> tuple[np.ndarray, np.ndarray]:
+    """Unit axes `(e_a, e_b)`, each `(M, 2)`: `e_a` from `c_i` towards `p_T`, `e_b` its left-hand normal
+    (`e_a = (1, 0)` for an obstacle centred on the target, which V1 rejects anyway)."""
+    c = np.asarray(centers, dtype=float).reshape(-1, 2)
+    d = np.asarray(target, dtype=float).reshape(1, 2) - c
+    n = np.hypot(d[:, 0], d[:, 1])
+    e_a = np.where(n[:, None] > 0, d / np.where(n > 0, n, 1.0)[:, None], np.array([1.0, 0.0]))
+    return e_a, np.stack([-e_a[:, 1], e_a[:, 0]], axis=1)
+
+
+def to_frames(points, centers, target) -> tuple[np.ndarray, np.ndarray]:
+    """Obstacle-frame coordinates `(a, b)` of `(N, 2)` points in every obstacle's frame: each `(N, M)`."""
+    p = np.asarray(points, dtype=float).reshape(-1, 2)
+    c = np.asarray(centers, dtype=float).reshape(-1, 2)
+    e_a, e_b = obstacle_frames(c, target)
+    d = p[:, None, :] - c[None, :, :]
+    return np.einsum("nmk,mk->nm", d, e_a), np.einsum("nmk,mk->nm", d, e_b)
+
+
+def diamond_signed_distance(points, centers, apex, target) -> np.ndarray:
+    """Euclidean signed distance from `(N, 2)` points to each obstacle's diamond `|a| + |b| <= c^a_i`,
+    `(N, M)`: positive outside, negative inside (minus the distance to the boundary), zero on it. In the
+    rotated coordinates `u = (a + b)/sqrt(2)`, `v = (b - a)/sqrt(2)` the diamond is the square
+    `max(|u|, |v|) <= c^a_i / sqrt(2)`."""
+    a, b = to_frames(points, centers, target)
+    half = np.asarray(apex, dtype=float) / SQRT2
+    ex = np.abs(a + b) / SQRT2 - half
+    ey = np.abs(b - a) / SQRT2 - half
+    return np.hypot(np.maximum(ex, 0.0), np.maximum(ey, 0.0)) + np.minimum(np.maximum(ex, ey), 0.0)
+
+
+def in_diamonds(points, centers, apex, target) -> np.ndarray:
+    """Membership of `(N, 2)` points in each obstacle's closed diamond, `(N, M)` booleans."""
+    a, b = to_frames(points, centers, target)
+    return np.abs(a) + np.abs(b) <= np.asarray(apex, dtype=float)
+
+
+# ----------------------------------------------------------------------------- inputs
+def _fmt(x: float) -> str:
+    x = float(x)
+    return f"{x:.2f}" if abs(x) >= 0.1 or x == 0 else f"{x:.2g}"
+
+
+def _positive(value, name: str, *, allow_none: bool = False) -> float | None:
+    if value is None and allow_none:
+        return None
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ConfigError(name, f"must be a number > 0, got {value!r}") from None
+    if not (math.isfinite(v) and v > 0):
+        raise ConfigError(name, f"must be > 0{' (or null)' if allow_none else ''}, got {value!r}")
+    return v
+
+
+def _arena(arena) -> np.ndarray | None:
+    if arena is None:
+        return None
+    try:
+        a = np.asarray(arena, dtype=float)
+    except (TypeError, ValueError):
+        raise ConfigError(ARENA_FIELD, f"must be ((x_min, x_max), (y_min, y_max)), got {arena!r}") from None
+    if a.shape != (2, 2) or not np.all(np.isfinite(a)) or not np.all(a[:, 0] < a[:, 1]):
+        raise ConfigError(ARENA_FIELD, f"must be ((x_min, x_max), (y_min, y_max)) with min < max, got {arena!r}")
+    return a
+
+
+def _points(value, name: str) -> np.ndarray:
+    try:
+        p = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise ConfigError(name, f"must be a list of [x, y] points, got {value!r}") from None
+    p = p.reshape(-1, 2) if p.size % 2 == 0 and p.ndim <= 2 and (p.ndim < 2 or p.shape[-1] == 2) else None
+    if p is None or not np.all(np.isfinite(p)):
+        raise ConfigError(name, f"must be a list of finite [x, y] points, got {value!r}")
+    return p
+
+
+@dataclass(frozen=True, eq=False)
+class FieldGeometry:
+    """Validated arrays of a field: centres `(M, 2)`, radii `r_i (M,)`, the covering radii `r_i + inflation`,
+    apex `(M,)`, reach `(M,)`, `R (M,)` and the target `(2,)`."""
+
+    centers: np.ndarray
+    radii: np.ndarray
+    cover_radii: np.ndarray
+    apex: np.ndarray
+    reach: np.ndarray
+    R: np.ndarray
+    target: np.ndarray
+
+
+def field_geometry(centers, radii, target, *, apex=None, reach=None, inflation: float = 0.0) -> FieldGeometry:
+    """Validate a field's arrays and derive apex, reach and `R` (ConfigError on malformed input).
+
+    `apex`: None, a scalar or `(M,)` with NaN for the default `2 sqrt(2) (r_i + inflation)`; it must exceed
+    `sqrt(2) (r_i + inflation)`. `reach`: None for SPEC's default `sqrt(0.5) (r_i + inflation)` (rho_b = 0.5,
+    l_i = r_i + inflation; see `barrier_reach`), a scalar or `(M,)`, > 0."""
+    c = np.asarray(centers, dtype=float)
+    if c.ndim != 2 or c.shape[1] != 2 or c.shape[0] < 1 or not np.all(np.isfinite(c)):
+        raise ConfigError(OBSTACLES_FIELD, f"centres must be a non-empty (M, 2) array of finite numbers, got shape {c.shape}")
+    M = c.shape[0]
+    r = np.asarray(radii, dtype=float).reshape(-1)
+    if r.shape != (M,):
+        raise ConfigError(OBSTACLES_FIELD, f"need one radius per obstacle ({M}), got {r.size}")
+    bad = np.flatnonzero(~(np.isfinite(r) & (r > 0)))
+    if bad.size:
+        raise ConfigError(f"{OBSTACLES_FIELD}[{bad[0]}]", f"radius must be > 0, got {r[bad[0]]!r}")
+    p_T = _points(target, TARGET_FIELD)
+    if p_T.shape != (1, 2):
+        raise ConfigError(TARGET_FIELD, f"must be one point [x, y], got {target!r}")
+    d = float(inflation)
+    if not (math.isfinite(d) and d >= 0):
+        raise ConfigError("controller.lookahead", f"the inflation d must be >= 0, got {inflation!r}")
+    rc = r + d
+    try:
+        a = default_apex(rc, apex)
+    except ValueError:
+        raise ConfigError(OBSTACLES_FIELD, f"need one apex per obstacle ({M}) or a single one, got {apex!r}") from None
+    bad = np.flatnonzero(~(np.isfinite(a) & (a > SQRT2 * rc)))
+    if bad.size:
+        i = bad[0]
+        raise ConfigError(
+            f"{OBSTACLES_FIELD}[{i}]",
+            f"apex {a[i]!r} must exceed sqrt(2) r_{i} = {_fmt(SQRT2 * rc[i])} (the diamond |a| + |b| <= c must "
+            f"contain the disc{' inflated by d' if d else ''})",
+        )
+    try:
+        rho = barrier_reach(DEFAULT_BARRIER_RHO, rc) if reach is None else np.broadcast_to(
+            np.asarray(reach, dtype=float), (M,)).copy()
+    except ValueError:
+        raise ConfigError(OBSTACLES_FIELD, f"need one barrier reach per obstacle ({M}) or a single one, got {reach!r}") from None
+    bad = np.flatnonzero(~(np.isfinite(rho) & (rho > 0)))
+    if bad.size:
+        raise ConfigError(f"{OBSTACLES_FIELD}[{bad[0]}]", f"barrier reach sqrt(rho_b) l must be > 0, got {rho[bad[0]]!r}")
+    return FieldGeometry(c, r, rc, a, rho, influence_radius(a, rho), p_T[0])
+
+
+# ----------------------------------------------------------------------------- validity
+@dataclass(frozen=True)
+class Violation:
+    """One violated condition: the config `field` it concerns (`scene.obstacles[i]`, `scene.obstacles[i,j]`,
+    `scene.target`, `init.points[k]`), the `condition` (one of CONDITIONS), the `shortfall` (world units, >= 0)
+    and a one-line `message` (without the field). `obstacles` are the obstacle indices involved."""
+
+    field: str
+    condition: str
+    shortfall: float
+    message: str
+    obstacles: tuple[int, ...] = ()
+
+    @property
+    def line(self) -> str:
+        return f"{self.field}: {self.message}"
+
+    def error(self) -> ConfigError:
+        return ConfigError(self.field, self.message)
+
+
+def _loop_params(h, u_max, T_s) -> tuple[float, float]:
+    """`(h, u_max T_s)`; the step is 0 for a continuous loop (T_s or u_max None)."""
+    h = _positive(h, HYSTERESIS_FIELD)
+    u = _positive(u_max, U_MAX_FIELD, allow_none=True)
+    t = _positive(T_s, PERIOD_FIELD, allow_none=True)
+    return h, (u * t if u is not None and t is not None else 0.0)
+
+
+def field_violations(
+    centers,
+    radii,
+    target,
+    *,
+    apex=None,
+    reach=None,
+    h: float = 1.0,
+    u_max: float | None = None,
+    T_s: float | None = None,
+    arena=None,
+    starts=None,
+    inflation: float = 0.0,
+    start_clearance: float | None = None,
+    margin: float = 0.0,
+) -> list[Violation]:
+    """Every violated condition of SPEC §3.6, in the order arena, V1, V2, V3, start (within one condition by
+    obstacle index, pair `(i, j)` with `i < j`, or start index). Empty: the field is valid.
+
+    `apex`, `reach`, `inflation`: see `field_geometry`. `h`: the cell hysteresis. V3 is checked only when
+    `u_max` and `T_s` are both given (a sampled loop). `arena`: `((x_min, x_max), (y_min, y_max))` or None
+    (not checked). `starts`: `(K, 2)` or None; `start_clearance` (default: `inflation`) is the Euclidean
+    distance every start keeps from every diamond. `margin` >= 0 asks every obstacle condition to hold with
+    that slack (world units; V3 per side; the target and the starts need only lie in the arena), and is
+    included in the shortfalls.
+    """
+    g = field_geometry(centers, radii, target, apex=apex, reach=reach, inflation=inflation)
+    h, step = _loop_params(h, u_max, T_s)
+    sampled = u_max is not None and T_s is not None
+    box = _arena(arena)
+    P = np.zeros((0, 2)) if starts is None else _points(starts, STARTS_FIELD)
+    clear = float(inflation) if start_clearance is None else float(start_clearance)
+    margin = float(margin)
+    if not (math.isfinite(clear) and clear >= 0):
+        raise ConfigError(STARTS_FIELD, f"start clearance must be >= 0, got {start_clearance!r}")
+    if not (math.isfinite(margin) and margin >= 0):
+        raise ConfigError(RANDOM_FIELD + ".margin", f"must be >= 0, got {margin!r}")
+    c, r, R, p_T = g.centers, g.radii, g.R, g.target
+    out: list[Violation] = []
+
+    # arena: discs, target, starts (closed box)
+    if box is not None:
+        lo, hi = box[:, 0], box[:, 1]
+        names = ("x_min", "y_min", "x_max", "y_max")
+
+        def overflow(pts: np.ndarray, rad: np.ndarray) -> np.ndarray:  # (N, 4): how far past each side
+            return np.concatenate([lo - (pts - rad[:, None]), (pts + rad[:, None]) - hi], axis=1) + margin
+
+        bounds = np.concatenate([lo, hi])
+        over = overflow(c, r)
+        for i in np.flatnonzero(over.max(axis=1) > 0):
+            s = int(np.argmax(over[i]))
+            out.append(Violation(
+                f"{OBSTACLES_FIELD}[{i}]", "arena", float(over[i, s]),
+                f"arena: obstacle {i}'s disc (centre ({_fmt(c[i, 0])}, {_fmt(c[i, 1])}), r = {_fmt(r[i])}) reaches "
+                f"{_fmt(over[i, s])} past the arena's {names[s]} = {_fmt(bounds[s])}"
+                f"{f' (margin {_fmt(margin)})' if margin else ''}; move it inside or shrink it", (int(i),)))
+        over_t = overflow(p_T[None], np.zeros(1))[0] - margin
+        if over_t.max() > 0:
+            s = int(np.argmax(over_t))
+            out.append(Violation(TARGET_FIELD, "arena", float(over_t[s]),
+                                 f"arena: the target lies {_fmt(over_t[s])} past the arena's {names[s]} = {_fmt(bounds[s])}"))
+        if len(P):
+            over_p = overflow(P, np.zeros(len(P))) - margin
+            for k in np.flatnonzero(over_p.max(axis=1) > 0):
+                s = int(np.argmax(over_p[k]))
+                out.append(Violation(f"{STARTS_FIELD}[{k}]", "arena", float(over_p[k, s]),
+                                     f"arena: the start lies {_fmt(over_p[k, s])} past the arena's {names[s]} = {_fmt(bounds[s])}"))
+
+    # V1: the target outside every influence disc
+    dT = np.hypot(*(p_T - c).T)
+    short1 = R + margin - dT
+    for i in np.flatnonzero(short1 >= 0):
+        out.append(Violation(
+            f"{OBSTACLES_FIELD}[{i}]", "V1", float(short1[i]),
+            f"V1: the target is {_fmt(short1[i])} units too close (|p_T - c_{i}| = {_fmt(dT[i])}, needs > R_{i} = "
+            f"{_fmt(R[i])}{f' + margin {_fmt(margin)}' if margin else ''}); move the target or shrink obstacle "
+            f"{i}'s apex or barrier scale", (int(i),)))
+
+    # V2, V3: every pair, vectorised
+    ii, jj = np.triu_indices(len(r), 1)
+    dij = np.hypot(*(c[ii] - c[jj]).T)
+    need2 = R[ii] + R[jj] + h
+    short2 = need2 + margin - dij
+    pair_v2 = [Violation(
+        f"{OBSTACLES_FIELD}[{i},{j}]", "V2", float(s),
+        f"V2: centres {_fmt(d)} apart, need > R_{i} + R_{j} + h = {_fmt(n)}{f' + margin {_fmt(margin)}' if margin else ''} "
+        f"(short by {_fmt(s)}); move them apart or shrink their apex or barrier scale", (int(i), int(j)))
+        for i, j, d, n, s in zip(ii, jj, dij, need2, short2) if s >= 0]
+    out.extend(pair_v2)
+    if sampled:
+        side = (dij - need2) / 2.0
+        short3 = step + margin - side
+        out.extend(Violation(
+            f"{OBSTACLES_FIELD}[{i},{j}]", "V3", float(s),
+            f"V3: the gap between their influence discs leaves (|c_{i} - c_{j}| - R_{i} - R_{j} - h)/2 = "
+            f"({_fmt(d)} - {_fmt(n)})/2 = {_fmt(sd)} per side, need > u_max T_s = {_fmt(step)}"
+            f"{f' + margin {_fmt(margin)}' if margin else ''} (short by {_fmt(s)})", (int(i), int(j)))
+            for i, j, d, n, sd, s in zip(ii, jj, dij, need2, side, short3) if s >= 0)
+
+    # start: outside every diamond, by more than the clearance
+    if len(P):
+        sd = diamond_signed_distance(P, c, g.apex, p_T)
+        short_s = clear + margin - sd
+        for k, i in zip(*np.nonzero(short_s >= 0)):
+            inside = sd[k, i] <= 0
+            where = (f"lies inside obstacle {i}'s diamond |a| + |b| <= c_{i} = {_fmt(g.apex[i])} ({_fmt(-sd[k, i])} "
+                     f"from its boundary)" if inside else
+                     f"is {_fmt(sd[k, i])} from obstacle {i}'s diamond (c_{i} = {_fmt(g.apex[i])})")
+            need = f"; needs > {_fmt(clear + margin)}" if clear + margin > 0 else ""
+            out.append(Violation(
+                f"{STARTS_FIELD}[{k}]", "start", float(short_s[k, i]),
+                f"start: ({_fmt(P[k, 0])}, {_fmt(P[k, 1])}) {where}{need} (short by {_fmt(short_s[k, i])}); move the "
+                f"start or shrink obstacle {i}'s apex", (int(i),)))
+    return out
+
+
+def check_field(*args, **kwargs) -> None:
+    """`field_violations(*args, **kwargs)`, raising ConfigError for the first violation in its documented
+    order (arena, V1, V2, V3, start) and counting the others in the same line."""
+    found = field_violations(*args, **kwargs)
+    if found:
+        v = found[0]
+        more = f" [{len(found) - 1} more violation(s) of SPEC §3.6's conditions]" if len(found) > 1 else ""
+        raise ConfigError(v.field, v.message + more)
+
+
+# ----------------------------------------------------------------------------- random valid fields
+def random_field(
+    n_obstacles: int,
+    *,
+    seed: int,
+    arena=DEFAULT_ARENA,
+    radius_range: tuple[float, float] = (2.0, 4.0),
+    target=(40.0, 0.0),
+    starts=None,
+    start_clearance: float | None = None,
+    h: float = 1.0,
+    u_max: float | None = 10.0,
+    T_s: float | None = 0.05,
+    apex_factor: float = DEFAULT_APEX_FACTOR,
+    barrier_rho: float = DEFAULT_BARRIER_RHO,
+    barrier_scale_factor: float = 1.0,
+    inflation: float = 0.0,
+    margin: float = 0.0,
+    batch: int = 256,
+    batches_per_obstacle: int = 8,
+    max_restarts: int = 25,
+) -> tuple[np.ndarray, np.ndarray]:
+    """A seeded random field valid under SPEC §3.6: `(centers (M, 2), radii (M,))`.
+
+    Radii are uniform in `radius_range`; apex `c^a_i = apex_factor (r_i + inflation)`, barrier scale
+    `l_i = barrier_scale_factor (r_i + inflation)`, reach `sqrt(barrier_rho) l_i`. Each obstacle in turn is the
+    first of a batch of `batch` candidates (centres uniform over the arena shrunk by `r + margin`) that passes
+    V1, the start condition and V2/V3 against the obstacles already placed; after `batches_per_obstacle` empty
+    batches the field is redrawn from scratch, at most `max_restarts` times, then ConfigError. Deterministic
+    in `seed`; the result is checked with `field_violations` (same `margin`)."""
+    M = int(n_obstacles)
+    if M < 1 or M != n_obstacles:
+        raise ConfigError(f"{RANDOM_FIELD}.n_obstacles", f"must be an integer >= 1, got {n_obstacles!r}")
+    box = _arena(arena)
+    if box is None:
+        raise ConfigError(ARENA_FIELD, "random_field needs an arena")
+    r_lo, r_hi = (float(x) for x in radius_range)
+    if not (0 < r_lo <= r_hi and math.isfinite(r_hi)):
+        raise ConfigError(f"{RANDOM_FIELD}.radius_range", f"must be 0 < r_min <= r_max, got {radius_range!r}")
+    if not apex_factor > SQRT2:
+        raise ConfigError(f"{RANDOM_FIELD}.apex_factor", f"must exceed sqrt(2) (the diamond must contain the disc), got {apex_factor!r}")
+    rho_b = _positive(barrier_rho, f"{RANDOM_FIELD}.barrier_rho")
+    scale_f = _positive(barrier_scale_factor, f"{RANDOM_FIELD}.barrier_scale_factor")
+    h, step = _loop_params(h, u_max, T_s)
+    margin = float(margin)
+    d = float(inflation)
+    p_T = _points(target, TARGET_FIELD)[0]
+    P = np.zeros((0, 2)) if starts is None else _points(starts, STARTS_FIELD)
+    clear = d if start_clearance is None else float(start_clearance)
+    k_R = apex_factor + SQRT2 * math.sqrt(rho_b) * scale_f  # R_i = k_R (r_i + d)
+    half = (box[:, 1] - box[:, 0]) / 2.0
+    if r_lo + margin >= half.min():
+        raise ConfigError(f"{RANDOM_FIELD}.radius_range", f"a disc of radius {r_lo} (margin {margin}) does not fit the arena {arena!r}")
+    named = [(TARGET_FIELD, p_T)] + [(f"{STARTS_FIELD}[{k}]", P[k]) for k in range(len(P))]
+    for name, pt in named:
+        if np.any(pt < box[:, 0]) or np.any(pt > box[:, 1]):
+            raise ConfigError(name, f"({_fmt(pt[0])}, {_fmt(pt[1])}) lies outside the arena {box.tolist()}")
+    gap_need = max(2.0 * step, 0.0) + 2.0 * margin  # V2 (gap > 0) and V3 (gap / 2 > u_max T_s), with the margin
+    rng = np.random.default_rng(seed)
+    for _ in range(max_restarts):
+        cs, rs, Rs = np.zeros((0, 2)), np.zeros(0), np.zeros(0)
+        for _m in range(M):
+            chosen = None
+            for _b in range(batches_per_obstacle):
+                r = rng.uniform(r_lo, min(r_hi, half.min() - margin - 1e-9), batch)
+                u = rng.uniform(0.0, 1.0, (batch, 2))
+                lo = box[:, 0] + (r + margin)[:, None]
+                span = np.maximum((box[:, 1] - box[:, 0]) - 2.0 * (r + margin)[:, None], 0.0)
+                c = lo + u * span
+                R = k_R * (r + d)
+                ok = np.hypot(*(p_T - c).T) > R + margin  # V1
+                if len(P):
+                    a_ = apex_factor * (r + d)
+                    ok &= np.all(diamond_signed_distance(P, c, a_, p_T) > clear + margin, axis=0)
+                if len(rs):
+                    dij = np.hypot(*np.moveaxis(c[:, None, :] - cs[None, :, :], -1, 0))
+                    ok &= np.all(dij - R[:, None] - Rs[None, :] - h > gap_need, axis=1)
+                idx = np.flatnonzero(ok)
+                if idx.size:
+                    chosen = idx[0]
+                    break
+            if chosen is None:
+                break
+            cs = np.vstack([cs, c[chosen]])
+            rs = np.append(rs, r[chosen])
+            Rs = np.append(Rs, R[chosen])
+        if len(rs) == M:
+            kw = dict(apex=apex_factor * (rs + d), reach=barrier_reach(rho_b, scale_f * (rs + d)), h=h, u_max=u_max,
+                      T_s=T_s, arena=box, starts=P if len(P) else None, inflation=d, start_clearance=clear, margin=margin)
+            left = field_violations(cs, rs, p_T, **kw)
+            if not left:
+                return cs, rs
+            raise AssertionError(f"random_field drew an invalid field: {left[0].line}")  # pragma: no cover
+    raise ConfigError(
+        f"{RANDOM_FIELD}.n_obstacles",
+        f"no valid field of {M} obstacles found in {max_restarts} tries (influence radius R = {_fmt(k_R)} (r + d), "
+        f"radii {r_lo}..{r_hi}, arena {box.tolist()}): use fewer or smaller discs, a larger arena, or a smaller "
+        f"apex factor or barrier",
+    )
+
+
+# ----------------------------------------------------------------------------- example fields
+def _frozen(a) -> np.ndarray:
+    a = np.array(a, dtype=float)
+    a.setflags(write=False)
+    return a
+
+
+@dataclass(frozen=True, eq=False)
+class FieldExample:
+    """A named field: discs `(M, 3)` rows `[x, y, r]`, target `(2,)`, starts `(K, 2)`, arena `(2, 2)`."""
+
+    name: str
+    discs: np.ndarray
+    target: np.ndarray
+    starts: np.ndarray
+    arena: np.ndarray
+    note: str = ""
+
+    def __post_init__(self):
+        for k in ("discs", "target", "starts", "arena"):
+            object.__setattr__(self, k, _frozen(getattr(self, k)))
+
+    @property
+    def centers(self) -> np.ndarray:
+        return self.discs[:, :2]
+
+    @property
+    def radii(self) -> np.ndarray:
+        return self.discs[:, 2]
+
+
+AUTHORS_MULTI = FieldExample(
+    name="authors_multi",
+    discs=[[-84, 16, 8], [-64, -20, 5], [-50, 34, 9], [-36, 0, 6], [-16, -28, 6], [-4, 24, 5], [14, -6, 9],
+           [36, 16, 4], [34, -36, 8], [74, 30, 7], [70, -4, 8], [70, -34, 5]],
+    target=[90.0, 40.0],
+    starts=[[-90.0, 0.0]],
+    arena=[[-100.0, 100.0], [-50.0, 50.0]],
+    note="the authors' follow-up code: 12 discs in a 200 x 100 arena centred on the origin",
+)
+
+
+def two_in_row() -> FieldExample:
+    """Two discs of the default radius 4 in a row on the segment from the start (-40, 0) to the default target
+    (40, 0), in the default arena: valid with every default (apex 2 sqrt(2) r, rho_b = 0.5, l = r, h = 1,
+    u_max = 10, T_s = 0.05). Centres 34 apart (V3 needs > 2 R + h + 2 u_max T_s = 32.63)."""
+    return FieldExample(
+        name="two_in_row",
+        discs=[[-14.0, 0.0, 4.0], [20.0, 0.0, 4.0]],
+        target=[40.0, 0.0],
+        starts=[[-40.0, 0.0]],
+        arena=[list(DEFAULT_ARENA[0]), list(DEFAULT_ARENA[1])],
+        note="two default discs in a row between the start and the target",
+    )
+
+
+# ----------------------------------------------------------------------------- feasibility of a given field
+def _start_apex_bound(starts, centers, radii, target, clearance: float) -> np.ndarray:
+    """Per start and obstacle, the supremum of apex factors `f` (apex `f r_i`) that keep the start more than
+    `clearance` from the diamond, `(K, M)` (bisection on the signed distance, decreasing in the apex)."""
+    P = np.asarray(starts, dtype=float).reshape(-1, 2)
+    r = np.asarray(radii, dtype=float)
+    a, b = to_frames(P, centers, target)
+    if clearance == 0:
+        return (np.abs(a) + np.abs(b)) / r
+    lo = np.zeros(a.shape)
+    hi = (np.abs(a) + np.abs(b)) / r
+    for _ in range(60):
+        mid = (lo + hi) / 2
+        half = mid * r / SQRT2
+        ex, ey = np.abs(a + b) / SQRT2 - half, np.abs(b - a) / SQRT2 - half
+        sd = np.hypot(np.maximum(ex, 0), np.maximum(ey, 0)) + np.minimum(np.maximum(ex, ey), 0)
+        ok = sd > clearance
+        lo, hi = np.where(ok, mid, lo), np.where(ok, hi, mid)
+    return lo
+
+
+@dataclass(frozen=True, eq=False)
+class FieldAnalysis:
+    """Which covering settings make a field valid (SPEC §3.6), for settings uniform in the (inflated) radius:
+    apex `c^a_i = f rr_i`, reach `rho_i = g rr_i` (`g = sqrt(rho_b) l_i / rr_i`, `rr_i = r_i + inflation`), so
+    `R_i = kappa rr_i` with `kappa = f + sqrt(2) g`. V1–V3 depend on `kappa` only; the start condition on `f`
+    only; `f > sqrt(2)` and `g > 0`, so `kappa > sqrt(2)`. Every `*_max` is a supremum (strict bound).
+
+    The field admits some setting (uniform or not: every condition is monotone in each `R_i` and apex) iff
+    `kappa_max > sqrt(2)` and `start_apex_max > sqrt(2)`.
+    """
+
+    h: float
+    u_max: float | None
+    T_s: float | None
+    inflation: float
+    pairs: np.ndarray            # (P, 2) obstacle indices i < j, sorted by pair_kappa
+    pair_distance: np.ndarray    # (P,) |c_i - c_j|
+    pair_kappa: np.ndarray       # (P,) sup kappa that passes V2 and V3 for this pair
+    pair_binding: tuple          # (P,) 'V3' (sampled loop) or 'V2'
+    target_kappa: np.ndarray     # (M,) sup kappa that passes V1: |p_T - c_i| / rr_i
+    kappa_max: float             # sup uniform kappa over V1–V3
+    kappa_binding: tuple         # (field, condition) of the binding constraint
+    start_apex: np.ndarray       # (K, M) sup apex factor f keeping start k clear of obstacle i's diamond
+    start_apex_max: float
+    apex_factor_max: float       # sup f over every condition (as the reach -> 0): min(kappa_max, start_apex_max)
+    reach_factor_max: float      # sup g (as f -> sqrt 2): (kappa_max - sqrt 2) / sqrt 2
+    rho_b_max_at_l_r: float      # sup rho_b with l_i = rr_i, f -> sqrt 2 (g^2)
+    rho_b_max_authors_apex: float  # sup rho_b with l_i = rr_i and the authors' code's apex f = 1.5
+    default_apex_factor_max: float  # sup f with SPEC's barrier (rho_b = 0.5, l = rr: sqrt(2) g = 1): kappa_max - 1
+    R_headroom: np.ndarray       # (M,) sup R_i with every other R_j at its least sqrt(2) rr_j (non-uniform)
+    feasible: bool
+    defaults_violations: list = field(default_factory=list)  # SPEC defaults: apex 2 sqrt2 rr, rho_b 0.5, l = rr
+    example: dict = field(default_factory=dict)              # a valid setting and its violations (empty)
+
+    def summary(self) -> str:
+        i, j = (int(x) for x in self.pairs[0])
+        s2 = SQRT2
+        lines = [(f"R_i = kappa (r_i + d), kappa = f + sqrt(2) g (apex f (r_i + d), reach g (r_i + d)), "
+                  f"d = {self.inflation}: V1–V3 need kappa < {self.kappa_max:.4f} (binding {self.kappa_binding[0]}, "
+                  f"{self.kappa_binding[1]}); every setting has kappa > sqrt(2) = {s2:.4f}.")]
+        lines.append(f"{'Feasible' if self.feasible else 'Infeasible'}: largest uniform apex factor {self.apex_factor_max:.4f} "
+                     f"(reach -> 0; the start allows f < {self.start_apex_max:.4f}); largest reach factor "
+                     f"{self.reach_factor_max:.4f} (f -> sqrt 2), i.e. rho_b < {self.rho_b_max_at_l_r:.4f} at l = r; "
+                     f"with the authors' apex 1.5 r: rho_b < {self.rho_b_max_authors_apex:.4f} at l = r.")
+        lines.append(f"SPEC defaults (kappa = {DEFAULT_APEX_FACTOR + 1:.4f}) fail: {len(self.defaults_violations)} "
+                     f"violations; with SPEC's barrier (rho_b = 0.5, l = r) the apex factor must be < "
+                     f"{self.default_apex_factor_max:.4f} {'<' if self.default_apex_factor_max <= s2 else '>'} sqrt(2).")
+        lines.append(f"Tightest pair: ({i}, {j}), {self.pair_binding[0]}, kappa < {self.pair_kappa[0]:.4f}.")
+        return "\n".join(lines)
+
+
+def analyse_field(
+    centers, radii, target, *, starts=None, arena=None, h: float = 1.0, u_max: float | None = 10.0,
+    T_s: float | None = 0.05, inflation: float = 0.0, start_clearance: float | None = None,
+    example: tuple[float, float, float] = (1.5, 0.25, 0.5),
+) -> FieldAnalysis:
+    """The settings under which a given field is valid (see FieldAnalysis). `example` = `(f, rho_b, l / rr)`
+    is checked with `field_violations` and recorded with its violations (empty when valid)."""
+    g0 = field_geometry(centers, radii, target, inflation=inflation)
+    h, step = _loop_params(h, u_max, T_s)
+    sampled = u_max is not None and T_s is not None
+    c, rr, p_T = g0.centers, g0.cover_radii, g0.target
+    d = float(inflation)
+    clear = d if start_clearance is None else float(start_clearance)
+    ii, jj = np.triu_indices(len(rr), 1)
+    dij = np.hypot(*(c[ii] - c[jj]).T)
+    pair_k = (dij - h - 2.0 * step) / (rr[ii] + rr[jj])
+    order = np.argsort(pair_k, kind="stable")
+    target_k = np.hypot(*(p_T - c).T) / rr
+    cand = [(float(target_k.min()), f"{OBSTACLES_FIELD}[{int(np.argmin(target_k))}]", "V1")]
+    if len(ii):
+        t = order[0]
+        cand.append((float(pair_k[t]), f"{OBSTACLES_FIELD}[{ii[t]},{jj[t]}]", "V3" if sampled else "V2"))
+    kappa_max, *binding = min(cand, key=lambda x: x[0])
+    P = np.zeros((0, 2)) if starts is None else _points(starts, STARTS_FIELD)
+    start_apex = _start_apex_bound(P, c, rr, p_T, clear) if len(P) else np.full((0, len(rr)), np.inf)
+    start_max = float(start_apex.min()) if start_apex.size else math.inf
+    reach_f = (kappa_max - SQRT2) / SQRT2
+    R_head = target_k * rr
+    if len(ii):
+        lim = dij - h - 2.0 * step
+        head = np.full((len(rr), len(rr)), np.inf)
+        head[ii, jj] = lim - SQRT2 * rr[jj]
+        head[jj, ii] = lim - SQRT2 * rr[ii]
+        R_head = np.minimum(R_head, head.min(axis=1))
+    kw = dict(h=h, u_max=u_max, T_s=T_s, arena=arena, starts=P if len(P) else None, inflation=d, start_clearance=clear)
+    arena_ok = not [v for v in field_violations(c, g0.radii, p_T, **kw) if v.condition == "arena"]
+    f_ex, rho_ex, l_ex = example
+    ex_kw = dict(apex=f_ex * rr, reach=barrier_reach(rho_ex, l_ex * rr))
+    return FieldAnalysis(
+        h=h, u_max=u_max, T_s=T_s, inflation=d,
+        pairs=np.stack([ii[order], jj[order]], axis=1), pair_distance=dij[order], pair_kappa=pair_k[order],
+        pair_binding=tuple(("V3" if sampled else "V2") for _ in order), target_kappa=target_k,
+        kappa_max=kappa_max, kappa_binding=tuple(binding), start_apex=start_apex, start_apex_max=start_max,
+        apex_factor_max=min(kappa_max, start_max), reach_factor_max=reach_f,
+        rho_b_max_at_l_r=max(reach_f, 0.0) ** 2, rho_b_max_authors_apex=max((kappa_max - 1.5) / SQRT2, 0.0) ** 2,
+        default_apex_factor_max=kappa_max - 1.0, R_headroom=R_head,
+        feasible=bool(kappa_max > SQRT2 and start_max > SQRT2 and arena_ok),
+        defaults_violations=field_violations(c, g0.radii, p_T, **kw),
+        example=dict(apex_factor=f_ex, rho_b=rho_ex, scale_factor=l_ex,
+                     violations=field_violations(c, g0.radii, p_T, **ex_kw, **kw)),
+    )
+
+
+def authors_multi_analysis(*, h: float = 1.0, u_max: float | None = 10.0, T_s: float | None = 0.05,
+                           inflation: float = 0.0) -> FieldAnalysis:
+    """`analyse_field` on AUTHORS_MULTI (its start and arena) with h = 1, u_max = 10, T_s = 0.05 by default."""
+    F = AUTHORS_MULTI
+    return analyse_field(F.centers, F.radii, F.target, starts=F.starts, arena=F.arena, h=h, u_max=u_max, T_s=T_s,
+                         inflation=inflation)
+
+
+__all__ = [
+    "AUTHORS_MULTI", "CONDITIONS", "DEFAULT_APEX_FACTOR", "DEFAULT_ARENA", "FieldAnalysis", "FieldExample",
+    "FieldGeometry", "Violation", "analyse_field", "authors_multi_analysis", "barrier_reach", "cell_distance",
+    "check_field", "default_apex", "diamond_signed_distance", "field_geometry", "field_violations", "in_diamonds",
+    "influence_radius", "obstacle_frames", "random_field", "to_frames", "two_in_row",
+]
