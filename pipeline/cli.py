@@ -1,14 +1,15 @@
-"""Thin Hydra shell shared by every stage: config location, resolvers, preflight, one-line errors.
+"""The thin Hydra shell of every stage: preflight, one-line errors, Ctrl-C, and the stage's work by name.
 
-Each stage module does::
+Each stage's `__main__` is::
 
-    @stage_main("simulate", check=check)
-    def main(cfg): return run(cfg)
+    main = stage_main("train", run="pipeline.train.stage:run", check="pipeline.train.checks:check")
 
-`run(cfg) -> dict` holds the work and is what tests call with a composed config. Before Hydra runs any
-job, :func:`pipeline.config.preflight` composes every job of the command line (each sweep value) and checks
-it (Hydra's composition errors, unknown keys with or without `+`, output paths, the stage's `check`): a user
-error is one line on stderr and exit code 2, before any work.
+Before Hydra runs any job, :func:`pipeline.config.preflight` composes every job of the command line (each sweep
+value) and checks it (Hydra's composition errors, unknown keys and wrong values with or without `+`, output
+paths, the stage's own `check`), importing nothing heavy: a user error is one line on stderr and exit code 2 in
+about a second, before any work and before torch or Lightning is imported. The stage's `run(cfg) -> dict` (what
+tests call with a composed config) is imported only then. Ctrl-C is one line and exit code 130; stages write
+through temporary folders, so nothing is left half-written.
 """
 
 from __future__ import annotations
@@ -16,23 +17,14 @@ from __future__ import annotations
 import functools
 import os
 import sys
-from pathlib import Path
 
-import hydra
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
+from pipeline.config import compose, preflight, resolve
 from pipeline.errors import PipelineError
+from pipeline.repo import CONF_DIR, REPO_ROOT
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
-CONF_DIR = REPO_ROOT / "conf"
-
-
-def _register_resolvers() -> None:
-    if not OmegaConf.has_resolver("repo_root"):
-        OmegaConf.register_new_resolver("repo_root", lambda: str(REPO_ROOT))
-
-
-_register_resolvers()
+__all__ = ["CONF_DIR", "REPO_ROOT", "compose", "report_error", "stage_main"]
 
 
 def report_error(err: BaseException) -> None:
@@ -40,47 +32,38 @@ def report_error(err: BaseException) -> None:
     print(f"error: {err}", file=sys.stderr)
 
 
-def stage_main(config_name: str, check=None):
-    """Decorator: Hydra entry point with a preflight; user errors become one line on stderr and exit 2.
+def _interrupted() -> None:
+    print("interrupted (Ctrl-C): nothing half-written was kept", file=sys.stderr)
+    sys.exit(130)
 
-    `check(cfg)` validates a composed config cheaply (no data, no training): it runs for every job of the
-    command line before the first one starts, and again inside each job.
-    """
 
-    def wrap(task):
-        @functools.wraps(task)
-        def guarded(cfg: DictConfig):
-            try:
-                return task(cfg)
-            except PipelineError as err:
-                report_error(err)
-                sys.exit(2)
+def stage_main(config_name: str, run: str, check: str | None = None):
+    """The entry point of a stage: preflight with `check` (a cheap `check(cfg)`: no data, no training, no torch),
+    then Hydra runs `run(cfg)` for each job (both `"module:function"` paths). User errors are one line and exit 2."""
 
-        main = hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name=config_name)(guarded)
+    def guarded(cfg: DictConfig):
+        try:
+            return resolve(run)(cfg)
+        except PipelineError as err:
+            report_error(err)
+            sys.exit(2)
+        except KeyboardInterrupt:
+            _interrupted()
 
-        @functools.wraps(task)
-        def entry():
-            os.environ.setdefault("HYDRA_FULL_ERROR", "0")
-            from pipeline.config import preflight
+    import hydra
 
-            try:
-                preflight(config_name, sys.argv[1:], check)
-            except PipelineError as err:
-                report_error(err)
-                sys.exit(2)
+    main = hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name=config_name)(guarded)
+
+    @functools.wraps(guarded)
+    def entry():
+        os.environ.setdefault("HYDRA_FULL_ERROR", "0")
+        try:
+            preflight(config_name, sys.argv[1:], resolve(check) if check else None)
             return main()
+        except PipelineError as err:
+            report_error(err)
+            sys.exit(2)
+        except KeyboardInterrupt:
+            _interrupted()
 
-        return entry
-
-    return wrap
-
-
-def compose(config_name: str, overrides: list[str] | None = None) -> DictConfig:
-    """Compose a stage config outside of `@hydra.main` (tests, notebooks, the paper DAG).
-
-    `hydra:` interpolations are not available here, so `paths.output_dir` must be overridden
-    (or the caller sets it) before use.
-    """
-    from pipeline.config import compose as _compose
-
-    return _compose(config_name, overrides)
+    return entry

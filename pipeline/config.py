@@ -1,9 +1,11 @@
-"""Config is the single source of truth: objects built from their config node, schemas, a preflight.
+"""Config is the single source of truth: every node names its `_target_`, whose typed signature is its schema.
 
-- :func:`build` instantiates a node (`_target_` + keywords) with `hydra.utils.instantiate`; a keyword the
-  constructor does not take, or a value it rejects, becomes a :class:`ConfigError` naming the node's path.
-- :func:`check_schema` walks a composed config before any work: every key of a `_target_` node must be a
-  keyword of its target (no `**kwargs` swallowing typos), and every key a `+`/`++` override added must be one.
+- :func:`check_schema` walks a composed config: every key of a `_target_` node must be a keyword of its target
+  (no `**kwargs` swallowing typos) and every value must fit the keyword's annotation (types, `Literal` choices,
+  nested dataclasses key by key; :mod:`pipeline.schema`); `+`/`++` overrides may add only such keywords.
+  :func:`compose` runs it on every composition, so a bad key, type or choice is one `ConfigError` naming it.
+- :func:`build` instantiates a node with `hydra.utils.instantiate`; a value its constructor rejects (a range or a
+  cross-field rule) becomes a :class:`ConfigError` naming the node's path.
 - :func:`check_paths` rejects output paths that are files or cannot be created.
 - :func:`preflight` composes every job of a command line (each sweep value) and runs those checks plus the
   stage's own cheap check, so a bad input is one line and exit code 2 before any job starts.
@@ -12,7 +14,6 @@
 from __future__ import annotations
 
 import fnmatch
-import inspect
 import os
 import re
 from collections.abc import Callable, Iterable
@@ -21,47 +22,40 @@ from pathlib import Path
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from pipeline.errors import ConfigError, PipelineError
+from pipeline.repo import CONF_DIR, REPO_ROOT
+from pipeline.schema import check_value, signature
 
 META_KEYS = {"_target_", "_partial_", "_convert_", "_recursive_", "_args_", "name"}
 
 
+def _register_resolvers() -> None:
+    if not OmegaConf.has_resolver("repo_root"):
+        OmegaConf.register_new_resolver("repo_root", lambda: str(REPO_ROOT))
+
+
+_register_resolvers()
+
+
 # ------------------------------------------------------------------------------------------ build
-def _signature(target: str):
-    from hydra.utils import get_object
+def resolve(ref: str):
+    """`"package.module:function"` -> the object (a stage's work, a scenario's drawing function), imported when used."""
+    import importlib
 
-    try:
-        obj = get_object(target)
-    except Exception as err:  # noqa: BLE001 - any import problem is the config's fault
-        raise ConfigError("_target_", f"cannot import {target!r} ({str(err).splitlines()[0]})") from None
-    if inspect.isclass(obj) and obj.__init__ is object.__init__:
-        return []  # no constructor of its own: it takes no keywords
-    fn = obj.__init__ if inspect.isclass(obj) else obj
-    try:
-        sig = inspect.signature(fn)
-    except (TypeError, ValueError):  # builtins without a signature: accept anything
-        return None
-    if any(p.kind is p.VAR_KEYWORD for p in sig.parameters.values()):
-        return None
-    return [n for n, p in sig.parameters.items() if n != "self" and p.kind is not p.VAR_POSITIONAL]
-
-
-def allowed_keys(node) -> list[str] | None:
-    """Keywords a `_target_` node may hold (None: the target takes any)."""
-    return _signature(str(node["_target_"]))
+    module, _, name = ref.partition(":")
+    return getattr(importlib.import_module(module), name)
 
 
 def _reprefix(err: ConfigError, path: str) -> ConfigError:
     field = err.field
-    if path and not (field == path or field.startswith(path + ".")):
-        field = f"{path}.{field.rsplit('.', 1)[-1]}" if field not in ("", "_target_") else path
+    if path and not (field == path or field.startswith(path + ".") or field.startswith(path + "[")):
+        tail = field.split(".", 1)[-1] if "." in field else field
+        field = f"{path}.{tail}" if field not in ("", "_target_") else path
     return ConfigError(field, err.reason)
 
 
 def build(node, path: str, /, **kwargs):
-    """`instantiate(node)(**kwargs)`: the object a config node describes, errors naming `path`.
-
-    `name` is a label of the node (the table row), not a constructor keyword, unless the target takes it.
-    """
+    """`instantiate(node)(**kwargs)`: the object a config node describes, its keys and types checked first, errors
+    naming `path`. `name` is a label of the node (the table row), not a keyword, unless the target takes it."""
     from hydra.errors import InstantiationException
     from hydra.utils import instantiate
 
@@ -69,15 +63,13 @@ def build(node, path: str, /, **kwargs):
         node = OmegaConf.create(node)
     if "_target_" not in node:
         raise ConfigError(path, "needs a `_target_` (pick one of the options of its config group)")
-    keys = allowed_keys(node)
-    drop = [k for k in node.keys() if k == "name" and keys is not None and "name" not in keys]
-    for k in node.keys():
-        if keys is not None and k not in META_KEYS and k not in keys:
-            raise ConfigError(f"{path}.{k}", f"unknown key ({node['_target_']} takes {', '.join(keys)})")
+    check_node(node, path, given=set(kwargs))
+    sig = signature(str(node["_target_"]))
+    drop = [k for k in node.keys() if k == "name" and sig is not None and "name" not in sig.params]
     clean = OmegaConf.masked_copy(node, [k for k in node.keys() if k not in drop]) if drop else node
     try:
-        # partial first: Hydra would turn a dataclass kwarg (a Scene) into a config node
-        return instantiate(clean, _partial_=True, _convert_="all")(**kwargs)
+        # partial first: Hydra would turn a dataclass keyword (a Scene) into a config node
+        obj = instantiate(clean, _partial_=True, _convert_="all")(**kwargs)
     except ConfigError as err:
         raise _reprefix(err, path) from None
     except PipelineError:
@@ -93,6 +85,9 @@ def build(node, path: str, /, **kwargs):
         raise ConfigError(path, str(err).splitlines()[0]) from None
     except (TypeError, ValueError) as err:
         raise ConfigError(path, f"invalid parameters for {node['_target_']}: {err}") from None
+    if drop and hasattr(type(obj), "name") and not isinstance(type(obj).name, property):
+        obj.name = str(node["name"])  # the label of the node (a controller's row in a table)
+    return obj
 
 
 # ----------------------------------------------------------------------------------------- schema
@@ -113,25 +108,63 @@ def _walk(node, path: str = "") -> Iterable[tuple[str, DictConfig]]:
                 yield from _walk(child, f"{path}[{i}]")
 
 
+def _plain_value(node: DictConfig, key):
+    """A node's value as plain Python, or `...` when it cannot be resolved here (`${hydra:...}` outside a run)."""
+    try:
+        value = OmegaConf.select(node, str(key), throw_on_resolution_failure=True)
+    except Exception:  # noqa: BLE001 - an interpolation that needs a running Hydra app
+        return ...
+    return OmegaConf.to_container(value, resolve=True) if isinstance(value, DictConfig | ListConfig) else value
+
+
+def check_node(node: DictConfig, path: str, given: Iterable[str] = ()) -> None:
+    """The keys and values of one `_target_` node against its target's signature (`given`: keywords the caller
+    passes itself)."""
+    sig = signature(str(node["_target_"]))
+    if sig is None:
+        return
+    for k in node.keys():
+        if k in META_KEYS:
+            continue
+        where = f"{path}.{k}" if path else str(k)
+        if k not in sig.params:
+            if sig.any_keyword:
+                continue
+            raise ConfigError(where, f"unknown key ({node['_target_']} takes {', '.join(sig.params)})")
+        value = _plain_value(node, k)
+        if value is ... or (isinstance(value, dict) and "_target_" in value):
+            continue  # checked as its own node
+        check_value(value, sig.params[k], where)
+
+
+def settings(cfg: DictConfig, cls):
+    """A stage's root-level settings (the keys of its config file that are no node of their own) as the typed
+    dataclass `cls`: every field's value checked against its annotation, then the object's own rules."""
+    import dataclasses
+    import typing
+
+    hints = typing.get_type_hints(cls)
+    values = {}
+    for f in dataclasses.fields(cls):
+        if f.name in cfg:
+            values[f.name] = _plain_value(cfg, f.name)
+            check_value(values[f.name], hints[f.name], f.name)
+    return cls(**values)
+
+
 def check_schema(cfg: DictConfig, added: Iterable[str] = ()) -> None:
-    """Unknown keys anywhere in `cfg` (targets' signatures) and keys added by `+`/`++` overrides."""
+    """Unknown keys and wrong values anywhere in `cfg` (targets' signatures) and keys added by `+`/`++` overrides."""
     for path, node in _walk(cfg):
         if "_target_" in node and isinstance(node["_target_"], str):
-            keys = allowed_keys(node)
-            if keys is None:
-                continue
-            for k in node.keys():
-                if k not in META_KEYS and k not in keys:
-                    raise ConfigError(f"{path}.{k}" if path else k,
-                                      f"unknown key ({node['_target_']} takes {', '.join(keys)})")
+            check_node(node, path)
     for key in added:
         parent, _, leaf = key.rpartition(".")
         node = OmegaConf.select(cfg, parent) if parent else cfg
         if isinstance(node, DictConfig) and "_target_" in node:
-            keys = allowed_keys(node)
-            if keys is None or leaf in keys:
+            sig = signature(str(node["_target_"]))
+            if sig is None or sig.any_keyword or leaf in sig.params:
                 continue
-            raise ConfigError(key, f"unknown key ({node['_target_']} takes {', '.join(keys)})")
+            raise ConfigError(key, f"unknown key ({node['_target_']} takes {', '.join(sig.params)})")
         raise ConfigError(key, "unknown key (not in the config; check the spelling: `+` does not add keys here)")
 
 
@@ -165,22 +198,26 @@ def check_paths(paths) -> None:
 
 
 # ----------------------------------------------------------------------------------------- compose
-def compose(config_name: str, overrides: list[str] | None = None) -> DictConfig:
-    """Compose a config with Hydra's compose API, also from inside a running `@hydra.main` app."""
+def compose(config_name: str, overrides: list[str] | None = None, *, check: bool = True) -> DictConfig:
+    """Compose a config with Hydra's compose API, also from inside a running `@hydra.main` app (tests, notebooks,
+    the paper DAG). `hydra:` interpolations are not available here: `paths.output_dir` must be overridden (or the
+    caller sets it) before use."""
     from hydra import compose as _compose
     from hydra import initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
-    from pipeline.cli import CONF_DIR
-
     gh = GlobalHydra.instance()
     if gh.is_initialized():
-        return _compose(config_name=config_name, overrides=list(overrides or []))
-    try:
-        with initialize_config_dir(version_base="1.3", config_dir=str(CONF_DIR)):
-            return _compose(config_name=config_name, overrides=list(overrides or []))
-    finally:
-        GlobalHydra.instance().clear()
+        cfg = _compose(config_name=config_name, overrides=list(overrides or []))
+    else:
+        try:
+            with initialize_config_dir(version_base="1.3", config_dir=str(CONF_DIR)):
+                cfg = _compose(config_name=config_name, overrides=list(overrides or []))
+        finally:
+            GlobalHydra.instance().clear()
+    if check:
+        check_schema(cfg)
+    return cfg
 
 
 def hydra_error_line(err: BaseException) -> str:
@@ -263,8 +300,6 @@ def _split_argv(argv: list[str], config_name: str) -> tuple[str, list[str], bool
 
 
 def _group_options(group: str) -> list[str]:
-    from pipeline.cli import CONF_DIR
-
     return sorted(p.stem for p in (CONF_DIR / group).glob("*.yaml"))
 
 
@@ -307,8 +342,6 @@ def _expand(overrides: list[str]) -> list[list[str]]:
 
 def _added_keys(job: list[str]) -> list[str]:
     """Keys that `+key=value` / `++key=value` overrides add (group selections are not keys)."""
-    from pipeline.cli import CONF_DIR
-
     out = []
     for o in job:
         if not o.startswith("+"):
@@ -328,7 +361,7 @@ def preflight(config_name: str, argv: list[str], check: Callable[[DictConfig], N
     jobs = _expand(overrides)
     for job in jobs:
         try:
-            cfg = compose(config_name, job)
+            cfg = compose(config_name, job, check=False)
         except PipelineError:
             raise
         except Exception as err:  # noqa: BLE001 - Hydra composition errors, reported in one line
@@ -338,7 +371,7 @@ def preflight(config_name: str, argv: list[str], check: Callable[[DictConfig], N
         added = _added_keys(job)
         base = None
         if any(o.startswith("++") for o in job):
-            base = compose(config_name, [o for o in job if not o.startswith("++")])
+            base = compose(config_name, [o for o in job if not o.startswith("++")], check=False)
         added = [k for k in added if base is None or OmegaConf.select(base, k, default="__missing__") == "__missing__"]
         check_schema(cfg, added)
         check_paths(cfg.get("paths"))

@@ -23,10 +23,15 @@ from pathlib import Path
 import pandas as pd
 from omegaconf import DictConfig
 
-from pipeline import tracking
+from pipeline import identity, tracking
 from pipeline.cli import CONF_DIR, stage_main
+from pipeline.config import build, compose, hydra_error_line, override_value
+from pipeline.data.plan import plan
 from pipeline.errors import ConfigError, PipelineError
+from pipeline.experiments.report import markdown_table
+from pipeline.lineage import write_lock
 from pipeline.paper import path_overrides, run_stage
+from pipeline.train.checks import check_settings
 
 ARGS = ("data", "data_later", "train")
 COLLECT = ("controller", "disturbance", "starts", "horizon", "error_weighted", "min_error", "error_floor")
@@ -69,8 +74,6 @@ def _settings(cfg) -> dict:
 def _collect(d: dict, later: bool) -> list[str]:
     """`data.sampling.closed_loop.*` overrides from `dagger.collect`. A controller/disturbance node replaces the
     recipe's (set to null first: an override merges dicts), so another `_target_` keeps none of the old keys."""
-    from pipeline.config import override_value
-
     c = d["collect"]
     out = []
     for key in ("controller", "disturbance"):
@@ -102,8 +105,6 @@ def _renamed(err: ConfigError, where: str) -> ConfigError:
 
 def _compose(config: str, overrides: list[str], where: str):
     """A stage config composed here; Hydra's errors become one `ConfigError` line."""
-    from pipeline.config import compose, hydra_error_line
-
     try:
         return compose(config, overrides)
     except PipelineError:
@@ -117,10 +118,6 @@ def check(cfg: DictConfig) -> None:
     """Before any work: the dagger node, round 0's data and train configs (with the collect settings and every
     override), and the later rounds' recipe (as far as it can be checked before map_0 exists)."""
     d = _settings(cfg)
-    from pipeline.data.sampling import Recipe
-    from pipeline.data.stage import plan
-    from pipeline.train.stage import check_config
-
     paths = path_overrides()
     where = "dagger.collect / dagger.args.data"
     try:
@@ -128,12 +125,12 @@ def check(cfg: DictConfig) -> None:
         later = tracking.to_plain(_compose("data", [*_data_overrides(d, 1, None), *paths],
                                            f"{where} / dagger.args.data_later").data)
         later["sampling"]["closed_loop"]["map"] = "map"  # a stand-in: map_0 does not exist yet
-        Recipe.from_config(later)
+        build(later, "data")
     except ConfigError as err:
         raise _renamed(err, where) from None
     tcfg = _compose("train", [*paths, *d["args"]["train"]], "dagger.args.train")
     try:
-        check_config(tcfg)
+        check_settings(tcfg)
     except ConfigError as err:
         raise ConfigError(err.field, f"{err.reason} (in dagger.args.train)") from None
     missing = [lv for lv in d["levels"] if lv not in list(tcfg.eval_levels or [])]
@@ -144,9 +141,6 @@ def check(cfg: DictConfig) -> None:
 # ------------------------------------------------------------------------------------------ rounds
 def _round(d: dict, k: int, prev, paths: list[str], timings: dict) -> dict:
     """Round `k`: the data job, then the train job (each skipped when its output is built)."""
-    from pipeline.data.stage import plan
-    from pipeline.train.stage import model_identity
-
     data_args = [*_data_overrides(d, k, prev), *paths]
     dcfg = _compose("data", data_args, f"round {k}")
     for key in ("controller", "disturbance"):  # the node went through the command line intact
@@ -164,7 +158,7 @@ def _round(d: dict, k: int, prev, paths: list[str], timings: dict) -> dict:
         raise PipelineError(f"round {k}: the data job did not produce {p.path}")
     train_args = [f"dataset={ds_ref}", *paths, *d["args"]["train"]]
     tcfg = _compose("train", train_args, "dagger.args.train")
-    mname, mid = model_identity(tcfg, p.recipe.name, p.id)
+    mname, mid = identity.map_identity(tracking.to_plain_lenient(tcfg), p.recipe.name, p.id)
     map_ref = f"{mname}-{mid}"
     map_path = Path(tcfg.paths.models_dir) / map_ref
     if tracking.is_complete(map_path):
@@ -197,9 +191,6 @@ def _row(k: int, out: dict, levels: list[str]) -> dict:
 
 def _report(cfg, d: dict, outs: list[dict]) -> Path:
     """`<dagger_dir>/<recipe>-<id>/`: rounds.csv, rounds.md, dagger.lock.yaml (kept when already built)."""
-    from pipeline.experiments.report import markdown_table
-    from pipeline.lineage import write_lock
-
     root = Path(cfg.paths.dagger_dir)
     chain = [(o["dataset"].name, o["map"].name) for o in outs]
     id_ = tracking.content_id({"rounds": chain, "levels": d["levels"]})
@@ -236,9 +227,7 @@ def run(cfg) -> dict:
     return {"rounds": outs, "report": folder, "timings": timings}
 
 
-@stage_main("dagger", check=check)
-def main(cfg):
-    return run(cfg)
+main = stage_main("dagger", run="pipeline.dagger:run", check="pipeline.dagger:check")
 
 
 if __name__ == "__main__":

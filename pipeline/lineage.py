@@ -1,10 +1,10 @@
-"""Lineage: which tracked output a reference means, and the lock file of a whole run.
+"""Lineage: which tracked output a reference means, the ids the current configs produce, and the lock of a run.
 
-A reference to a dataset, perception map or error map is a path, a `name-id`, an id, or a name. A name
-means the output that the upstream stage's **current config** produces for it (its id recomputed, as a lock
-file would), never "the newest folder": a quick experiment on the side (another `clean-<id>`) changes
-nothing downstream. A name that no config produces (e.g. a map trained with `name=...`) resolves only when
-exactly one output has it. `make paper` passes exact ids from stage to stage and writes
+A reference to a dataset, perception map or error map is a path, a `name-id`, an id, or a name. A name means the
+output that the upstream stage's **current config** produces for it (its id recomputed from `conf/`, as a lock
+file would: :mod:`pipeline.identity`), never "the newest folder": a quick experiment on the side (another
+`clean-<id>`) changes nothing downstream. A name that no config produces (a map trained with `name=...`)
+resolves only when exactly one output has it. `make paper` passes exact ids from stage to stage and writes
 `outputs/paper/paper.lock.yaml` (:func:`write_lock`).
 """
 
@@ -12,8 +12,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from pipeline import tracking
-from pipeline.cli import CONF_DIR
+import yaml
+
+from pipeline import identity, tracking
+from pipeline.config import compose
+from pipeline.errors import ConfigError, DatasetError
+from pipeline.render import load_occlusion
+from pipeline.repo import CONF_DIR
 
 COMMANDS = {
     "dataset": "python -m pipeline.data data={name}",
@@ -43,42 +48,44 @@ def map_command(name: str) -> str:
     return " ".join(["python -m pipeline.train", f"data={recipe}", *extra])
 
 
+# ------------------------------------------------------------------------------------------ datasets
+def dataset_identity(cfg) -> tuple[str, str, dict]:
+    """(name, id, recipe) of the dataset a composed config's `data` recipe renders: its parent dataset and its
+    map in the loop resolved to `name-id`s (which the recipe then holds, so they are in the id)."""
+    recipe = tracking.to_plain(cfg.data)
+    sampling = recipe.get("sampling") or {}
+    if sampling.get("parent") is not None:
+        try:
+            sampling["parent"] = resolve_dataset(sampling["parent"], cfg.paths.datasets_dir).name
+        except DatasetError as err:
+            raise ConfigError("data.sampling.parent", str(err)) from None
+    cl = sampling.get("closed_loop") or {}
+    if cl.get("map") is not None:
+        try:
+            cl["map"] = resolve_map(cl["map"], cfg.paths.models_dir, field="data.sampling.closed_loop.map").name
+        except DatasetError as err:
+            raise ConfigError("data.sampling.closed_loop.map", str(err)) from None
+    occlusion = load_occlusion(recipe.get("occlusion", "none"), cfg.occlusions, field="data.occlusion").config()
+    id_ = identity.dataset_id(recipe, tracking.to_plain(cfg.scene), tracking.to_plain(cfg.render), occlusion)
+    return recipe["name"], id_, recipe
+
+
 def expected_dataset_id(name: str, overrides=()) -> str | None:
     """Id of the dataset `python -m pipeline.data data=<name> [overrides]` renders (None: not a recipe)."""
     if not _recipe(name):
         return None
-    from pipeline.config import compose
-    from pipeline.data.stage import plan
-
-    return plan(compose("data", [f"data={name}", *overrides])).id
+    return dataset_identity(compose("data", [f"data={name}", *overrides]))[1]
 
 
 def train_dataset_id(cfg) -> tuple[str, str]:
     """(name, id) of the dataset a composed train config trains on: `dataset` if set (resolved), else the
     dataset its `data` recipe renders with this very config."""
-    from pipeline.data.stage import plan
-
     if cfg.get("dataset"):
         folder = resolve_dataset(cfg.dataset, cfg.paths.datasets_dir)
         name, _, id_ = folder.name.rpartition("-")
         return name, id_
-    p = plan(cfg)
-    return p.recipe.name, p.id
-
-
-def expected_map_id(name: str, overrides=()) -> str | None:
-    """Id of the map `map_command(name) [overrides]` trains (None: no config makes `name`)."""
-    made_by = map_recipe(name)
-    if made_by is None:
-        return None
-    from pipeline.config import compose
-    from pipeline.train.stage import model_identity
-
-    recipe, extra = made_by
-    cfg = compose("train", [f"data={recipe}", *extra, *overrides])
-    ds_name, ds_id = train_dataset_id(cfg)
-    model_name, id_ = model_identity(cfg, ds_name, ds_id)
-    return id_ if model_name == name else None
+    name, id_, _ = dataset_identity(cfg)
+    return name, id_
 
 
 def resolve_dataset(ref, datasets_dir) -> Path:
@@ -86,40 +93,70 @@ def resolve_dataset(ref, datasets_dir) -> Path:
                             command=COMMANDS["dataset"], field="dataset")
 
 
+# ------------------------------------------------------------------------------------- perception maps
+def map_identity(cfg) -> tuple[str, str]:
+    """(name, id) of the map a composed train config trains."""
+    ds_name, ds_id = train_dataset_id(cfg)
+    return identity.map_identity(tracking.to_plain_lenient(cfg), ds_name, ds_id)
+
+
+def expected_map_id(name: str, overrides=()) -> str | None:
+    """Id of the map `map_command(name) [overrides]` trains (None: no config makes `name`)."""
+    made_by = map_recipe(name)
+    if made_by is None:
+        return None
+    recipe, extra = made_by
+    model_name, id_ = map_identity(compose("train", [f"data={recipe}", *extra, *overrides]))
+    return id_ if model_name == name else None
+
+
 def resolve_map(ref, models_dir, field: str = "maps") -> Path:
     return tracking.resolve(Path(models_dir), ref, kind="perception map", expected=expected_map_id,
                             command=map_command, field=field)
 
 
-def expected_errormap_id(pmap, overrides=()) -> tuple[str, str]:
-    """(name, id) of the error map `python -m pipeline.errormap maps=[<map name-id>]` computes for `pmap`."""
-    from pipeline.config import compose
-    from pipeline.errormap.stage import errormap_identity
+# ------------------------------------------------------------------------------------------ error maps
+def errormap_settings(cfg) -> dict:
+    """The settings of a composed errormap config that an error map's id hashes (plain; `occlusion_levels` a list)."""
+    out = {k: tracking.to_plain(cfg[k]) for k in cfg.keys() if k not in ("paths", "hydra")}
+    if isinstance(out.get("occlusion_levels"), str):
+        out["occlusion_levels"] = [out["occlusion_levels"]]
+    return out
 
-    cfg = compose("errormap", [f"maps={pmap.name}-{pmap.id}", *overrides])
-    return errormap_identity(cfg, pmap)
+
+def errormap_identity(cfg, map_manifest: dict) -> tuple[str, str]:
+    """(folder name, id) of the error map a composed errormap config computes for the perception map whose
+    manifest is `map_manifest` (its id, name, scene and arena)."""
+    settings = errormap_settings(cfg)
+    occ = {lv: load_occlusion(lv, cfg.occlusions, field="occlusion_levels").config()
+           for lv in settings["occlusion_levels"]}
+    id_ = identity.errormap_id(settings, occ, map_manifest["id"], map_manifest["scene"], map_manifest["arena"])
+    return map_manifest["name"], id_
 
 
-def resolve_errormap(ref, errormaps_dir, pmap=None) -> Path:
-    """An error map by path, `name-id` or id; `None` means the current config's error map of `pmap`."""
+def expected_errormap_id(map_folder: Path, overrides=()) -> tuple[str, str]:
+    """(name, id) of the error map `python -m pipeline.errormap maps=[<map name-id>]` computes for a map folder."""
+    m = tracking.read_manifest(map_folder)
+    return errormap_identity(compose("errormap", [f"maps={m['name']}-{m['id']}", *overrides]), m)
+
+
+def resolve_errormap(ref, errormaps_dir, map_folder: Path | None = None) -> Path:
+    """An error map by path, `name-id` or id; `None` means the current config's error map of the map folder."""
     if ref is None:
-        if pmap is None:
+        if map_folder is None:
             raise ValueError("resolve_errormap: a reference or a perception map is needed")
-        name, id_ = expected_errormap_id(pmap)
-        ref = f"{name}-{id_}"
-        folder = Path(errormaps_dir) / ref
+        name, id_ = expected_errormap_id(map_folder)
+        folder = Path(errormaps_dir) / f"{name}-{id_}"
         if not tracking.is_complete(folder):
-            from pipeline.errors import DatasetError
-
-            raise DatasetError(f"error map of {pmap.name}-{pmap.id}: the current errormap config makes {ref}, which "
-                               f"is not built under {errormaps_dir}; run `python -m pipeline.errormap "
-                               f"maps=[{pmap.name}-{pmap.id}]`")
+            raise DatasetError(f"error map of {map_folder.name}: the current errormap config makes {folder.name}, "
+                               f"which is not built under {errormaps_dir}; run `python -m pipeline.errormap "
+                               f"maps=[{map_folder.name}]`")
         return folder
     return tracking.resolve(Path(errormaps_dir), ref, kind="error map", command=COMMANDS["error map"],
                             field="errormaps")
 
 
-# ------------------------------------------------------------------------------------------- lock
+# ------------------------------------------------------------------------------------------------ lock
 def lock_entry(folder: Path) -> dict:
     """Id, config hash and code version of a tracked output (from its manifest)."""
     m = tracking.read_manifest(folder)
@@ -134,8 +171,6 @@ def write_lock(path: Path, sections: dict[str, dict[str, Path]],
                generated_by: str = "make paper (pipeline.paper)") -> Path:
     """`paper.lock.yaml`: for every dataset, map, error map and experiment result its id, config hash and
     code version (sections: kind -> {name: folder})."""
-    import yaml
-
     lock = {kind: {name: lock_entry(folder) for name, folder in items.items()} for kind, items in sections.items()}
     lock = {"generated_by": generated_by, "git_commit": tracking.git_commit(), **lock}
     path = Path(path)
@@ -149,8 +184,6 @@ def write_lock(path: Path, sections: dict[str, dict[str, Path]],
 def pinned_folders(paper_dir: Path, kind: str) -> dict[str, str]:
     """`{name: folder}` of the `kind` section (e.g. "experiments") of every lock in `paper_dir` (`*.lock.yaml`,
     written by :func:`write_lock`); empty when there is none."""
-    import yaml
-
     out: dict[str, str] = {}
     for path in sorted(Path(paper_dir).glob("*.lock.yaml")):
         section = (yaml.safe_load(path.read_text()) or {}).get(kind) or {}

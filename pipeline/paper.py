@@ -15,11 +15,15 @@ import sys
 import time
 from pathlib import Path
 
+from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from pipeline import tracking
 from pipeline.cli import CONF_DIR, REPO_ROOT, stage_main
+from pipeline.config import compose
 from pipeline.errors import ConfigError, PipelineError
+from pipeline.experiments.report import write_index
+from pipeline.lineage import dataset_identity, expected_errormap_id, map_identity, map_recipe, write_lock
 
 STAGE_ARGS = ("data", "train", "errormap", "experiments")
 
@@ -27,8 +31,6 @@ STAGE_ARGS = ("data", "train", "errormap", "experiments")
 def path_overrides() -> list[str]:
     """`paths.*` overrides given to the paper (or dagger) job are passed on to every stage."""
     try:
-        from hydra.core.hydra_config import HydraConfig
-
         return [o for o in HydraConfig.get().overrides.task if o.lstrip("+").startswith("paths.")]
     except Exception:  # noqa: BLE001 - not under @hydra.main
         return []
@@ -45,8 +47,6 @@ def _args(cfg) -> dict[str, list[str]]:
 
 
 def check(cfg: DictConfig) -> None:
-    from pipeline.lineage import map_recipe
-
     datasets, maps = list(cfg.datasets), list(cfg.maps)
     if not datasets:
         raise ConfigError("datasets", "needs at least one recipe")
@@ -91,10 +91,6 @@ def run_stage(stage: str, argv: list[str], timings: dict, stop: bool, *, tag: st
 
 
 def run(cfg) -> dict:
-    from pipeline.config import compose
-    from pipeline.lineage import expected_errormap_id, map_recipe, train_dataset_id, write_lock
-    from pipeline.train.stage import model_identity
-
     check(cfg)
     t0 = time.perf_counter()
     args, paths = _args(cfg), path_overrides()
@@ -105,10 +101,9 @@ def run(cfg) -> dict:
     ds_root, models_root = Path(cfg.paths.datasets_dir), Path(cfg.paths.models_dir)
 
     run_stage("data", ["-m", f"data={','.join(datasets)}", *paths, *args["data"]], timings, stop)
-    from pipeline.data.stage import plan
-
     for name in datasets:
-        lock["datasets"][name] = ds_root / f"{name}-{plan(compose('data', [f'data={name}', *paths, *args['data']])).id}"
+        _, ds_id, _ = dataset_identity(compose("data", [f"data={name}", *paths, *args["data"]]))
+        lock["datasets"][name] = ds_root / f"{name}-{ds_id}"
     map_refs = {}
     groups: dict[tuple[str, ...], list[str]] = {}  # maps of the same model overrides: one multirun each
     for name in maps:
@@ -119,19 +114,15 @@ def run(cfg) -> dict:
     if maps:
         for name in maps:
             recipe, extra = map_recipe(name)
-            tcfg = compose("train", [f"data={recipe}", *extra, *paths, *args["train"]])
-            mname, mid = model_identity(tcfg, *train_dataset_id(tcfg))
+            mname, mid = map_identity(compose("train", [f"data={recipe}", *extra, *paths, *args["train"]]))
             map_refs[name] = f"{mname}-{mid}"
             lock["maps"][name] = models_root / map_refs[name]
     em_refs = {}
     if errormaps:
         run_stage("errormap", [f"maps=[{','.join(map_refs[m] for m in errormaps)}]", *paths, *args["errormap"]],
                timings, stop)
-        from pipeline.train import load_perception_map
-
         for name in errormaps:
-            pm = load_perception_map(map_refs[name], models_dir=models_root)
-            ename, eid = expected_errormap_id(pm, [*paths, *args["errormap"]])
+            ename, eid = expected_errormap_id(models_root / map_refs[name], [*paths, *args["errormap"]])
             em_refs[name] = f"{ename}-{eid}"
             lock["errormaps"][name] = Path(cfg.paths.errormaps_dir) / em_refs[name]
     if experiments:
@@ -148,11 +139,8 @@ def run(cfg) -> dict:
                 lock["experiments"][exp] = (paper_dir / json.loads(entry.read_text())["cache"]).resolve()
     lock = {k: {n: f for n, f in v.items() if tracking.is_complete(f)} for k, v in lock.items()}
     lock_path = write_lock(Path(cfg.paths.paper_dir) / cfg.lock, lock)
-    from pipeline.experiments.figures import FIGURES
-    from pipeline.experiments.report import write_index
-
     if (Path(cfg.paths.paper_dir) / "index").is_dir():
-        write_index(Path(cfg.paths.paper_dir), FIGURES)
+        write_index(Path(cfg.paths.paper_dir))
     total = time.perf_counter() - t0
     line = ", ".join(f"{k} {v:.0f} s" for k, v in timings.items())
     print(f"\n[paper] done in {total / 60:.1f} min ({line}); see {cfg.paths.paper_dir}/index.md; inputs pinned in "
@@ -160,10 +148,7 @@ def run(cfg) -> dict:
     return {"timings": timings, "total": total, "lock": lock_path, "maps": map_refs, "errormaps": em_refs}
 
 
-@stage_main("paper", check=check)
-def main(cfg):
-    return run(cfg)
-
+main = stage_main("paper", run="pipeline.paper:run", check="pipeline.paper:check")
 
 if __name__ == "__main__":
     sys.exit(main())

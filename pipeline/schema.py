@@ -1,38 +1,242 @@
-"""Schemas of the plain settings nodes (no `_target_`): typed dataclasses, keys and types checked in one place.
+"""The schema of a config node is the signature of its `_target_`: parameter names, annotated types, defaults.
 
-    timing = load(cfg.camera, "camera", CameraTiming)     # ConfigError("camera.p_fail", "must be a number ...")
-
-A node may hold only the schema's fields; each value must have the field's type (an int is a float; `null`
-only where the type allows None); ranges are checked by the dataclass's `__post_init__`.
+:func:`signature` reads a target's parameters; :func:`check_value` checks a value against an annotation
+(numbers, strings, booleans, `Literal` choices, `X | None`, lists and tuples, mappings, and dataclasses, whose
+keys and field types are checked recursively), raising one :class:`ConfigError` naming the key. A target whose
+module imports torch or Lightning (at its top level, or through the project's modules it imports), and a target
+outside this project, is read from its source without being imported (a config error then answers in about a
+second): its keys are checked at composition, its values by its constructor.
 """
 
 from __future__ import annotations
 
+import ast
 import dataclasses
+import functools
+import importlib
+import importlib.util
+import inspect
 import math
+import sys
 import types
 import typing
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from pipeline.errors import ConfigError
 
-
-def _plain(node) -> dict:
-    from omegaconf import DictConfig, OmegaConf
-
-    if isinstance(node, DictConfig):
-        return OmegaConf.to_container(node, resolve=True)
-    return dict(node or {})
+HEAVY = ("torch", "lightning", "pytorch_lightning", "torchvision", "tensorboard", "mlflow", "optuna")
 
 
-def _type_ok(value, tp) -> bool:
+@dataclass(frozen=True)
+class Signature:
+    """The keywords a target takes: `params` name -> annotation (None: not checked), `required` those without a
+    default; `any_keyword`: it takes `**kwargs` (no key is unknown)."""
+
+    target: str
+    params: dict[str, Any]
+    required: tuple[str, ...] = ()
+    any_keyword: bool = False
+
+
+# ------------------------------------------------------------------------------------------- signatures
+@functools.cache
+def signature(target: str) -> Signature | None:
+    """The parameters of `target` (a dotted path), or None when they cannot be read."""
+    module, _, name = target.rpartition(".")
+    light = module.split(".")[0] == "pipeline" and not _imports_heavy(module)
+    if light or module in sys.modules:
+        try:
+            obj = getattr(importlib.import_module(module), name)
+        except Exception as err:  # noqa: BLE001 - any import problem is the config's fault
+            raise ConfigError("_target_", f"cannot import {target!r} ({str(err).splitlines()[0]})") from None
+        return _inspect(target, obj)
+    return _from_source(target)
+
+
+def _inspect(target: str, obj) -> Signature | None:
+    if inspect.isclass(obj) and obj.__init__ is object.__init__ and not dataclasses.is_dataclass(obj):
+        return Signature(target, {})
+    fn = obj.__init__ if inspect.isclass(obj) else obj
+    try:
+        sig = inspect.signature(fn)
+    except (TypeError, ValueError):  # builtins without a signature: accept anything
+        return None
+    try:
+        hints = typing.get_type_hints(obj if dataclasses.is_dataclass(obj) else fn)
+    except Exception:  # noqa: BLE001 - unresolvable annotations: names only
+        hints = {}
+    params, required, var_kw = {}, [], False
+    for n, p in sig.parameters.items():
+        if n == "self" or p.kind is p.VAR_POSITIONAL:
+            continue
+        if p.kind is p.VAR_KEYWORD:
+            var_kw = True
+            continue
+        params[n] = hints.get(n)
+        if p.default is p.empty:
+            required.append(n)
+    return Signature(target, params, tuple(required), var_kw)
+
+
+_HEAVY: dict[str, bool] = {}
+
+
+def _imports_heavy(module: str) -> bool:
+    """Whether importing the project module `module` imports torch or Lightning (read from the sources: its own
+    top-level imports, its packages' `__init__`, and the project modules those import)."""
+    if module not in _HEAVY:
+        _HEAVY[module] = False  # provisional while its imports are read (a package's modules import each other)
+        _HEAVY[module] = _reads_heavy(module)
+    return _HEAVY[module]
+
+
+def _reads_heavy(module: str) -> bool:
+    parts = module.split(".")
+    for i in range(2, len(parts)):  # a submodule's import runs its packages' __init__ first
+        if _imports_heavy(".".join(parts[:i])):
+            return True
+    path = _module_file(module)
+    if path is None:
+        return False
+    package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+    for node in ast.parse(path.read_text()).body:
+        names = []
+        if isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            src = node.module or ""
+            if node.level:
+                base = package.split(".")
+                src = ".".join(base[: len(base) - node.level + 1] + ([src] if src else []))
+            names = [src] + [f"{src}.{a.name}" for a in node.names]
+        for n in names:
+            top = n.split(".")[0]
+            if top in HEAVY:
+                return True
+            if top == "pipeline" and n != module and _module_file(n) is not None and _imports_heavy(n):
+                return True
+    return False
+
+
+def _module_file(module: str) -> Path | None:
+    """The source file of `module`, found without importing it (nor its parent packages)."""
+    top, *rest = module.split(".")
+    spec = importlib.util.find_spec(top)
+    if spec is None or not spec.submodule_search_locations:
+        return Path(spec.origin) if spec is not None and spec.origin and not rest else None
+    base = Path(next(iter(spec.submodule_search_locations))).joinpath(*rest)
+    for cand in (base / "__init__.py", base.with_suffix(".py")):
+        if cand.is_file():
+            return cand
+    return None
+
+
+def _from_source(target: str, depth: int = 0) -> Signature | None:
+    """Parameter names of `target` read from its source (following `from X import Y` re-exports)."""
+    module, _, name = target.rpartition(".")
+    path = _module_file(module) if depth < 8 else None
+    if path is None:
+        return None
+    tree = ast.parse(path.read_text())
+    package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+    for node in tree.body:
+        if isinstance(node, ast.ClassDef) and node.name == name:
+            init = next((b for b in node.body if isinstance(b, ast.FunctionDef) and b.name == "__init__"), None)
+            return _args(target, init) if init is not None else None
+        if isinstance(node, ast.FunctionDef) and node.name == name:
+            return _args(target, node)
+    for node in ast.walk(tree):  # a re-export
+        if isinstance(node, ast.ImportFrom):
+            for alias in node.names:
+                if (alias.asname or alias.name) == name:
+                    src = node.module or ""
+                    if node.level:
+                        parts = package.split(".")
+                        src = ".".join(parts[: len(parts) - node.level + 1] + ([src] if src else []))
+                    return _from_source(f"{src}.{alias.name}", depth + 1)
+    return None
+
+
+def _args(target: str, fn: ast.FunctionDef) -> Signature:
+    a = fn.args
+    names = [x.arg for x in (*a.posonlyargs, *a.args, *a.kwonlyargs) if x.arg != "self"]
+    n_pos = len(a.posonlyargs) + len(a.args)
+    pos_defaults = n_pos - len(a.defaults)
+    pos = [x.arg for x in (*a.posonlyargs, *a.args)]
+    required = [n for i, n in enumerate(pos) if i >= 0 and i < pos_defaults and n != "self"]
+    required += [x.arg for x, d in zip(a.kwonlyargs, a.kw_defaults) if d is None]
+    return Signature(target, dict.fromkeys(names), tuple(required), a.kwarg is not None)
+
+
+# ---------------------------------------------------------------------------------------------- types
+def describe(tp) -> str:
+    """The annotation `tp` in words (for error messages)."""
     origin = typing.get_origin(tp)
     if origin in (typing.Union, types.UnionType):
-        return any(_type_ok(value, a) for a in typing.get_args(tp))
+        args = [a for a in typing.get_args(tp) if a is not type(None)]
+        return " or ".join(describe(a) for a in args) + (" (or null)" if len(args) < len(typing.get_args(tp)) else "")
+    if origin is typing.Literal:
+        return "one of " + ", ".join(str(c) for c in typing.get_args(tp))
+    if origin in (list, tuple):
+        args = typing.get_args(tp)
+        return f"a list of {describe(args[0]) if args else 'values'}"
+    if origin is dict:
+        return "a mapping"
+    if dataclasses.is_dataclass(tp):
+        return f"a mapping with keys {', '.join(f.name for f in dataclasses.fields(tp) if f.init)}"
+    return {bool: "true or false", int: "an integer", float: "a number", str: "a string"}.get(
+        tp, getattr(tp, "__name__", str(tp)))
+
+
+def check_value(value, tp, path: str) -> None:
+    """Raise `ConfigError(path, ...)` unless `value` (plain: from a composed config) fits the annotation `tp`."""
+    if tp is None or tp is Any or tp is object:
+        return
+    origin = typing.get_origin(tp)
+    if origin in (typing.Union, types.UnionType):
+        options = typing.get_args(tp)
+        if value is None and type(None) in options:
+            return
+        for opt in options:
+            try:
+                check_value(value, opt, path)
+                return
+            except ConfigError:
+                continue
+        raise ConfigError(path, f"must be {describe(tp)}, got {value!r}")
+    if origin is typing.Literal:
+        if value not in typing.get_args(tp):
+            raise ConfigError(path, f"must be {describe(tp)}, got {value!r}")
+        return
+    if dataclasses.is_dataclass(tp) and isinstance(tp, type):
+        _check_dataclass(value, tp, path)
+        return
+    if origin in (list, tuple) or tp in (list, tuple):
+        if not isinstance(value, list | tuple):
+            raise ConfigError(path, f"must be {describe(tp)}, got {value!r}")
+        args = [a for a in typing.get_args(tp) if a is not Ellipsis]
+        fixed = origin is tuple and len(args) > 1
+        if fixed and len(value) != len(args):
+            raise ConfigError(path, f"must be a list of {len(args)} values, got {value!r}")
+        for i, v in enumerate(value):
+            check_value(v, args[i] if fixed else (args[0] if args else None), f"{path}[{i}]")
+        return
+    if origin is dict or tp is dict:
+        if not isinstance(value, dict):
+            raise ConfigError(path, f"must be a mapping, got {value!r}")
+        args = typing.get_args(tp)
+        for k, v in value.items():
+            check_value(v, args[1] if len(args) == 2 else None, f"{path}.{k}")
+        return
+    if not _scalar_ok(value, tp):
+        raise ConfigError(path, f"must be {describe(tp)}, got {value!r}")
+
+
+def _scalar_ok(value, tp) -> bool:
     if tp is type(None):
         return value is None
-    if tp is Any:
-        return True
     if tp is bool:
         return isinstance(value, bool)
     if tp is int:
@@ -41,160 +245,24 @@ def _type_ok(value, tp) -> bool:
         return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
     if tp is str:
         return isinstance(value, str)
-    if origin in (list, tuple):
-        args = typing.get_args(tp)
-        if not isinstance(value, list | tuple):
-            return False
-        inner = args[0] if args else Any
-        return all(_type_ok(v, inner) for v in value)
-    return isinstance(value, tp)
+    if isinstance(tp, type):
+        return isinstance(value, tp) or isinstance(value, dict)  # an object passed by the caller, or its node
+    return True
 
 
-def _describe(tp) -> str:
-    origin = typing.get_origin(tp)
-    if origin in (typing.Union, types.UnionType):
-        args = [a for a in typing.get_args(tp) if a is not type(None)]
-        return " or ".join(_describe(a) for a in args) + (" (or null)" if len(args) < len(typing.get_args(tp)) else "")
-    if origin in (list, tuple):
-        args = typing.get_args(tp)
-        return f"a list of {_describe(args[0]) if args else 'values'}"
-    return {bool: "true or false", int: "an integer", float: "a number", str: "a string"}.get(tp, getattr(tp, "__name__", str(tp)))
-
-
-def load(node, path: str, schema: type):
-    """Instance of dataclass `schema` from a config node, every key and type checked (errors name `path.key`)."""
-    data = _plain(node)
-    hints = typing.get_type_hints(schema)
-    fields = {f.name: f for f in dataclasses.fields(schema) if f.init}
-    unknown = sorted(set(data) - set(fields))
+def _check_dataclass(value, cls, path: str) -> None:
+    if isinstance(value, cls):
+        return
+    if not isinstance(value, dict):
+        raise ConfigError(path, f"must be {describe(cls)}, got {value!r}")
+    fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
+    unknown = sorted(set(value) - set(fields))
     if unknown:
-        raise ConfigError(f"{path}.{unknown[0]}", f"unknown key (known: {', '.join(fields)})")
-    for k, v in data.items():
-        if not _type_ok(v, hints[k]):
-            raise ConfigError(f"{path}.{k}", f"must be {_describe(hints[k])}, got {v!r}")
-    try:
-        return schema(**data)
-    except ConfigError as err:
-        field = err.field if err.field.startswith(path) else f"{path}.{err.field}"
-        raise ConfigError(field, err.reason) from None
-
-
-def need(cond: bool, field: str, reason: str) -> None:
-    """Raise `ConfigError(field, reason)` unless `cond` (range checks of a schema's `__post_init__`)."""
-    if not cond:
-        raise ConfigError(field, reason)
-
-
-# ------------------------------------------------------------------------------------------ nodes
-@dataclasses.dataclass(frozen=True)
-class CameraTiming:
-    """`camera`: a frame every `period` seconds (null: every step), lost with probability `p_fail`; with `gate`,
-    a frame whose predicted error (a map with an uncertainty head) exceeds `gate` world units is lost too."""
-
-    period: float | None = 0.05
-    p_fail: float = 0.0
-    gate: float | None = None
-
-    def __post_init__(self):
-        need(self.period is None or self.period > 0, "period", f"must be > 0 (or null), got {self.period!r}")
-        need(0.0 <= self.p_fail < 1.0, "p_fail", f"must be in [0, 1), got {self.p_fail!r}")
-        need(self.gate is None or self.gate > 0, "gate", f"must be > 0 (world units) or null, got {self.gate!r}")
-
-
-def _pair_range(value, field: str) -> None:
-    need(len(value) == 2 and value[0] < value[1], field, f"must be [min, max] with min < max, got {list(value)!r}")
-
-
-@dataclasses.dataclass(frozen=True)
-class InitPoints:
-    mode: str = "points"
-    points: list[list[float]] = dataclasses.field(default_factory=list)
-
-    def __post_init__(self):
-        need(len(self.points) > 0 and all(len(p) == 2 for p in self.points), "points",
-             f"must be a non-empty list of [x, y] pairs, got {self.points!r}")
-
-
-@dataclasses.dataclass(frozen=True)
-class InitGrid:
-    mode: str = "grid"
-    nx: int = 21
-    ny: int = 13
-    margin: float = 2.0
-    exclude_diamond: bool = True
-
-    def __post_init__(self):
-        need(self.nx >= 1, "nx", f"must be >= 1, got {self.nx}")
-        need(self.ny >= 1, "ny", f"must be >= 1, got {self.ny}")
-        need(self.margin >= 0, "margin", f"must be >= 0, got {self.margin}")
-
-
-@dataclasses.dataclass(frozen=True)
-class InitRandom:
-    mode: str = "random"
-    n: int = 1000
-    seed: int = 0
-    margin: float = 2.0
-    exclude_diamond: bool = True
-
-    def __post_init__(self):
-        need(self.n >= 1, "n", f"must be >= 1, got {self.n}")
-        need(self.seed >= 0, "seed", f"must be >= 0, got {self.seed}")
-        need(self.margin >= 0, "margin", f"must be >= 0, got {self.margin}")
-
-
-@dataclasses.dataclass(frozen=True)
-class InitNearK:
-    mode: str = "near_k"
-    n: int = 200
-    seed: int = 0
-    band: float = 0.5
-    a_range: list[float] = dataclasses.field(default_factory=lambda: [-45.0, -15.0])
-
-    def __post_init__(self):
-        need(self.n >= 1, "n", f"must be >= 1, got {self.n}")
-        need(self.seed >= 0, "seed", f"must be >= 0, got {self.seed}")
-        need(self.band > 0, "band", f"must be > 0, got {self.band}")
-        _pair_range(self.a_range, "a_range")
-
-
-INIT_MODES = {"points": InitPoints, "grid": InitGrid, "random": InitRandom, "near_k": InitNearK}
-
-
-def load_init(node, path: str = "init"):
-    """The `init` node: its `mode` picks the schema."""
-    mode = _plain(node).get("mode", "points")
-    if mode not in INIT_MODES:
-        raise ConfigError(f"{path}.mode", f"must be one of {', '.join(INIT_MODES)}, got {mode!r}")
-    return load(node, path, INIT_MODES[mode])
-
-
-@dataclasses.dataclass(frozen=True)
-class SimSettings:
-    """`sim`: time model, Euler step / record grid, horizon, success radius, recording, seed, the continuous
-    integrator's tolerances and the stall thresholds of the outcome classes."""
-
-    model: str = "sampled"
-    dt: float = 0.01
-    horizon: float = 30.0
-    delta: float = 1.0
-    record_every: int = 5
-    stop_on_success: bool = True
-    seed: int = 0
-    method: str = "rosenbrock23"
-    rtol: float = 1e-6
-    atol: float = 1e-4
-    h_max: float = 0.25
-    stall_speed: float = 0.1
-    stall_time: float = 5.0
-
-    def __post_init__(self):
-        need(self.dt > 0, "dt", f"must be > 0, got {self.dt}")
-        need(self.horizon >= self.dt, "horizon", f"must be >= sim.dt = {self.dt}, got {self.horizon}")
-        need(self.delta > 0, "delta", f"must be > 0, got {self.delta}")
-        need(self.record_every >= 1, "record_every", f"must be >= 1, got {self.record_every}")
-        need(self.seed >= 0, "seed", f"must be >= 0, got {self.seed}")
-        need(self.model in ("sampled", "continuous"), "model", f"must be sampled or continuous, got {self.model!r}")
-        need(self.method in ("rosenbrock23", "dopri5"), "method", f"must be rosenbrock23 or dopri5, got {self.method!r}")
-        for k in ("rtol", "atol", "h_max", "stall_speed", "stall_time"):
-            need(getattr(self, k) > 0, k, f"must be > 0, got {getattr(self, k)}")
+        raise ConfigError(f"{path}.{unknown[0]}", f"unknown key ({cls.__name__} takes {', '.join(fields)})")
+    hints = typing.get_type_hints(cls)
+    for name, f in fields.items():
+        if name not in value:
+            if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
+                raise ConfigError(f"{path}.{name}", f"missing ({cls.__name__} needs it)")
+            continue
+        check_value(value[name], hints.get(name), f"{path}.{name}")

@@ -24,6 +24,8 @@ from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
+from omegaconf import DictConfig, ListConfig, OmegaConf
+
 from pipeline.errors import DatasetError, PipelineError
 
 MANIFEST = "manifest.json"
@@ -309,11 +311,22 @@ def tracked_output(root: Path, name: str, id_: str, meta: Mapping) -> Iterator[P
 
 def to_plain(obj: Any) -> Any:
     """OmegaConf containers -> plain Python (for hashing and manifests)."""
-    try:
-        from omegaconf import DictConfig, ListConfig, OmegaConf
-
-        if isinstance(obj, DictConfig | ListConfig):
-            return OmegaConf.to_container(obj, resolve=True)
-    except ImportError:  # pragma: no cover
-        pass
+    if isinstance(obj, DictConfig | ListConfig):
+        return OmegaConf.to_container(obj, resolve=True)
     return obj
+
+
+def to_plain_lenient(node: Any) -> Any:
+    """Plain Python of a config node; a value whose interpolation cannot resolve here (`${hydra:...}` outside a
+    Hydra app) is kept as its `${...}` text."""
+    if isinstance(node, DictConfig):
+        out = {}
+        for key in node:
+            try:
+                out[key] = to_plain_lenient(OmegaConf.select(node, str(key), throw_on_resolution_failure=True))
+            except Exception:  # noqa: BLE001 - InterpolationResolutionError and friends
+                out[key] = OmegaConf.to_container(node, resolve=False)[key]
+        return out
+    if isinstance(node, ListConfig):
+        return [to_plain_lenient(v) for v in node]
+    return node

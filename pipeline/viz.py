@@ -12,16 +12,18 @@ from matplotlib.patches import Circle, Polygon  # noqa: E402
 from pipeline.control import Scene, diamond_vertices  # noqa: E402
 
 
-def draw_scene(ax, scene: Scene, arena=((-50, 50), (-30, 30)), *, diamond: bool = True, margin_disc: bool = False):
-    """Obstacle N (grey), diamond W_1 ∩ W_2 (dashed), target (star), arena bounds."""
-    ax.add_patch(Circle(scene.p_0, scene.obstacle_radius, color="0.35", zorder=3, label="obstacle N"))
-    if margin_disc:
-        ax.add_patch(Circle(scene.p_0, 2 * scene.obstacle_radius, fill=False, ls=":", color="0.4", zorder=3))
-    if diamond:
-        ax.add_patch(Polygon(diamond_vertices(scene), closed=True, fill=False, ls="--", color="k", lw=1, zorder=3,
-                             label="diamond W1∩W2"))
+def draw_scene(ax, scene: Scene, arena=None, *, diamond: bool = True, margin_disc: bool = False):
+    """Every obstacle N_i (grey) with its diamond W_1 ∩ W_2 (dashed), the target (star), the arena's bounds
+    (default: the scene's)."""
+    for i, cov in enumerate(scene.coverings):
+        ax.add_patch(Circle(cov.p_0, cov.obstacle_radius, color="0.35", zorder=3, label="obstacle N" if i == 0 else None))
+        if margin_disc:
+            ax.add_patch(Circle(cov.p_0, 2 * cov.obstacle_radius, fill=False, ls=":", color="0.4", zorder=3))
+        if diamond:
+            ax.add_patch(Polygon(diamond_vertices(cov), closed=True, fill=False, ls="--", color="k", lw=1, zorder=3,
+                                 label="diamond W1∩W2" if i == 0 else None))
     ax.plot(*scene.p_T, marker="*", ms=14, color="gold", mec="k", zorder=5, ls="none", label="target")
-    (x0, x1), (y0, y1) = arena
+    (x0, x1), (y0, y1) = arena or scene.bounds
     ax.set_xlim(x0, x1)
     ax.set_ylim(y0, y1)
     ax.set_aspect("equal")
@@ -44,7 +46,7 @@ def save(fig, path_stem, formats=("png",), dpi=150) -> list[str]:
 def trajectory_figure(scene: Scene, p: np.ndarray, success: np.ndarray | None = None, title: str = "", arena=None):
     """Trajectories `(T, N, 2)` over the scene; failures in red."""
     fig, ax = plt.subplots(figsize=(8, 5))
-    draw_scene(ax, scene, arena or ((-50, 50), (-30, 30)))
+    draw_scene(ax, scene, arena)
     n = p.shape[1]
     for i in range(n):
         ok = True if success is None else bool(success[i])

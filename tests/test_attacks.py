@@ -1,4 +1,4 @@
-"""Attacks through the camera (pipeline.attacks): the PGD pixel attack, the worst cloud, the closed-loop hook.
+"""Attacks through the camera (pipeline.perception.attacks): the PGD pixel attack, the worst cloud, the closed-loop hook.
 
 A differentiable stand-in for the perception map (the centroid of the bright pixels, in world units) and the
 real Camera keep these fast; one test runs the real (untrained) FoldedPerceptionNet to check that gradients
@@ -12,7 +12,7 @@ import pytest
 import torch
 from torch import nn
 
-from pipeline.attacks import AttackedCamera, ScaledInput, pixel_attack, proposition1_direction, worst_cloud
+from pipeline.perception.attacks import AttackedCamera, ScaledInput, pixel_attack, proposition1_direction, worst_cloud
 from pipeline.errors import ConfigError
 from pipeline.render import Camera, CloudSample
 from pipeline.render.occlusion import occlusion_level
@@ -144,7 +144,7 @@ def test_pixel_attack_never_helps_the_controller(camera, positions):
 
 
 def test_pixel_attack_through_the_folded_perception_net(camera, positions):
-    from pipeline.train.model import FoldedPerceptionNet, PerceptionMap
+    from pipeline.perception.network import FoldedPerceptionNet, PerceptionMap
 
     torch.manual_seed(0)
     model = PerceptionMap(filters=[4, 8], batch_norm=True, coord_channels=True)
@@ -252,7 +252,7 @@ def test_hook_statistics_add_up(camera, clouds, positions, attack):
 
 
 def test_hook_without_budget_is_the_camera_measurement(camera, clouds, positions):
-    from pipeline.experiments.measure import CameraMeasure
+    from pipeline.perception.measure import CameraMeasure
 
     pm = stub_map(Centroid())
     hook = AttackedCamera(camera, pm, directions, attack="pixel", occlusion=clouds, kappa=0)

@@ -150,9 +150,9 @@ def tiny_maps(tmp_path_factory):
 def test_camera_in_the_loop_renders_all_agents_per_frame(tiny_maps):
     root, ids = tiny_maps
     from pipeline.control import HybridController, Scene
-    from pipeline.experiments.measure import CameraMeasure
+    from pipeline.perception.measure import CameraMeasure
     from pipeline.sim import simulate
-    from pipeline.train import load_perception_map
+    from pipeline.perception.maps import load_perception_map
 
     pm = load_perception_map(ids["clean"], models_dir=root / "models")
     cam = pm.camera()
@@ -206,9 +206,9 @@ def test_camera_in_the_loop_is_the_same_on_every_device(tiny_maps):
     import torch
 
     from pipeline.control import HybridController, Scene
-    from pipeline.experiments.measure import CameraMeasure
+    from pipeline.perception.measure import CameraMeasure
     from pipeline.sim import simulate
-    from pipeline.train import load_perception_map
+    from pipeline.perception.maps import load_perception_map
 
     root, ids = tiny_maps
     scene = Scene(target=(40.0, 0.0))

@@ -35,7 +35,7 @@ def _train_cfg(tiny, *extra):
 
 def test_fast_dev_run_reload_and_noop(tiny):
     from pipeline.data import open_dataset
-    from pipeline.train import load_perception_map
+    from pipeline.perception.maps import load_perception_map
     from pipeline.train.stage import error_metrics, run
 
     cfg = _train_cfg(tiny, "trainer=debug", "eval_levels=[none,heavy]")
@@ -98,7 +98,7 @@ def test_fast_dev_run_reload_and_noop(tiny):
 def test_overfits_256_images(tiny):
     """The map can memorise 256 images: train MAE below 1 px (the model is able to localise sub-pixel)."""
     from pipeline.data import open_dataset
-    from pipeline.train import load_perception_map
+    from pipeline.perception.maps import load_perception_map
     from pipeline.train.stage import error_metrics, run
 
     # a narrow variant of the default architecture (CoordConv, one-cycle), without dropout and BatchNorm
@@ -114,8 +114,8 @@ def test_overfits_256_images(tiny):
 
 
 def test_wrong_image_shape_is_a_model_error(tiny):
-    from pipeline.train import PerceptionMap
-    from pipeline.train.predict import PerceptionMapPredictor
+    from pipeline.perception.network import PerceptionMap
+    from pipeline.perception.maps import PerceptionMapPredictor
 
     pm = PerceptionMapPredictor(PerceptionMap())
     assert pm.predict(np.zeros((3, 60, 100, 3), np.uint8)).shape == (3, 2)
@@ -135,7 +135,7 @@ def test_bad_configs(tiny):
     with pytest.raises(ModelError, match="image_shape"):
         run(_train_cfg(tiny, "trainer=debug", "+model.image_shape=[64,64,3]"))
     with pytest.raises(ModelError, match="unknown perception map"):
-        from pipeline.train import load_perception_map
+        from pipeline.perception.maps import load_perception_map
 
         load_perception_map("nope", models_dir=tiny["models"])
 

@@ -62,7 +62,7 @@ def test_trainer_configs_compose_to_lightning_arguments():
 
 # ------------------------------------------------------------------------------------------ devices
 def test_resolve_device():
-    from pipeline.train.predict import resolve_device
+    from pipeline.perception.maps import resolve_device
 
     assert resolve_device("cpu") == torch.device("cpu")
     assert resolve_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
@@ -79,7 +79,7 @@ def test_resolve_device():
 
 
 def _random_map(**kw):
-    from pipeline.train import PerceptionMap
+    from pipeline.perception.network import PerceptionMap
 
     torch.manual_seed(0)
     model = PerceptionMap(**kw)
@@ -99,7 +99,7 @@ def _random_map(**kw):
 def test_folded_inference_matches_the_module_on_every_device(device, kw):
     """BatchNorm and input scaling folded into the convolutions, on CPU (and CUDA when present): the same
     world coordinates as the training module on CPU, up to float tolerance; batch size does not matter."""
-    from pipeline.train.predict import PerceptionMapPredictor
+    from pipeline.perception.maps import PerceptionMapPredictor
 
     model = _random_map(**kw)
     images = np.random.default_rng(1).integers(0, 256, (300, 60, 100, 3), dtype=np.uint8)
@@ -117,7 +117,7 @@ def test_folded_inference_matches_the_module_on_every_device(device, kw):
 
 
 def test_compile_falls_back_to_eager(monkeypatch):
-    from pipeline.train.predict import PerceptionMapPredictor
+    from pipeline.perception.maps import PerceptionMapPredictor
 
     def broken(*a, **k):
         raise RuntimeError("no compiler\nmore")

@@ -1,10 +1,10 @@
-"""`pipeline.train.metrics`: the near-target and visible/hidden splits are the whole-set metric on each subset."""
+"""`pipeline.perception.metrics`: the near-target and visible/hidden splits are the whole-set metric on each subset."""
 
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.train.metrics import error_metrics, perception_metrics
+from pipeline.perception.metrics import error_metrics, perception_metrics
 
 
 @settings(max_examples=30, deadline=None)

@@ -11,10 +11,10 @@ from hypothesis import strategies as st
 
 from pipeline.control import HybridController, Scene
 from pipeline.errors import ConfigError
-from pipeline.experiments.measure import CameraMeasure
+from pipeline.perception.measure import CameraMeasure
 from pipeline.sim import simulate
-from pipeline.train.model import PerceptionMap, gaussian_nll
-from pipeline.train.predict import PerceptionMapPredictor
+from pipeline.perception.network import PerceptionMap, gaussian_nll
+from pipeline.perception.maps import PerceptionMapPredictor
 from pipeline.train.uncertainty import (
     calibrate,
     clean_gate,
@@ -230,7 +230,7 @@ def test_maps_saved_before_the_fitted_head_load_or_say_why(tmp_path):
     import json
 
     from pipeline.errors import ModelError
-    from pipeline.train.predict import load_perception_map
+    from pipeline.perception.maps import load_perception_map
 
     images = _synthetic(8, 4)[0]
     for unc in ("none", "gaussian"):

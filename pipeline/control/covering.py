@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.control.scene import Scene
+from pipeline.control.scene import Covering
 
 _SQRT1_2 = np.sqrt(0.5)
 
@@ -25,7 +25,7 @@ def _check_q(q: int) -> int:
     return 1 if q == 1 else -1  # sign of b in b'
 
 
-def wedge_coords(scene: Scene, q: int, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def wedge_coords(scene: Covering, q: int, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Rotated coordinates `(u, v)` in which `W_q = {u >= 0, v >= 0}`."""
     sigma = _check_q(q)
     a, b = scene.to_frame(points)
@@ -33,19 +33,19 @@ def wedge_coords(scene: Scene, q: int, points: np.ndarray) -> tuple[np.ndarray, 
     return (bp + a) * _SQRT1_2, (bp - a) * _SQRT1_2
 
 
-def wedge_axes(scene: Scene, q: int) -> tuple[np.ndarray, np.ndarray]:
+def wedge_axes(scene: Covering, q: int) -> tuple[np.ndarray, np.ndarray]:
     """World-frame gradients of `u` and `v` (unit vectors): du/dp, dv/dp."""
     sigma = _check_q(q)
     return (sigma * scene.e_b + scene.e_a) * _SQRT1_2, (sigma * scene.e_b - scene.e_a) * _SQRT1_2
 
 
-def sq_dist_to_wedge(scene: Scene, q: int, points: np.ndarray) -> np.ndarray:
+def sq_dist_to_wedge(scene: Covering, q: int, points: np.ndarray) -> np.ndarray:
     """`d_q(p)`: squared distance from `p` to `W_q` (zero inside), i.e. to the complement of `O_q`."""
     u, v = wedge_coords(scene, q, points)
     return np.minimum(u, 0.0) ** 2 + np.minimum(v, 0.0) ** 2
 
 
-def sq_dist_to_wedge_grad(scene: Scene, q: int, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def sq_dist_to_wedge_grad(scene: Covering, q: int, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """`(d_q, ∇d_q)`, shapes `(N,)` and `(N, 2)`; the gradient is zero inside `W_q`."""
     u, v = wedge_coords(scene, q, points)
     du, dv = wedge_axes(scene, q)
@@ -54,28 +54,23 @@ def sq_dist_to_wedge_grad(scene: Scene, q: int, points: np.ndarray) -> tuple[np.
     return mu * mu + mv * mv, grad
 
 
-def in_covering_set(scene: Scene, q: int, points: np.ndarray) -> np.ndarray:
+def in_covering_set(scene: Covering, q: int, points: np.ndarray) -> np.ndarray:
     """Membership in the open set `O_q` (boolean `(N,)`)."""
     u, v = wedge_coords(scene, q, points)
     return (u < 0) | (v < 0)
 
 
-def in_diamond(scene: Scene, points: np.ndarray) -> np.ndarray:
-    """Membership in the diamond `W_1 ∩ W_2 = {|a| + |b| <= c}` = complement of `O_1 ∪ O_2`."""
-    a, b = scene.to_frame(points)
-    return np.abs(a) + np.abs(b) <= scene.c
+def in_diamond(scene, points: np.ndarray) -> np.ndarray:
+    """Membership in the diamond `W_1 ∩ W_2 = {|a| + |b| <= c}` = complement of `O_1 ∪ O_2` (of a covering; for a
+    scene, of any of its obstacles)."""
+    inside = np.zeros(len(points), dtype=bool)
+    for cov in (scene.coverings if hasattr(scene, "coverings") else [scene]):
+        a, b = cov.to_frame(points)
+        inside |= np.abs(a) + np.abs(b) <= cov.c
+    return inside
 
 
-def diamond_vertices(scene: Scene) -> np.ndarray:
+def diamond_vertices(scene: Covering) -> np.ndarray:
     """The diamond's four corners in world coordinates, `(4, 2)`, counter-clockwise."""
     c = scene.c
     return scene.from_frame(np.array([c, 0.0, -c, 0.0]), np.array([0.0, c, 0.0, -c]))
-
-
-def wedge_polygon(scene: Scene, q: int, extent: float = 1e3) -> np.ndarray:
-    """A large polygon approximating `W_q` for drawing, `(3, 2)` world points."""
-    sigma = _check_q(q)
-    apex_b = -sigma * scene.c  # apex of W_1 at b = -c, of W_2 at b = +c
-    a = np.array([-extent, 0.0, extent])
-    b = np.array([apex_b + sigma * extent, apex_b, apex_b + sigma * extent])
-    return scene.from_frame(a, b)

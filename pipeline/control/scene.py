@@ -1,144 +1,110 @@
-"""The scene of SPEC §1/§3.1: target, obstacle, covering apex, barrier, and the obstacle frame (a, b)."""
+"""The scene of SPEC §1/§3.1/§3.6: the target, the obstacles (discs) with their coverings, the barrier, the arena.
+
+`Scene(target, obstacles, barrier, arena)` is what `conf/scene/*.yaml` says, key for key: `obstacles` a list of
+discs (`center`, `radius`, optional covering `apex` and barrier scale), `barrier` the barrier `B` and its
+parameters, `arena` the rectangle the camera sees. Each obstacle `i` has its covering `O_1, O_2`
+(:class:`Covering`: its frame `(a, b)` with origin `c_i` and axis `e_a` towards `p_T`, apex `c`, barrier scale
+`ℓ`), and the scene gathers them in arrays for the batched controllers. A single-obstacle scene (`M = 1`) also
+answers the single-obstacle names (`scene.p_0`, `scene.c`, `scene.to_frame`, ...) of its obstacle.
+"""
 
 from __future__ import annotations
 
+import functools
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
+from typing import Literal
 
 import numpy as np
 
 from pipeline.errors import ConfigError
 
-BARRIER_KINDS = ("squared", "authors_code")
-OBSTACLE_KEYS = ("center", "radius")
-BARRIER_KEYS = ("rho", "scale", "kind", "gain")
+BarrierKind = Literal["squared", "authors_code"]
 
 
-def _pair(value, name: str) -> np.ndarray:
-    try:
-        arr = np.asarray(value, dtype=float).reshape(-1)
-    except (TypeError, ValueError):
-        raise ConfigError(name, f"must be a pair of numbers [x, y], got {value!r}") from None
-    if arr.shape != (2,) or not np.all(np.isfinite(arr)):
-        raise ConfigError(name, f"must be a pair of finite numbers [x, y], got {value!r}")
-    return arr
+@dataclass(frozen=True)
+class Obstacle:
+    """A disc `N_i` (SPEC §3.6): centre, radius; its covering's apex `c` (null: `2 sqrt(2) r`) and barrier scale
+    `ℓ` (null: the scene's `barrier.scale`, else `r`)."""
+
+    center: list[float]
+    radius: float
+    apex: float | None = None
+    barrier_scale: float | None = None
 
 
-@dataclass(frozen=True, eq=False)
-class Scene:
-    """Target, obstacle and covering of the paper (Section III, SPEC §3.1), validated on construction.
+@dataclass(frozen=True)
+class Barrier:
+    """`B(s) = (s - rho)^2 log(1/s)` on `d_q / ℓ^2` (`squared`, SPEC §3), or the authors' release
+    `(d - rho)^2 log(rho / d)` on the Euclidean distance with `1/2 |p - p_T|^2` (`authors_code`, SPEC §1);
+    `gain` multiplies `B` (docs/control.md); `scale` is the default `ℓ` (null: each obstacle's radius)."""
 
-    The obstacle frame has origin `p_0`, axis `e_a` from `p_0` towards `p_T` and `e_b` its left-hand normal,
-    so any target direction works. `apex` is the covering constant `c` (default `2*sqrt(2)*r`); the barrier
-    acts on `d_q / barrier_scale**2` (`barrier_scale` defaults to `r`).
+    rho: float = 0.5
+    scale: float | None = None
+    kind: BarrierKind = "squared"
+    gain: float = 1.0
 
-    `barrier_kind='authors_code'` reproduces the authors' release: barrier `(d - rho)^2 log(rho/d)` on the
-    Euclidean distance `d` and potential `1/2 |p - p_T|^2 + B` (SPEC §1).
+
+@dataclass(frozen=True)
+class Arena:
+    """The rectangle the camera sees, world units."""
+
+    x: list[float] = field(default_factory=lambda: [-50.0, 50.0])
+    y: list[float] = field(default_factory=lambda: [-30.0, 30.0])
+
+    @property
+    def bounds(self) -> tuple[tuple[float, float], tuple[float, float]]:
+        return (float(self.x[0]), float(self.x[1])), (float(self.y[0]), float(self.y[1]))
+
+
+def _as(cls, value):
+    """A nested config node (a mapping) as its dataclass; the keys were checked with the config."""
+    return value if isinstance(value, cls) else cls(**dict(value))
+
+
+class Covering:
+    """The covering `O_1, O_2` of one obstacle (SPEC §3.1) with what its potentials need (SPEC §3.2).
+
+    The obstacle frame has origin `p_0`, axis `e_a` from `p_0` towards `p_T` and `e_b` its left-hand normal;
+    `c` is the apex, `ell` the barrier's length scale. Read by `pipeline.control.covering` and
+    `pipeline.control.potentials` (a single-obstacle :class:`Scene` has the same attributes).
     """
 
-    target: tuple[float, float]
-    obstacle_center: tuple[float, float] = (0.0, 0.0)
-    obstacle_radius: float = 4.0
-    barrier_rho: float = 0.5
-    barrier_scale: float | None = None
-    apex: float | None = None
-    barrier_kind: str = "squared"
-    barrier_gain: float = 1.0
-    name: str = "custom"
-    # derived
-    p_T: np.ndarray = field(init=False, repr=False)
-    p_0: np.ndarray = field(init=False, repr=False)
-    e_a: np.ndarray = field(init=False, repr=False)
-    e_b: np.ndarray = field(init=False, repr=False)
-    c: float = field(init=False, repr=False)
-    ell: float = field(init=False, repr=False)
-    phi_weight: float = field(init=False, repr=False)
-
-    def __post_init__(self):
-        set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 (frozen dataclass)
-        p_T = _pair(self.target, "scene.target")
-        p_0 = _pair(self.obstacle_center, "scene.obstacle.center")
-        r = float(self.obstacle_radius)
-        if not math.isfinite(r) or r <= 0:
-            raise ConfigError("scene.obstacle.radius", f"must be > 0, got {self.obstacle_radius!r}")
-        if self.barrier_kind not in BARRIER_KINDS:
-            raise ConfigError("scene.barrier.kind", f"must be one of {BARRIER_KINDS}, got {self.barrier_kind!r}")
-        rho = float(self.barrier_rho)
-        if self.barrier_kind == "squared" and not (0 < rho <= 1):
-            raise ConfigError("scene.barrier.rho", f"must be in (0, 1] (SPEC §3), got {self.barrier_rho!r}")
-        if self.barrier_kind == "authors_code" and not rho > 0:
-            raise ConfigError("scene.barrier.rho", f"must be > 0, got {self.barrier_rho!r}")
-        gain = float(self.barrier_gain)
-        if not math.isfinite(gain) or gain <= 0:
-            raise ConfigError("scene.barrier.gain", f"must be > 0, got {self.barrier_gain!r}")
-        ell = r if self.barrier_scale is None else float(self.barrier_scale)
-        if not math.isfinite(ell) or ell <= 0:
-            raise ConfigError("scene.barrier.scale", f"must be > 0 (or null for the obstacle radius), got {self.barrier_scale!r}")
-        c = 2.0 * math.sqrt(2.0) * r if self.apex is None else float(self.apex)
-        if not math.isfinite(c) or c <= math.sqrt(2.0) * r:
-            raise ConfigError(
-                "scene.apex",
-                f"the diamond |a| + |b| <= c must contain the obstacle: need c > sqrt(2) r = {math.sqrt(2) * r:.3g}, got {c!r}",
-            )
-        delta = p_T - p_0
+    def __init__(self, p_T, p_0, radius: float, c: float, ell: float, barrier: Barrier):
+        self.p_T = np.asarray(p_T, dtype=float)
+        self.p_0 = np.asarray(p_0, dtype=float)
+        self.obstacle_radius = float(radius)
+        self.c = float(c)
+        self.ell = float(ell)
+        self.barrier_rho = float(barrier.rho)
+        self.barrier_kind = barrier.kind
+        self.barrier_gain = float(barrier.gain)
+        self.phi_weight = 0.5 if barrier.kind == "authors_code" else 1.0
+        delta = self.p_T - self.p_0
         dist = float(np.hypot(*delta))
-        if dist == 0:
-            raise ConfigError("scene.target", "must differ from the obstacle centre")
-        e_a = delta / dist
-        set_("p_T", p_T)
-        set_("p_0", p_0)
-        set_("e_a", e_a)
-        set_("e_b", np.array([-e_a[1], e_a[0]]))
-        set_("c", c)
-        set_("ell", ell)
-        set_("phi_weight", 0.5 if self.barrier_kind == "authors_code" else 1.0)
-        set_("target", tuple(p_T.tolist()))
-        set_("obstacle_center", tuple(p_0.tolist()))
-        # The target must lie outside both wedges by more than the barrier's reach (SPEC §3.1): otherwise
-        # V_q(p_T) > 0 and the minimum of V_q moves away from the target.
-        wedge_dist = dist / math.sqrt(2.0) - c / math.sqrt(2.0)  # distance from (a_T, 0) to W_q, a_T > c
-        if dist <= c or wedge_dist <= self.barrier_reach:
-            raise ConfigError(
-                "scene.target",
-                f"lies inside a covering wedge or within the barrier's reach ({self.barrier_reach:.3g}) of one: "
-                f"distance to the wedges {max(wedge_dist, 0):.3g}; move the target away from the obstacle "
-                f"(|p_T - p_0| = {dist:.3g}, apex c = {c:.3g}) or shrink scene.obstacle.radius/scene.barrier",
-            )
-        if dist - 2 * r <= self.barrier_reach:
-            raise ConfigError(
-                "scene.target",
-                f"lies within the smooth baseline's barrier reach of the disc of radius 2r = {2 * r:.3g}",
-            )
+        self.distance_to_target = dist
+        self.e_a = delta / dist
+        self.e_b = np.array([-self.e_a[1], self.e_a[0]])
+
+    @property
+    def target(self) -> tuple[float, float]:
+        return tuple(self.p_T.tolist())
+
+    @property
+    def obstacle_center(self) -> tuple[float, float]:
+        return tuple(self.p_0.tolist())
 
     @property
     def barrier_reach(self) -> float:
         """Euclidean distance from a set's boundary beyond which the barrier vanishes."""
         if self.barrier_kind == "authors_code":
-            return float(self.barrier_rho)
-        return math.sqrt(float(self.barrier_rho)) * self.ell
+            return self.barrier_rho
+        return math.sqrt(self.barrier_rho) * self.ell
 
-    @classmethod
-    def from_config(cls, cfg) -> Scene:
-        """Build from the `scene` config group (conf/scene/*.yaml) or a manifest's copy of it; unknown keys of
-        `obstacle` and `barrier` are errors naming them."""
-        get = (lambda k, d=None: cfg.get(k, d)) if hasattr(cfg, "get") else (lambda k, d=None: getattr(cfg, k, d))
-        obstacle = dict(get("obstacle") or {})
-        barrier = dict(get("barrier") or {})
-        for part, node, known in (("obstacle", obstacle, OBSTACLE_KEYS), ("barrier", barrier, BARRIER_KEYS)):
-            unknown = sorted(set(node) - set(known))
-            if unknown:
-                raise ConfigError(f"scene.{part}.{unknown[0]}", f"unknown key (known: {', '.join(known)})")
-        return cls(
-            target=tuple(get("target")),
-            obstacle_center=tuple(obstacle.get("center", (0.0, 0.0))),
-            obstacle_radius=obstacle.get("radius", 4.0),
-            barrier_rho=barrier.get("rho", 0.5),
-            barrier_scale=barrier.get("scale", None),
-            apex=get("apex"),
-            barrier_kind=barrier.get("kind", "squared"),
-            barrier_gain=barrier.get("gain", 1.0),
-            name=get("name", "custom"),
-        )
+    @property
+    def influence_radius(self) -> float:
+        """`R = c + sqrt(2) rho` (SPEC §3.6): outside `disc(p_0, R)` both barriers vanish."""
+        return self.c + math.sqrt(2.0) * self.barrier_reach
 
     @property
     def _target_frame(self) -> tuple[float, float]:
@@ -153,3 +119,175 @@ class Scene:
     def from_frame(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """World points `(N, 2)` from obstacle-frame coordinates."""
         return self.p_0 + np.multiply.outer(a, self.e_a) + np.multiply.outer(b, self.e_b)
+
+
+@dataclass(eq=False)
+class Scene:
+    """Target, obstacles and barrier of the paper (Section III; SPEC §3.1, §3.6), and the arena.
+
+    Checked on construction (range and cross-field rules; the keys and types are checked with the config): every
+    radius > 0, every apex `c > sqrt(2) r` (the diamond contains the disc), `rho` in (0, 1] for the squared
+    barrier, the target outside every obstacle's wedges by more than the barrier's reach (`|p_T - c_i| > R_i`,
+    SPEC §3.1 and V1 of §3.6) and beyond the smooth baseline's reach of its margin disc, target and obstacles
+    inside the arena. The conditions that involve the controller and the camera (V2, V3) are checked where those
+    are known (`pipeline.control.hybrid`).
+    """
+
+    target: list[float] = field(default_factory=lambda: [40.0, 0.0])
+    obstacles: list[Obstacle] = field(default_factory=lambda: [Obstacle(center=[0.0, 0.0], radius=4.0)])
+    barrier: Barrier = field(default_factory=Barrier)
+    arena: Arena = field(default_factory=Arena)
+    name: str = "custom"
+
+    def __post_init__(self):
+        self._coverings: dict[int, Covering] = {}
+        self.obstacles = [_as(Obstacle, o) for o in self.obstacles]
+        self.barrier = _as(Barrier, self.barrier)
+        self.arena = _as(Arena, self.arena)
+        if len(self.target) != 2 or len(self.arena.x) != 2 or len(self.arena.y) != 2:
+            raise ConfigError("scene.target", "target and arena ranges are pairs [x, y] / [min, max]")
+        if not self.obstacles:
+            raise ConfigError("scene.obstacles", "needs at least one obstacle")
+        (x0, x1), (y0, y1) = self.arena.bounds
+        if not (x0 < x1 and y0 < y1):
+            raise ConfigError("scene.arena", f"needs min < max, got x {self.arena.x}, y {self.arena.y}")
+        b = self.barrier
+        if b.kind == "squared" and not 0 < b.rho <= 1:
+            raise ConfigError("scene.barrier.rho", f"must be in (0, 1] (SPEC §3), got {b.rho!r}")
+        if not b.rho > 0:
+            raise ConfigError("scene.barrier.rho", f"must be > 0, got {b.rho!r}")
+        if not b.gain > 0:
+            raise ConfigError("scene.barrier.gain", f"must be > 0, got {b.gain!r}")
+        if b.scale is not None and not b.scale > 0:
+            raise ConfigError("scene.barrier.scale", f"must be > 0 (or null for each obstacle's radius), got {b.scale!r}")
+        for i, o in enumerate(self.obstacles):
+            self._check_obstacle(i, o)
+
+    def _check_obstacle(self, i: int, o: Obstacle) -> None:
+        f = f"scene.obstacles[{i}]"
+        (x0, x1), (y0, y1) = self.arena.bounds
+        if len(o.center) != 2:
+            raise ConfigError(f"{f}.center", f"must be a pair [x, y], got {o.center!r}")
+        if not o.radius > 0:
+            raise ConfigError(f"{f}.radius", f"must be > 0, got {o.radius!r}")
+        if o.barrier_scale is not None and not o.barrier_scale > 0:
+            raise ConfigError(f"{f}.barrier_scale", f"must be > 0 (or null), got {o.barrier_scale!r}")
+        if np.hypot(self.target[0] - o.center[0], self.target[1] - o.center[1]) == 0:
+            raise ConfigError("scene.target", f"must differ from the centre of obstacle {i}")
+        cov = self.covering(i)
+        r = o.radius
+        if not cov.c > math.sqrt(2.0) * r:
+            raise ConfigError(f"{f}.apex", f"the diamond |a| + |b| <= c must contain the obstacle: need c > sqrt(2) r "
+                                           f"= {math.sqrt(2) * r:.3g}, got {cov.c!r}")
+        for name, (x, y) in (("scene.target", self.target), (f"{f}.center", o.center)):
+            if not (x0 <= x <= x1 and y0 <= y <= y1):
+                raise ConfigError(name, f"({x:g}, {y:g}) lies outside the arena x in [{x0:g}, {x1:g}], "
+                                        f"y in [{y0:g}, {y1:g}]")
+        dist = cov.distance_to_target
+        # the target outside both wedges by more than the barrier's reach (SPEC §3.1; V1 of §3.6): otherwise
+        # V_q(p_T) > 0 and the minimum of V_q moves away from the target
+        wedge_dist = dist / math.sqrt(2.0) - cov.c / math.sqrt(2.0)  # distance from (a_T, 0) to W_q, a_T > c
+        if dist <= cov.c or wedge_dist <= cov.barrier_reach:
+            raise ConfigError(
+                "scene.target",
+                f"lies inside a covering wedge of obstacle {i} or within the barrier's reach ({cov.barrier_reach:.3g}) "
+                f"of one: distance to the wedges {max(wedge_dist, 0):.3g}; move the target away from the obstacle "
+                f"(|p_T - c_{i}| = {dist:.3g}, apex c = {cov.c:.3g}) or shrink its radius / apex / barrier",
+            )
+        if dist - 2 * r <= cov.barrier_reach:
+            raise ConfigError("scene.target", f"lies within the smooth baseline's barrier reach of obstacle {i}'s "
+                                              f"disc of radius 2r = {2 * r:.3g}")
+
+    # ---------------------------------------------------------------------------- the obstacles
+    @property
+    def n_obstacles(self) -> int:
+        return len(self.obstacles)
+
+    def covering(self, i: int) -> Covering:
+        """The covering of obstacle `i` (its frame, apex and barrier scale)."""
+        if i not in self._coverings:
+            o = self.obstacles[i]
+            c = 2.0 * math.sqrt(2.0) * o.radius if o.apex is None else float(o.apex)
+            ell = o.barrier_scale if o.barrier_scale is not None else (
+                self.barrier.scale if self.barrier.scale is not None else o.radius)
+            self._coverings[i] = Covering(self.target, o.center, o.radius, c, float(ell), self.barrier)
+        return self._coverings[i]
+
+    @functools.cached_property
+    def coverings(self) -> list[Covering]:
+        return [self.covering(i) for i in range(self.n_obstacles)]
+
+    @functools.cached_property
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Per-obstacle arrays for the batched controllers: `center (M, 2)`, `radius`, `c` (apex), `ell`, `reach`,
+        `R` (influence radius), `e_a`, `e_b` `(M, 2)`, `target_a`, `target_b` (the target in each frame)."""
+        covs = self.coverings
+        tf = np.array([cv._target_frame for cv in covs])
+        return {"center": np.array([cv.p_0 for cv in covs]), "radius": np.array([cv.obstacle_radius for cv in covs]),
+                "c": np.array([cv.c for cv in covs]), "ell": np.array([cv.ell for cv in covs]),
+                "reach": np.array([cv.barrier_reach for cv in covs]),
+                "R": np.array([cv.influence_radius for cv in covs]),
+                "e_a": np.array([cv.e_a for cv in covs]), "e_b": np.array([cv.e_b for cv in covs]),
+                "target_a": tf[:, 0], "target_b": tf[:, 1]}
+
+    @functools.cached_property
+    def p_T(self) -> np.ndarray:
+        return np.asarray(self.target, dtype=float)
+
+    @property
+    def bounds(self) -> tuple[tuple[float, float], tuple[float, float]]:
+        return self.arena.bounds
+
+    def inflated(self, d: float) -> Scene:
+        """Every disc grown by `d` (the unicycle's look-ahead point steers around `r + d`, SPEC §3.7); an apex or
+        barrier scale left at its default follows the new radius."""
+        grown = [Obstacle(center=list(o.center), radius=o.radius + d, apex=o.apex, barrier_scale=o.barrier_scale)
+                 for o in self.obstacles]
+        return Scene(target=list(self.target), obstacles=grown, barrier=self.barrier, arena=self.arena,
+                     name=f"{self.name}+{d:g}")
+
+    def nearest_obstacle(self, points: np.ndarray) -> np.ndarray:
+        """Index of the obstacle whose centre is nearest to each point `(N,)` (the disturbances' frame)."""
+        if self.n_obstacles == 1:
+            return np.zeros(len(points), dtype=np.int64)
+        c = self.arrays["center"]
+        d2 = ((np.asarray(points, float)[:, None, :] - c[None]) ** 2).sum(-1)
+        return d2.argmin(axis=1)
+
+    def config(self) -> dict:
+        """The scene as its config node says it (plain containers; for manifests)."""
+        return {f.name: _plain(getattr(self, f.name)) for f in fields(self)}
+
+    # ------------------------------------------------- the single-obstacle names (M = 1)
+    def _single(self) -> Covering:
+        if self.n_obstacles != 1:
+            raise ValueError(f"scene {self.name!r} has {self.n_obstacles} obstacles: use scene.covering(i)")
+        return self.covering(0)
+
+    p_0 = property(lambda self: self._single().p_0)
+    e_a = property(lambda self: self._single().e_a)
+    e_b = property(lambda self: self._single().e_b)
+    c = property(lambda self: self._single().c)
+    ell = property(lambda self: self._single().ell)
+    obstacle_radius = property(lambda self: self._single().obstacle_radius)
+    obstacle_center = property(lambda self: self._single().obstacle_center)
+    barrier_reach = property(lambda self: self._single().barrier_reach)
+    _target_frame = property(lambda self: self._single()._target_frame)
+    phi_weight = property(lambda self: 0.5 if self.barrier.kind == "authors_code" else 1.0)
+    barrier_rho = property(lambda self: float(self.barrier.rho))
+    barrier_kind = property(lambda self: self.barrier.kind)
+    barrier_gain = property(lambda self: float(self.barrier.gain))
+
+    def to_frame(self, points):
+        return self._single().to_frame(points)
+
+    def from_frame(self, a, b):
+        return self._single().from_frame(a, b)
+
+
+def _plain(v):
+    if isinstance(v, list):
+        return [_plain(x) for x in v]
+    if hasattr(v, "__dataclass_fields__"):
+        return {f.name: _plain(getattr(v, f.name)) for f in fields(v)}
+    return v

@@ -63,7 +63,7 @@ def opencv_loop(cam: Camera, lead, fol, clouds: bool, rng) -> np.ndarray:
 
 
 def bench(quick: bool = False) -> list[dict]:
-    cam = Camera(Scene(target=(40.0, 0.0)))
+    cam = Camera(Scene(target=[40.0, 0.0]))
     heavy = load_occlusion("heavy")
     cam.render(np.zeros((1, 2)), occlusion=heavy)  # the cloud bank is built once per level and image size
     n, n_loop, repeat = (2000, 200, 2) if quick else (20000, 2000, 3)

@@ -12,13 +12,17 @@ The recipe's keys are validated in :mod:`pipeline.data.sampling`, which draws th
 
 from __future__ import annotations
 
+import dataclasses
 import json
-from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.config import build
 from pipeline.errors import ConfigError
+from pipeline.perception.measure import CameraMeasure
+from pipeline.sim import simulate
+from pipeline.sim.starts import Random
 
 _F = "data.sampling.closed_loop"
 
@@ -35,14 +39,14 @@ class Pool:
     def __len__(self) -> int:
         return len(self.positions)
 
-    def probabilities(self, cl: Mapping) -> np.ndarray | None:
+    def probabilities(self, cl) -> np.ndarray | None:
         """Draw probabilities: None (uniform over the entries) unless `error_weighted`."""
-        if self.errors is None or not cl["error_weighted"]:
+        if self.errors is None or not cl.error_weighted:
             return None
-        w = np.maximum(self.errors - cl["min_error"], 0.0) + cl["error_floor"]
+        w = np.maximum(self.errors - cl.min_error, 0.0) + cl.error_floor
         return w / w.sum()
 
-    def summary(self, cl: Mapping) -> dict:
+    def summary(self, cl) -> dict:
         """What the manifest records about a map's visits: count and error statistics (world units)."""
         out = {"positions": len(self)}
         if self.frames is not None:
@@ -51,26 +55,21 @@ class Pool:
         if self.errors is not None and len(self):
             e = self.errors
             out["map_error"] = {"mean": float(e.mean()), "p95": float(np.percentile(e, 95)), "max": float(e.max()),
-                                "share_above_min_error": float((e > cl["min_error"]).mean())}
+                                "share_above_min_error": float((e > cl.min_error).mean())}
         return out
 
 
 def _simulate(recipe, camera, measure=None):
     """The recipe's closed loop from `starts` random starts (controller, disturbance, timing, seed)."""
-    from pipeline.sim import simulate
-    from pipeline.sim.build import build_controller, build_disturbance, initial_conditions
-
     cl = recipe.closed_loop
     scene = camera.scene
-    ctrl = build_controller(cl["controller"], scene, path=f"{_F}.controller")
-    dist = build_disturbance(cl["disturbance"], f"{_F}.disturbance")
-    (x0, x1), (y0, y1) = camera.arena
-    starts = initial_conditions({"mode": "random", "n": cl["starts"], "seed": cl["seed"], "margin": 2.0}, scene,
-                                {"arena": {"x": [x0, x1], "y": [y0, y1]}})
-    every = max(1, round((cl["camera_period"] or cl["dt"]) / cl["dt"]))
-    return simulate(scene, ctrl, starts, dt=cl["dt"], horizon=cl["horizon"], camera_period=cl["camera_period"],
-                    disturbance=dist, seed=cl["seed"], record_every=every, record=measure is None,
-                    stop_on_success=cl["stop_at_target"], measure=measure)
+    ctrl = build(cl.controller, f"{_F}.controller", scene=scene)
+    dist = build(cl.disturbance, f"{_F}.disturbance")
+    starts = Random(n=cl.starts, seed=cl.seed, margin=2.0)(scene, _F)
+    every = max(1, round((cl.camera_period or cl.dt) / cl.dt))
+    return simulate(scene, ctrl, starts, dt=cl.dt, horizon=cl.horizon, camera_period=cl.camera_period,
+                    disturbance=dist, seed=cl.seed, record_every=every, record=measure is None,
+                    stop_on_success=cl.stop_at_target, measure=measure)
 
 
 def visitation_pool(recipe, camera) -> np.ndarray:
@@ -79,7 +78,7 @@ def visitation_pool(recipe, camera) -> np.ndarray:
     controller and disturbance, on the true state. Deterministic in `closed_loop.seed`."""
     res = _simulate(recipe, camera)
     p = res.p.reshape(-1, 2)
-    if recipe.closed_loop["stop_at_target"]:  # drop the frozen rows after an agent stopped
+    if recipe.closed_loop.stop_at_target:  # drop the frozen rows after an agent stopped
         moving = np.ones(res.p.shape[:2], dtype=bool)
         moving[1:] = np.any(res.p[1:] != res.p[:-1], axis=-1)
         p = res.p[moving]
@@ -104,8 +103,6 @@ def map_visitation_pool(recipe, camera, perception_map, occlusion) -> Pool:
     frame rendered with `occlusion`'s clouds, one batched inference per frame; the disturbance on top): every
     position where a frame was taken inside the camera's view (a vehicle the map drove out of the arena is on
     no image), with the map's error there. Deterministic in `closed_loop.seed` (and the map's weights)."""
-    from pipeline.experiments.measure import CameraMeasure
-
     log = _FrameLog(CameraMeasure(camera, perception_map, occlusion))
     _simulate(recipe, camera, measure=log)
     p, err = np.concatenate(log.p), np.concatenate(log.err)
@@ -121,7 +118,7 @@ _POOLS: dict = {}
 def pool(recipe, camera, occlusion=None, perception_map=None) -> Pool:
     """A split's pool, simulated once per (recipe, camera, clouds, map) in a process (the splits share it):
     the map's visits when `perception_map` is given, else the true-state visitation."""
-    key = (json.dumps(recipe.closed_loop, sort_keys=True, default=str), repr(camera.arena), repr(camera.scene),
+    key = (json.dumps(dataclasses.asdict(recipe.closed_loop), sort_keys=True, default=str), repr(camera.arena), repr(camera.scene),
            json.dumps(occlusion.config() if occlusion is not None and perception_map is not None else None,
                       sort_keys=True, default=str), perception_map is not None)
     if key not in _POOLS:

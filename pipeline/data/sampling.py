@@ -13,169 +13,18 @@ from __future__ import annotations
 
 import hashlib
 import math
-from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.data.closed_loop import Pool, visitation_pool  # noqa: F401 - visitation_pool: part of this API
+from pipeline.data.closed_loop import Pool
 from pipeline.data.closed_loop import pool as cached_pool
+from pipeline.data.recipe import SPLITS, Recipe
 from pipeline.errors import ConfigError
 from pipeline.render import Camera, CloudSample, Occlusion
 
-SPLITS = ("train", "val", "test")
 STREAMS = (*SPLITS, "gate")  # a split's draws, or fresh draws from the recipe's distribution for no split
-# recipe keys left out of the id: the chunk size does not change the bytes; `closed_loop.device` is where a map
-# runs in the loop (as the train stage leaves the accelerator out of a model's id; see docs/dagger.md)
-VOLATILE = ("chunk_size", "device")
-RECIPE_KEYS = ("name", "occlusion", "splits", "seed", "sampling", "follower", "preview", "chunk_size")
-SAMPLING_MODES = ("uniform", "grid", "closed_loop")
-SAMPLING_KEYS = ("mode", "margin", "exclude_obstacle", "closed_loop", "parent")
-CLOSED_LOOP_KEYS = ("share", "starts", "controller", "disturbance", "horizon", "dt", "camera_period", "jitter",
-                    "stop_at_target", "seed", "map", "error_weighted", "min_error", "error_floor", "device")
 _MAX_ROUNDS = 64  # rejection-sampling rounds (each vectorised over the rejected rows)
-
-
-def _int(value, field: str, lo: int, hi: int | None = None) -> int:
-    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < lo or (hi is not None and value > hi):
-        rng = f">= {lo}" if hi is None else f"in [{lo}, {hi}]"
-        raise ConfigError(field, f"must be an integer {rng}, got {value!r}")
-    return int(value)
-
-
-def _num(value, field: str, lo: float, hi: float = math.inf, *, allow_none: bool = False, open_lo: bool = False):
-    if value is None and allow_none:
-        return None
-    ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
-    ok = ok and (value > lo if open_lo else value >= lo) and value <= hi
-    if not ok:
-        lo_s = f"> {lo:g}" if open_lo else f">= {lo:g}"
-        rng = lo_s if hi == math.inf else f"{lo_s} and <= {hi:g}"
-        raise ConfigError(field, f"must be a number {rng}{' (or null)' if allow_none else ''}, got {value!r}")
-    return float(value)
-
-
-@dataclass(frozen=True)
-class Recipe:
-    """A validated dataset recipe (the `data` config group)."""
-
-    name: str
-    occlusion: str
-    splits: dict
-    seed: int
-    mode: str
-    margin: float | None
-    exclude_obstacle: bool
-    follower_probability: float
-    follower_min_distance: float
-    follower_max_distance: float | None
-    preview: int
-    chunk_size: int
-    follower_near_share: float = 0.0
-    follower_near_distance: float = 5.0
-    closed_loop: dict | None = None
-    parent: str | None = None  # a dataset whose train split this one's train split extends (resolved by the stage)
-
-    @classmethod
-    def from_config(cls, cfg: Mapping) -> Recipe:
-        cfg = dict(cfg)
-        unknown = set(cfg) - set(RECIPE_KEYS)
-        if unknown:
-            raise ConfigError("data", f"unknown key(s) {sorted(unknown)}; known: {list(RECIPE_KEYS)}")
-        name = cfg.get("name")
-        if not isinstance(name, str) or not name or "/" in name or name.startswith(".") or name != name.strip():
-            raise ConfigError("data.name", f"must be a non-empty folder-safe name, got {name!r}")
-        occ = cfg.get("occlusion", "none")
-        if not isinstance(occ, str):
-            raise ConfigError("data.occlusion", f"must name a level of conf/occlusion/, got {occ!r}")
-        splits = cfg.get("splits")
-        if not isinstance(splits, Mapping) or set(splits) != set(SPLITS):
-            raise ConfigError("data.splits", f"needs exactly the sizes of {list(SPLITS)}, got {splits!r}")
-        sizes = {s: _int(splits[s], f"data.splits.{s}", 1) for s in SPLITS}
-        sampling = cfg.get("sampling") or {}
-        extra = set(sampling) - set(SAMPLING_KEYS)
-        if extra:
-            raise ConfigError(f"data.sampling.{sorted(extra)[0]}", f"unknown key (known: {', '.join(SAMPLING_KEYS)})")
-        mode = sampling.get("mode", "uniform")
-        if mode not in SAMPLING_MODES:
-            raise ConfigError("data.sampling.mode", f"must be one of {SAMPLING_MODES}, got {mode!r}")
-        closed_loop = _closed_loop(sampling.get("closed_loop")) if mode == "closed_loop" else None
-        excl = sampling.get("exclude_obstacle", False)
-        if not isinstance(excl, bool):
-            raise ConfigError("data.sampling.exclude_obstacle", f"must be true or false, got {excl!r}")
-        fol = cfg.get("follower") or {}
-        known = ("probability", "min_distance", "max_distance", "near_share", "near_distance")
-        extra = set(fol) - set(known)
-        if extra:
-            raise ConfigError("data.follower", f"unknown key(s) {sorted(extra)}; known: {', '.join(known)}")
-        min_d = _num(fol.get("min_distance", 5.0), "data.follower.min_distance", 0.0)
-        max_d = _num(fol.get("max_distance"), "data.follower.max_distance", min_d, allow_none=True, open_lo=True)
-        return cls(
-            name=name,
-            occlusion=occ,
-            splits=sizes,
-            seed=_int(cfg.get("seed", 0), "data.seed", 0, 2**63 - 1),
-            mode=mode,
-            margin=_num(sampling.get("margin"), "data.sampling.margin", 0.0, allow_none=True),
-            exclude_obstacle=excl,
-            follower_probability=_num(fol.get("probability", 0.5), "data.follower.probability", 0.0, 1.0),
-            follower_min_distance=min_d,
-            follower_max_distance=max_d,
-            follower_near_share=_num(fol.get("near_share", 0.0), "data.follower.near_share", 0.0, 1.0),
-            follower_near_distance=_num(fol.get("near_distance", 5.0), "data.follower.near_distance", 0.0,
-                                        open_lo=True),
-            preview=_int(cfg.get("preview", 32), "data.preview", 1, 256),
-            chunk_size=_int(cfg.get("chunk_size", 4096), "data.chunk_size", 1),
-            closed_loop=closed_loop,
-            parent=_ref(sampling.get("parent"), "data.sampling.parent"),
-        )
-
-
-def _ref(value, field: str) -> str | None:
-    """A reference to a tracked output (name, id, name-id or folder), or null."""
-    if value is None:
-        return None
-    if not isinstance(value, str) or not value.strip() or value != value.strip():
-        raise ConfigError(field, f"must name a tracked output (name, id, name-id or folder) or be null, got {value!r}")
-    return value
-
-
-def _closed_loop(cl) -> dict:
-    """Validated `data.sampling.closed_loop`: where the simulated closed loop spends its time, and (`map`) whose
-    perception map is in the loop that collects the train split's positions."""
-    if not isinstance(cl, Mapping):
-        raise ConfigError("data.sampling.closed_loop", "mode closed_loop needs this node (see conf/data/closed_loop.yaml)")
-    cl = dict(cl)
-    extra = set(cl) - set(CLOSED_LOOP_KEYS)
-    if extra:
-        raise ConfigError(f"data.sampling.closed_loop.{sorted(extra)[0]}", f"unknown key (known: {', '.join(CLOSED_LOOP_KEYS)})")
-    f = "data.sampling.closed_loop"
-    out = {"share": _num(cl.get("share", 0.5), f"{f}.share", 0.0, 1.0),
-           "starts": _int(cl.get("starts", 200), f"{f}.starts", 1),
-           "horizon": _num(cl.get("horizon", 30.0), f"{f}.horizon", 0.0, open_lo=True),
-           "dt": _num(cl.get("dt", 0.01), f"{f}.dt", 0.0, open_lo=True),
-           "camera_period": _num(cl.get("camera_period", 0.05), f"{f}.camera_period", 0.0, allow_none=True, open_lo=True),
-           "jitter": _num(cl.get("jitter", 1.0), f"{f}.jitter", 0.0),
-           "seed": _int(cl.get("seed", 0), f"{f}.seed", 0),
-           "controller": cl.get("controller"), "disturbance": cl.get("disturbance"),
-           "map": _ref(cl.get("map"), f"{f}.map"),
-           "min_error": _num(cl.get("min_error", 0.0), f"{f}.min_error", 0.0),
-           "error_floor": _num(cl.get("error_floor", 0.05), f"{f}.error_floor", 0.0, open_lo=True)}
-    for key in ("stop_at_target", "error_weighted"):
-        value = cl.get(key, False)
-        if not isinstance(value, bool):
-            raise ConfigError(f"{f}.{key}", f"must be true or false, got {value!r}")
-        out[key] = value
-    if out["error_weighted"] and out["map"] is None:
-        raise ConfigError(f"{f}.error_weighted", f"weighs positions by a map's error: needs {f}.map (a perception map)")
-    device = cl.get("device", "cpu")
-    if not isinstance(device, str) or not (device in ("auto", "cpu", "cuda") or device.startswith("cuda:")):
-        raise ConfigError(f"{f}.device", f"must be auto, cpu, cuda or cuda:N, got {device!r}")
-    out["device"] = device
-    for key in ("controller", "disturbance"):
-        if not isinstance(out[key], Mapping) or "_target_" not in out[key]:
-            raise ConfigError(f"{f}.{key}", "needs a composed node with `_target_` (conf/controller/, conf/disturbance/)")
-    return out
 
 
 def _closed_loop_positions(rng: np.random.Generator, n: int, camera: Camera, recipe: Recipe, pool: Pool):
@@ -183,7 +32,7 @@ def _closed_loop_positions(rng: np.random.Generator, n: int, camera: Camera, rec
     entries are drawn uniformly, or by the map's error there (`Pool.probabilities`, `error_weighted`)."""
     lo, hi = _box(camera, recipe)
     cl = recipe.closed_loop
-    m = int(round(cl["share"] * n))
+    m = int(round(cl.share * n))
     out = np.empty((n, 2))
     out[m:] = _uniform(rng, n - m, camera, recipe)
     prob = pool.probabilities(cl)
@@ -192,7 +41,7 @@ def _closed_loop_positions(rng: np.random.Generator, n: int, camera: Camera, rec
         if bad.size == 0:
             break
         idx = rng.integers(0, len(pool), bad.size) if prob is None else rng.choice(len(pool), bad.size, p=prob)
-        out[bad] = pool.positions[idx] + rng.normal(0.0, cl["jitter"], (bad.size, 2))
+        out[bad] = pool.positions[idx] + rng.normal(0.0, cl.jitter, (bad.size, 2))
         inside = np.all((out[bad] >= lo) & (out[bad] <= hi), axis=1) & _allowed(out[bad], camera, recipe)
         bad = bad[~inside]
     out[bad] = np.clip(out[bad], lo, hi)
@@ -214,7 +63,7 @@ class SplitPlan:
 def _box(camera: Camera, recipe: Recipe) -> tuple[np.ndarray, np.ndarray]:
     """Sampling rectangle: the arena shrunk by the margin (default: half the robot's side)."""
     (x0, x1), (y0, y1) = camera.arena
-    m = recipe.margin if recipe.margin is not None else camera.robot_size / 2 / camera.scale
+    m = recipe.sampling.margin if recipe.sampling.margin is not None else camera.robot_size / 2 / camera.scale
     lo, hi = np.array([x0 + m, y0 + m]), np.array([x1 - m, y1 - m])
     if np.any(hi <= lo):
         raise ConfigError("data.sampling.margin", f"{m:g} leaves no room in the arena {camera.arena}")
@@ -222,11 +71,12 @@ def _box(camera: Camera, recipe: Recipe) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _allowed(points: np.ndarray, camera: Camera, recipe: Recipe) -> np.ndarray:
-    if not recipe.exclude_obstacle or camera.scene is None:
+    if not recipe.sampling.exclude_obstacle or camera.scene is None:
         return np.ones(len(points), dtype=bool)
-    m = recipe.margin if recipe.margin is not None else camera.robot_size / 2 / camera.scale
-    d = np.hypot(*(points - np.asarray(camera.scene.obstacle_center)).T)
-    return d > camera.scene.obstacle_radius + m
+    m = recipe.sampling.margin if recipe.sampling.margin is not None else camera.robot_size / 2 / camera.scale
+    arr = camera.scene.arrays
+    d = np.hypot(points[:, None, 0] - arr["center"][None, :, 0], points[:, None, 1] - arr["center"][None, :, 1])
+    return (d > arr["radius"][None] + m).all(axis=1)
 
 
 def _uniform(rng: np.random.Generator, n: int, camera: Camera, recipe: Recipe) -> np.ndarray:
@@ -271,16 +121,16 @@ def _followers(rng: np.random.Generator, leader: np.ndarray, camera: Camera, rec
     out = np.empty_like(leader)
 
     def draw(rows: np.ndarray) -> np.ndarray:
-        if recipe.follower_max_distance is None:
+        if recipe.follower.max_distance is None:
             return rng.uniform(lo, hi, size=(rows.size, 2))
-        r = np.sqrt(rng.uniform(recipe.follower_min_distance**2, recipe.follower_max_distance**2, rows.size))
+        r = np.sqrt(rng.uniform(recipe.follower.min_distance**2, recipe.follower.max_distance**2, rows.size))
         ang = rng.uniform(0, 2 * math.pi, rows.size)
         return leader[rows] + np.stack([r * np.cos(ang), r * np.sin(ang)], axis=1)
 
     def ok(rows: np.ndarray) -> np.ndarray:
         p = out[rows]
         inside = np.all((p >= lo) & (p <= hi), axis=1)
-        far = np.hypot(*(p - leader[rows]).T) >= recipe.follower_min_distance
+        far = np.hypot(*(p - leader[rows]).T) >= recipe.follower.min_distance
         return inside & far & _allowed(p, camera, recipe)
 
     bad = np.arange(n)
@@ -295,11 +145,11 @@ def _followers(rng: np.random.Generator, leader: np.ndarray, camera: Camera, rec
 
 def _near_followers(rng: np.random.Generator, out: np.ndarray, leader: np.ndarray, camera: Camera,
                     recipe: Recipe) -> np.ndarray:
-    if recipe.follower_near_share <= 0:
+    if recipe.follower.near_share <= 0:
         return out
     lo, hi = _box(camera, recipe)
-    rows = np.flatnonzero(rng.random(len(leader)) < recipe.follower_near_share)
-    r = recipe.follower_near_distance * rng.uniform(0.0, 1.0, rows.size)  # uniform in distance: overlaps are common
+    rows = np.flatnonzero(rng.random(len(leader)) < recipe.follower.near_share)
+    r = recipe.follower.near_distance * rng.uniform(0.0, 1.0, rows.size)  # uniform in distance: overlaps are common
     ang = rng.uniform(0, 2 * math.pi, rows.size)
     near = np.clip(leader[rows] + np.stack([r * np.cos(ang), r * np.sin(ang)], axis=1), lo, hi)
     keep = _allowed(near, camera, recipe)  # off the obstacle when the recipe excludes it: the far draw stays
@@ -313,9 +163,9 @@ def split_pool(recipe: Recipe, split: str, camera: Camera, occlusion: Occlusion,
     other split from the true-state visitation, so val and test do not depend on the map."""
     if recipe.mode != "closed_loop":
         return None
-    if split == "train" and recipe.closed_loop["map"] is not None:
+    if split == "train" and recipe.closed_loop.map is not None:
         if perception_map is None:
-            raise ValueError(f"recipe {recipe.name}: closed_loop.map {recipe.closed_loop['map']} is not loaded "
+            raise ValueError(f"recipe {recipe.name}: closed_loop.map {recipe.closed_loop.map} is not loaded "
                              "(pass perception_map)")
         return cached_pool(recipe, camera, occlusion, perception_map)
     return cached_pool(recipe, camera)
@@ -349,7 +199,7 @@ def plan_split(recipe: Recipe, split: str, camera: Camera, occlusion: Occlusion,
         leader = _closed_loop_positions(rng, n, camera, recipe, pool)
     else:
         leader = (_uniform if recipe.mode == "uniform" else _grid)(rng, n, camera, recipe)
-    present = rng.random(n) < recipe.follower_probability
+    present = rng.random(n) < recipe.follower.probability
     follower = _followers(rng, leader, camera, recipe)
     follower[~present] = np.nan
     clouds = occlusion.sample(n, rng, camera.shape)

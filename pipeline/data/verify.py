@@ -62,9 +62,7 @@ def run(cfg: DictConfig) -> dict:
     return {"datasets": list(report), "problems": bad}
 
 
-@stage_main("verify_data")
-def main(cfg: DictConfig) -> None:
-    run(cfg)
+main = stage_main("verify_data", run="pipeline.data.verify:run")
 
 
 if __name__ == "__main__":

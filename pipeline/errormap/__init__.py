@@ -1,9 +1,5 @@
-"""ε-error maps of the learned perception maps (issue 5, SPEC §2, the paper's Assumption 1 / Lemma 1).
+"""ε-error maps of the learned perception maps (SPEC §2, the paper's Assumption 1 / Lemma 1).
 
-`python -m pipeline.errormap model=<name>` writes `outputs/errormaps/<name>-<id>/` (docs/errormap.md);
-`load_error_map(ref)` reads one back for the experiments stage; the math is in `pipeline.errormap.core`.
+`python -m pipeline.errormap maps=<name>` writes `outputs/errormaps/<name>-<id>/` (docs/errormap.md);
+:func:`pipeline.errormap.read.load_error_map` reads one back for the experiments stage.
 """
-
-from pipeline.errormap.stage import load_error_map, run, run_one, summary_table, validate
-
-__all__ = ["load_error_map", "run", "run_one", "summary_table", "validate"]

@@ -26,7 +26,7 @@ def _predictor():
     found = tracking.entries(models_dir)
     if found:
         try:
-            from pipeline.train import load_perception_map
+            from pipeline.perception.maps import load_perception_map
 
             pmap = load_perception_map(found[0].name, models_dir=models_dir)
             return pmap.predict, pmap.camera(), f"model {pmap.name}-{pmap.id}"
@@ -37,7 +37,7 @@ def _predictor():
     try:
         import torch
 
-        from pipeline.train.model import PerceptionMap
+        from pipeline.perception.network import PerceptionMap
     except ImportError as err:
         return None, None, f"{note}pipeline.train unavailable ({err})"
     net = PerceptionMap().eval()
@@ -46,7 +46,7 @@ def _predictor():
         with torch.inference_mode():
             return net(torch.from_numpy(np.ascontiguousarray(images))).double().numpy()
 
-    return predict, Camera(Scene(target=(40.0, 0.0))), note + "untrained PerceptionMap (same cost)"
+    return predict, Camera(Scene(target=[40.0, 0.0])), note + "untrained PerceptionMap (same cost)"
 
 
 def _best(fn, repeat: int) -> float:

@@ -1,15 +1,8 @@
 """`python -m pipeline.experiments experiment=<id>` (`-m 'experiment=glob(*)'` runs them all)."""
 
 from pipeline.cli import stage_main
-from pipeline.experiments.stage import check
 
-
-@stage_main("experiments", check=check)
-def main(cfg):
-    from pipeline.experiments.stage import run
-
-    return run(cfg)
-
+main = stage_main("experiments", run="pipeline.experiments.stage:run", check="pipeline.experiments.checks:check")
 
 if __name__ == "__main__":
     main()

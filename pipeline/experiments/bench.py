@@ -9,7 +9,7 @@ import time
 import torch
 
 from pipeline.control import HybridController, Scene
-from pipeline.experiments.measure import CameraMeasure
+from pipeline.perception.measure import CameraMeasure
 from pipeline.render import Camera
 from pipeline.sim import simulate
 from pipeline.sim.build import initial_conditions
@@ -17,8 +17,8 @@ from pipeline.sim.build import initial_conditions
 
 def _map():
     """The trained `clean` map when there is one, else a fresh one of the default architecture."""
-    from pipeline.train import PerceptionMap, load_perception_map
-    from pipeline.train.predict import PerceptionMapPredictor
+    from pipeline.perception.maps import PerceptionMapPredictor, load_perception_map
+    from pipeline.perception.network import PerceptionMap
 
     try:
         return load_perception_map("clean"), "trained map `clean`"
@@ -29,7 +29,7 @@ def _map():
 
 def bench(quick: bool = False) -> list[dict]:
     n, frames, loop_agents, loop_frames = (100, 3, 5, 2) if quick else (1000, 20, 20, 5)
-    scene = Scene(target=(40.0, 0.0))
+    scene = Scene(target=[40.0, 0.0])
     cam = Camera(scene)
     pm, which = _map()
     x0 = initial_conditions({"mode": "random", "n": n, "seed": 0, "margin": 2.0}, scene)

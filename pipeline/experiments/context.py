@@ -14,23 +14,17 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from pipeline import tracking
+from pipeline import lineage, tracking
+from pipeline.config import build, settings
 from pipeline.control import Scene
+from pipeline.errormap.read import load_error_map
 from pipeline.errors import ConfigError
-from pipeline.experiments.measure import CameraMeasure, FollowerTarget, LeaderTrack, OracleMap
-from pipeline.schema import CameraTiming, SimSettings, load
-from pipeline.sim import simulate
-from pipeline.sim.build import (
-    arena_bounds,
-    build_controller,
-    build_disturbance,
-    build_scene,
-    sim_model_kwargs,
-)
-from pipeline.sim.metrics import wilson  # noqa: F401 - re-exported for the scenarios
-from pipeline.sim.simulator import check_timing, true_state
-
-PERCEPTIONS = ("cnn", "oracle")
+from pipeline.experiments.settings import ExperimentSettings
+from pipeline.perception.measure import CameraMeasure, FollowerTarget, LeaderTrack, OracleMap
+from pipeline.render import load_occlusion
+from pipeline.sim import frame_steps, simulate, true_state
+from pipeline.sim.metrics import summarise_agents, wilson  # noqa: F401 - wilson: for the scenarios
+from pipeline.sim.settings import run_keywords
 
 
 # --------------------------------------------------------------------------------------- results
@@ -69,30 +63,28 @@ def _json_default(o):
 
 
 class Context:
-    """Everything a scenario needs, built from the composed config; maps are loaded lazily, by id."""
+    """Everything a scenario needs, built from the composed config; maps are loaded lazily, by id, with
+    `load_map(folder, models_dir=, device=)` (the stage passes `pipeline.perception.maps.load_perception_map`; a
+    preflight check passes none: it loads no map and imports no torch)."""
 
-    def __init__(self, cfg):
+    def __init__(self, cfg, load_map=None):
         self.cfg = cfg
+        self._load_map = load_map
+        self.settings: ExperimentSettings = settings(cfg, ExperimentSettings)
         self.scene_cfg = tracking.to_plain(cfg.scene)
-        self.scene: Scene = build_scene(cfg.scene)
-        self.arena = arena_bounds(cfg.scene)
-        self.scale = cfg.get("scale", 1.0)
-        if isinstance(self.scale, bool) or not isinstance(self.scale, int | float) or not self.scale > 0:
-            raise ConfigError("scale", f"must be a number > 0, got {self.scale!r}")
-        self.perception = cfg.get("perception", "cnn")
-        if self.perception not in PERCEPTIONS:
-            raise ConfigError("perception", f"must be cnn or oracle (a perfect map), got {self.perception!r}")
-        timing = load(cfg.camera, "camera", CameraTiming)
-        sim = load(cfg.sim, "sim", SimSettings)
-        self.dt, self.horizon, self.delta = float(sim.dt), float(sim.horizon), float(sim.delta)
-        check_timing(self.dt, self.horizon, timing.period)
-        self.frame_period = timing.period
-        self.gate = timing.gate  # camera.gate: doubtful frames of a map with an uncertainty head are failures
-        self.seed = sim.seed
-        from pipeline.train.predict import resolve_device
-
-        resolve_device(cfg.get("device", "auto"))  # `device=cuda` without a GPU: one line, before any work
+        self.scene: Scene = build(cfg.scene, "scene")
+        self.arena = self.scene.bounds
+        self.scale = self.settings.scale
+        self.perception = self.settings.perception
+        self.camera_settings = build(cfg.camera, "camera")
+        self.sim = build(cfg.sim, "sim")
+        self.dt, self.horizon, self.delta = self.sim.dt, self.sim.horizon, self.sim.delta
+        frame_steps(self.dt, self.camera_settings.period)
+        self.frame_period = self.camera_settings.period
+        self.gate = self.camera_settings.gate  # camera.gate: doubtful frames of a map with an uncertainty head are failures
+        self.seed = self.sim.seed
         self.used: dict[str, str] = {}  # inputs used (map/dataset/error-map ids), for the index
+        self._maps: dict = {}
 
     # sizes -------------------------------------------------------------------------------------
     def n(self, count: int, minimum: int = 2) -> int:
@@ -104,10 +96,8 @@ class Context:
         nodes = self.cfg.controllers
         if name not in nodes:
             raise ConfigError("experiment.controllers", f"unknown controller {name!r}; known: {', '.join(nodes)}")
-        node = nodes[name]
-        path = "controller" if name == "hybrid" else f"controllers.{name}"
-        ctrl = build_controller(node, scene or self.scene, path=path) if not params else \
-            build_controller({**tracking.to_plain(node), **params}, scene or self.scene, path=path)
+        node = nodes[name] if not params else {**tracking.to_plain(nodes[name]), **params}
+        ctrl = build(node, "controller" if name == "hybrid" else f"controllers.{name}", scene=scene or self.scene)
         ctrl.name = name
         return ctrl
 
@@ -116,13 +106,11 @@ class Context:
         nodes = self.cfg.disturbances
         if name not in nodes:
             raise ConfigError("experiment.disturbances", f"unknown disturbance {name!r}; known: {', '.join(nodes)}")
-        return build_disturbance(nodes[name], f"disturbances.{name}", **params)
+        return build(nodes[name], f"disturbances.{name}", **params)
 
     def occlusion(self, level: str | None):
         if level is None:
             return None
-        from pipeline.render import load_occlusion
-
         occ = load_occlusion(level, self.cfg.occlusions, field="experiment.occlusion")
         return occ if occ.active else None
 
@@ -130,44 +118,55 @@ class Context:
         node = self.cfg.get("other_scene")
         if node is None:
             raise ConfigError("other_scene", "this experiment needs a second scene (defaults: /scene@other_scene)")
-        return str(node.get("name", "other")), build_scene(node, "other_scene")
+        return str(node.get("name", "other")), build(node, "other_scene")
 
     # perception ------------------------------------------------------------------------------
-    @functools.cache  # noqa: B019 - one context per run
-    def perception_map(self, kind: str = "clean"):
+    def map_folder(self, kind: str = "clean"):
+        """The folder of map `kind` (`maps.<kind>`: resolved by id, not loaded); None with a perfect map."""
         if self.perception == "oracle":
-            self.used[f"map:{kind}"] = "oracle (perfect map)"
-            return OracleMap()
-        from pipeline.train import load_perception_map
-
-        ref = tracking.to_plain(self.cfg.maps).get(kind)
+            return None
+        ref = (tracking.to_plain(self.cfg.maps) or {}).get(kind)
         if ref is None:
             raise ConfigError(f"maps.{kind}", "no perception map configured")
-        pm = load_perception_map(ref, models_dir=self.cfg.paths.models_dir, device=self.cfg.get("device", "auto"))
+        return lineage.resolve_map(ref, self.cfg.paths.models_dir, field=f"maps.{kind}")
+
+    def perception_map(self, kind: str = "clean"):
+        if kind in self._maps:
+            return self._maps[kind]
+        if self.perception == "oracle":
+            self.used[f"map:{kind}"] = "oracle (perfect map)"
+            self._maps[kind] = OracleMap()
+            return self._maps[kind]
+        if self._load_map is None:
+            raise RuntimeError("this Context loads no perception map (built for a preflight check)")
+        pm = self._load_map(self.map_folder(kind), models_dir=self.cfg.paths.models_dir, device=self.settings.device)
         self.used[f"map:{kind}"] = f"{pm.name}-{pm.id} (dataset {pm.manifest.get('dataset_name')}-{pm.manifest.get('dataset_id')})"
+        self._maps[kind] = pm
         return pm
 
     def map_ids(self, kinds) -> dict:
-        """Ids of the maps a scenario will use (part of its cache key)."""
-        return {k: self.perception_map(k).id for k in kinds}
+        """Ids of the maps a scenario will use (part of its cache key), from their folders."""
+        out = {}
+        for k in kinds:
+            folder = self.map_folder(k)
+            out[k] = "oracle" if folder is None else folder.name.rsplit("-", 1)[1]
+        return out
 
     @functools.cache  # noqa: B019
     def error_map(self, kind: str = "clean") -> dict | None:
         """Summary of the error map of map `kind` (`errormaps.<kind>`: an id, or null for the one the current
         errormap config computes for the map); None with a perfect map."""
-        if self.perception == "oracle":
+        folder = self.map_folder(kind)
+        if folder is None:
             return None
-        from pipeline.errormap.stage import load_error_map
-        from pipeline.lineage import resolve_errormap
-
-        pm = self.perception_map(kind)
+        map_id = folder.name.rsplit("-", 1)[1]
         ref = (tracking.to_plain(self.cfg.get("errormaps")) or {}).get(kind)
-        folder = resolve_errormap(ref, self.cfg.paths.errormaps_dir, pm)
-        s = load_error_map(folder)
-        if s.get("model", {}).get("id") != pm.id:
-            raise ConfigError(f"errormaps.{kind}", f"{folder.name} is the error map of map {s['model'].get('id')}, "
-                                                   f"not of {pm.name}-{pm.id}")
-        self.used[f"errormap:{kind}"] = folder.name
+        em = lineage.resolve_errormap(ref, self.cfg.paths.errormaps_dir, folder)
+        s = load_error_map(em)
+        if s.get("model", {}).get("id") != map_id:
+            raise ConfigError(f"errormaps.{kind}", f"{em.name} is the error map of map {s['model'].get('id')}, "
+                                                   f"not of {folder.name}")
+        self.used[f"errormap:{kind}"] = em.name
         return s
 
     def eps_perception(self, kind: str = "clean", level: str = "none") -> tuple[float, str]:
@@ -182,12 +181,11 @@ class Context:
     @functools.cache  # noqa: B019
     def camera(self, kind: str = "clean"):
         """The camera that rendered map `kind`'s training images (a perfect map: the composed render config)."""
-        from pipeline.render import Camera
-
-        pm = self.perception_map(kind)
-        if isinstance(pm, OracleMap):
-            return Camera.from_config(self.cfg.render, self.scene_cfg)
-        return pm.camera()
+        folder = self.map_folder(kind)
+        if folder is None:
+            return build(self.cfg.render, "render", scene=self.scene)
+        m = tracking.read_manifest(folder)
+        return build(m["render"], "render", scene=build(m["scene"], "scene"))
 
     # simulation ------------------------------------------------------------------------------
     def simulate(self, controller, x0, *, scene: Scene | None = None, disturbance=None, measure=None,
@@ -196,17 +194,13 @@ class Context:
                  stop_on_success: bool | None = None):
         """One batched run; `model` (sampled | continuous) overrides `sim.model` (the camera is sampled-only),
         `stop_on_success` overrides `sim.stop_on_success`."""
-        sim = self.cfg.sim
-        kw = sim_model_kwargs(sim)
-        kw["model"] = model or kw.get("model", "sampled")
-        return simulate(
-            scene or self.scene, controller, np.asarray(x0, float), dt=self.dt, horizon=horizon or self.horizon,
-            delta=self.delta, camera_period=self.frame_period, p_fail=p_fail, disturbance=disturbance,
-            measure=measure, target_fn=target_fn, seed=self.seed if seed is None else seed,
-            record_every=record_every or int(self.cfg.sim.record_every), record=record,
-            stop_on_success=bool(self.cfg.sim.stop_on_success if stop_on_success is None else stop_on_success),
-            progress=len(x0) >= 2000 and sys.stderr.isatty(), **kw,
-        )
+        kw = run_keywords(self.sim, self.camera_settings)
+        kw.update(p_fail=p_fail, seed=self.seed if seed is None else seed, record=record,
+                  record_every=record_every or self.sim.record_every, horizon=horizon or self.horizon,
+                  model=model or self.sim.model,
+                  stop_on_success=self.sim.stop_on_success if stop_on_success is None else bool(stop_on_success))
+        return simulate(scene or self.scene, controller, np.asarray(x0, float), disturbance=disturbance,
+                        measure=measure, target_fn=target_fn, progress=len(x0) >= 2000 and sys.stderr.isatty(), **kw)
 
     def camera_measure(self, kind: str = "clean", level: str | None = None):
         pm = self.perception_map(kind)
@@ -262,8 +256,6 @@ def summarise(metrics: pd.DataFrame, by: list[str], seed: int = 0, delta_practic
     """Monte Carlo table (`pipeline.sim.metrics.summarise_agents`: success/collision with Wilson CIs, outcome
     classes, clearance median/p05/min, final-distance quantiles, practical success) plus a bootstrap CI of the
     median time to target and a CI of the mean jump count."""
-    from pipeline.sim.metrics import summarise_agents
-
     table = summarise_agents(metrics, by, delta_practical=delta_practical)
     rng = np.random.default_rng(seed)
     extra = []

@@ -1,56 +1,26 @@
 """Figures and tables of each scenario, under the paper's figure numbers (drawing code only: restyling a
 figure re-draws from the cached results and never re-simulates).
 
-`FIGURES` lists the paper's figures in its order; `draw(scenario, ctx, results, out)` dispatches on the
-scenario's class.
+Each scenario names its drawing function here (`Scenario.figures`); `pipeline.experiments.report.FIGURES` lists
+the paper's figures in its order.
 """
 
 from __future__ import annotations
 
-import numpy as np
+import matplotlib
 
-from pipeline.experiments import generalisation as G
-from pipeline.experiments import scenarios as S
-from pipeline.experiments.report import draw_frame
+matplotlib.use("Agg", force=False)
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.colors import ListedColormap  # noqa: E402
+from matplotlib.patches import Circle  # noqa: E402
 
-# The paper's figures, in its order, then ours (fig8 on): stem -> (experiment id, what it reproduces)
-FIGURES = {
-    "fig1_perception_closeness": ("perception_closeness", "paper Fig. 1 (closeness)"),
-    "fig2_sensitive_set": ("sensitive_set", "paper Fig. 2 (obstacle problem and the set K)"),
-    "fig3_coverings": ("coverings", "paper Fig. 3 (coverings)"),
-    "fig4_scheme": ("scheme", "paper Fig. 4 (scheme of the closed loop)"),
-    "fig5_leader_follower_level_sets": ("leader_follower", "paper Fig. 5 (level sets around the moving target)"),
-    "fig6_occlusion": ("occlusion", "paper Fig. 6 (occlusion)"),
-    "fig7_robustness_noise_failure": ("noise_failure", "paper Fig. 7 (noise and camera failure)"),
-    "fig8_robustness_sweep": ("robustness_sweep", "not in the paper: Proposition 1 vs Theorem 1 measured"),
-    "fig9_monte_carlo": ("monte_carlo", "not in the paper: Monte Carlo success rates"),
-    "fig10_authors_code_vs_default": ("authors_code", "not in the paper: the authors' released-code scene"),
-    "fig11_hysteresis_margin": ("hysteresis_margin", "not in the paper: Theorem 1's robustness margin over (χ, λ)"),
-    "fig12_sample_and_hold": ("sample_and_hold", "not in the paper: the 20 Hz sample-and-hold vs continuous time"),
-    "fig13_perception_generalisation": ("perception_generalisation",
-                                        "not in the paper: every perception map on every cloud level (issue 11)"),
-}
-
-
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def draw(scen, ctx, res, out) -> None:
-    """Figures and tables of `scen` from its (cached) results."""
-    for cls, fn in _DRAWERS.items():
-        if isinstance(scen, cls):
-            return fn(scen, ctx, res, out)
-    raise TypeError(f"no figures for {type(scen).__name__}")
+from pipeline.experiments.animation import leader_follower_gif  # noqa: E402
+from pipeline.experiments.report import draw_frame  # noqa: E402
+from pipeline.experiments.scheme import scheme_figure  # noqa: E402
 
 
 def draw_coverings(scen, ctx, res, out) -> None:
-    plt = _plt()
     fig, axes = plt.subplots(2, 1, figsize=(6.5, 7.2))  # the paper's layout: q = 1 top, q = 2 bottom
     x, y = res.arrays["x"], res.arrays["y"]
     for q, ax in zip((1, 2), axes):
@@ -66,9 +36,6 @@ def draw_coverings(scen, ctx, res, out) -> None:
 
 
 def draw_sensitive_set(scen, ctx, res, out) -> None:
-    plt = _plt()
-    from matplotlib.colors import ListedColormap
-
     eps = res.info["eps"]
     x, y, keep = res.arrays["x"], res.arrays["y"], res.arrays["keep"]
     cmap = ListedColormap(["#d62728", "#1f77b4", "#ff7f0e"])  # stall, K_1, K_2
@@ -90,7 +57,6 @@ def draw_sensitive_set(scen, ctx, res, out) -> None:
 
 
 def draw_noise_failure(scen, ctx, res, out) -> None:
-    plt = _plt()
     a = res.arrays
     fig, axes = plt.subplots(1, 2, figsize=(12, 4))
     ax = axes[0]
@@ -120,7 +86,6 @@ def draw_noise_failure(scen, ctx, res, out) -> None:
 
 
 def draw_occlusion(scen, ctx, res, out) -> None:
-    plt = _plt()
     a = res.arrays
     fig, axes = plt.subplots(1, 2, figsize=(12, 4))
     for ax, kind in zip(axes, ("clean", "occluded")):
@@ -148,7 +113,6 @@ def draw_occlusion(scen, ctx, res, out) -> None:
 
 
 def draw_leader_follower(scen, ctx, res, out) -> None:
-    plt = _plt()
     a = res.arrays
     frames = res.info["frames"]
     fig, axes = plt.subplots(1, len(frames), figsize=(5 * len(frames), 3.4))
@@ -170,9 +134,6 @@ def draw_leader_follower(scen, ctx, res, out) -> None:
 
 
 def draw_perception_closeness(scen, ctx, res, out) -> None:
-    plt = _plt()
-    from matplotlib.patches import Circle
-
     p, m, eps = res.arrays["p"], res.arrays["m"], res.info["eps"]
     fig, ax = plt.subplots(figsize=(8, 4.5))
     draw_frame(ax, ctx.scene, ctx.arena)
@@ -188,7 +149,6 @@ def draw_perception_closeness(scen, ctx, res, out) -> None:
 
 
 def draw_robustness_sweep(scen, ctx, res, out, stem: str = "fig8_robustness_sweep") -> None:
-    plt = _plt()
     df = res.tables["sweep"]
     dists = list(dict.fromkeys(df["disturbance"]))
     fig, axes = plt.subplots(1, len(dists), figsize=(5.5 * len(dists), 3.6), squeeze=False)
@@ -216,7 +176,6 @@ def draw_monte_carlo(scen, ctx, res, out) -> None:
               "classes (reached / stalled: an undesired equilibrium away from the target / timed out), median "
               "time to target, final distance (median, p90), per-agent minimum clearance (median and 5th "
               "percentile over agents; global minimum), mean jumps, per condition and controller.")
-    plt = _plt()
     df = res.tables["summary"]
     conds = list(dict.fromkeys(df["condition"]))
     ctrls = list(dict.fromkeys(df["controller"]))
@@ -234,7 +193,6 @@ def draw_monte_carlo(scen, ctx, res, out) -> None:
 
 
 def draw_authors_code(scen, ctx, res, out) -> None:
-    plt = _plt()
     df = res.tables["sweep"]
     scenes = list(dict.fromkeys(df["scene"]))
     dists = list(dict.fromkeys(df["disturbance"]))
@@ -257,7 +215,6 @@ def draw_authors_code(scen, ctx, res, out) -> None:
 
 
 def draw_hysteresis_margin(scen, ctx, res, out) -> None:
-    plt = _plt()
     df = res.tables["margin"]
     dists = list(dict.fromkeys(df["disturbance"]))
     chis, lams = sorted(set(df["chi"])), sorted(set(df["lam"]))
@@ -290,8 +247,6 @@ def draw_hysteresis_margin(scen, ctx, res, out) -> None:
 
 
 def draw_scheme(scen, ctx, res, out) -> None:
-    from pipeline.experiments.scheme import scheme_figure
-
     out.figure(scheme_figure(), "fig4_scheme",
                "Scheme of the closed loop: camera h(p) -> perception map l(θ) -> hybrid supervisor (flow set C, jump "
                "set D, mode q) -> gradient flow -k∇V_q -> vehicle, with the disturbance and camera-failure inputs "
@@ -299,7 +254,6 @@ def draw_scheme(scen, ctx, res, out) -> None:
 
 
 def draw_sample_and_hold(scen, ctx, res, out) -> None:
-    plt = _plt()
     a, df = res.arrays, res.tables["sample_and_hold"]
     fig, axes = plt.subplots(1, 2, figsize=(12, 4))
     row = df.iloc[0]
@@ -325,7 +279,6 @@ def draw_sample_and_hold(scen, ctx, res, out) -> None:
 
 
 def draw_perception_generalisation(scen, ctx, res, out) -> None:
-    plt = _plt()
     df = res.tables["summary"]
     levels = list(dict.fromkeys(df["level"]))
     xs = np.arange(len(levels))
@@ -364,8 +317,6 @@ def draw_perception_generalisation(scen, ctx, res, out) -> None:
 
 def _gif(ctx, out, stem: str, caption: str, t, lead, foll, perceived, level=None) -> None:
     """The arena with both vehicles, the follower's camera frame (with its clouds) and the perceived leader."""
-    from pipeline.experiments.animation import leader_follower_gif
-
     cam, occ = ctx.camera(), ctx.occlusion(level)
     n = min(len(t), len(lead), len(foll), len(perceived))
     lead, foll, perceived, t = lead[:n], foll[:n], perceived[:n], t[:n]
@@ -376,13 +327,3 @@ def _gif(ctx, out, stem: str, caption: str, t, lead, foll, perceived, level=None
     path = leader_follower_gif(out.dir / f"{stem}.gif", ctx.scene, ctx.arena, t, lead, foll, perceived, frame,
                                title=caption)
     out.items.append({"kind": "animation", "files": [path.name], "caption": caption})
-
-
-_DRAWERS = {
-    S.Coverings: draw_coverings, S.SensitiveSet: draw_sensitive_set, S.NoiseFailure: draw_noise_failure,
-    S.Occlusion: draw_occlusion, S.LeaderFollower: draw_leader_follower,
-    S.PerceptionCloseness: draw_perception_closeness, S.RobustnessSweep: draw_robustness_sweep,
-    S.MonteCarlo: draw_monte_carlo, S.AuthorsCode: draw_authors_code, S.HysteresisMargin: draw_hysteresis_margin,
-    S.Scheme: draw_scheme, S.SampleAndHold: draw_sample_and_hold,
-    G.PerceptionGeneralisation: draw_perception_generalisation,
-}

@@ -19,15 +19,21 @@ cloud level of `levels`:
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 import pandas as pd
 
 from pipeline import tracking
+from pipeline.data.recipe import Follower, Recipe, Sampling, Splits
+from pipeline.data.sampling import plan_split
 from pipeline.errors import ConfigError
+from pipeline.experiments.camera_loop import Occlusion
 from pipeline.experiments.context import Context, Results
-from pipeline.experiments.measure import OracleMap
-from pipeline.experiments.scenarios import Occlusion, Points, Scenario
+from pipeline.experiments.scenario import Points, Scenario
+from pipeline.perception.measure import OracleMap
+from pipeline.perception.metrics import perception_metrics
+from pipeline.render import load_occlusion
 
 # columns of the follower summary carried into the table (renamed `follower_<column>`)
 FOLLOWER_COLUMNS = ("n", "success_rate", "success_lo", "success_hi", "success_practical", "collision_rate",
@@ -36,6 +42,7 @@ FOLLOWER_COLUMNS = ("n", "success_rate", "success_lo", "success_hi", "success_pr
 
 @dataclass(kw_only=True)
 class PerceptionGeneralisation(Scenario):
+    figures: ClassVar[str] = "pipeline.experiments.figures:draw_perception_generalisation"
     maps: list[str] = field(default_factory=lambda: ["clean", "authors", "occluded", "clean_paper"])
     levels: list[str] = field(default_factory=lambda: ["none", "light", "authors", "heavy"])
     n_positions: int = 4000          # test positions per level (uniform over the arena), the same at every level
@@ -73,8 +80,6 @@ class PerceptionGeneralisation(Scenario):
         return {"controllers": ["hybrid"], "disturbances": [], "occlusions": list(self.levels)}
 
     def check(self, ctx: Context) -> None:
-        from pipeline.render import load_occlusion
-
         known = list(tracking.to_plain(ctx.cfg.maps) or {})
         for name in self.maps:
             if name not in known:
@@ -98,14 +103,10 @@ class PerceptionGeneralisation(Scenario):
 
     def images(self, ctx: Context, camera, level: str):
         """(uniform render result, uniform positions, near-target images, near-target positions) at `level`."""
-        from pipeline.data.sampling import Recipe, plan_split
-        from pipeline.render import load_occlusion
-
         occ = load_occlusion(level, ctx.cfg.occlusions, field="experiment.levels")
-        recipe = Recipe.from_config({"name": self.id, "occlusion": level, "seed": self.seed,
-                                     "splits": {"train": 1, "val": 1, "test": ctx.n(self.n_positions, minimum=1)},
-                                     "sampling": {"mode": "uniform"},
-                                     "follower": {"probability": self.follower_probability}})
+        recipe = Recipe(name=self.id, occlusion=level, seed=self.seed,
+                        splits=Splits(train=1, val=1, test=ctx.n(self.n_positions, minimum=1)),
+                        sampling=Sampling(mode="uniform"), follower=Follower(probability=self.follower_probability))
         plan = plan_split(recipe, "test", camera, occ)  # leaders and followers: the same at every level
         uniform = camera.render(plan.leader, plan.follower, occlusion=occ, clouds=plan.clouds, return_info=True)
         m = ctx.n(self.n_near_target, minimum=0)
@@ -121,8 +122,6 @@ class PerceptionGeneralisation(Scenario):
         return uniform, plan.leader.astype(np.float64), near_images, near
 
     def perception(self, ctx: Context) -> pd.DataFrame:
-        from pipeline.train.metrics import perception_metrics
-
         camera = self.camera(ctx)
         rows = []
         for level in self.levels:

@@ -10,6 +10,25 @@ import numpy as np
 import pandas as pd
 
 from pipeline.control import Scene
+from pipeline.viz import draw_scene, save
+
+# The paper's figures, in its order, then ours (fig8 on): stem -> (experiment id, what it reproduces)
+FIGURES = {
+    "fig1_perception_closeness": ("perception_closeness", "paper Fig. 1 (closeness)"),
+    "fig2_sensitive_set": ("sensitive_set", "paper Fig. 2 (obstacle problem and the set K)"),
+    "fig3_coverings": ("coverings", "paper Fig. 3 (coverings)"),
+    "fig4_scheme": ("scheme", "paper Fig. 4 (scheme of the closed loop)"),
+    "fig5_leader_follower_level_sets": ("leader_follower", "paper Fig. 5 (level sets around the moving target)"),
+    "fig6_occlusion": ("occlusion", "paper Fig. 6 (occlusion)"),
+    "fig7_robustness_noise_failure": ("noise_failure", "paper Fig. 7 (noise and camera failure)"),
+    "fig8_robustness_sweep": ("robustness_sweep", "not in the paper: Proposition 1 vs Theorem 1 measured"),
+    "fig9_monte_carlo": ("monte_carlo", "not in the paper: Monte Carlo success rates"),
+    "fig10_authors_code_vs_default": ("authors_code", "not in the paper: the authors' released-code scene"),
+    "fig11_hysteresis_margin": ("hysteresis_margin", "not in the paper: Theorem 1's robustness margin over (χ, λ)"),
+    "fig12_sample_and_hold": ("sample_and_hold", "not in the paper: the 20 Hz sample-and-hold vs continuous time"),
+    "fig13_perception_generalisation": ("perception_generalisation",
+                                        "not in the paper: every perception map on every cloud level (issue 11)"),
+}
 
 
 # ----------------------------------------------------------------------------------------- writers
@@ -48,9 +67,6 @@ class Outputs:
         self.items: list[dict] = []
 
     def figure(self, fig, stem: str, caption: str) -> list[Path]:
-        from pipeline.experiments.figures import FIGURES
-        from pipeline.viz import save
-
         paths = [Path(p) for p in save(fig, self.dir / stem, formats=("png", "pdf"))]
         self.items.append({"kind": "figure", "files": [p.name for p in paths], "caption": caption,
                            "reproduces": FIGURES.get(stem, (None, None))[1]})
@@ -65,7 +81,7 @@ class Outputs:
         return paths
 
 
-def write_index(paper_dir: Path, figures: dict | None = None) -> Path:
+def write_index(paper_dir: Path, figures: dict = FIGURES) -> Path:
     """index.md from every experiment's entry in `<paper_dir>/index/*.json`, in the paper's figure order
     (`figures`: stem -> (experiment id, what it reproduces)); paths relative to `paper_dir`."""
     paper_dir = Path(paper_dir)
@@ -100,8 +116,6 @@ def write_index(paper_dir: Path, figures: dict | None = None) -> Path:
 
 
 def draw_frame(ax, scene: Scene, arena, diamond: bool = True):
-    from pipeline.viz import draw_scene
-
     draw_scene(ax, scene, arena, diamond=diamond)
     ax.set_xlim(*arena[0])
     ax.set_ylim(*arena[1])

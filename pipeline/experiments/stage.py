@@ -20,22 +20,25 @@ import sys
 import time
 from pathlib import Path
 
+from hydra.core.hydra_config import HydraConfig
+
 from pipeline import tracking
-from pipeline.config import build
-from pipeline.errors import ConfigError
+from pipeline.config import resolve
+from pipeline.experiments.checks import build_scenario, check
 from pipeline.experiments.context import Context, Results
-from pipeline.experiments.report import Outputs, write_index
-from pipeline.experiments.scenarios import Scenario
+from pipeline.experiments.report import FIGURES, Outputs, write_index
+from pipeline.experiments.scenario import Scenario
+from pipeline.lineage import pinned_folders
+from pipeline.perception.maps import load_perception_map, resolve_device
 
 # the code whose changes change the numbers (figures.py and report.py only draw)
-COMPUTE_CODE = ("experiments/scenarios", "experiments/generalisation", "experiments/context", "experiments/measure",
-                "control", "sim", "render", "train/metrics", "data/sampling")
+COMPUTE_CODE = ("experiments/scenario", "experiments/theory", "experiments/camera_loop", "experiments/generalisation",
+                "experiments/context", "perception/measure", "perception/metrics", "control", "hybrid", "plants", "sim",
+                "render", "data/sampling", "data/recipe")
 
 
 def _command(cfg, exp_id: str) -> str:
     try:
-        from hydra.core.hydra_config import HydraConfig
-
         overrides = list(HydraConfig.get().overrides.task)
     except Exception:  # noqa: BLE001 - not under @hydra.main (tests, the paper DAG)
         overrides = [f"experiment={exp_id}"]
@@ -44,49 +47,19 @@ def _command(cfg, exp_id: str) -> str:
     return "python -m pipeline.experiments " + " ".join(overrides)
 
 
-def _publish(cfg):
-    value = cfg.get("publish", "auto")
-    if not (value == "auto" or isinstance(value, bool)):
-        raise ConfigError("publish", f"must be auto, true or false, got {value!r}")
-    return value
-
-
 def view_dir(cfg, exp_id: str, folder: Path) -> tuple[Path, bool]:
     """Where a run's figures and tables go, and whether a lock sent them aside.
 
     `publish: true` (make paper): `paths.paper_dir`; `false`: `paths.side_dir/<experiment>-<id>/`; `auto` (the
     default): the paper dir, unless a lock there (`*.lock.yaml`, written by make paper) pins another
     computation of this experiment; then the side dir, and the pinned paper's figure stays as it is."""
-    from pipeline.lineage import pinned_folders
-
-    publish = _publish(cfg)
+    publish = cfg.get("publish", "auto")
     paper_dir, side = Path(cfg.paths.paper_dir), Path(cfg.paths.side_dir) / folder.name
     if publish == "auto":
         pinned = pinned_folders(paper_dir, "experiments")
         aside = exp_id in pinned and pinned[exp_id] != folder.name
         return (side if aside else paper_dir), aside
     return (paper_dir if publish else side), False
-
-
-def build_scenario(cfg) -> Scenario:
-    node = cfg.get("experiment")
-    if node is None or "_target_" not in node:
-        raise ConfigError("experiment", "pick a bundle: experiment=<id> (conf/experiment/)")
-    scen = build(node, "experiment")
-    if not isinstance(scen, Scenario):
-        raise ConfigError("experiment._target_", f"{node['_target_']} is not a scenario")
-    return scen
-
-
-def check(cfg) -> None:
-    """Preflight: the scenario, every object it uses and its inputs (maps and error maps, by id)."""
-    _publish(cfg)
-    scen = build_scenario(cfg)
-    ctx = Context(cfg)
-    scen.check(ctx)
-    ctx.map_ids(scen.maps)
-    for kind in getattr(scen, "errormaps", ()):
-        ctx.error_map(kind)
 
 
 def cache_key(cfg, scen: Scenario, ctx: Context) -> dict:
@@ -112,13 +85,11 @@ def cache_key(cfg, scen: Scenario, ctx: Context) -> dict:
 
 
 def run(cfg) -> dict:
-    from pipeline.experiments.figures import FIGURES, draw
-
     t0 = time.perf_counter()
-    _publish(cfg)
+    check(cfg)
+    resolve_device(cfg.get("device", "auto"))  # `device=cuda` without a GPU: one line, before any work
     scen = build_scenario(cfg)
-    ctx = Context(cfg)
-    scen.check(ctx)
+    ctx = Context(cfg, load_map=load_perception_map)
     key_parts = cache_key(cfg, scen, ctx)
     cid = tracking.content_id(key_parts)
     root = Path(cfg.paths.outputs_dir) / "experiments"
@@ -138,7 +109,7 @@ def run(cfg) -> dict:
               f"run ({folder.name}) writes to {paper_dir} and leaves the paper's figures as pinned (publish=true: "
               "write there anyway)")
     out = Outputs(paper_dir, scen.id)
-    draw(scen, ctx, res, out)
+    resolve(scen.figures)(scen, ctx, res, out)
     # the raw per-agent metrics of the scenario, next to its figures
     if "metrics" in res.tables:
         res.tables["metrics"].to_csv(paper_dir / f"metrics_{scen.id}.csv", index=False)

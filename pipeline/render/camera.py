@@ -185,39 +185,21 @@ class Camera:
     target ring in pixels (ring width 1 px). Colours are RGB triples (see ``DEFAULT_COLORS``).
     """
 
-    def __init__(
-        self,
-        scene,
-        arena: Arena = DEFAULT_ARENA,
-        height: int = 60,
-        width: int = 100,
-        robot_size: float = 3.0,
-        target_radius: float = 2.5,
-        colors: Mapping | None = None,
-        target_ring_width: float | None = 1.0,
-    ):
-        try:
-            (x0, x1), (y0, y1) = _arena(arena)
-        except (TypeError, ValueError):
-            raise ConfigError("render.arena", f"needs [[x_min, x_max], [y_min, y_max]], got {arena!r}") from None
-        if not (x0 < x1 and y0 < y1):
-            raise ConfigError("render.arena", f"needs x_min < x_max and y_min < y_max, got {arena!r}")
-        for field, v in (("render.height", height), ("render.width", width)):
-            if not isinstance(v, int | np.integer) or isinstance(v, bool) or not 8 <= v <= 4096:
-                raise ConfigError(field, f"must be an integer number of pixels in [8, 4096], got {v!r}")
-        height, width = int(height), int(width)
-        sx, sy = width / (x1 - x0), height / (y1 - y0)
-        if not math.isclose(sx, sy, rel_tol=1e-9):
-            want = (y1 - y0) * sx
-            hint = f"height {want:g} for width {width}" if float(want).is_integer() else "a size with that aspect"
-            raise ConfigError(
-                "render.height",
-                f"{height} x {width} px does not match the arena's aspect ({x1 - x0:g} x {y1 - y0:g} units; "
-                f"pixels must be square): use {hint}, or change scene.arena",
-            )
-        if not (isinstance(robot_size, int | float) and 0 < robot_size <= min(height, width) / 4):
+    def __init__(self, scene=None, px_per_unit: float = 1.0, robot_size: float = 3.0, target_radius: float = 2.5,
+                 colors: dict[str, list[int]] | None = None, target_ring_width: float | None = 1.0):
+        arena = scene.bounds if hasattr(scene, "bounds") else DEFAULT_ARENA
+        (x0, x1), (y0, y1) = _arena(arena)
+        if not px_per_unit > 0:
+            raise ConfigError("render.px_per_unit", f"must be > 0, got {px_per_unit!r}")
+        h, w = (y1 - y0) * px_per_unit, (x1 - x0) * px_per_unit
+        if not (float(h).is_integer() and float(w).is_integer() and 8 <= h <= 4096 and 8 <= w <= 4096):
+            raise ConfigError("render.px_per_unit", f"{px_per_unit:g} px per unit makes a {h:g} x {w:g} px image of "
+                                                    f"the {x1 - x0:g} x {y1 - y0:g} arena: it needs whole numbers "
+                                                    "of pixels in [8, 4096] (square pixels)")
+        height, width = int(h), int(w)
+        if not 0 < robot_size <= min(height, width) / 4:
             raise ConfigError("render.robot_size", f"must be in (0, {min(height, width) / 4:g}] px, got {robot_size!r}")
-        if not (isinstance(target_radius, int | float) and 0 <= target_radius <= min(height, width) / 4):
+        if not 0 <= target_radius <= min(height, width) / 4:
             raise ConfigError("render.target_radius", f"must be in [0, {min(height, width) / 4:g}] px, got {target_radius!r}")
         cols = dict(DEFAULT_COLORS)
         unknown = set(colors or {}) - set(cols)
@@ -228,45 +210,14 @@ class Camera:
         self.scene = scene
         self.arena: Arena = ((x0, x1), (y0, y1))
         self.height, self.width = height, width
-        self.scale = sx  # pixels per world unit
+        self.scale = width / (x1 - x0)  # pixels per world unit
         self.robot_size = float(robot_size)
         self.target_radius = float(target_radius)
-        if target_ring_width is not None and not (isinstance(target_ring_width, int | float) and target_ring_width > 0):
+        if target_ring_width is not None and not target_ring_width > 0:
             raise ConfigError("render.target_ring_width", f"must be > 0 px (or null: a filled disc), got {target_ring_width!r}")
         self.target_ring_width = None if target_ring_width is None else float(target_ring_width)
         self.background = self._render_background()
         self._bg_flat = self.background.reshape(-1, 3)
-
-    # ---------------------------------------------------------------------------------- factories
-    @classmethod
-    def from_config(cls, render_cfg, scene, arena=None) -> Camera:
-        """From the `render` config group (conf/render/*.yaml) and a Scene.
-
-        The arena comes from `render.arena` (default config: `${scene.arena}`), else `arena`, else
-        `scene.arena` when `scene` is a scene config mapping, else the default arena.
-        """
-        from pipeline.tracking import to_plain
-
-        cfg = to_plain(render_cfg) or {}
-        scene_obj = scene
-        if isinstance(scene, Mapping) or hasattr(scene, "keys"):
-            from pipeline.control import Scene
-
-            scene_plain = to_plain(scene)
-            arena = arena or scene_plain.get("arena")
-            scene_obj = Scene.from_config(scene_plain)
-        a = cfg.get("arena") or arena or DEFAULT_ARENA
-        if isinstance(a, Mapping):
-            a = (a.get("x"), a.get("y"))
-        known = {"height", "width", "robot_size", "target_radius", "target_ring_width", "colors", "arena", "name"}
-        unknown = set(cfg) - known
-        if unknown:
-            raise ConfigError("render", f"unknown key(s) {sorted(unknown)}; known: {sorted(known)}")
-        return cls(
-            scene_obj, arena=a, height=cfg.get("height", 60), width=cfg.get("width", 100),
-            robot_size=cfg.get("robot_size", 3.0), target_radius=cfg.get("target_radius", 2.5),
-            colors=cfg.get("colors"), target_ring_width=cfg.get("target_ring_width", 1.0),
-        )
 
     @property
     def shape(self) -> tuple[int, int]:

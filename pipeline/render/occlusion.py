@@ -19,12 +19,13 @@ from __future__ import annotations
 import functools
 import math
 import threading
-from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 
 import cv2
 import numpy as np
+from omegaconf import OmegaConf
 
+from pipeline.config import build, compose
 from pipeline.errors import ConfigError
 
 
@@ -44,23 +45,23 @@ class CloudSample:
         return CloudSample(self.mask[key], self.field[key], self.dy[key], self.dx[key])
 
 
-def _range(cfg: Mapping, key: str, lo: float, hi: float, default, integer: bool = False) -> tuple:
-    value = cfg.get(key, default)
-    try:
-        a, b = (int(x) if integer else float(x) for x in value)
-        if integer and any(float(x) != int(x) for x in value):
-            raise ValueError
-    except (TypeError, ValueError):
-        kind = "integers" if integer else "numbers"
-        raise ConfigError(f"occlusion.{key}", f"must be a pair of {kind} [min, max], got {value!r}") from None
+def _pair(value, field: str, lo: float, hi: float) -> tuple:
+    """A `[min, max]` range with `lo <= min <= max <= hi` (the types were checked with the config)."""
+    a, b = value
     if not (lo <= a <= b <= hi):
-        raise ConfigError(f"occlusion.{key}", f"needs {lo:g} <= min <= max <= {hi:g}, got {value!r}")
+        raise ConfigError(f"occlusion.{field}", f"needs {lo:g} <= min <= max <= {hi:g}, got {list(value)!r}")
     return a, b
 
 
 @dataclass(frozen=True)
 class Occlusion:
-    """A cloud level. `Occlusion()` (or level `none`) draws nothing."""
+    """A cloud level (`conf/occlusion/*.yaml`, its `_target_`). `Occlusion()` (or level `none`) draws nothing.
+
+    `probability`: share of images with clouds; ranges `[min, max]` of the blobs per field, their radius (px),
+    peak opacity and aspect; `softness`: the fraction of the radius over which an edge fades; `color` RGB; `bank`
+    distinct fields (each shown at a random cyclic shift) drawn from `seed`; `cluster` (px): every field's blobs
+    within that distance of one random centre (the authors' clouds), null: anywhere.
+    """
 
     name: str = "none"
     probability: float = 0.0
@@ -74,61 +75,35 @@ class Occlusion:
     seed: int = 0
     cluster: float | None = None
 
-    KEYS = ("name", "probability", "blobs", "radius", "opacity", "aspect", "softness", "color", "bank", "seed",
-            "cluster")
+    def __post_init__(self):
+        set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 (frozen dataclass)
+        if not 0 <= self.probability <= 1:
+            raise ConfigError("occlusion.probability", f"must be in [0, 1], got {self.probability!r}")
+        if not 0 < self.softness <= 1:
+            raise ConfigError("occlusion.softness", f"must be in (0, 1] (fraction of the radius), got {self.softness!r}")
+        if not 1 <= self.bank <= 4096:
+            raise ConfigError("occlusion.bank", f"must be an integer in [1, 4096], got {self.bank!r}")
+        if self.seed < 0:
+            raise ConfigError("occlusion.seed", f"must be an integer >= 0, got {self.seed!r}")
+        if self.cluster is not None and not self.cluster > 0:
+            raise ConfigError("occlusion.cluster", f"must be > 0 px (or null: blobs anywhere), got {self.cluster!r}")
+        if len(self.color) != 3 or not all(0 <= c <= 255 for c in self.color):
+            raise ConfigError("occlusion.color", f"must be an RGB triple of integers in [0, 255], got {self.color!r}")
+        set_("blobs", tuple(int(v) for v in _pair(self.blobs, "blobs", 0, 64)))
+        set_("radius", tuple(float(v) for v in _pair(self.radius, "radius", 0.5, 1e6)))
+        set_("opacity", tuple(float(v) for v in _pair(self.opacity, "opacity", 0.0, 1.0)))
+        set_("aspect", tuple(float(v) for v in _pair(self.aspect, "aspect", 0.05, 1.0)))
+        set_("color", tuple(int(c) for c in self.color))
+        set_("probability", float(self.probability))
+        set_("softness", float(self.softness))
+        set_("cluster", None if self.cluster is None else float(self.cluster))
 
     @property
     def active(self) -> bool:
         return self.probability > 0 and self.blobs[1] > 0 and self.opacity[1] > 0
 
-    @classmethod
-    def from_config(cls, cfg) -> Occlusion:
-        """From a level mapping (conf/occlusion/*.yaml); every value is validated."""
-        from pipeline.tracking import to_plain
-
-        cfg = dict(to_plain(cfg) or {})
-        unknown = set(cfg) - set(cls.KEYS)
-        if unknown:
-            raise ConfigError("occlusion", f"unknown key(s) {sorted(unknown)}; known: {list(cls.KEYS)}")
-        d = cls()
-        p = cfg.get("probability", d.probability)
-        if not isinstance(p, int | float) or not 0 <= p <= 1:
-            raise ConfigError("occlusion.probability", f"must be in [0, 1], got {p!r}")
-        soft = cfg.get("softness", d.softness)
-        if not isinstance(soft, int | float) or not 0 < soft <= 1:
-            raise ConfigError("occlusion.softness", f"must be in (0, 1] (fraction of the radius), got {soft!r}")
-        bank = cfg.get("bank", d.bank)
-        if not isinstance(bank, int) or isinstance(bank, bool) or not 1 <= bank <= 4096:
-            raise ConfigError("occlusion.bank", f"must be an integer in [1, 4096], got {bank!r}")
-        seed = cfg.get("seed", d.seed)
-        if not isinstance(seed, int) or isinstance(seed, bool) or seed < 0:
-            raise ConfigError("occlusion.seed", f"must be an integer >= 0, got {seed!r}")
-        cluster = cfg.get("cluster", d.cluster)
-        if cluster is not None and (isinstance(cluster, bool) or not isinstance(cluster, int | float) or not cluster > 0):
-            raise ConfigError("occlusion.cluster", f"must be > 0 px (or null: blobs anywhere), got {cluster!r}")
-        color = cfg.get("color", d.color)
-        try:
-            col = tuple(int(c) for c in color)
-        except (TypeError, ValueError):
-            col = ()
-        if len(col) != 3 or not all(0 <= c <= 255 for c in col):
-            raise ConfigError("occlusion.color", f"must be an RGB triple of integers in [0, 255], got {color!r}")
-        return cls(
-            name=str(cfg.get("name", "custom")),
-            probability=float(p),
-            blobs=_range(cfg, "blobs", 0, 64, d.blobs, integer=True),
-            radius=_range(cfg, "radius", 0.5, 1e6, d.radius),
-            opacity=_range(cfg, "opacity", 0.0, 1.0, d.opacity),
-            aspect=_range(cfg, "aspect", 0.05, 1.0, d.aspect),
-            softness=float(soft),
-            color=col,
-            bank=bank,
-            seed=seed,
-            cluster=None if cluster is None else float(cluster),
-        )
-
     def config(self) -> dict:
-        """Plain mapping (for manifests and ids); `Occlusion.from_config(o.config()) == o`."""
+        """Plain mapping (for manifests and ids); `Occlusion(**o.config()) == o`."""
         out = asdict(self)
         if out["cluster"] is None:  # levels without clustering keep the mapping (and ids) they had
             del out["cluster"]
@@ -264,20 +239,9 @@ def _bank(occ: Occlusion, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarra
 
 
 # ------------------------------------------------------------------------------------------ levels
-def occlusion_level(*, name: str, probability: float = 0.0, blobs=(0, 0), radius=(4.0, 8.0), opacity=(0.5, 0.5),
-                    aspect=(0.6, 1.0), softness: float = 0.5, color=(185, 205, 255), bank: int = 256,
-                    seed: int = 0, cluster: float | None = None) -> Occlusion:
-    """`_target_` of conf/occlusion/*.yaml: a validated :class:`Occlusion` level."""
-    return Occlusion.from_config({"name": name, "probability": probability, "blobs": blobs, "radius": radius,
-                                  "opacity": opacity, "aspect": aspect, "softness": softness, "color": color,
-                                  "bank": bank, "seed": seed, "cluster": cluster})
-
-
 def default_levels():
     """The `occlusions` config group as composed by Hydra (for APIs, benches and tests; stages pass the
     `occlusions` node of their own composed config instead)."""
-    from pipeline.config import compose
-
     return compose("occlusions/all").occlusions
 
 
@@ -300,18 +264,12 @@ def load_occlusion(level, levels=None, field: str = "occlusion") -> Occlusion:
         levels = levels if levels is not None else default_levels()
         if level not in levels:
             raise ConfigError(field, f"unknown occlusion level {level!r}; known: {', '.join(levels.keys())}")
-        from pipeline.config import build
-
         try:
             return build(levels[level], f"occlusions.{level}")
         except ConfigError as err:  # a key that follows another level (heavy_mix: ${..heavy.opacity}): name that one
             key = err.field.rsplit(".", 1)[-1]
-            from omegaconf import OmegaConf
-
             raw = (OmegaConf.to_container(levels[level], resolve=False) or {}).get(key)
             if isinstance(raw, str) and raw.startswith("${..") and raw.endswith("}"):
                 raise ConfigError(f"occlusions.{raw[4:-1]}", f"{err.reason} (used by occlusions.{level})") from None
             raise
-    from pipeline.tracking import to_plain
-
-    return Occlusion.from_config({k: v for k, v in (to_plain(level) or {}).items() if k != "_target_"})
+    return Occlusion(**{k: v for k, v in dict(level).items() if k != "_target_"})

@@ -1,17 +1,14 @@
-"""Batched hybrid-arc simulator (SPEC §1, §3.3, §3.5)."""
+"""The closed loop (SPEC §1, §3.3, §3.5): plant + feedback law + measurement as one hybrid system, simulated in
+batches by the solvers of :mod:`pipeline.hybrid`; disturbances, outcomes and the reviewer's tables."""
 
-from pipeline.sim.disturbances import (
-    DISTURBANCES,
-    Adversarial,
-    Alternating,
-    Disturbance,
-    Gaussian,
-    NoDisturbance,
-)
+from pipeline.sim.closed_loop import ContinuousLoop, SampledLoop, true_state
+from pipeline.sim.disturbances import Adversarial, Alternating, Disturbance, Gaussian, NoDisturbance
 from pipeline.sim.metrics import OUTCOMES, summarise_agents, wilson
-from pipeline.sim.simulator import MODELS, TERMINATIONS, SimResult, check_timing, simulate, true_state
+from pipeline.sim.settings import CameraSettings, SimSettings, frame_steps
+from pipeline.sim.simulator import MODELS, TERMINATIONS, SimResult, simulate
 
 __all__ = [
-    "DISTURBANCES", "MODELS", "OUTCOMES", "Adversarial", "Alternating", "Disturbance", "Gaussian", "NoDisturbance",
-    "TERMINATIONS", "SimResult", "check_timing", "simulate", "summarise_agents", "true_state", "wilson",
+    "MODELS", "OUTCOMES", "Adversarial", "Alternating", "CameraSettings", "ContinuousLoop",
+    "Disturbance", "Gaussian", "NoDisturbance", "SampledLoop", "SimResult", "SimSettings", "TERMINATIONS",
+    "frame_steps", "simulate", "summarise_agents", "true_state", "wilson",
 ]

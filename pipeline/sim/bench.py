@@ -41,7 +41,7 @@ def _agent_seconds(scene, x0, horizon, model, repeat=2) -> float:
 
 def bench_models(quick: bool = False) -> list[dict]:
     """Continuous vs sampled (20 Hz camera) on random starts of the default scene, clean, 10 s of each arc."""
-    scene = Scene(target=(40.0, 0.0))
+    scene = Scene(target=[40.0, 0.0])
     n, horizon = (500, 2.0) if quick else (10_000, 10.0)
     x0 = _agents(scene, n)
     sampled = _agent_seconds(scene, x0, horizon, "sampled")
@@ -57,7 +57,7 @@ def bench_models(quick: bool = False) -> list[dict]:
 
 
 def bench(quick: bool = False) -> list[dict]:
-    scene = Scene(target=(40.0, 0.0))
+    scene = Scene(target=[40.0, 0.0])
     n, steps, n_loop, loop_steps = (1000, 20, 5, 20) if quick else (10_000, 200, 20, 200)
     x0 = _agents(scene, n)
     rows = []

@@ -4,18 +4,25 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.control.scene import Scene
 from pipeline.errors import ConfigError
 
 
-def _nonneg(value, field: str) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ConfigError(field, f"must be a number, got {value!r}") from None
-    if not np.isfinite(v) or v < 0:
+def _nonneg(value: float, field: str) -> float:
+    if not value >= 0:
         raise ConfigError(field, f"must be >= 0, got {value!r}")
-    return v
+    return float(value)
+
+
+def _frame_b(p: np.ndarray, scene) -> tuple[np.ndarray, np.ndarray]:
+    """`(b, e_b)`: each point's coordinate `b` in the frame of its nearest obstacle, and that frame's `e_b`
+    (SPEC §3.6: the disturbances use the frame of the obstacle nearest to the true state)."""
+    if scene.n_obstacles == 1:
+        _, b = scene.to_frame(p)
+        return b, np.broadcast_to(scene.e_b, p.shape)
+    i = scene.nearest_obstacle(p)
+    arr = scene.arrays
+    d = p - arr["center"][i]
+    return np.einsum("ij,ij->i", d, arr["e_b"][i]), arr["e_b"][i]
 
 
 class Disturbance:
@@ -23,7 +30,7 @@ class Disturbance:
 
     name = "none"
 
-    def __call__(self, p: np.ndarray, frame: int, rng: np.random.Generator, scene: Scene) -> np.ndarray:
+    def __call__(self, p: np.ndarray, frame: int, rng: np.random.Generator, scene) -> np.ndarray:
         return np.zeros_like(p)
 
     def __repr__(self) -> str:
@@ -57,7 +64,9 @@ class Alternating(Disturbance):
 
     def __call__(self, p, frame, rng, scene):
         sign = 1.0 if frame % 2 == 0 else -1.0
-        return np.broadcast_to(sign * self.eps * scene.e_b, p.shape).copy()
+        if scene.n_obstacles == 1:
+            return np.broadcast_to(sign * self.eps * scene.e_b, p.shape).copy()
+        return sign * self.eps * _frame_b(p, scene)[1]
 
 
 class Adversarial(Disturbance):
@@ -69,9 +78,7 @@ class Adversarial(Disturbance):
         self.eps = _nonneg(eps, "disturbance.eps")
 
     def __call__(self, p, frame, rng, scene):
-        _, b = scene.to_frame(p)
+        b, e_b = _frame_b(p, scene)
         sign = np.where(b >= 0, 1.0, -1.0)
-        return -self.eps * sign[:, None] * scene.e_b
+        return -self.eps * sign[:, None] * e_b
 
-
-DISTURBANCES = {"none": NoDisturbance, "gaussian": Gaussian, "alternating": Alternating, "adversarial": Adversarial}

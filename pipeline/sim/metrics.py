@@ -13,23 +13,7 @@ import math
 import numpy as np
 import pandas as pd
 
-from pipeline.errors import ConfigError
-
 OUTCOMES = ("reached", "collided", "stalled", "timed_out")
-
-
-def check_stall(stall_speed, stall_time) -> tuple[float, float]:
-    """Validate `sim.stall_speed` (units/s, > 0) and `sim.stall_time` (s, > 0)."""
-    out = []
-    for value, field in ((stall_speed, "sim.stall_speed"), (stall_time, "sim.stall_time")):
-        try:
-            v = float(value)
-        except (TypeError, ValueError):
-            raise ConfigError(field, f"must be a number, got {value!r}") from None
-        if not (math.isfinite(v) and v > 0):
-            raise ConfigError(field, f"must be > 0, got {value!r}")
-        out.append(v)
-    return out[0], out[1]
 
 
 class StallMonitor:

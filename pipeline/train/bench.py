@@ -1,7 +1,7 @@
 """Benchmark (issues 4 and 10): Lightning `fit` img/s against a raw PyTorch loop of the same model and batch,
 the achieved GFLOP/s of training (3x forward FLOPs) and its share of the machine's fp32 matmul ceiling
 (`pipeline.bench.ceiling_gflops`), for the default map (conf/model/default.yaml) and the paper-width
-network; then batched inference (`pipeline.train.infer_bench`)."""
+network; then batched inference (`pipeline.perception.bench`)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import warnings
 import numpy as np
 import torch
 
-from pipeline.train.model import PerceptionMap
+from pipeline.perception.network import PerceptionMap
 
 
 def _data(n: int, seed: int = 0):
@@ -81,7 +81,7 @@ def _maps():
 
 def bench(quick: bool = False) -> list[dict]:
     from pipeline.bench import ceiling_gflops
-    from pipeline.train import infer_bench
+    from pipeline.perception import bench as infer_bench
 
     torch.set_num_threads(torch.get_num_threads())
     batch, steps = (64, 3) if quick else (128, 40)

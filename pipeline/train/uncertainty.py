@@ -34,7 +34,7 @@ from statistics import NormalDist
 import numpy as np
 import torch
 
-from pipeline.train.model import CHI2_2_95, LOGVAR_RANGE, gaussian_nll
+from pipeline.perception.network import CHI2_2_95, LOGVAR_RANGE, gaussian_nll
 
 _FEATURE_BATCH = 1024  # images per forward pass while collecting the features
 

@@ -1,8 +1,8 @@
 """ε-error maps of a perception map (SPEC §2, the paper's Assumption 1 and Lemma 1) as pure numpy.
 
-For grid positions `p`, `F(p) = l(h(p)) - p` is the error of the perception map `l` on the image `h(p)`.
+For grid positions `p`, `E(p) = l(h(p)) - p` is the error of the perception map `l` on the image `h(p)`.
 This module measures it (`error_field`, batched, with the camera and the map injected as callables),
-summarises it (`error_stats`), estimates the Lipschitz constant of `F` from neighbouring grid points
+summarises it (`error_stats`), estimates the Lipschitz constant of `E` from neighbouring grid points
 (`lipschitz_estimate`), computes the Assumption-1 coverage set
 
     S^L_eps = U_d { p in p_d + r_cov B : |l(theta_d) - p_d| + L |p - p_d| <= eps }
@@ -63,7 +63,7 @@ def error_field(
     desc: str = "error map",
     overlap: bool = True,
 ) -> np.ndarray:
-    """`F(p) = l(h(p)) - p` for `(N, 2)` points, rendered and inferred in chunks of `batch`.
+    """`E(p) = l(h(p)) - p` for `(N, 2)` points, rendered and inferred in chunks of `batch`.
 
     `render(points_chunk, rng) -> images` plays `h` (its random draws, e.g. clouds, come from `rng`, used
     by the chunks in order); `predict(images) -> (n, 2)` plays `l`. With `overlap`, the next chunk is
@@ -137,7 +137,7 @@ def error_stats(mag: np.ndarray) -> dict:
 
 # ---------------------------------------------------------------------------------------- Lipschitz
 def difference_quotients(field: np.ndarray, step: float, mask: np.ndarray | None = None):
-    """`|F(p) - F(p')| / |p - p'|` over horizontal, vertical and diagonal grid neighbours.
+    """`|E(p) - E(p')| / |p - p'|` over horizontal, vertical and diagonal grid neighbours.
 
     `field` is `(ny, nx, 2)` on a grid of spacing `step`; pairs with an endpoint outside `mask` (or a
     non-finite value) are dropped. Yields `(offset, quotients (ny', nx'), valid (ny', nx'), slices)` per
@@ -161,12 +161,12 @@ def difference_quotients(field: np.ndarray, step: float, mask: np.ndarray | None
 
 
 def lipschitz_estimate(field: np.ndarray, step: float, mask: np.ndarray | None = None, q: float = 99.0) -> dict:
-    """Estimate of the Lipschitz constant `L` of `F` from neighbouring grid points.
+    """Estimate of the Lipschitz constant `L` of `E` from neighbouring grid points.
 
     Returns `{"max", "p<q>" (percentile q of the quotients), "n_pairs", "slope" (ny, nx)}`; `slope` is the
     local slope map, the largest quotient over the (up to 8) neighbour pairs of each point (NaN where a
-    point has no valid pair). For a linear field `F(p) = A p + b` the estimate lies in
-    `[cos(22.5°) ||A||_2, ||A||_2]` (8 directions sampled); for `F` with several draws per point pass
+    point has no valid pair). For a linear field `E(p) = A p + b` the estimate lies in
+    `[cos(22.5°) ||A||_2, ||A||_2]` (8 directions sampled); for `E` with several draws per point pass
     `field` of shape `(K, ny, nx, 2)`: the quotients of all draws are pooled.
     """
     field = np.asarray(field, dtype=float)
@@ -263,8 +263,8 @@ def coverage_eps_min(
     """Per-point threshold of Assumption 1: `eps_min(p) = min_d |l(theta_d) - p_d| + L |p - p_d|` over
     training samples within `r_cov` (`inf` where none is).
 
-    `p` lies in the covering set `S^L_eps` of the paper (Assumption 1) iff `eps_min(p) <= eps`; so the
-    covered fraction is monotone in `eps` and the smallest `eps` covering a set is the max of `eps_min`.
+    `p` lies in the coverage set `S^L_eps` of the paper (Assumption 1) iff `eps_min(p) <= eps`; so the
+    covered fraction is monotone in `eps` and the smallest `eps` whose coverage set holds a set is the max of `eps_min`.
     """
     best, _ = min_plus_within(points, samples, sample_err, float(lipschitz), r_cov)
     return best
@@ -300,8 +300,8 @@ def coverage_curve(eps_min: np.ndarray, eps: Sequence[float] | np.ndarray) -> np
     return np.searchsorted(e, np.asarray(eps, dtype=float), side="right") / e.size
 
 
-def smallest_covering_eps(eps_min: np.ndarray, fraction: float = 1.0) -> float:
-    """Smallest `eps` whose covering set contains at least `fraction` of the points (`inf` if none does)."""
+def smallest_coverage_eps(eps_min: np.ndarray, fraction: float = 1.0) -> float:
+    """Smallest `eps` whose coverage set contains at least `fraction` of the points (`inf` if none does)."""
     e = np.sort(np.asarray(eps_min, dtype=float).ravel())
     if e.size == 0:
         return math.nan

@@ -12,7 +12,7 @@ i.e. across the line `b = 0` behind the obstacle, where the smooth controllers s
   it picks the one that moves the estimate furthest along the direction (batched rendering and inference, a
   search: no gradients, any `predict` works);
 - :class:`AttackedCamera`: the measurement hook of the closed loop (`measure(p, idx, frame, rng)`, the
-  signature of `pipeline.experiments.measure.CameraMeasure`) that renders, attacks, infers and keeps per-frame
+  signature of `pipeline.perception.measure.CameraMeasure`) that renders, attacks, infers and keeps per-frame
   statistics of the error the attack induces.
 
 **The network contract** (for :func:`pixel_attack`): any `torch.nn.Module` mapping float NHWC images with
@@ -20,12 +20,12 @@ intensities in `[0, 255]` (shape `(N, H, W, 3)`) to world coordinates `(N, >= 2)
 position (further columns, e.g. an uncertainty head's sigmas, are ignored), and the output must be
 differentiable w.r.t. the input.
 
-- `pipeline.train.model.FoldedPerceptionNet` (the inference network of `PerceptionMapPredictor.net`) satisfies
+- `pipeline.perception.network.FoldedPerceptionNet` (the inference network of `PerceptionMapPredictor.net`) satisfies
   it as is: its first convolution reads the float image in `[0, 255]` (the `/255 - 0.5` scaling is folded into
   its weights and bias map), nothing in it is in-place on the input, and although its parameters have
   `requires_grad=False` the gradient w.r.t. the input flows (checked in the tests). A `torch.compile`d
   predictor net works too but recompiles for autograd: pass the eager `FoldedPerceptionNet`.
-- `pipeline.train.model.PerceptionMap` does **not** satisfy it directly: its float input is read in `[0, 1]`
+- `pipeline.perception.network.PerceptionMap` does **not** satisfy it directly: its float input is read in `[0, 1]`
   (only uint8 input is divided by 255), so wrap it: `ScaledInput(model)` (multiplies by 1/255 first; this also
   avoids its in-place `sub_` on a view of a leaf tensor, which autograd refuses).
 - In eval mode both clamp the estimate to the arena (`model.clamp`), so the gradient of a coordinate vanishes

@@ -15,9 +15,11 @@ import numpy as np
 import torch
 
 from pipeline import tracking
-from pipeline.cli import REPO_ROOT
+from pipeline.config import build
 from pipeline.errors import ConfigError, DatasetError, ModelError
-from pipeline.train.model import FoldedPerceptionNet, PerceptionMap
+from pipeline.lineage import resolve_map
+from pipeline.perception.network import FoldedPerceptionNet, PerceptionMap
+from pipeline.repo import REPO_ROOT
 
 DEFAULT_MODELS_DIR = REPO_ROOT / "outputs" / "models"
 log = logging.getLogger(__name__)
@@ -151,20 +153,17 @@ class PerceptionMapPredictor:
 
     def camera(self):
         """The Camera that rendered this map's training data (scene, arena, colours, sizes)."""
-        from pipeline.render import Camera
-
         try:
-            return Camera.from_config(self.manifest["render"], self.manifest["scene"])
+            render, scene = self.manifest["render"], self.manifest["scene"]
         except KeyError as err:
             raise ModelError(f"perception map {self.name}: manifest has no {err.args[0]!r} config") from None
+        return build(render, "render", scene=build(scene, "scene"))
 
 
 def load_perception_map(ref, models_dir=None, *, verify: bool = False, device="auto",
                         compile=False) -> PerceptionMapPredictor:
     """A trained map by path, `name-id`, id, or name (the map the current train config makes for that
     dataset recipe; see :mod:`pipeline.lineage`), for inference on `device`."""
-    from pipeline.lineage import resolve_map
-
     root = Path(models_dir) if models_dir else DEFAULT_MODELS_DIR
     try:
         folder = resolve_map(ref, root)
@@ -178,13 +177,6 @@ def load_perception_map(ref, models_dir=None, *, verify: bool = False, device="a
     manifest = tracking.read_manifest(folder)
     blob = torch.load(folder / "model.pt", map_location="cpu", weights_only=True)
     hparams = dict(blob["hparams"])
-    if "nll_weight" in hparams:  # saved when the variance head trained beside the position (PerceptionMap's history)
-        if hparams.get("uncertainty") == "gaussian":
-            raise ModelError(f"perception map {folder.name} has the earlier uncertainty head (trained beside the "
-                             "position, on the features alone); retrain it with the current config")
-        del hparams["nll_weight"]  # a map without the head: the key only weighted a loss it never had
     model = PerceptionMap(**hparams)
-    state = blob["state_dict"]
-    state.setdefault("sigma_scale", torch.ones(()))  # maps saved before the uncertainty option
-    model.load_state_dict(state)
+    model.load_state_dict(blob["state_dict"])
     return PerceptionMapPredictor(model, manifest=manifest, path=folder, device=dev, compile=compile)

@@ -13,7 +13,7 @@ import time
 import numpy as np
 import torch
 
-from pipeline.train.model import PerceptionMap
+from pipeline.perception.network import PerceptionMap
 
 
 def default_map() -> PerceptionMap:
@@ -48,7 +48,7 @@ def devices() -> list[str]:
 
 
 def bench(quick: bool = False, ceiling=None) -> list[dict]:
-    from pipeline.train.predict import PerceptionMapPredictor
+    from pipeline.perception.maps import PerceptionMapPredictor
 
     if ceiling is None:
         from pipeline.bench import ceiling_gflops as ceiling

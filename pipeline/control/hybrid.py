@@ -1,0 +1,212 @@
+"""The paper's hybrid controller (Eqs. (gradient_flows1)-(jump_set1); SPEC §3.3), with the locally active obstacle
+of SPEC §3.6 for several obstacles: logic state `(i, q)` (`i` the active obstacle, `q` its mode).
+
+For the active obstacle `i` with covering `O_1, O_2` and potentials `V^q = V_i^q` (SPEC §3.2), at the perceived
+position `m`:
+
+- flow set `C`: `V^q(m) <= χ V^{3-q}(m)` and `dist_i(m) <= min_j dist_j(m) + h` (Eq. (flowset1); §3.6);
+- flow map `F`: `u = sat(-k ∇V^q(m))` (Eq. (gradient_flows1)), `i_dot = q_dot = 0`;
+- jump set `D`: a cell jump where `dist_i(m) >= min_j dist_j(m) + h`, else a mode jump where
+  `V^q(m) >= (χ - λ) V^{3-q}(m)` (Eq. (jump_set1));
+- jump map `G`: cell jump `i+ = argmin_j dist_j(m)`, `q+ = argmin_q V_{i+}^q(m)` (ties: `q = 1` below the line
+  `b = 0`); mode jump `q+ = 3 - q` (`p+ = p`).
+
+with `dist_j(m) = |m - c_j| - R_j` (SPEC §3.6) and the cell hysteresis `h`. With one obstacle the cell logic never
+fires and this is §3.3 step for step. Sampled-data rules (SPEC §3.3): `V^q = ∞` (m outside `O_q`) jumps if
+`m ∈ O_{3-q}`; `V^q = 0` (the target) never jumps; outside `C ∪ D` (inside the diamond, through perception
+error only) the flow map pushes out of `W_q` along its outward normal at `push_speed`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from pipeline.control.feedback import _SQRT1_2, Feedback
+from pipeline.control.potentials import both_potentials_frame, fused_potentials, potential
+from pipeline.control.scene import Scene
+from pipeline.errors import ConfigError
+
+
+class Evaluation:
+    """What the four maps read at `m`, for each agent's obstacle `i` (after a cell jump where one is due).
+
+    `a, b`: frame coordinates; `ua, ub`: the attraction `-k ∇φ` in the frame (the whole flow far from both
+    wedges); `cell`: rows in the cell-jump part of `D`; `idx`: rows near the wedge of their mode (or due a cell
+    jump), with `V1, V2, ga1, gb1, ga2, gb2` for them only. Far from `W_q` (`d_q >= reach^2`)
+    `V^q = |p - p_T|^2 <= V^{3-q}`: no mode jump, no barrier.
+    """
+
+    __slots__ = ("i", "q", "a", "b", "ua", "ub", "cell", "idx", "V1", "V2", "ga1", "gb1", "ga2", "gb2",
+                 "c", "ea", "eb")
+
+
+class HybridController(Feedback):
+    """The hybrid controller of the paper (SPEC §3.3) over the locally active obstacle (SPEC §3.6).
+
+    `chi > 1`, `lam in (0, chi - 1)`: the hysteresis; `cell_hysteresis` (`h > 0`): the cells' hysteresis.
+    """
+
+    name = "hybrid"
+    hybrid = True
+    logic = ("i", "q")
+
+    def __init__(self, scene: Scene, k: float = 1.0, chi: float = 1.1, lam: float = 0.09,
+                 u_max: float | None = 10.0, push_speed: float | None = None, cell_hysteresis: float = 1.0):
+        super().__init__(scene, k=k, u_max=u_max, push_speed=push_speed)
+        if not chi > 1:
+            raise ConfigError("controller.chi", f"must be > 1 (hysteresis), got {chi!r}")
+        if not 0 < lam < chi - 1:
+            raise ConfigError("controller.lam", f"must be in (0, chi - 1) = (0, {chi - 1:.6g}), got {lam!r}")
+        if not cell_hysteresis > 0:
+            raise ConfigError("controller.cell_hysteresis", f"must be > 0, got {cell_hysteresis!r}")
+        self.chi, self.lam, self.h = float(chi), float(lam), float(cell_hysteresis)
+        self.M = scene.n_obstacles
+        self._arr = scene.arrays
+        b = scene.barrier
+        self._barrier = {"kind": b.kind, "rho": float(b.rho), "gain": float(b.gain),
+                         "phi_weight": 0.5 if b.kind == "authors_code" else 1.0}
+
+    # ---- the cells (SPEC §3.6) --------------------------------------------------------------------------
+    def cell_distance(self, m: np.ndarray) -> np.ndarray:
+        """`dist_j(m) = |m - c_j| - R_j` `(N, M)`."""
+        rel = m[:, None, :] - self._arr["center"][None]
+        return np.hypot(rel[..., 0], rel[..., 1]) - self._arr["R"][None]
+
+    def initial_state(self, m0: np.ndarray, target=None) -> dict[str, np.ndarray]:
+        """`i0 = argmin_j dist_j(m0)`, `q0` the mode with the smaller `V_{i0}^q(m0)` (ties: `q = 1` below `b = 0`)."""
+        m0 = np.asarray(m0, dtype=float)
+        i = np.zeros(len(m0), dtype=np.int64) if self.M == 1 else self.cell_distance(m0).argmin(axis=1)
+        q = np.ones(len(m0), dtype=np.int8)
+        for j in np.unique(i):
+            rows = np.flatnonzero(i == j)
+            cov = self.scene.covering(int(j))
+            tgt = target if target is None or np.ndim(target) == 1 else np.asarray(target, float)[rows]
+            V1, V2 = (potential(cov, mode, m0[rows], tgt) for mode in (1, 2))
+            _, b = cov.to_frame(m0[rows])
+            q[rows] = np.where(V1 < V2, 1, np.where(V2 < V1, 2, np.where(b < 0, 1, 2)))
+        return {"i": i, "q": q}
+
+    # ---- the fused evaluation ----------------------------------------------------------------------------
+    def evaluate(self, m: np.ndarray, xd: dict, target=None) -> Evaluation:
+        m = np.asarray(m, dtype=float)
+        q, i = xd["q"], xd["i"]
+        arr, ev = self._arr, Evaluation()
+        if self.M > 1:
+            dist = self.cell_distance(m)
+            best = dist.argmin(axis=1)
+            rows = np.arange(len(m))
+            ev.cell = dist[rows, i] >= dist[rows, best] + self.h
+            i = np.where(ev.cell, best, i)
+        else:
+            ev.cell = np.zeros(len(m), dtype=bool)
+        ev.i, ev.q = i, q
+        p0, ea, eb = arr["center"][i], arr["e_a"][i], arr["e_b"][i]
+        rx, ry = m[:, 0] - p0[:, 0], m[:, 1] - p0[:, 1]
+        a = rx * ea[:, 0] + ry * ea[:, 1]
+        b = rx * eb[:, 0] + ry * eb[:, 1]
+        if target is None:
+            at, bt = arr["target_a"][i], arr["target_b"][i]
+        elif self.M == 1:
+            at, bt = self.scene.covering(0).to_frame(np.broadcast_to(np.asarray(target, dtype=float), m.shape))
+        else:
+            d = np.broadcast_to(np.asarray(target, dtype=float), m.shape) - p0
+            at, bt = np.einsum("ij,ij->i", d, ea), np.einsum("ij,ij->i", d, eb)
+        w = self._barrier["phi_weight"]
+        ev.a, ev.b, ev.c, ev.ea, ev.eb = a, b, arr["c"][i], ea, eb
+        ev.ua = (-2.0 * w * self.k) * (a - at)
+        ev.ub = (-2.0 * w * self.k) * (b - bt)
+        # only agents near (or inside) the wedge W_q of their mode can jump modes or feel a barrier: with
+        # d_q >= reach^2, V_q = |p - p_T|^2 <= V_{3-q}; the test below is a superset of {d_q < reach^2}
+        reach = arr["reach"][i]
+        sigma_b = np.where(q == 1, b, -b)
+        ev.idx = idx = np.flatnonzero((ev.c - np.abs(a) + sigma_b > -math.sqrt(2.0) * reach) | ev.cell)
+        if idx.size:
+            with np.errstate(invalid="ignore", divide="ignore"):
+                if self.M == 1:  # the single covering's own path (its target frame from the target itself)
+                    tgt = target if target is None or np.ndim(target) == 1 else np.asarray(target, float)[idx]
+                    pots = both_potentials_frame(self.scene.covering(0), a[idx], b[idx], tgt)
+                else:
+                    pots = fused_potentials(a[idx], b[idx], at[idx], bt[idx], ev.c[idx], arr["ell"][i][idx],
+                                            reach[idx], **self._barrier)
+            ev.V1, ev.V2, ev.ga1, ev.gb1, ev.ga2, ev.gb2 = pots
+        return ev
+
+    def covers(self, ev: Evaluation, xd_from: dict, xd: dict) -> bool:
+        """Whether `ev` (made at `xd_from`) serves `xd`: same active obstacles, changed modes only where both
+        modes were evaluated."""
+        if not np.array_equal(ev.i, xd["i"]):
+            return False
+        changed = np.flatnonzero(xd["q"] != xd_from["q"])
+        return changed.size == 0 or bool(np.isin(changed, ev.idx).all())
+
+    def _ev(self, m, xd, target, ev) -> Evaluation:
+        return self.evaluate(m, xd, target) if ev is None else ev
+
+    def _modes(self, ev: Evaluation, q: np.ndarray):
+        is1 = q[ev.idx] == 1
+        return is1, np.where(is1, ev.V1, ev.V2), np.where(is1, ev.V2, ev.V1)
+
+    # ---- the paper's hybrid data ------------------------------------------------------------------------
+    def jump_set(self, m, xd, target=None, ev=None) -> np.ndarray:
+        """Eq. (jump_set1), and the cell jump of SPEC §3.6; `V_q = inf` jumps only if `m ∈ O_{3-q}`, `V_q = 0`
+        never."""
+        ev = self._ev(m, xd, target, ev)
+        jump = ev.cell.copy()
+        if ev.idx.size:
+            _, Vq, Vo = self._modes(ev, xd["q"])
+            with np.errstate(invalid="ignore"):
+                mode = (Vq > 0) & np.isfinite(Vo) & (Vq >= (self.chi - self.lam) * Vo)
+            jump[ev.idx] |= mode
+        return jump
+
+    def jump_map(self, m, xd, target=None, ev=None) -> dict[str, np.ndarray]:
+        """The paper's jump map `q+ = 3 - q` (`p+ = p`); a cell jump takes `i+` and the mode with the smaller
+        potential there (SPEC §3.6)."""
+        ev = self._ev(m, xd, target, ev)
+        q = (3 - np.asarray(xd["q"])).astype(np.int8)
+        if ev.cell.any():
+            rows = np.flatnonzero(ev.cell)
+            pos = np.searchsorted(ev.idx, rows)  # cell rows are in idx
+            V1, V2, b = ev.V1[pos], ev.V2[pos], ev.b[rows]
+            q[rows] = np.where(V1 < V2, 1, np.where(V2 < V1, 2, np.where(b < 0, 1, 2)))
+        return {"i": ev.i.copy(), "q": q}
+
+    def flow_set(self, m, xd, target=None, ev=None) -> np.ndarray:
+        """Eq. (flowset1) `V_q(m) <= χ V_{3-q}(m)` (`V_q` finite), and `m` within the cell of `i`."""
+        ev = self._ev(m, xd, target, ev)
+        inside = ~ev.cell
+        if ev.idx.size:
+            _, Vq, Vo = self._modes(ev, xd["q"])
+            with np.errstate(invalid="ignore"):
+                inside[ev.idx] &= np.isfinite(Vq) & (Vq <= self.chi * Vo)
+        return inside
+
+    def flow_map(self, m, xd, target=None, ev=None) -> np.ndarray:
+        """Eq. (gradient_flows1) `u = -k ∇V_q(m)` saturated at `u_max`; where `m ∉ O_q` (perception error
+        only) SPEC §3.3's rule: leave `W_q` along the outward normal of its nearest face at `push_speed`."""
+        ev = self._ev(m, xd, target, ev)
+        q = np.asarray(xd["q"], dtype=np.int8)
+        ua, ub = ev.ua.copy(), ev.ub.copy()
+        if ev.idx.size:
+            idx = ev.idx
+            is1, Vq, _ = self._modes(ev, q)
+            with np.errstate(invalid="ignore"):
+                va = -self.k * np.where(is1, ev.ga1, ev.ga2)
+                vb = -self.k * np.where(is1, ev.gb1, ev.gb2)
+            bad = ~(np.isfinite(Vq) & np.isfinite(va) & np.isfinite(vb))
+            if bad.any():  # m inside W_q (hence in the diamond): the outward normal of its nearest face
+                a, b, c = ev.a[idx[bad]], ev.b[idx[bad]], ev.c[idx[bad]]
+                sigma = np.where(q[idx[bad]] == 1, 1.0, -1.0)
+                bp = c + sigma * b
+                nearest_u = (bp + a) <= (bp - a)  # u <= v: cross the u = 0 face
+                va[bad] = np.where(nearest_u, -_SQRT1_2, _SQRT1_2) * self.push_speed
+                vb[bad] = -sigma * _SQRT1_2 * self.push_speed
+            ua[idx] = va
+            ub[idx] = vb
+        if self.u_max is not None:
+            norm = np.hypot(ua, ub)
+            scale = np.minimum(1.0, self.u_max / np.maximum(norm, 1e-300))
+            ua, ub = ua * scale, ub * scale
+        return np.stack([ua * ev.ea[:, 0] + ub * ev.eb[:, 0], ua * ev.ea[:, 1] + ub * ev.eb[:, 1]], axis=1)

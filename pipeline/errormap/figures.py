@@ -1,0 +1,126 @@
+"""The figures of an ε-error map: `|E(p)|` heat maps, the local slope, the coverage sets of Assumption 1, and
+the error against the distance to the data (docs/errormap.md)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+from matplotlib import pyplot as plt
+from matplotlib.colors import BoundaryNorm, LogNorm, Normalize
+
+from pipeline.control import Scene
+from pipeline.errormap.analysis import _fmt_eps
+from pipeline.viz import draw_scene, save
+
+
+def _shared_norm(arrays: list[np.ndarray]):
+    """One colour scale for all panels: logarithmic when the values span more than 20x (a clean and an
+    occluded level side by side), else linear from 0. Returns `(norm, floor)`; plot `max(values, floor)`."""
+    vals = np.concatenate([np.asarray(a, dtype=float).ravel() for a in arrays])
+    vals = vals[np.isfinite(vals)]
+    vmax = float(np.percentile(vals, 99.5)) if vals.size else 1.0
+    vmax = vmax if vmax > 0 else 1.0
+    pos = vals[vals > 0]
+    vmin = max(float(np.percentile(pos, 1)) if pos.size else vmax, vmax * 1e-4)
+    if vmax / vmin > 20:
+        return LogNorm(vmin=vmin, vmax=vmax), vmin
+    return Normalize(vmin=0.0, vmax=vmax), 0.0
+
+
+def figures(folder: Path, fields: dict, results: dict, scene: Scene, arena, settings, levels) -> list[str]:
+    fmts = tuple(settings.get("formats", ["png"]))
+    (x0, x1), (y0, y1) = arena
+    extent = (x0, x1, y0, y1)
+    n = len(levels)
+    out = []
+
+    def panels(title):
+        fig, axes = plt.subplots(n, 1, figsize=(7.5, 3.6 * n), squeeze=False, layout="constrained")
+        fig.suptitle(title)
+        return fig, axes[:, 0]
+
+    # error map: worst |E| per point, shared colour scale
+    worst = {lv: np.linalg.norm(fields[f"E_{lv}"], axis=-1).max(axis=0) for lv in levels}
+    norm, floor = _shared_norm(list(worst.values()))
+    fig, axes = panels("ε-error map |E(p)| = |l(h(p)) - p|")
+    for ax, lv in zip(axes, levels):
+        im = ax.imshow(np.maximum(worst[lv], floor), origin="lower", extent=extent, cmap="magma_r", norm=norm,
+                       interpolation="nearest")
+        draw_scene(ax, scene, arena)
+        r = results[lv]
+        ax.set_title(f"occlusion {lv}: mean {r['mean']:.2f}, p95 {r['p95']:.2f}, max {r['max']:.2f}"
+                     f" (operational set)", fontsize=9)
+        fig.colorbar(im, ax=ax, label="|E| (world units)", extend="max", shrink=0.85)
+    out += save(fig, folder / "error_map", fmts)
+
+    # local slope map
+    slopes = {lv: fields[f"slope_{lv}"] for lv in levels}
+    norm, floor = _shared_norm(list(slopes.values()))
+    fig, axes = panels("local slope of E (largest difference quotient to a neighbour)")
+    for ax, lv in zip(axes, levels):
+        sl = np.where(np.isfinite(slopes[lv]), np.maximum(slopes[lv], floor), np.nan)  # NaN: not operational
+        im = ax.imshow(sl, origin="lower", extent=extent, cmap=plt.get_cmap("viridis").with_extremes(bad="0.92"),
+                       norm=norm, interpolation="nearest")
+        draw_scene(ax, scene, arena)
+        ax.set_title(f"occlusion {lv}: L max {results[lv]['L_max']:.3g}, p99 {results[lv]['L_p99']:.3g}",
+                     fontsize=9)
+        fig.colorbar(im, ax=ax, label="|ΔF| / |Δp|", extend="max", shrink=0.85)
+    out += save(fig, folder / "slope_map", fmts)
+
+    # coverage: curve + eps_min maps with covered-set contours
+    marks = sorted(settings["coverage"].get("eps_marks") or [])
+    fig, axes = plt.subplots(n + 1, 1, figsize=(7.5, 3.5 * (n + 1)), squeeze=False, layout="constrained")
+    axes = axes[:, 0]
+    for lv in levels:
+        c = results[lv]["coverage"]
+        (line,) = axes[0].plot(c["eps"], c["fraction"], label=f"{lv} (L = {results[lv]['L']:.3g})")
+        ec = results[lv]["eps_cover"]
+        if ec is not None and math.isfinite(ec):
+            axes[0].axvline(ec, ls=":", color=line.get_color())
+    for m in marks:
+        axes[0].axvline(m, color="0.6", lw=0.6)
+    axes[0].set_xlabel("ε")
+    axes[0].set_ylabel("covered fraction\nof the operational set")
+    axes[0].set_ylim(0, 1.02)
+    axes[0].legend(fontsize=8)
+    axes[0].set_title(f"Assumption 1: p ∈ S(L, ε), r_cov = {settings['coverage']['r_cov']} "
+                      "(dotted: smallest ε whose coverage set holds the operational set)", fontsize=9)
+    # nested covered sets: the colour of p is the smallest marked ε whose coverage set contains it
+    bounds = [0.0, *marks, np.inf]
+    cmap = plt.get_cmap("viridis", len(bounds) - 1).with_extremes(bad="tab:red")
+    norm = BoundaryNorm(np.arange(len(bounds)) - 0.5, cmap.N)
+    for ax, lv in zip(axes[1:], levels):
+        em = fields[f"eps_min_{lv}"]
+        band = np.where(np.isfinite(em), np.searchsorted(marks, em, side="left"), np.nan)
+        im = ax.imshow(band, origin="lower", extent=extent, cmap=cmap, norm=norm, interpolation="nearest")
+        ax.imshow(np.where(fields["operational"], np.nan, 1.0), origin="lower", extent=extent, cmap="Greys",
+                  vmin=0, vmax=1.6, alpha=0.75, interpolation="nearest")  # grey veil: not operational
+        draw_scene(ax, scene, arena)
+        ax.set_title(f"occlusion {lv}: covered sets (red: no sample within r_cov); operational set covered "
+                     f"for ε >= {_fmt_eps(results[lv]['eps_cover'])}", fontsize=8)
+        cb = fig.colorbar(im, ax=ax, ticks=range(len(bounds) - 1), shrink=0.85)
+        cb.ax.set_yticklabels([f"ε ≤ {m:g}" for m in marks] + [f"ε > {marks[-1]:g}" if marks else "covered"],
+                              fontsize=7)
+    out += save(fig, folder / "coverage", fmts)
+
+    # error vs distance to the nearest training sample
+    fig, ax = plt.subplots(figsize=(7, 4), layout="constrained")
+    op = fields["operational"].ravel()
+    near = fields["nearest"].ravel()[op]
+    rng = np.random.default_rng(0)
+    for lv in levels:
+        w = worst[lv].ravel()[op]
+        sub = rng.choice(len(w), size=min(len(w), 4000), replace=False)
+        sc = ax.scatter(near[sub], w[sub], s=2, alpha=0.25)
+        b = results[lv]["error_vs_distance"]
+        mid = (b["lo"] + b["hi"]) / 2
+        ax.plot(mid, b["median"], "-o", ms=3, color=sc.get_facecolor()[0][:3], label=f"{lv}: median")
+        ax.plot(mid, b["p95"], "--", color=sc.get_facecolor()[0][:3], label=f"{lv}: p95")
+    ax.set_xlabel("distance to the nearest training sample")
+    ax.set_ylabel("|E(p)|")
+    ax.set_title("where the map is trustworthy: error vs distance to the data", fontsize=9)
+    ax.legend(fontsize=8)
+    out += save(fig, folder / "error_vs_distance", fmts)
+    return [Path(p).name for p in out]

@@ -1,0 +1,293 @@
+"""The true-state scenarios of the theory (SPEC §4): the coverings, the sensitive set K, Proposition 1 against
+Theorem 1 (the robustness sweep), the hysteresis margin map, the sample-and-hold against continuous time, the
+authors' scene and the scheme of the closed loop."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import ClassVar
+
+import numpy as np
+import pandas as pd
+
+from pipeline.control import in_covering_set, in_diamond, potential
+from pipeline.errors import ConfigError
+from pipeline.experiments.camera_loop import MonteCarlo
+from pipeline.experiments.context import Context, Results, summarise, wilson
+from pipeline.experiments.scenario import Points, Scenario, practical_success
+from pipeline.sim import simulate, starts
+
+
+# --------------------------------------------------------------------------------- coverings
+@dataclass(kw_only=True)
+class Coverings(Scenario):
+    figures: ClassVar[str] = "pipeline.experiments.figures:draw_coverings"
+    grid_step: float = 0.25
+
+    def uses(self):
+        return {"controllers": [], "disturbances": [], "occlusions": []}
+
+    def compute(self, ctx: Context) -> Results:
+        step = self.grid_step / min(1.0, ctx.scale) ** 0.5
+        (x0, x1), (y0, y1) = ctx.arena
+        xs, ys = np.arange(x0, x1 + 1e-9, step), np.arange(y0, y1 + 1e-9, step)
+        X, Y = np.meshgrid(xs, ys)
+        pts = np.stack([X.ravel(), Y.ravel()], 1)
+        arrays = {"x": xs, "y": ys}
+        rows = []
+        for q in (1, 2):
+            V = potential(ctx.scene, q, pts).reshape(X.shape)
+            arrays[f"V{q}"] = V
+            rows.append({"set": f"O_{q}", "share_of_arena": float(in_covering_set(ctx.scene, q, pts).mean()),
+                         "min_V": float(np.nanmin(V[np.isfinite(V)]))})
+        rows.append({"set": "diamond", "share_of_arena": float(in_diamond(ctx.scene, pts).mean()), "min_V": np.nan})
+        return Results({"coverings": pd.DataFrame(rows)}, arrays, {})
+
+
+# ---------------------------------------------------------------------------- sensitive set
+@dataclass(kw_only=True)
+class SensitiveSet(Scenario):
+    figures: ClassVar[str] = "pipeline.experiments.figures:draw_sensitive_set"
+    grid_step: float = 1.0
+    grid_step_y: float = 0.25   # fine across K to resolve the ε band
+    eps: float = 0.5            # size of the adversarial disturbance in the second column
+    time_model: str = "continuous"  # the paper's hybrid arcs (true state): sim.model for this figure
+
+    def uses(self):
+        return {"controllers": ["smooth", "hybrid"], "disturbances": ["adversarial"], "occlusions": []}
+
+    def compute(self, ctx: Context) -> Results:
+        coarsen = 1.0 / min(1.0, ctx.scale) ** 0.5
+        step, step_y = self.grid_step * coarsen, self.grid_step_y * coarsen
+        (x0, x1), (y0, y1) = ctx.arena
+        xs, ys = np.arange(x0 + 1, x1 - 1 + 1e-9, step), np.arange(y0 + 1, y1 - 1 + 1e-9, step_y)
+        X, Y = np.meshgrid(xs, ys)
+        pts = np.stack([X.ravel(), Y.ravel()], 1)
+        keep = np.hypot(*(pts - ctx.scene.p_0).T) > ctx.scene.obstacle_radius
+        pts = pts[keep]
+        arrays = {"x": xs, "y": ys, "keep": keep}
+        rows = []
+        for case, dist in (("clean", None), (f"adversarial eps={self.eps}", ctx.disturbance("adversarial", eps=self.eps))):
+            for ctrl in ("smooth", "hybrid"):
+                res = ctx.simulate(ctx.controller(ctrl), pts, disturbance=dist, record_every=10, model=self.time_model)
+                a, b = ctx.scene.to_frame(res.p.reshape(-1, 2))
+                a, b = a.reshape(res.p.shape[:2]), b.reshape(res.p.shape[:2])
+                passed = a >= 0  # beyond the obstacle's centre along the target direction
+                first = np.where(passed.any(0), passed.argmax(0), -1)
+                side = np.where(first >= 0, np.sign(b[np.maximum(first, 0), np.arange(len(pts))]), 0)
+                cls = np.where(res.metrics["success"], np.where(side >= 0, 1, 2), 0)  # 1: K_1, 2: K_2, 0: stalls
+                arrays[f"{ctrl}|{case}"] = cls.astype(np.int8)
+                rows.append({"controller": ctrl, "case": case, "n": len(pts), "K_1": float((cls == 1).mean()),
+                             "K_2": float((cls == 2).mean()), "stalled_or_failed": float((cls == 0).mean())})
+        return Results({"sensitive_set": pd.DataFrame(rows)}, arrays, {"eps": self.eps})
+
+
+# ------------------------------------------------------------------------------- robustness sweep
+@dataclass(kw_only=True)
+class RobustnessSweep(Scenario):
+    figures: ClassVar[str] = "pipeline.experiments.figures:draw_robustness_sweep"
+    eps: list[float] = field(default_factory=lambda: [0.0, 0.1, 0.25, 0.5, 1.0, 1.5])
+    disturbances: list[str] = field(default_factory=lambda: ["adversarial", "alternating"])
+    controllers: list[str] = field(default_factory=lambda: ["hybrid", "smooth", "cbf"])
+    n_agents: int = 200      # initial conditions within eps of K per cell
+    min_band: float = 0.1    # at eps = 0 the starts are within this band of K
+    a_range: list[float] = field(default_factory=lambda: [-45.0, -15.0])
+    time_model: str = "continuous"  # the paper's hybrid arcs (true state)
+
+    def uses(self):
+        return {"controllers": list(self.controllers), "disturbances": list(self.disturbances), "occlusions": []}
+
+    def sweep(self, ctx: Context, scene, label: str) -> pd.DataFrame:
+        n = ctx.n(self.n_agents)
+        rows = []
+        for dist in self.disturbances:
+            for eps in self.eps:
+                band = max(eps, self.min_band)
+                x0 = starts.NearK(n=n, seed=ctx.seed, band=band, a_range=list(self.a_range))(scene)
+                for ctrl in self.controllers:
+                    d = ctx.disturbance(dist, eps=eps) if eps > 0 else None
+                    res = ctx.simulate(ctx.controller(ctrl, scene=scene), x0, scene=scene, disturbance=d, record=False,
+                                       model=self.time_model)
+                    s, c = int(res.metrics["success"].sum()), int(res.metrics["collision"].sum())
+                    sp = int(practical_success(res, ctx.delta, eps).sum())
+                    lo, hi = wilson(s, n)
+                    plo, phi = wilson(sp, n)
+                    rows.append({"scene": label, "disturbance": dist, "eps": eps, "controller": ctrl, "n": n,
+                                 "success_rate": s / n, "success_lo": float(lo), "success_hi": float(hi),
+                                 "practical_success_rate": sp / n, "practical_lo": float(plo),
+                                 "practical_hi": float(phi), "collision_rate": c / n,
+                                 "stalled": float(np.mean(res.metrics["outcome"] == "stalled")),
+                                 "mean_jumps": float(res.metrics["jumps"].mean())})
+        return pd.DataFrame(rows)
+
+    def compute(self, ctx: Context) -> Results:
+        return Results({"sweep": self.sweep(ctx, ctx.scene, "default")}, {}, {})
+
+
+# ---------------------------------------------------------------------------------- authors' scene
+@dataclass(kw_only=True)
+class AuthorsCode(Scenario):
+    """The authors' released-code scene (composed as `other_scene`: r = 8, apex 1.5 r, log barrier) side by side
+    with the default, through the true-state scenarios (the maps are trained on the default scene's images)."""
+
+    figures: ClassVar[str] = "pipeline.experiments.figures:draw_authors_code"
+
+    eps: list[float] = field(default_factory=lambda: [0.0, 0.25, 0.5, 1.0])
+    disturbances: list[str] = field(default_factory=lambda: ["adversarial"])
+    controllers: list[str] = field(default_factory=lambda: ["hybrid", "smooth", "cbf"])
+    n_agents: int = 200
+    min_band: float = 0.1
+    a_range: list[float] = field(default_factory=lambda: [-45.0, -15.0])
+    sigma: float = 0.5
+    p_fail: float = 0.5
+    time_model: str = "continuous"  # of the sweep (the Monte Carlo has camera failures: sampled)
+
+    def uses(self):
+        return {"controllers": list(self.controllers), "disturbances": sorted({*self.disturbances, "gaussian"}),
+                "occlusions": []}
+
+    def check(self, ctx: Context) -> None:
+        super().check(ctx)
+        ctx.other_scene()
+
+    def compute(self, ctx: Context) -> Results:
+        sweep = RobustnessSweep(id=self.id, title=self.title, eps=self.eps, disturbances=self.disturbances,
+                                controllers=self.controllers, n_agents=self.n_agents, min_band=self.min_band,
+                                a_range=self.a_range, time_model=self.time_model)
+        mc = MonteCarlo(id=self.id, title=self.title, controllers=self.controllers, sigma=self.sigma,
+                        p_fail=self.p_fail, camera=False, n_agents=self.n_agents, n_agents_camera=1)
+        sweeps, mcs = [], []
+        for label, scene in (("default", ctx.scene), ctx.other_scene()):
+            sweeps.append(sweep.sweep(ctx, scene, label))
+            mcs.append(mc.metrics(ctx, scene, label, camera=False))
+        summary = summarise(pd.concat(mcs, ignore_index=True), ["scene", "condition", "controller"], seed=ctx.seed)
+        return Results({"sweep": pd.concat(sweeps, ignore_index=True), "summary": summary}, {}, {})
+
+
+# ----------------------------------------------------------------------------- hysteresis margin map
+@dataclass(kw_only=True)
+class HysteresisMargin(Scenario):
+    """Theorem 1's robustness margin, measured: over a grid of (χ, λ) with λ < χ - 1, the largest disturbance
+    size ε for which the hybrid controller still reaches the target from >= `success` of the starts near K
+    (bisection on ε per cell; starts and seed fixed)."""
+
+    figures: ClassVar[str] = "pipeline.experiments.figures:draw_hysteresis_margin"
+
+    chi: list[float] = field(default_factory=lambda: [1.05, 1.1, 1.2, 1.4, 1.8])
+    lam: list[float] = field(default_factory=lambda: [0.01, 0.03, 0.09, 0.2, 0.4])
+    disturbances: list[str] = field(default_factory=lambda: ["adversarial", "alternating"])
+    n_agents: int = 100          # starts near K (a < -c, |b| < band), the same in every cell
+    band: float = 0.5
+    a_range: list[float] = field(default_factory=lambda: [-45.0, -15.0])
+    success: float = 0.99        # a cell is robust at ε when this share of the starts reaches the target
+    eps_max: float = 12.0        # bisection bracket [0, eps_max]
+    tol: float = 0.02            # bisection stops when the bracket is this narrow
+    paper_cell: list[float] = field(default_factory=lambda: [1.1, 0.09])
+    time_model: str = "continuous"  # the paper's hybrid arcs (true state)
+
+    def validate(self) -> None:
+        super().validate()
+        if not (0 < self.success <= 1):
+            raise ConfigError("experiment.success", f"must be in (0, 1], got {self.success}")
+        if not (self.eps_max > 0 and 0 < self.tol < self.eps_max):
+            raise ConfigError("experiment.tol", f"needs 0 < tol < eps_max, got tol={self.tol}, eps_max={self.eps_max}")
+        if not self.chi or any(c <= 1 for c in self.chi):
+            raise ConfigError("experiment.chi", f"must be a non-empty list of values > 1, got {self.chi}")
+        if not self.lam or any(v <= 0 for v in self.lam):
+            raise ConfigError("experiment.lam", f"must be a non-empty list of values > 0, got {self.lam}")
+        if not self.cells():
+            raise ConfigError("experiment.lam", "no (chi, lam) cell with lam < chi - 1")
+
+    def uses(self):
+        return {"controllers": ["hybrid"], "disturbances": list(self.disturbances), "occlusions": []}
+
+    def cells(self) -> list[tuple[float, float]]:
+        return [(c, v) for c in self.chi for v in self.lam if v < c - 1]
+
+    def starts(self, ctx: Context) -> np.ndarray:
+        return starts.NearK(n=ctx.n(self.n_agents), seed=ctx.seed, band=self.band, a_range=list(self.a_range))(ctx.scene)
+
+    def success_rate(self, ctx: Context, x0, chi: float, lam: float, dist: str, eps: float) -> float:
+        """Share of starts that get past the obstacle to the target up to the disturbance: |p - p_T| <= delta + ε
+        at the horizon, never in N (a biased measurement moves the equilibrium by up to ε, so the strict
+        |p - p_T| <= delta is lost at ε >= delta by every controller, whatever its hysteresis)."""
+        d = ctx.disturbance(dist, eps=eps) if eps > 0 else None
+        res = ctx.simulate(ctx.controller("hybrid", chi=chi, lam=lam), x0, disturbance=d, record=False,
+                           model=self.time_model)
+        return float(np.mean(practical_success(res, ctx.delta, eps)))
+
+    def margin(self, ctx: Context, x0, chi: float, lam: float, dist: str) -> tuple[float, float, int]:
+        """(largest robust ε found, smallest failing ε found, simulations): bisection on [0, eps_max]."""
+        lo, hi, sims = 0.0, self.eps_max, 1
+        if self.success_rate(ctx, x0, chi, lam, dist, 0.0) < self.success:
+            return float("nan"), 0.0, sims
+        sims += 1
+        if self.success_rate(ctx, x0, chi, lam, dist, hi) >= self.success:
+            return hi, float("inf"), sims
+        while hi - lo > self.tol:
+            mid = 0.5 * (lo + hi)
+            sims += 1
+            if self.success_rate(ctx, x0, chi, lam, dist, mid) >= self.success:
+                lo = mid
+            else:
+                hi = mid
+        return lo, hi, sims
+
+    def compute(self, ctx: Context) -> Results:
+        x0 = self.starts(ctx)
+        rows = []
+        for dist in self.disturbances:
+            for chi, lam in self.cells():
+                lo, hi, sims = self.margin(ctx, x0, chi, lam, dist)
+                rows.append({"disturbance": dist, "chi": chi, "lam": lam, "eps_margin": lo, "eps_fails": hi,
+                             "n_starts": len(x0), "simulations": sims})
+        return Results({"margin": pd.DataFrame(rows)}, {"x0": x0}, {"paper_cell": list(self.paper_cell)})
+
+
+# ------------------------------------------------------------------------------------- the scheme
+@dataclass(kw_only=True)
+class Scheme(Scenario):
+    """Fig. 4: the closed loop's block diagram, drawn from code (nothing to compute)."""
+
+    figures: ClassVar[str] = "pipeline.experiments.figures:draw_scheme"
+
+    def uses(self):
+        return {"controllers": [], "disturbances": [], "occlusions": []}
+
+    def compute(self, ctx: Context) -> Results:
+        return Results({}, {}, {})
+
+
+# --------------------------------------------------------------------------------- sample-and-hold
+@dataclass(kw_only=True)
+class SampleAndHold(Scenario):
+    """What the camera's sample-and-hold costs: the hybrid controller's arcs under the sampled model (a frame
+    every `camera.period`), the continuous-time model, and the sampled model with dt = period = `limit_dt`
+    (the dt -> 0 limit), on the true state without disturbance."""
+
+    figures: ClassVar[str] = "pipeline.experiments.figures:draw_sample_and_hold"
+
+    initial_conditions: Points = field(default_factory=lambda: [[-12.0, 2.0], [-45.0, 0.3], [-37.0, -17.0],
+                                                                [-30.0, 20.0], [10.0, 25.0]])
+    limit_dt: float = 0.0005
+
+    def validate(self) -> None:
+        super().validate()
+        if not self.limit_dt > 0:
+            raise ConfigError("experiment.limit_dt", f"must be > 0, got {self.limit_dt}")
+
+    def compute(self, ctx: Context) -> Results:
+        x0 = np.asarray(self.initial_conditions, float)
+        runs = {"sampled": ctx.simulate(ctx.controller("hybrid"), x0, model="sampled", record_every=1),
+                "continuous": ctx.simulate(ctx.controller("hybrid"), x0, model="continuous", record_every=1),
+                "limit": simulate(ctx.scene, ctx.controller("hybrid"), x0, dt=self.limit_dt, horizon=ctx.horizon,
+                                  delta=ctx.delta, camera_period=self.limit_dt, record=False)}
+        df = pd.DataFrame({"x0": x0[:, 0], "y0": x0[:, 1]})
+        for name, res in runs.items():
+            df[f"t_{name}"] = res.metrics["time_to_target"]
+            df[f"jumps_{name}"] = res.metrics["jumps"]
+            df[f"path_{name}"] = res.metrics["path_length"]
+        for name in ("sampled", "continuous"):
+            df[f"err_{name}_%"] = 100 * (df[f"t_{name}"] - df["t_limit"]) / df["t_limit"]
+        arrays = {"sampled_p": runs["sampled"].p[:, 0], "continuous_p": runs["continuous"].p[:, 0]}
+        return Results({"sample_and_hold": df}, arrays, {"period": ctx.frame_period})

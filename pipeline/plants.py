@@ -1,0 +1,144 @@
+"""Vehicles (the plant of the closed loop): state `c` `(N, n)` whose first two columns are the position `p`.
+
+A plant maps the input `w` it is given to its flow `c_dot = flow(c, w)`, and integrates one held input exactly
+(`step(c, w, h)`: the zero-order hold of a sampled loop). The controller steers a point of the vehicle
+(`point(c)`) with a velocity `u`; `actuate(c_hat, u)` is the input that realises `u` at the (measured) state
+`c_hat`.
+
+- :class:`SingleIntegrator`: `p_dot = u` (SPEC §1); the controller's velocity is the input.
+- :class:`Unicycle`: `x_dot = v cos θ`, `y_dot = v sin θ`, `θ_dot = ω` (SPEC §3.7): the controller steers the
+  look-ahead point `z = p + d (cos θ, sin θ)`, which obeys `z_dot = u` exactly with
+  `v = u·(cos θ, sin θ)`, `ω = u·(-sin θ, cos θ) / d`; `|ω| <= omega_max` (saturated inputs are counted by
+  the caller with :meth:`Unicycle.saturated`); each held `(v, ω)` is integrated as an exact arc.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from pipeline.errors import ConfigError
+
+
+class Plant:
+    """Interface of a vehicle (batched over the leading axis)."""
+
+    name = "plant"
+    dim = 2          # state dimension n
+    inputs = 2       # input dimension
+    heading = False  # whether the state holds a heading (column 2)
+
+    def position(self, c: np.ndarray) -> np.ndarray:
+        """The vehicle's position `p` `(N, 2)` (success and collision are judged here)."""
+        return c[:, :2]
+
+    def point(self, c: np.ndarray) -> np.ndarray:
+        """The point the controller steers `(N, 2)`."""
+        return c[:, :2]
+
+    def actuate(self, c_hat: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """The input `w` that moves `point` with velocity `u` at the (measured) state `c_hat`."""
+        raise NotImplementedError
+
+    def flow(self, c: np.ndarray, w: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+    def step(self, c: np.ndarray, w: np.ndarray, h: float) -> np.ndarray:
+        """`c(t + h)` under the input `w` held on `[t, t + h]` (exact)."""
+        raise NotImplementedError
+
+    def speed(self, w: np.ndarray) -> np.ndarray:
+        """`|p_dot|` `(N,)` under the held input `w` (constant along a held step)."""
+        raise NotImplementedError
+
+    def saturated(self, w: np.ndarray) -> np.ndarray:
+        """Rows whose input was clipped by a limit of the vehicle (none by default)."""
+        return np.zeros(len(w), dtype=bool)
+
+    def lift(self, p: np.ndarray, heading: np.ndarray | None = None) -> np.ndarray:
+        """States `(N, n)` at positions `p` (and headings, for a vehicle that has one)."""
+        return np.array(p, dtype=float).reshape(-1, 2)
+
+
+class SingleIntegrator(Plant):
+    """`p_dot = u` (SPEC §1). The speed limit `u_max` is the controller's (it saturates its velocity)."""
+
+    name = "integrator"
+
+    def actuate(self, c_hat, u):
+        return u
+
+    def flow(self, c, w):
+        return w
+
+    def step(self, c, w, h):
+        return c + h * w
+
+    def speed(self, w):
+        return np.hypot(w[:, 0], w[:, 1])
+
+
+class Unicycle(Plant):
+    """The unicycle of SPEC §3.7, steered through its look-ahead point `z = p + d (cos θ, sin θ)`.
+
+    `lookahead` is `d` (> 0; SPEC requires `d < δ`, the success radius, checked by the closed loop), `omega_max`
+    the turn-rate limit (rad/s, null: none). Its speed `|v| <= |u| <= u_max` follows from the controller's
+    saturation.
+    """
+
+    name = "unicycle"
+    dim = 3
+    heading = True
+
+    def __init__(self, lookahead: float = 0.5, omega_max: float | None = 4.0 * math.pi):
+        if not lookahead > 0:
+            raise ConfigError("vehicle.lookahead", f"must be > 0, got {lookahead!r}")
+        if omega_max is not None and not omega_max > 0:
+            raise ConfigError("vehicle.omega_max", f"must be > 0 (or null: no limit), got {omega_max!r}")
+        self.lookahead = float(lookahead)
+        self.omega_max = None if omega_max is None else float(omega_max)
+
+    def point(self, c):
+        d = self.lookahead
+        return np.stack([c[:, 0] + d * np.cos(c[:, 2]), c[:, 1] + d * np.sin(c[:, 2])], axis=1)
+
+    def actuate(self, c_hat, u):
+        """`v = u·(cos θ, sin θ)`, `ω = u·(-sin θ, cos θ) / d`, `|ω|` clipped at `omega_max` (SPEC §3.7)."""
+        ct, st = np.cos(c_hat[:, 2]), np.sin(c_hat[:, 2])
+        v = u[:, 0] * ct + u[:, 1] * st
+        omega = (-u[:, 0] * st + u[:, 1] * ct) / self.lookahead
+        if self.omega_max is not None:
+            omega = np.clip(omega, -self.omega_max, self.omega_max)
+        return np.stack([v, omega], axis=1)
+
+    def saturated(self, w):
+        if self.omega_max is None:
+            return np.zeros(len(w), dtype=bool)
+        return np.abs(w[:, 1]) >= self.omega_max * (1.0 - 1e-12)
+
+    def flow(self, c, w):
+        v, omega = w[:, 0], w[:, 1]
+        return np.stack([v * np.cos(c[:, 2]), v * np.sin(c[:, 2]), omega], axis=1)
+
+    def step(self, c, w, h):
+        """The exact arc of a held `(v, ω)`: a circle of radius `v / ω` (a segment where `ω h` is tiny)."""
+        v, omega = w[:, 0], w[:, 1]
+        th = c[:, 2]
+        dth = omega * h
+        turning = np.abs(dth) > 1e-9
+        safe = np.where(turning, omega, 1.0)
+        s0, c0 = np.sin(th), np.cos(th)
+        s1, c1 = np.sin(th + dth), np.cos(th + dth)
+        # straight-line limit of the arc: the first order of (sin(θ + ωh) - sin θ) / ω in ωh
+        dx = np.where(turning, v * (s1 - s0) / safe, v * h * c0)
+        dy = np.where(turning, -v * (c1 - c0) / safe, v * h * s0)
+        return np.stack([c[:, 0] + dx, c[:, 1] + dy, th + dth], axis=1)
+
+    def speed(self, w):
+        return np.abs(w[:, 0])
+
+    def lift(self, p, heading=None):
+        p = np.array(p, dtype=float).reshape(-1, 2)
+        th = np.zeros(len(p)) if heading is None else np.asarray(heading, dtype=float).reshape(-1)
+        return np.column_stack([p, th])

@@ -1,0 +1,176 @@
+"""The closed loop of the paper as one hybrid system: plant, feedback law and measurement (SPEC §1, §3.3).
+
+State `x = (c, i, q, m, target, e)`: `c` the plant's state (position, and heading for a unicycle), `(i, q)` the
+feedback law's logic variables, `m` the measurement the law reads, `target` a perceived moving target (SPEC §4,
+else None). The four maps are the law's, read at the steered point of the measurement:
+
+    F(x) = plant.flow(c, plant.actuate(m, κ(point(m), i, q)))      flow while x ∈ C = C_κ(point(m), i, q)
+    G(x) = (c, G_κ(point(m), i, q), m)                            jump when  x ∈ D = D_κ(point(m), i, q)
+
+- :class:`SampledLoop` (`sim.model: sampled`): `m` is held between camera frames; at a frame (`sample`) the
+  camera (or the true state) and the disturbance give a new `m`, lost with probability `p_fail` (the last
+  estimate is held; a measurement hook may also return NaN rows, held alike);
+- :class:`ContinuousLoop` (`sim.model: continuous`): `m = c + e` along the flow, the disturbance `e` drawn at the
+  frames from the true state and held (true state only: no camera, no failures).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from pipeline.hybrid import HybridSystem, State
+
+# measure(c_true (n, dim), idx (n,), frame, rng) -> measured states (n, dim), before the disturbance
+Measure = Callable[[np.ndarray, np.ndarray, int, np.random.Generator], np.ndarray]
+# target_fn(t, frame, p_true (n, 2), idx (n,), rng) -> perceived (moving) targets (n, 2)
+TargetFn = Callable[[float, int, np.ndarray, np.ndarray, np.random.Generator], np.ndarray]
+
+
+def true_state(c: np.ndarray, idx: np.ndarray, frame: int, rng: np.random.Generator) -> np.ndarray:
+    """Measurement without a camera: the true state (a disturbance is added on top)."""
+    return c.copy()
+
+
+def _hold(new: np.ndarray, last: np.ndarray) -> np.ndarray:
+    """NaN rows of a measurement are failed frames (e.g. gated by the map's own predicted error): the last
+    estimate is held for those agents, as for `p_fail`."""
+    bad = np.isnan(new).any(axis=1)
+    if bad.any():
+        new = np.array(new, dtype=float)
+        new[bad] = last[bad]
+    return new
+
+
+class _Loop(HybridSystem):
+    """What both time models share: the four maps of the feedback law at the measured point."""
+
+    recorded = ("m", "q", "target")
+
+    def __init__(self, scene, controller, plant, disturbance):
+        self.scene, self.controller, self.plant, self.disturbance = scene, controller, plant, disturbance
+        self.exact = disturbance is None or type(disturbance).__name__ == "NoDisturbance"
+        self._memo = None
+
+    def measured(self, x: State) -> np.ndarray:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def _logic(self, x: State) -> dict:
+        return {k: x.d[k] for k in self.controller.logic}
+
+    def _disturb(self, c: np.ndarray, frame: int, rng) -> np.ndarray:
+        """The disturbance on the position part of a measured state (SPEC §3.5)."""
+        e = self.disturbance(self.plant.position(c), frame, rng, self.scene)
+        if c.shape[1] == 2:
+            return e
+        return np.column_stack([e, np.zeros((len(c), c.shape[1] - 2))])
+
+    def _evaluation(self, x: State):
+        """The law's evaluation at `x` (memo: the last state, or a state with the same held measurement whose
+        logic state the evaluation covers, e.g. the state after this frame's jump)."""
+        if self._memo is not None:
+            x_ref, m_ref, xd_ref, point, ev = self._memo
+            if x is x_ref:
+                return point, ev
+            if m_ref is not None and x.d.get("m") is m_ref and self.controller.covers(ev, xd_ref, self._logic(x)):
+                self._memo = (x, m_ref, self._logic(x), point, ev)
+                return point, ev
+        point = self.plant.point(self.measured(x))
+        xd = self._logic(x)
+        ev = self.controller.evaluate(point, xd, x.d.get("target"))
+        self._memo = (x, x.d.get("m"), xd, point, ev)
+        return point, ev
+
+    def _law(self, x: State):
+        point, ev = self._evaluation(x)
+        return point, self._logic(x), x.d.get("target"), ev
+
+    def input(self, x):
+        point, xd, target, ev = self._law(x)
+        return self.plant.actuate(self.measured(x), self.controller.flow_map(point, xd, target, ev=ev))
+
+    def jump_set(self, x):
+        point, xd, target, ev = self._law(x)
+        return self.controller.jump_set(point, xd, target, ev=ev)
+
+    def jump_map(self, x):
+        point, xd, target, ev = self._law(x)
+        return x.replace(**self.controller.jump_map(point, xd, target, ev=ev))
+
+    def flow_set(self, x):
+        point, xd, target, ev = self._law(x)
+        return self.controller.flow_set(point, xd, target, ev=ev)
+
+    def saturated(self, flow):
+        u_max = getattr(self.controller, "u_max", None)
+        if u_max is None or not np.isfinite(u_max) or self.plant.dim != 2:
+            return None
+        level = float(u_max) * (1.0 - 1e-9)
+        return (flow * flow).sum(axis=1) >= level * level
+
+
+class SampledLoop(_Loop):
+    """The camera in the loop: `m` held between frames, a frame every `every` steps of `dt`."""
+
+    def __init__(self, scene, controller, plant, disturbance=None, *, measure: Measure | None = None,
+                 target_fn: TargetFn | None = None, p_fail: float = 0.0, dt: float = 0.01, every: int = 1):
+        super().__init__(scene, controller, plant, disturbance)
+        self.measure = measure or true_state
+        self.target_fn, self.p_fail, self.dt, self.every = target_fn, float(p_fail), dt, every
+
+    def measured(self, x):
+        return x.m
+
+    def _perceive(self, c, idx, frame, rng):
+        m = self.measure(c, idx, frame, rng)
+        return m if self.exact else m + self._disturb(c, frame, rng)
+
+    def initial(self, c0, rng):
+        """The first frame (always delivered: a vehicle starts with an estimate) and the law's initial state."""
+        c0 = np.array(c0, dtype=float)
+        all_idx = np.arange(len(c0))
+        m = self._perceive(c0, all_idx, 0, rng)
+        target = None
+        if self.target_fn is not None:
+            target = np.asarray(self.target_fn(0.0, 0, self.plant.position(c0), all_idx, rng), dtype=float)
+        xd = self.controller.initial_state(self.plant.point(m), target)
+        return State(c0, m=m, target=target, **xd)
+
+    def sample(self, x, frame, rng, active):
+        n = len(x)
+        fresh = active & (rng.random(n) >= self.p_fail) if self.p_fail > 0 else active
+        t = (frame * self.every) * self.dt
+        m, target = x.m, x.d.get("target")
+        if fresh.all():
+            idx = np.arange(n)
+            m = _hold(self._perceive(x.c, idx, frame, rng), m)
+            if self.target_fn is not None:
+                target = _hold(np.asarray(self.target_fn(t, frame, self.plant.position(x.c), idx, rng), float), target)
+        elif fresh.any():
+            idx = np.flatnonzero(fresh)
+            m = m.copy()
+            m[idx] = _hold(self._perceive(x.c[idx], idx, frame, rng), m[idx])
+            if self.target_fn is not None:
+                target = target.copy()
+                target[idx] = _hold(np.asarray(self.target_fn(t, frame, self.plant.position(x.c[idx]), idx, rng),
+                                               float), target[idx])
+        return x.replace(m=m, target=target)
+
+
+class ContinuousLoop(_Loop):
+    """The paper's continuous-time closed loop: `m = c + e(t_k)` along the flow (true state, held disturbance)."""
+
+    recorded = ("e", "q")
+
+    def measured(self, x):
+        return x.c + x.e
+
+    def initial(self, c0, rng):
+        c0 = np.array(c0, dtype=float)
+        e = np.zeros_like(c0) if self.exact else self._disturb(c0, 0, rng)
+        xd = self.controller.initial_state(self.plant.point(c0 + e))
+        return State(c0, e=e, **xd)
+
+    def sample(self, x, frame, rng, active):
+        return x.replace(e=self._disturb(x.c, frame, rng))

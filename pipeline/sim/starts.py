@@ -1,0 +1,143 @@
+"""Initial conditions (`conf/init/*.yaml`): explicit points, a grid, random starts, starts near the set K.
+
+Each is a typed dataclass (`_target_` of its config) called with the scene: `starts(scene) -> (N, 2)`. Grids and
+random starts cover the arena minus a margin and, with `exclude_diamond`, minus every obstacle's diamond (and
+disc); `NearK` draws within a band of the ray behind an obstacle (the set K of Proposition 1, SPEC §3.4).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from pipeline.control import Scene, in_diamond
+from pipeline.errors import ConfigError
+
+
+def _in_obstacle(scene: Scene, pts: np.ndarray) -> np.ndarray:
+    arr = scene.arrays
+    d = np.hypot(pts[:, None, 0] - arr["center"][None, :, 0], pts[:, None, 1] - arr["center"][None, :, 1])
+    return (d < arr["radius"][None]).any(axis=1)
+
+
+def _outside(scene: Scene, pts: np.ndarray) -> np.ndarray:
+    """Not in any diamond nor on any obstacle disc (a start the hybrid controller can be given)."""
+    arr = scene.arrays
+    d = np.hypot(pts[:, None, 0] - arr["center"][None, :, 0], pts[:, None, 1] - arr["center"][None, :, 1])
+    return ~in_diamond(scene, pts) & (d > arr["radius"][None]).all(axis=1)
+
+
+def _box(scene: Scene, margin: float, field_: str):
+    (x0, x1), (y0, y1) = scene.bounds
+    if not (x0 + margin < x1 - margin and y0 + margin < y1 - margin):
+        raise ConfigError(f"{field_}.margin", f"{margin:g} leaves no room in the arena")
+    return (x0 + margin, x1 - margin), (y0 + margin, y1 - margin)
+
+
+def _nonempty(pts: np.ndarray, field_: str) -> np.ndarray:
+    if len(pts) == 0:
+        raise ConfigError(field_, "no initial condition left after excluding the diamonds")
+    return pts
+
+
+@dataclass(frozen=True)
+class Points:
+    """Explicit initial conditions (the paper's two by default)."""
+
+    points: list[list[float]] = field(default_factory=lambda: [[-12.0, 2.0], [-37.0, -17.0]])
+
+    def __post_init__(self):
+        if not self.points or any(len(p) != 2 for p in self.points):
+            raise ConfigError("init.points", f"must be a non-empty list of [x, y] pairs, got {self.points!r}")
+
+    def __call__(self, scene: Scene, field_: str = "init") -> np.ndarray:
+        pts = np.asarray(self.points, dtype=float)
+        inside = _in_obstacle(scene, pts)
+        if inside.any():
+            i = int(np.flatnonzero(inside)[0])
+            raise ConfigError(f"{field_}.points", f"start {pts[i].tolist()} lies inside an obstacle")
+        return pts
+
+
+@dataclass(frozen=True)
+class Grid:
+    """A regular grid over the arena minus a margin (and the diamonds)."""
+
+    nx: int = 21
+    ny: int = 13
+    margin: float = 2.0
+    exclude_diamond: bool = True
+
+    def __post_init__(self):
+        for k in ("nx", "ny"):
+            if getattr(self, k) < 1:
+                raise ConfigError(f"init.{k}", f"must be >= 1, got {getattr(self, k)}")
+        if self.margin < 0:
+            raise ConfigError("init.margin", f"must be >= 0, got {self.margin}")
+
+    def __call__(self, scene: Scene, field_: str = "init") -> np.ndarray:
+        (x0, x1), (y0, y1) = _box(scene, self.margin, field_)
+        pts = np.stack(np.meshgrid(np.linspace(x0, x1, self.nx), np.linspace(y0, y1, self.ny)), axis=-1).reshape(-1, 2)
+        return _nonempty(pts[_outside(scene, pts)] if self.exclude_diamond else pts, field_)
+
+
+@dataclass(frozen=True)
+class Random:
+    """Uniform over the arena minus a margin (and the diamonds), seeded."""
+
+    n: int = 1000
+    seed: int = 0
+    margin: float = 2.0
+    exclude_diamond: bool = True
+
+    def __post_init__(self):
+        if self.n < 1:
+            raise ConfigError("init.n", f"must be >= 1, got {self.n}")
+        if self.seed < 0:
+            raise ConfigError("init.seed", f"must be >= 0, got {self.seed}")
+        if self.margin < 0:
+            raise ConfigError("init.margin", f"must be >= 0, got {self.margin}")
+
+    def __call__(self, scene: Scene, field_: str = "init") -> np.ndarray:
+        (x0, x1), (y0, y1) = _box(scene, self.margin, field_)
+        rng = np.random.default_rng(self.seed)
+        pts = rng.uniform([x0, y0], [x1, y1], size=(4 * self.n + 16, 2))
+        if self.exclude_diamond:
+            pts = pts[_outside(scene, pts)]
+        return _nonempty(pts[: self.n], field_)
+
+
+@dataclass(frozen=True)
+class NearK:
+    """Within `band` of the set K of Proposition 1 behind obstacle `obstacle` (`a` in `a_range` of its frame,
+    `|b| < band`); with several obstacles and `obstacle: null`, the starts are dealt out over every obstacle."""
+
+    n: int = 200
+    seed: int = 0
+    band: float = 0.5
+    a_range: list[float] = field(default_factory=lambda: [-45.0, -15.0])
+    obstacle: int | None = None
+
+    def __post_init__(self):
+        if self.n < 1:
+            raise ConfigError("init.n", f"must be >= 1, got {self.n}")
+        if self.seed < 0:
+            raise ConfigError("init.seed", f"must be >= 0, got {self.seed}")
+        if not self.band > 0:
+            raise ConfigError("init.band", f"must be > 0, got {self.band}")
+        if not (len(self.a_range) == 2 and self.a_range[0] < self.a_range[1]):
+            raise ConfigError("init.a_range", f"must be [min, max] with min < max, got {self.a_range!r}")
+
+    def __call__(self, scene: Scene, field_: str = "init") -> np.ndarray:
+        rng = np.random.default_rng(self.seed)
+        a = rng.uniform(*self.a_range, self.n)
+        b = rng.uniform(-self.band, self.band, self.n)
+        if scene.n_obstacles == 1 or self.obstacle is not None:
+            return scene.covering(self.obstacle or 0).from_frame(a, b)
+        which = np.arange(self.n) % scene.n_obstacles
+        out = np.empty((self.n, 2))
+        for i in range(scene.n_obstacles):
+            rows = which == i
+            out[rows] = scene.covering(i).from_frame(a[rows], b[rows])
+        return out
