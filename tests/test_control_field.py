@@ -14,7 +14,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from pipeline.control import Scene
-from pipeline.control.field import (
+from pipeline.control.validity import (
     AUTHORS_MULTI,
     DEFAULT_ARENA,
     analyse_field,

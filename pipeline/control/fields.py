@@ -1,0 +1,326 @@
+"""Several-obstacle fields (SPEC §3.6): seeded random valid fields drawn by rejection against V1–V3, the named
+fields (the authors' 12-disc field, two discs in a row), and the analysis of which apex / barrier settings make
+a field valid."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from pipeline.control.validity import (
+    ARENA_FIELD,
+    DEFAULT_APEX_FACTOR,
+    DEFAULT_ARENA,
+    DEFAULT_BARRIER_RHO,
+    OBSTACLES_FIELD,
+    RANDOM_FIELD,
+    SQRT2,
+    STARTS_FIELD,
+    TARGET_FIELD,
+    _arena,
+    _fmt,
+    _loop_params,
+    _points,
+    _positive,
+    barrier_reach,
+    diamond_signed_distance,
+    field_geometry,
+    field_violations,
+    to_frames,
+)
+from pipeline.errors import ConfigError
+
+
+def random_field(
+    n_obstacles: int,
+    *,
+    seed: int,
+    arena=DEFAULT_ARENA,
+    radius_range: tuple[float, float] = (2.0, 4.0),
+    target=(40.0, 0.0),
+    starts=None,
+    start_clearance: float | None = None,
+    h: float = 1.0,
+    u_max: float | None = 10.0,
+    T_s: float | None = 0.05,
+    apex_factor: float = DEFAULT_APEX_FACTOR,
+    barrier_rho: float = DEFAULT_BARRIER_RHO,
+    barrier_scale_factor: float = 1.0,
+    inflation: float = 0.0,
+    margin: float = 0.0,
+    batch: int = 256,
+    batches_per_obstacle: int = 8,
+    max_restarts: int = 25,
+) -> tuple[np.ndarray, np.ndarray]:
+    """A seeded random field valid under SPEC §3.6: `(centers (M, 2), radii (M,))`.
+
+    Radii are uniform in `radius_range`; apex `c^a_i = apex_factor (r_i + inflation)`, barrier scale
+    `l_i = barrier_scale_factor (r_i + inflation)`, reach `sqrt(barrier_rho) l_i`. Each obstacle in turn is the
+    first of a batch of `batch` candidates (centres uniform over the arena shrunk by `r + margin`) that passes
+    V1, the start condition and V2/V3 against the obstacles already placed; after `batches_per_obstacle` empty
+    batches the field is redrawn from scratch, at most `max_restarts` times, then ConfigError. Deterministic
+    in `seed`; the result is checked with `field_violations` (same `margin`)."""
+    M = int(n_obstacles)
+    if M < 1 or M != n_obstacles:
+        raise ConfigError(f"{RANDOM_FIELD}.n_obstacles", f"must be an integer >= 1, got {n_obstacles!r}")
+    box = _arena(arena)
+    if box is None:
+        raise ConfigError(ARENA_FIELD, "random_field needs an arena")
+    r_lo, r_hi = (float(x) for x in radius_range)
+    if not (0 < r_lo <= r_hi and math.isfinite(r_hi)):
+        raise ConfigError(f"{RANDOM_FIELD}.radius_range", f"must be 0 < r_min <= r_max, got {radius_range!r}")
+    if not apex_factor > SQRT2:
+        raise ConfigError(f"{RANDOM_FIELD}.apex_factor", f"must exceed sqrt(2) (the diamond must contain the disc), got {apex_factor!r}")
+    rho_b = _positive(barrier_rho, f"{RANDOM_FIELD}.barrier_rho")
+    scale_f = _positive(barrier_scale_factor, f"{RANDOM_FIELD}.barrier_scale_factor")
+    h, step = _loop_params(h, u_max, T_s)
+    margin = float(margin)
+    d = float(inflation)
+    p_T = _points(target, TARGET_FIELD)[0]
+    P = np.zeros((0, 2)) if starts is None else _points(starts, STARTS_FIELD)
+    clear = d if start_clearance is None else float(start_clearance)
+    k_R = apex_factor + SQRT2 * math.sqrt(rho_b) * scale_f  # R_i = k_R (r_i + d)
+    half = (box[:, 1] - box[:, 0]) / 2.0
+    if r_lo + margin >= half.min():
+        raise ConfigError(f"{RANDOM_FIELD}.radius_range", f"a disc of radius {r_lo} (margin {margin}) does not fit the arena {arena!r}")
+    named = [(TARGET_FIELD, p_T)] + [(f"{STARTS_FIELD}[{k}]", P[k]) for k in range(len(P))]
+    for name, pt in named:
+        if np.any(pt < box[:, 0]) or np.any(pt > box[:, 1]):
+            raise ConfigError(name, f"({_fmt(pt[0])}, {_fmt(pt[1])}) lies outside the arena {box.tolist()}")
+    gap_need = max(2.0 * step, 0.0) + 2.0 * margin  # V2 (gap > 0) and V3 (gap / 2 > u_max T_s), with the margin
+    rng = np.random.default_rng(seed)
+    for _ in range(max_restarts):
+        cs, rs, Rs = np.zeros((0, 2)), np.zeros(0), np.zeros(0)
+        for _m in range(M):
+            chosen = None
+            for _b in range(batches_per_obstacle):
+                r = rng.uniform(r_lo, min(r_hi, half.min() - margin - 1e-9), batch)
+                u = rng.uniform(0.0, 1.0, (batch, 2))
+                lo = box[:, 0] + (r + margin)[:, None]
+                span = np.maximum((box[:, 1] - box[:, 0]) - 2.0 * (r + margin)[:, None], 0.0)
+                c = lo + u * span
+                R = k_R * (r + d)
+                ok = np.hypot(*(p_T - c).T) > R + margin  # V1
+                if len(P):
+                    a_ = apex_factor * (r + d)
+                    ok &= np.all(diamond_signed_distance(P, c, a_, p_T) > clear + margin, axis=0)
+                if len(rs):
+                    dij = np.hypot(*np.moveaxis(c[:, None, :] - cs[None, :, :], -1, 0))
+                    ok &= np.all(dij - R[:, None] - Rs[None, :] - h > gap_need, axis=1)
+                idx = np.flatnonzero(ok)
+                if idx.size:
+                    chosen = idx[0]
+                    break
+            if chosen is None:
+                break
+            cs = np.vstack([cs, c[chosen]])
+            rs = np.append(rs, r[chosen])
+            Rs = np.append(Rs, R[chosen])
+        if len(rs) == M:
+            kw = dict(apex=apex_factor * (rs + d), reach=barrier_reach(rho_b, scale_f * (rs + d)), h=h, u_max=u_max,
+                      T_s=T_s, arena=box, starts=P if len(P) else None, inflation=d, start_clearance=clear, margin=margin)
+            left = field_violations(cs, rs, p_T, **kw)
+            if not left:
+                return cs, rs
+            raise AssertionError(f"random_field drew an invalid field: {left[0].line}")  # pragma: no cover
+    raise ConfigError(
+        f"{RANDOM_FIELD}.n_obstacles",
+        f"no valid field of {M} obstacles found in {max_restarts} tries (influence radius R = {_fmt(k_R)} (r + d), "
+        f"radii {r_lo}..{r_hi}, arena {box.tolist()}): use fewer or smaller discs, a larger arena, or a smaller "
+        f"apex factor or barrier",
+    )
+
+
+# ----------------------------------------------------------------------------- example fields
+def _frozen(a) -> np.ndarray:
+    a = np.array(a, dtype=float)
+    a.setflags(write=False)
+    return a
+
+
+@dataclass(frozen=True, eq=False)
+class FieldExample:
+    """A named field: discs `(M, 3)` rows `[x, y, r]`, target `(2,)`, starts `(K, 2)`, arena `(2, 2)`."""
+
+    name: str
+    discs: np.ndarray
+    target: np.ndarray
+    starts: np.ndarray
+    arena: np.ndarray
+    note: str = ""
+
+    def __post_init__(self):
+        for k in ("discs", "target", "starts", "arena"):
+            object.__setattr__(self, k, _frozen(getattr(self, k)))
+
+    @property
+    def centers(self) -> np.ndarray:
+        return self.discs[:, :2]
+
+    @property
+    def radii(self) -> np.ndarray:
+        return self.discs[:, 2]
+
+
+AUTHORS_MULTI = FieldExample(
+    name="authors_multi",
+    discs=[[-84, 16, 8], [-64, -20, 5], [-50, 34, 9], [-36, 0, 6], [-16, -28, 6], [-4, 24, 5], [14, -6, 9],
+           [36, 16, 4], [34, -36, 8], [74, 30, 7], [70, -4, 8], [70, -34, 5]],
+    target=[90.0, 40.0],
+    starts=[[-90.0, 0.0]],
+    arena=[[-100.0, 100.0], [-50.0, 50.0]],
+    note="the authors' follow-up code: 12 discs in a 200 x 100 arena centred on the origin",
+)
+
+
+def two_in_row() -> FieldExample:
+    """Two discs of the default radius 4 in a row on the segment from the start (-40, 0) to the default target
+    (40, 0), in the default arena: valid with every default (apex 2 sqrt(2) r, rho_b = 0.5, l = r, h = 1,
+    u_max = 10, T_s = 0.05). Centres 34 apart (V3 needs > 2 R + h + 2 u_max T_s = 32.63)."""
+    return FieldExample(
+        name="two_in_row",
+        discs=[[-14.0, 0.0, 4.0], [20.0, 0.0, 4.0]],
+        target=[40.0, 0.0],
+        starts=[[-40.0, 0.0]],
+        arena=[list(DEFAULT_ARENA[0]), list(DEFAULT_ARENA[1])],
+        note="two default discs in a row between the start and the target",
+    )
+
+
+# ----------------------------------------------------------------------------- feasibility of a given field
+def _start_apex_bound(starts, centers, radii, target, clearance: float) -> np.ndarray:
+    """Per start and obstacle, the supremum of apex factors `f` (apex `f r_i`) that keep the start more than
+    `clearance` from the diamond, `(K, M)` (bisection on the signed distance, decreasing in the apex)."""
+    P = np.asarray(starts, dtype=float).reshape(-1, 2)
+    r = np.asarray(radii, dtype=float)
+    a, b = to_frames(P, centers, target)
+    if clearance == 0:
+        return (np.abs(a) + np.abs(b)) / r
+    lo = np.zeros(a.shape)
+    hi = (np.abs(a) + np.abs(b)) / r
+    for _ in range(60):
+        mid = (lo + hi) / 2
+        half = mid * r / SQRT2
+        ex, ey = np.abs(a + b) / SQRT2 - half, np.abs(b - a) / SQRT2 - half
+        sd = np.hypot(np.maximum(ex, 0), np.maximum(ey, 0)) + np.minimum(np.maximum(ex, ey), 0)
+        ok = sd > clearance
+        lo, hi = np.where(ok, mid, lo), np.where(ok, hi, mid)
+    return lo
+
+
+@dataclass(frozen=True, eq=False)
+class FieldAnalysis:
+    """Which covering settings make a field valid (SPEC §3.6), for settings uniform in the (inflated) radius:
+    apex `c^a_i = f rr_i`, reach `rho_i = g rr_i` (`g = sqrt(rho_b) l_i / rr_i`, `rr_i = r_i + inflation`), so
+    `R_i = kappa rr_i` with `kappa = f + sqrt(2) g`. V1–V3 depend on `kappa` only; the start condition on `f`
+    only; `f > sqrt(2)` and `g > 0`, so `kappa > sqrt(2)`. Every `*_max` is a supremum (strict bound).
+
+    The field admits some setting (uniform or not: every condition is monotone in each `R_i` and apex) iff
+    `kappa_max > sqrt(2)` and `start_apex_max > sqrt(2)`.
+    """
+
+    h: float
+    u_max: float | None
+    T_s: float | None
+    inflation: float
+    pairs: np.ndarray            # (P, 2) obstacle indices i < j, sorted by pair_kappa
+    pair_distance: np.ndarray    # (P,) |c_i - c_j|
+    pair_kappa: np.ndarray       # (P,) sup kappa that passes V2 and V3 for this pair
+    pair_binding: tuple          # (P,) 'V3' (sampled loop) or 'V2'
+    target_kappa: np.ndarray     # (M,) sup kappa that passes V1: |p_T - c_i| / rr_i
+    kappa_max: float             # sup uniform kappa over V1–V3
+    kappa_binding: tuple         # (field, condition) of the binding constraint
+    start_apex: np.ndarray       # (K, M) sup apex factor f keeping start k clear of obstacle i's diamond
+    start_apex_max: float
+    apex_factor_max: float       # sup f over every condition (as the reach -> 0): min(kappa_max, start_apex_max)
+    reach_factor_max: float      # sup g (as f -> sqrt 2): (kappa_max - sqrt 2) / sqrt 2
+    rho_b_max_at_l_r: float      # sup rho_b with l_i = rr_i, f -> sqrt 2 (g^2)
+    rho_b_max_authors_apex: float  # sup rho_b with l_i = rr_i and the authors' code's apex f = 1.5
+    default_apex_factor_max: float  # sup f with SPEC's barrier (rho_b = 0.5, l = rr: sqrt(2) g = 1): kappa_max - 1
+    R_headroom: np.ndarray       # (M,) sup R_i with every other R_j at its least sqrt(2) rr_j (non-uniform)
+    feasible: bool
+    defaults_violations: list = field(default_factory=list)  # SPEC defaults: apex 2 sqrt2 rr, rho_b 0.5, l = rr
+    example: dict = field(default_factory=dict)              # a valid setting and its violations (empty)
+
+    def summary(self) -> str:
+        i, j = (int(x) for x in self.pairs[0])
+        s2 = SQRT2
+        lines = [(f"R_i = kappa (r_i + d), kappa = f + sqrt(2) g (apex f (r_i + d), reach g (r_i + d)), "
+                  f"d = {self.inflation}: V1–V3 need kappa < {self.kappa_max:.4f} (binding {self.kappa_binding[0]}, "
+                  f"{self.kappa_binding[1]}); every setting has kappa > sqrt(2) = {s2:.4f}.")]
+        lines.append(f"{'Feasible' if self.feasible else 'Infeasible'}: largest uniform apex factor {self.apex_factor_max:.4f} "
+                     f"(reach -> 0; the start allows f < {self.start_apex_max:.4f}); largest reach factor "
+                     f"{self.reach_factor_max:.4f} (f -> sqrt 2), i.e. rho_b < {self.rho_b_max_at_l_r:.4f} at l = r; "
+                     f"with the authors' apex 1.5 r: rho_b < {self.rho_b_max_authors_apex:.4f} at l = r.")
+        lines.append(f"SPEC defaults (kappa = {DEFAULT_APEX_FACTOR + 1:.4f}) fail: {len(self.defaults_violations)} "
+                     f"violations; with SPEC's barrier (rho_b = 0.5, l = r) the apex factor must be < "
+                     f"{self.default_apex_factor_max:.4f} {'<' if self.default_apex_factor_max <= s2 else '>'} sqrt(2).")
+        lines.append(f"Tightest pair: ({i}, {j}), {self.pair_binding[0]}, kappa < {self.pair_kappa[0]:.4f}.")
+        return "\n".join(lines)
+
+
+def analyse_field(
+    centers, radii, target, *, starts=None, arena=None, h: float = 1.0, u_max: float | None = 10.0,
+    T_s: float | None = 0.05, inflation: float = 0.0, start_clearance: float | None = None,
+    example: tuple[float, float, float] = (1.5, 0.25, 0.5),
+) -> FieldAnalysis:
+    """The settings under which a given field is valid (see FieldAnalysis). `example` = `(f, rho_b, l / rr)`
+    is checked with `field_violations` and recorded with its violations (empty when valid)."""
+    g0 = field_geometry(centers, radii, target, inflation=inflation)
+    h, step = _loop_params(h, u_max, T_s)
+    sampled = u_max is not None and T_s is not None
+    c, rr, p_T = g0.centers, g0.cover_radii, g0.target
+    d = float(inflation)
+    clear = d if start_clearance is None else float(start_clearance)
+    ii, jj = np.triu_indices(len(rr), 1)
+    dij = np.hypot(*(c[ii] - c[jj]).T)
+    pair_k = (dij - h - 2.0 * step) / (rr[ii] + rr[jj])
+    order = np.argsort(pair_k, kind="stable")
+    target_k = np.hypot(*(p_T - c).T) / rr
+    cand = [(float(target_k.min()), f"{OBSTACLES_FIELD}[{int(np.argmin(target_k))}]", "V1")]
+    if len(ii):
+        t = order[0]
+        cand.append((float(pair_k[t]), f"{OBSTACLES_FIELD}[{ii[t]},{jj[t]}]", "V3" if sampled else "V2"))
+    kappa_max, *binding = min(cand, key=lambda x: x[0])
+    P = np.zeros((0, 2)) if starts is None else _points(starts, STARTS_FIELD)
+    start_apex = _start_apex_bound(P, c, rr, p_T, clear) if len(P) else np.full((0, len(rr)), np.inf)
+    start_max = float(start_apex.min()) if start_apex.size else math.inf
+    reach_f = (kappa_max - SQRT2) / SQRT2
+    R_head = target_k * rr
+    if len(ii):
+        lim = dij - h - 2.0 * step
+        head = np.full((len(rr), len(rr)), np.inf)
+        head[ii, jj] = lim - SQRT2 * rr[jj]
+        head[jj, ii] = lim - SQRT2 * rr[ii]
+        R_head = np.minimum(R_head, head.min(axis=1))
+    kw = dict(h=h, u_max=u_max, T_s=T_s, arena=arena, starts=P if len(P) else None, inflation=d, start_clearance=clear)
+    arena_ok = not [v for v in field_violations(c, g0.radii, p_T, **kw) if v.condition == "arena"]
+    f_ex, rho_ex, l_ex = example
+    ex_kw = dict(apex=f_ex * rr, reach=barrier_reach(rho_ex, l_ex * rr))
+    return FieldAnalysis(
+        h=h, u_max=u_max, T_s=T_s, inflation=d,
+        pairs=np.stack([ii[order], jj[order]], axis=1), pair_distance=dij[order], pair_kappa=pair_k[order],
+        pair_binding=tuple(("V3" if sampled else "V2") for _ in order), target_kappa=target_k,
+        kappa_max=kappa_max, kappa_binding=tuple(binding), start_apex=start_apex, start_apex_max=start_max,
+        apex_factor_max=min(kappa_max, start_max), reach_factor_max=reach_f,
+        rho_b_max_at_l_r=max(reach_f, 0.0) ** 2, rho_b_max_authors_apex=max((kappa_max - 1.5) / SQRT2, 0.0) ** 2,
+        default_apex_factor_max=kappa_max - 1.0, R_headroom=R_head,
+        feasible=bool(kappa_max > SQRT2 and start_max > SQRT2 and arena_ok),
+        defaults_violations=field_violations(c, g0.radii, p_T, **kw),
+        example=dict(apex_factor=f_ex, rho_b=rho_ex, scale_factor=l_ex,
+                     violations=field_violations(c, g0.radii, p_T, **ex_kw, **kw)),
+    )
+
+
+def authors_multi_analysis(*, h: float = 1.0, u_max: float | None = 10.0, T_s: float | None = 0.05,
+                           inflation: float = 0.0) -> FieldAnalysis:
+    """`analyse_field` on AUTHORS_MULTI (its start and arena) with h = 1, u_max = 10, T_s = 0.05 by default."""
+    F = AUTHORS_MULTI
+    return analyse_field(F.centers, F.radii, F.target, starts=F.starts, arena=F.arena, h=h, u_max=u_max, T_s=T_s,
+                         inflation=inflation)
+
+
+__all__ = ["AUTHORS_MULTI", "FieldAnalysis", "FieldExample", "analyse_field", "authors_multi_analysis", "random_field",
+           "two_in_row"]
