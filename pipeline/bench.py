@@ -17,14 +17,14 @@ import os
 import sys
 import time
 
+import torch
+
 AREAS = ("sim", "data", "train", "errormap", "experiments")
 
 
 @functools.cache
 def ceiling_gflops(device: str = "cpu", quick: bool = False) -> float:
     """fp32 GFLOP/s of a large square matrix multiply on `device` (best of several): what the device can do."""
-    import torch
-
     n, repeat = (1024, 3) if quick else ((2048, 8) if device == "cpu" else (8192, 10))
     a = torch.randn(n, n, device=device)
     b = torch.randn(n, n, device=device)
@@ -41,10 +41,6 @@ def ceiling_gflops(device: str = "cpu", quick: bool = False) -> float:
 
 
 def ceiling_rows(quick: bool = False) -> list[dict]:
-    try:
-        import torch
-    except ImportError:  # pragma: no cover
-        return []
     rows = []
     for dev in ["cpu"] + (["cuda"] if torch.cuda.is_available() else []):
         g = ceiling_gflops(dev, quick)

@@ -69,7 +69,7 @@ def build(node, path: str, /, **kwargs):
     clean = OmegaConf.masked_copy(node, [k for k in node.keys() if k not in drop]) if drop else node
     try:
         # partial first: Hydra would turn a dataclass keyword (a Scene) into a config node
-        obj = instantiate(clean, _partial_=True, _convert_="all")(**kwargs)
+        obj = instantiate(clean, _partial_=True, _convert_="all", _recursive_=False)(**kwargs)
     except ConfigError as err:
         raise _reprefix(err, path) from None
     except PipelineError:
@@ -120,7 +120,10 @@ def _plain_value(node: DictConfig, key):
 def check_node(node: DictConfig, path: str, given: Iterable[str] = ()) -> None:
     """The keys and values of one `_target_` node against its target's signature (`given`: keywords the caller
     passes itself)."""
-    sig = signature(str(node["_target_"]))
+    try:
+        sig = signature(str(node["_target_"]))
+    except ConfigError as err:
+        raise ConfigError(f"{path}._target_" if path else "_target_", err.reason) from None
     if sig is None:
         return
     for k in node.keys():

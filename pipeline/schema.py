@@ -161,13 +161,54 @@ def _from_source(target: str, depth: int = 0) -> Signature | None:
 
 def _args(target: str, fn: ast.FunctionDef) -> Signature:
     a = fn.args
-    names = [x.arg for x in (*a.posonlyargs, *a.args, *a.kwonlyargs) if x.arg != "self"]
+    args = [x for x in (*a.posonlyargs, *a.args, *a.kwonlyargs) if x.arg != "self"]
     n_pos = len(a.posonlyargs) + len(a.args)
     pos_defaults = n_pos - len(a.defaults)
     pos = [x.arg for x in (*a.posonlyargs, *a.args)]
     required = [n for i, n in enumerate(pos) if i >= 0 and i < pos_defaults and n != "self"]
     required += [x.arg for x, d in zip(a.kwonlyargs, a.kw_defaults) if d is None]
-    return Signature(target, dict.fromkeys(names), tuple(required), a.kwarg is not None)
+    own = target.split(".")[0] == "pipeline"  # the project's annotations are simple; another package's are not read
+    params = {x.arg: (_annotation(x.annotation) if own else None) for x in args}
+    return Signature(target, params, tuple(required), a.kwarg is not None)
+
+
+# annotations of a target read from its source (not imported): builtins, `X | None`, `Literal[...]`, and
+# `Sequence[X]` read as `list[X]` (a config value is a list); anything else is not checked here (None)
+_SOURCE_NAMES = {"float": float, "int": int, "bool": bool, "str": str, "list": list, "tuple": tuple, "dict": dict,
+                 "Sequence": list, "Literal": typing.Literal, "Any": Any}
+
+
+def _annotation(node):
+    try:
+        return _read_annotation(node)
+    except (KeyError, TypeError, ValueError):
+        return None
+
+
+def _read_annotation(node):
+    if node is None:
+        raise ValueError("no annotation")
+    if isinstance(node, ast.Constant):
+        if isinstance(node.value, str) and not node.value.isidentifier():  # a quoted annotation
+            return _read_annotation(ast.parse(node.value, mode="eval").body)
+        return node.value if node.value is not None else type(None)
+    if isinstance(node, ast.Name):
+        return _SOURCE_NAMES[node.id]
+    if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id in ("typing", "abc"):
+        return _SOURCE_NAMES[node.attr]
+    if isinstance(node, ast.BinOp) and isinstance(node.op, ast.BitOr):
+        return _read_annotation(node.left) | _read_annotation(node.right)
+    if isinstance(node, ast.Subscript):
+        base = _read_annotation(node.value)
+        items = node.slice.elts if isinstance(node.slice, ast.Tuple) else [node.slice]
+        if base is typing.Literal:
+            if not all(isinstance(e, ast.Constant) for e in items):
+                raise ValueError("Literal of non-constants")
+            return typing.Literal[tuple(e.value for e in items)]
+        args = tuple(Ellipsis if isinstance(e, ast.Constant) and e.value is Ellipsis else _read_annotation(e)
+                     for e in items)
+        return base[args if len(args) > 1 else args[0]]
+    raise ValueError("not a simple annotation")
 
 
 # ---------------------------------------------------------------------------------------------- types
@@ -199,12 +240,16 @@ def check_value(value, tp, path: str) -> None:
         options = typing.get_args(tp)
         if value is None and type(None) in options:
             return
+        inner = []
         for opt in options:
             try:
                 check_value(value, opt, path)
                 return
-            except ConfigError:
-                continue
+            except ConfigError as err:
+                if err.field != path:  # the value has this option's shape: the error is inside it
+                    inner.append(err)
+        if inner:
+            raise inner[0]
         raise ConfigError(path, f"must be {describe(tp)}, got {value!r}")
     if origin is typing.Literal:
         if value not in typing.get_args(tp):

@@ -41,6 +41,8 @@ class Feedback:
     logic: tuple[str, ...] = ("q",)  # logic variables (a law without modes keeps q = 1)
 
     def __init__(self, scene: Scene, k: float = 1.0, u_max: float | None = 10.0, push_speed: float | None = None):
+        if not isinstance(scene, Scene):
+            raise TypeError(f"scene must be a pipeline.control.Scene, got {type(scene).__name__}")
         if not k > 0:
             raise ConfigError("controller.k", f"must be > 0, got {k!r}")
         if u_max is not None and not u_max > 0:

@@ -55,8 +55,8 @@ class HybridController(Feedback):
     def __init__(self, scene: Scene, k: float = 1.0, chi: float = 1.1, lam: float = 0.09,
                  u_max: float | None = 10.0, push_speed: float | None = None, cell_hysteresis: float = 1.0):
         super().__init__(scene, k=k, u_max=u_max, push_speed=push_speed)
-        if not chi > 1:
-            raise ConfigError("controller.chi", f"must be > 1 (hysteresis), got {chi!r}")
+        if not (math.isfinite(chi) and chi > 1):
+            raise ConfigError("controller.chi", f"must be a finite number > 1 (hysteresis), got {chi!r}")
         if not 0 < lam < chi - 1:
             raise ConfigError("controller.lam", f"must be in (0, chi - 1) = (0, {chi - 1:.6g}), got {lam!r}")
         if not cell_hysteresis > 0:

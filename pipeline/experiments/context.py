@@ -18,7 +18,7 @@ from pipeline import lineage, tracking
 from pipeline.config import build, settings
 from pipeline.control import Scene
 from pipeline.errormap.read import load_error_map
-from pipeline.errors import ConfigError
+from pipeline.errors import ConfigError, DatasetError, ModelError
 from pipeline.experiments.settings import ExperimentSettings
 from pipeline.perception.measure import CameraMeasure, FollowerTarget, LeaderTrack, OracleMap
 from pipeline.render import load_occlusion
@@ -128,7 +128,10 @@ class Context:
         ref = (tracking.to_plain(self.cfg.maps) or {}).get(kind)
         if ref is None:
             raise ConfigError(f"maps.{kind}", "no perception map configured")
-        return lineage.resolve_map(ref, self.cfg.paths.models_dir, field=f"maps.{kind}")
+        try:
+            return lineage.resolve_map(ref, self.cfg.paths.models_dir, field=f"maps.{kind}")
+        except DatasetError as err:  # unknown name/id: the map's error, as load_perception_map reports it
+            raise ModelError(str(err)) from None
 
     def perception_map(self, kind: str = "clean"):
         if kind in self._maps:

@@ -88,7 +88,7 @@ class PerceptionGeneralisation(Scenario):
         for level in self.levels:
             load_occlusion(level, ctx.cfg.occlusions, field="experiment.levels")
         super().check(ctx)
-        specs = {name: _camera_spec(ctx.perception_map(name)) for name in self.maps}
+        specs = {name: _camera_spec(ctx.map_folder(name)) for name in self.maps}  # resolved by id, not loaded
         first = self.maps[0]
         for name, spec in specs.items():
             if spec is not None and specs[first] is not None and spec != specs[first]:
@@ -173,9 +173,9 @@ def _predict(pm, images, positions) -> np.ndarray:
     return pm.predict(images)
 
 
-def _camera_spec(pm) -> str | None:
-    """The render and scene settings a map was trained with (None: not recorded, e.g. a perfect map)."""
-    manifest = getattr(pm, "manifest", None) or {}
+def _camera_spec(folder) -> str | None:
+    """The render and scene settings the map in `folder` was trained with (None: a perfect map, or not recorded)."""
+    manifest = {} if folder is None else tracking.read_manifest(folder)
     if "render" not in manifest:
         return None
     return tracking.canonical_json([manifest.get("render"), manifest.get("scene")])

@@ -28,7 +28,7 @@ import numpy as np
 
 from pipeline.hybrid.state import State
 from pipeline.hybrid.steppers import dopri5_step, error_norm, hermite, jacobian, locate, rosenbrock23_step
-from pipeline.hybrid.system import Arc, HybridSystem, Monitor, record_rows
+from pipeline.hybrid.system import Arc, HybridSystem, Monitor, record_rows, row_norm
 
 METHODS = ("rosenbrock23", "dopri5")
 _INSIDE = np.arange(1, 8) / 8.0  # interior points of a step that may graze the first stop set
@@ -73,6 +73,8 @@ class _Run:
 
     def __init__(self, system, x0, monitor, *, rtol, atol, h_max, method, record_grid, horizon):
         self.sys, self.mon = system, monitor
+        # the arc length is that of the plant's position (a projection of `c`, so its rate is the projection of F)
+        self.pos = system.plant.position if system.plant is not None else (lambda c: c)
         self.x = x0.replace(c=np.array(x0.c, dtype=float))
         n = len(x0)
         self.rtol, self.atol, self.h_max = rtol, atol, h_max
@@ -176,7 +178,7 @@ class _Run:
         s0, s1 = self.sys.saturated(F0), self.sys.saturated(F1)
         if s0 is None:
             return np.zeros(len(H), dtype=bool)
-        return (s0 != s1) & (H * np.maximum(np.hypot(*F0.T[:2]), np.hypot(*F1.T[:2])) > self.kink_len)
+        return (s0 != s1) & (H * np.maximum(row_norm(self.pos(F0)), row_norm(self.pos(F1))) > self.kink_len)
 
     def events(self, ia, xa: State, Pa, Fa, P1a, F1a, Ha, t0):
         """Events inside the accepted steps: `(theta, kind, inner)`; kind 0 none, k >= 1 stop set k, -1 a jump.
@@ -247,8 +249,8 @@ class _Run:
             self.grid.fill(ia, t_a0, t_a1, Pa, Fa, P1a, F1a, Ha, {**extra, "j": self.jumps[ia]})
         t[a] = t_a1
         # path length: the integral of the speed (trapezoid on |F|, exact when saturated); the chord when cut
-        chord = np.hypot(*(Pn - Pa).T[:2])
-        trap = 0.5 * Ha * (np.hypot(*Fa.T[:2]) + np.hypot(*F1a.T[:2]))
+        chord = row_norm(self.pos(Pn) - self.pos(Pa))
+        trap = 0.5 * Ha * (row_norm(self.pos(Fa)) + row_norm(self.pos(F1a)))
         self.path[ia] += np.where(cut, chord, np.maximum(chord, trap))
         self.x.c[ia] = Pn
         self.f0[ia] = Fn

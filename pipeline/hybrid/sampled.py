@@ -5,6 +5,10 @@ measurement is taken), (2) jumps where `x ∈ D` (at most one jump per frame; ju
 the states left outside `C ∪ D` (where the flow map is only a fallback, SPEC §3.3), (4) holds the input
 `w = input(x)`. Between frames the plant integrates the held input exactly (`plant.step`), one step of `dt`
 at a time, and the monitor checks its stop sets after every step. Nothing here names a controller or a plant.
+
+The arc length is that of the plant's position: `dt * plant.speed(w)` per step under a held input; for a plant
+without input (`plant.inputs == 0`: its `step` integrates its free flow, e.g. a bouncing ball) the chord of each
+exact step, and a stopped agent is no longer stepped.
 """
 
 from __future__ import annotations
@@ -12,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.hybrid.state import State
-from pipeline.hybrid.system import Arc, HybridSystem, Monitor, record_rows
+from pipeline.hybrid.system import Arc, HybridSystem, Monitor, record_rows, row_norm
 
 
 class _Recorder:
@@ -50,7 +54,8 @@ def frame_update(system: HybridSystem, x: State, frame: int, rng, active: np.nda
     if jumped.any():
         x = x.where(jumped, system.jump_map(x))
     outside = ~system.flow_set(x)
-    w = np.array(system.input(x), dtype=float)
+    w_in = system.input(x)
+    w = np.zeros((len(x), 0)) if w_in is None else np.array(w_in, dtype=float)
     if not active.all():
         w[~active] = 0.0
     return x, w, jumped, outside
@@ -76,6 +81,7 @@ def solve_sampled(system: HybridSystem, x0: State, *, dt: float, n_steps: int, e
     outside = np.zeros(n, dtype=np.int64)
     path = np.zeros(n)
     w = np.zeros((n, plant.inputs))
+    free = plant.inputs == 0  # no held input: the plant flows freely between frames
     speed_dt = np.zeros(n)
     rec = _Recorder(system, x, w, record_rows(n_steps, record_every, record))
     if record:
@@ -91,9 +97,17 @@ def solve_sampled(system: HybridSystem, x0: State, *, dt: float, n_steps: int, e
             x, w, jumped, out = frame_update(system, x, step // every, rng, active)
             jumps += jumped
             outside += out
-            speed_dt = dt * plant.speed(w)  # the input is held until the next frame
-        x.c = plant.step(x.c, w, dt)
-        path += speed_dt
+            if not free:
+                speed_dt = dt * plant.speed(w)  # the input is held until the next frame
+        if free:
+            c1 = plant.step(x.c, w, dt)
+            if not active.all():
+                c1[~active] = x.c[~active]  # a stopped agent stays where it stopped
+            path += row_norm(plant.position(c1) - plant.position(x.c))
+            x.c = c1
+        else:
+            x.c = plant.step(x.c, w, dt)
+            path += speed_dt
         t = (step + 1) * dt
         stop = monitor.step(step, t, x.c, active)
         if stop.any():
@@ -110,5 +124,5 @@ def solve_sampled(system: HybridSystem, x0: State, *, dt: float, n_steps: int, e
     if not record or (rec.k < len(rec.t) and rec.t[rec.k - 1] != t):
         rec.store(t, x, w, jumps)  # the final state (the only one recorded without recording)
     ts, cs, ds, ws, js = rec.arrays()
-    return Arc(t=ts, c=cs, d=ds, w=ws, j=js, final=x, termination=term, jumps=jumps, outside=outside, path=path,
-               t_end=t)
+    return Arc(t=ts, c=cs, d=ds, w=None if free else ws, j=js, final=x, termination=term, jumps=jumps,
+               outside=outside, path=path, t_end=t)

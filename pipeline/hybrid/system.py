@@ -25,7 +25,9 @@ from pipeline.hybrid.state import State
 class HybridSystem:
     """`H = (C, F, D, G)` on batches of states (the defaults: everywhere flow, never jump)."""
 
-    plant = None  # the flowing part: `flow(c, w)`, `step(c, w, h)`, `speed(w)` (see pipeline.plants.Plant)
+    # the flowing part: `flow(c, w)`, `step(c, w, h)`, `speed(w)`, `inputs` and `position(c)` (see
+    # pipeline.plants.Plant; the arc length is that of `position`, a projection of `c`)
+    plant = None
     recorded: tuple[str, ...] = ()  # arrays of `x.d` a solver records along the arc (besides `c`)
 
     def initial(self, c0: np.ndarray, rng: np.random.Generator) -> State:
@@ -122,6 +124,13 @@ class Arc:
     path: np.ndarray                 # (N,) arc length of the plant's position
     t_end: float = 0.0               # the last time any agent ran
     stats: dict = field(default_factory=dict)
+
+
+def row_norm(X: np.ndarray) -> np.ndarray:
+    """Row norms of positions (or of their rates) `(k, p)`: `hypot` in the plane, `|x|` on a line (the arc length)."""
+    if X.shape[1] == 2:
+        return np.hypot(X[:, 0], X[:, 1])
+    return np.abs(X[:, 0]) if X.shape[1] == 1 else np.sqrt((X * X).sum(axis=1))
 
 
 def record_rows(n_steps: int, record_every: int, record: bool) -> int:

@@ -13,18 +13,17 @@ import time
 import numpy as np
 import torch
 
+from pipeline.bench import ceiling_gflops
+from pipeline.config import build, compose
+from pipeline.perception.maps import PerceptionMapPredictor
 from pipeline.perception.network import PerceptionMap
 
 
 def default_map() -> PerceptionMap:
     """The default config's map (conf/model/default.yaml) on the default 60x100 camera, random weights with
     non-trivial BatchNorm statistics (same cost as a trained one)."""
-    from hydra.utils import instantiate
-
-    from pipeline.cli import compose
-
     torch.manual_seed(0)
-    model = instantiate(compose("train").model, _convert_="all")
+    model = build(compose("train").model, "model")
     for m in model.modules():
         if isinstance(m, torch.nn.BatchNorm2d):
             m.running_mean.uniform_(-0.2, 0.2)
@@ -48,10 +47,7 @@ def devices() -> list[str]:
 
 
 def bench(quick: bool = False, ceiling=None) -> list[dict]:
-    from pipeline.perception.maps import PerceptionMapPredictor
-
-    if ceiling is None:
-        from pipeline.bench import ceiling_gflops as ceiling
+    ceiling = ceiling or ceiling_gflops
     model = default_map()
     flops = model.flops_per_image()
     n, batch, repeat = (512, 256, 1) if quick else (4096, 1024, 5)

@@ -129,7 +129,7 @@ class Camera:
         h, w = (y1 - y0) * px_per_unit, (x1 - x0) * px_per_unit
         if not (float(h).is_integer() and float(w).is_integer() and 8 <= h <= 4096 and 8 <= w <= 4096):
             raise ConfigError("render.px_per_unit", f"{px_per_unit:g} px per unit makes a {h:g} x {w:g} px image of "
-                                                    f"the {x1 - x0:g} x {y1 - y0:g} arena: it needs whole numbers "
+                                                    f"the {y1 - y0:g} x {x1 - x0:g} arena: it needs whole numbers "
                                                     "of pixels in [8, 4096] (square pixels)")
         height, width = int(h), int(w)
         if not 0 < robot_size <= min(height, width) / 4:

@@ -7,12 +7,20 @@ config, the ranges and cross-field rules here.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, get_args
 
 from pipeline.errors import ConfigError
 
 TimeModel = Literal["sampled", "continuous"]
 Method = Literal["rosenbrock23", "dopri5"]
+
+
+def _at_least(value, low, strict: bool) -> bool:
+    """`value > low` (`>=` unless `strict`), False for a value that is no number (a direct call's bad type)."""
+    try:
+        return bool(value > low) if strict else bool(value >= low)
+    except TypeError:
+        return False
 
 
 @dataclass(frozen=True)
@@ -35,14 +43,17 @@ class SimSettings:
     stall_time: float = 5.0
 
     def __post_init__(self):
+        for k, tp in (("model", TimeModel), ("method", Method)):
+            if getattr(self, k) not in get_args(tp):
+                raise ConfigError(f"sim.{k}", f"must be one of {', '.join(get_args(tp))}, got {getattr(self, k)!r}")
         for k in ("dt", "delta", "rtol", "atol", "h_max", "stall_speed", "stall_time"):
-            if not getattr(self, k) > 0:
+            if not _at_least(getattr(self, k), 0, strict=True):
                 raise ConfigError(f"sim.{k}", f"must be > 0, got {getattr(self, k)!r}")
-        if not self.horizon >= self.dt:
+        if not _at_least(self.horizon, self.dt, strict=False):
             raise ConfigError("sim.horizon", f"must be >= sim.dt = {self.dt}, got {self.horizon!r}")
-        if self.record_every < 1:
+        if not _at_least(self.record_every, 1, strict=False):
             raise ConfigError("sim.record_every", f"must be >= 1, got {self.record_every!r}")
-        if self.seed < 0:
+        if not _at_least(self.seed, 0, strict=False):
             raise ConfigError("sim.seed", f"must be >= 0, got {self.seed!r}")
 
     @property
@@ -61,11 +72,11 @@ class CameraSettings:
     gate: float | None = None
 
     def __post_init__(self):
-        if self.period is not None and not self.period > 0:
+        if self.period is not None and not _at_least(self.period, 0, strict=True):
             raise ConfigError("camera.period", f"must be > 0 (or null), got {self.period!r}")
-        if not 0.0 <= self.p_fail < 1.0:
+        if not (_at_least(self.p_fail, 0.0, strict=False) and self.p_fail < 1.0):
             raise ConfigError("camera.p_fail", f"must be in [0, 1), got {self.p_fail!r}")
-        if self.gate is not None and not self.gate > 0:
+        if self.gate is not None and not _at_least(self.gate, 0, strict=True):
             raise ConfigError("camera.gate", f"must be > 0 (world units) or null, got {self.gate!r}")
 
 

@@ -9,10 +9,16 @@ import logging
 import time
 import warnings
 
+import lightning as L
 import numpy as np
 import torch
+from torch.utils.data import BatchSampler, DataLoader, RandomSampler
 
+from pipeline.bench import ceiling_gflops
+from pipeline.config import build, compose
+from pipeline.perception import bench as infer_bench
 from pipeline.perception.network import PerceptionMap
+from pipeline.train.datamodule import BatchArrays
 
 
 def _data(n: int, seed: int = 0):
@@ -32,7 +38,8 @@ def raw_loop(model: PerceptionMap, images, pos, batch: int, steps: int) -> float
             t0 = time.perf_counter()
         idx = torch.randint(0, n, (batch,))
         target = (pos[idx] - model.center) / model.half_range
-        loss = torch.nn.functional.mse_loss(model.normalised(images[idx]), target)
+        # the position head, as the training step (a map's uncertainty head is fitted after the position network)
+        loss = torch.nn.functional.mse_loss(model.head(model.features(model.prepare(images[idx]))), target)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -40,11 +47,6 @@ def raw_loop(model: PerceptionMap, images, pos, batch: int, steps: int) -> float
 
 
 def lightning_fit(model: PerceptionMap, images, pos, batch: int, steps: int) -> float:
-    import lightning as L
-    from torch.utils.data import BatchSampler, DataLoader, RandomSampler
-
-    from pipeline.train.datamodule import BatchArrays
-
     for name in ("lightning", "lightning.pytorch", "lightning.fabric"):
         logging.getLogger(name).setLevel(logging.ERROR)
     warnings.filterwarnings("ignore", ".*does not have many workers.*")
@@ -69,20 +71,13 @@ def lightning_fit(model: PerceptionMap, images, pos, batch: int, steps: int) -> 
 def _maps():
     """(label, constructor) of the benchmarked maps: the default config's map (BatchNorm, CoordConv) and the
     plain CNNs (no BatchNorm, no CoordConv) of 16/32/64 and 32/64/128 filters."""
-    from hydra.utils import instantiate
-
-    from pipeline.cli import compose
-
     node = compose("train").model
-    yield "default map 16/32/64 BN+CoordConv", lambda: instantiate(node, _convert_="all")
+    yield "default map 16/32/64 BN+CoordConv", lambda: build(node, "model")
     yield "plain 16/32/64", lambda: PerceptionMap(filters=(16, 32, 64), lr=1e-3)  # no BN, no CoordConv
     yield "plain 32/64/128", lambda: PerceptionMap(filters=(32, 64, 128), lr=1e-3)
 
 
 def bench(quick: bool = False) -> list[dict]:
-    from pipeline.bench import ceiling_gflops
-    from pipeline.perception import bench as infer_bench
-
     torch.set_num_threads(torch.get_num_threads())
     batch, steps = (64, 3) if quick else (128, 40)
     images, pos = _data(batch * 8)
