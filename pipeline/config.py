@@ -234,7 +234,8 @@ def hydra_error_line(err: BaseException) -> str:
     text = str(err)
     m = re.search(r"Could not override '([^']+)'", text)
     if m and ("not in struct" in text or "ConfigKeyError" in text or "To append" in text):
-        return f"{m.group(1)}: unknown key (not in the config; check the spelling)"
+        key = re.sub(r"\.(\d+)(?=\.|$)", r"[\1]", m.group(1))  # a list element as the schema names it: obstacles[0]
+        return f"{key}: unknown key (not in the config; check the spelling)"
     m = re.search(r"Could not find '([^']+)'", text)
     if m:
         group, _, option = m.group(1).rpartition("/")

@@ -5,12 +5,14 @@
 keys and field types are checked recursively), raising one :class:`ConfigError` naming the key. A target whose
 module imports torch or Lightning (at its top level, or through the project's modules it imports), and a target
 outside this project, is read from its source without being imported (a config error then answers in about a
-second): its keys are checked at composition, its values by its constructor.
+second): its keys are checked at composition; so are the values of the project's own targets (their simple
+annotations: builtins, `X | None`, `Literal`, `Sequence` as a list); another package's values, by its constructor.
 """
 
 from __future__ import annotations
 
 import ast
+import collections.abc
 import dataclasses
 import functools
 import importlib
@@ -220,7 +222,7 @@ def describe(tp) -> str:
         return " or ".join(describe(a) for a in args) + (" (or null)" if len(args) < len(typing.get_args(tp)) else "")
     if origin is typing.Literal:
         return "one of " + ", ".join(str(c) for c in typing.get_args(tp))
-    if origin in (list, tuple):
+    if origin in (list, tuple, collections.abc.Sequence):
         args = typing.get_args(tp)
         return f"a list of {describe(args[0]) if args else 'values'}"
     if origin is dict:
@@ -258,7 +260,7 @@ def check_value(value, tp, path: str) -> None:
     if dataclasses.is_dataclass(tp) and isinstance(tp, type):
         _check_dataclass(value, tp, path)
         return
-    if origin in (list, tuple) or tp in (list, tuple):
+    if origin in (list, tuple, collections.abc.Sequence) or tp in (list, tuple):  # a Sequence: a list in a config
         if not isinstance(value, list | tuple):
             raise ConfigError(path, f"must be {describe(tp)}, got {value!r}")
         args = [a for a in typing.get_args(tp) if a is not Ellipsis]

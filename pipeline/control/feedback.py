@@ -78,6 +78,13 @@ class Feedback:
     def flow_map(self, m, xd, target=None, ev=None) -> np.ndarray:
         return self._flow(np.asarray(m, dtype=float), target)[0]
 
+    def hold(self, u: np.ndarray, m, xd, ev, period: float) -> tuple[np.ndarray, np.ndarray]:
+        """The velocity a sampled loop holds between frames (the law's own: no guard), and the guarded rows."""
+        return u, np.zeros(len(u), dtype=bool)
+
+    def check_loop(self, period: float | None) -> None:
+        """Conditions that involve the loop's frame period (none)."""
+
     def _flow(self, m: np.ndarray, target) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - interface
         """`(u, fallback rows)`."""
         raise NotImplementedError

@@ -30,6 +30,7 @@ from pipeline.control.validity import (
     field_violations,
     to_frames,
 )
+from pipeline.control.scene import Arena, Barrier, Obstacle, Scene
 from pipeline.errors import ConfigError
 
 
@@ -322,5 +323,34 @@ def authors_multi_analysis(*, h: float = 1.0, u_max: float | None = 10.0, T_s: f
                          inflation=inflation)
 
 
-__all__ = ["AUTHORS_MULTI", "FieldAnalysis", "FieldExample", "analyse_field", "authors_multi_analysis", "random_field",
-           "two_in_row"]
+def random_scene(n_obstacles: int = 5, seed: int = 0, radius_range: list[float] = (2.0, 3.5),
+                 target: list[float] = (40.0, 0.0), keep_free: list[list[float]] | None = None,
+                 arena: Arena | None = None, barrier: Barrier | None = None, apex_factor: float = DEFAULT_APEX_FACTOR,
+                 barrier_scale_factor: float = 1.0, h: float = 1.0, u_max: float | None = 10.0,
+                 T_s: float | None = 0.05, margin: float = 1.0, name: str = "field") -> Scene:
+    """A seeded random valid scene of `n_obstacles` discs (the `field` preset, conf/scene/field.yaml): drawn by
+    rejection against V1–V3 of SPEC §3.6 for the cell hysteresis `h`, `u_max` and the frame period `T_s` it will
+    run with, inside the arena by `margin`, every point of `keep_free` (e.g. a start) outside every diamond;
+    apex `apex_factor r_i`, barrier scale `barrier_scale_factor r_i`."""
+    arena = arena if isinstance(arena, Arena) else Arena(**(arena or {}))
+    barrier = barrier if isinstance(barrier, Barrier) else Barrier(**(barrier or {}))
+    centers, radii = random_field(int(n_obstacles), seed=int(seed), arena=arena.bounds, radius_range=tuple(radius_range),
+                                  target=tuple(target), starts=keep_free, h=h, u_max=u_max, T_s=T_s,
+                                  apex_factor=apex_factor, barrier_rho=barrier.rho,
+                                  barrier_scale_factor=barrier_scale_factor, margin=margin)
+    obstacles = [Obstacle(center=[float(x), float(y)], radius=float(r), apex=float(apex_factor * r),
+                          barrier_scale=float(barrier_scale_factor * r)) for (x, y), r in zip(centers, radii)]
+    return Scene(target=list(target), obstacles=obstacles, barrier=barrier, arena=arena, name=name)
+
+
+def example_scene(example: FieldExample, apex_factor: float, barrier: Barrier, barrier_scale_factor: float) -> Scene:
+    """A named field as a Scene with a uniform apex and barrier-scale factor (see `analyse_field`)."""
+    obstacles = [Obstacle(center=[float(x), float(y)], radius=float(r), apex=float(apex_factor * r),
+                          barrier_scale=float(barrier_scale_factor * r)) for x, y, r in example.discs]
+    (x0, x1), (y0, y1) = example.arena
+    return Scene(target=list(example.target), obstacles=obstacles, barrier=barrier,
+                 arena=Arena(x=[x0, x1], y=[y0, y1]), name=example.name)
+
+
+__all__ = ["AUTHORS_MULTI", "FieldAnalysis", "FieldExample", "analyse_field", "authors_multi_analysis", "example_scene",
+           "random_field", "random_scene", "two_in_row"]

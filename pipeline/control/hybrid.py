@@ -26,6 +26,7 @@ import numpy as np
 from pipeline.control.feedback import _SQRT1_2, Feedback
 from pipeline.control.potentials import both_potentials_frame, fused_potentials, potential
 from pipeline.control.scene import Scene
+from pipeline.control.validity import check_field
 from pipeline.errors import ConfigError
 
 
@@ -38,8 +39,12 @@ class Evaluation:
     `V^q = |p - p_T|^2 <= V^{3-q}`: no mode jump, no barrier.
     """
 
-    __slots__ = ("i", "q", "a", "b", "ua", "ub", "cell", "idx", "V1", "V2", "ga1", "gb1", "ga2", "gb2",
+    __slots__ = ("i", "i_from", "q", "a", "b", "ua", "ub", "cell", "idx", "V1", "V2", "ga1", "gb1", "ga2", "gb2",
                  "c", "ea", "eb")
+
+    def due(self, xd: dict) -> np.ndarray:
+        """The rows of `xd` in the cell-jump part of `D` (after the cell jump, none: `i` is then the nearest)."""
+        return self.cell & (xd["i"] == self.i_from)
 
 
 class HybridController(Feedback):
@@ -53,7 +58,8 @@ class HybridController(Feedback):
     logic = ("i", "q")
 
     def __init__(self, scene: Scene, k: float = 1.0, chi: float = 1.1, lam: float = 0.09,
-                 u_max: float | None = 10.0, push_speed: float | None = None, cell_hysteresis: float = 1.0):
+                 u_max: float | None = 10.0, push_speed: float | None = None, cell_hysteresis: float = 1.0,
+                 guard: bool = False, guard_gamma: float = 0.5):
         super().__init__(scene, k=k, u_max=u_max, push_speed=push_speed)
         if not (math.isfinite(chi) and chi > 1):
             raise ConfigError("controller.chi", f"must be a finite number > 1 (hysteresis), got {chi!r}")
@@ -61,8 +67,15 @@ class HybridController(Feedback):
             raise ConfigError("controller.lam", f"must be in (0, chi - 1) = (0, {chi - 1:.6g}), got {lam!r}")
         if not cell_hysteresis > 0:
             raise ConfigError("controller.cell_hysteresis", f"must be > 0, got {cell_hysteresis!r}")
+        if not 0 < guard_gamma < 1:
+            raise ConfigError("controller.guard_gamma", f"must be in (0, 1), got {guard_gamma!r}")
         self.chi, self.lam, self.h = float(chi), float(lam), float(cell_hysteresis)
+        self.guard, self.gamma = bool(guard), float(guard_gamma)
         self.M = scene.n_obstacles
+        if self.M > 1:  # SPEC §3.6's validity: V1 (every target rule), V2 (the cells), the discs in the arena
+            arr = scene.arrays
+            check_field(arr["center"], arr["radius"], scene.p_T, apex=arr["c"], reach=arr["reach"], h=self.h,
+                        arena=scene.bounds)
         self._arr = scene.arrays
         b = scene.barrier
         self._barrier = {"kind": b.kind, "rho": float(b.rho), "gain": float(b.gain),
@@ -101,7 +114,7 @@ class HybridController(Feedback):
             i = np.where(ev.cell, best, i)
         else:
             ev.cell = np.zeros(len(m), dtype=bool)
-        ev.i, ev.q = i, q
+        ev.i_from, ev.i, ev.q = xd["i"], i, q
         p0, ea, eb = arr["center"][i], arr["e_a"][i], arr["e_b"][i]
         rx, ry = m[:, 0] - p0[:, 0], m[:, 1] - p0[:, 1]
         a = rx * ea[:, 0] + ry * ea[:, 1]
@@ -133,6 +146,13 @@ class HybridController(Feedback):
             ev.V1, ev.V2, ev.ga1, ev.gb1, ev.ga2, ev.gb2 = pots
         return ev
 
+    def check_loop(self, period: float | None) -> None:
+        """V3 of SPEC §3.6 for a sampled loop with frames every `period`: the cells' gap outlasts a frame."""
+        if self.M > 1 and period is not None and self.u_max is not None:
+            arr = self.scene.arrays
+            check_field(arr["center"], arr["radius"], self.scene.p_T, apex=arr["c"], reach=arr["reach"], h=self.h,
+                        u_max=self.u_max, T_s=period)
+
     def covers(self, ev: Evaluation, xd_from: dict, xd: dict) -> bool:
         """Whether `ev` (made at `xd_from`) serves `xd`: same active obstacles, changed modes only where both
         modes were evaluated."""
@@ -153,7 +173,7 @@ class HybridController(Feedback):
         """Eq. (jump_set1), and the cell jump of SPEC §3.6; `V_q = inf` jumps only if `m ∈ O_{3-q}`, `V_q = 0`
         never."""
         ev = self._ev(m, xd, target, ev)
-        jump = ev.cell.copy()
+        jump = ev.due(xd)
         if ev.idx.size:
             _, Vq, Vo = self._modes(ev, xd["q"])
             with np.errstate(invalid="ignore"):
@@ -166,8 +186,9 @@ class HybridController(Feedback):
         potential there (SPEC §3.6)."""
         ev = self._ev(m, xd, target, ev)
         q = (3 - np.asarray(xd["q"])).astype(np.int8)
-        if ev.cell.any():
-            rows = np.flatnonzero(ev.cell)
+        due = ev.due(xd)
+        if due.any():
+            rows = np.flatnonzero(due)
             pos = np.searchsorted(ev.idx, rows)  # cell rows are in idx
             V1, V2, b = ev.V1[pos], ev.V2[pos], ev.b[rows]
             q[rows] = np.where(V1 < V2, 1, np.where(V2 < V1, 2, np.where(b < 0, 1, 2)))
@@ -176,7 +197,7 @@ class HybridController(Feedback):
     def flow_set(self, m, xd, target=None, ev=None) -> np.ndarray:
         """Eq. (flowset1) `V_q(m) <= χ V_{3-q}(m)` (`V_q` finite), and `m` within the cell of `i`."""
         ev = self._ev(m, xd, target, ev)
-        inside = ~ev.cell
+        inside = ~ev.due(xd)
         if ev.idx.size:
             _, Vq, Vo = self._modes(ev, xd["q"])
             with np.errstate(invalid="ignore"):
@@ -210,3 +231,36 @@ class HybridController(Feedback):
             scale = np.minimum(1.0, self.u_max / np.maximum(norm, 1e-300))
             ua, ub = ua * scale, ub * scale
         return np.stack([ua * ev.ea[:, 0] + ub * ev.eb[:, 0], ua * ev.ea[:, 1] + ub * ev.eb[:, 1]], axis=1)
+
+    # ---- the sampled-data guard (SPEC §3.3) ----------------------------------------------------------------
+    def hold(self, u: np.ndarray, m, xd, ev: Evaluation, period: float) -> tuple[np.ndarray, np.ndarray]:
+        """The velocity a sampled loop holds for `period` seconds, and the rows where the guard acted.
+
+        With the guard (`guard: true`): `u <- u + max(0, -(1 - γ) s / T_s - n·u) n`, `s = dist(m, W_q)` the
+        distance to the active mode's wedge and `n` its unit outward normal, so that `s(m + t u) >= γ s(m)` for
+        `t in [0, T_s]` (s is convex along a segment): a held segment never enters the wedge. It never increases
+        `|u|`, acts only within `u_max T_s / (1 - γ)` of the wedge and vanishes as `T_s -> 0`.
+        """
+        active = np.zeros(len(u), dtype=bool)
+        if not self.guard:
+            return u, active
+        sigma = np.where(xd["q"] == 1, 1.0, -1.0)
+        bp = ev.c + sigma * ev.b
+        mu = np.minimum((bp + ev.a) * _SQRT1_2, 0.0)
+        mv = np.minimum((bp - ev.a) * _SQRT1_2, 0.0)
+        s = np.sqrt(mu * mu + mv * mv)
+        near = s > 0
+        if self.u_max is not None:
+            near &= s < self.u_max * period / (1.0 - self.gamma)
+        rows = np.flatnonzero(near)
+        if rows.size == 0:
+            return u, active
+        na = (mu[rows] - mv[rows]) * _SQRT1_2 / s[rows]  # ∇s in the frame: the outward normal of W_q
+        nb = sigma[rows] * (mu[rows] + mv[rows]) * _SQRT1_2 / s[rows]
+        ea, eb = ev.ea[rows], ev.eb[rows]
+        n = na[:, None] * ea + nb[:, None] * eb
+        beta = np.maximum(0.0, -(1.0 - self.gamma) * s[rows] / period - np.einsum("ij,ij->i", n, u[rows]))
+        u = u.copy()
+        u[rows] += beta[:, None] * n
+        active[rows] = beta > 0
+        return u, active

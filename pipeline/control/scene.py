@@ -137,7 +137,7 @@ class Scene:
     obstacles: list[Obstacle] = field(default_factory=lambda: [Obstacle(center=[0.0, 0.0], radius=4.0)])
     barrier: Barrier = field(default_factory=Barrier)
     arena: Arena = field(default_factory=Arena)
-    name: str = "custom"
+    name: str = "default"  # conf/scene/default.yaml: the default scene
 
     def __post_init__(self):
         self._coverings: dict[int, Covering] = {}

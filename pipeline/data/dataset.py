@@ -61,7 +61,7 @@ class Dataset:
             df = pd.read_csv(path)
         except FileNotFoundError:
             raise DatasetError(f"{path}: missing") from None
-        for col in ("x", "y", "follower_x", "follower_y", "occluded_frac", "leader_alpha"):
+        for col in ("x", "y", "follower_x", "follower_y", "occluded_frac", "leader_alpha", "heading"):
             if col in df:
                 df[col] = df[col].astype(np.float32)
         return df
@@ -95,6 +95,17 @@ class Dataset:
     def positions(self, split: str) -> np.ndarray:
         """`float32 (n, 2)` leader positions (world units): the labels."""
         return self._split_labels(split)[["x", "y"]].to_numpy(np.float32)
+
+    def poses(self, split: str) -> np.ndarray:
+        """`float32 (n, 3)` leader poses (x, y, θ): the labels of a dataset with headings."""
+        df = self._split_labels(split)
+        if "heading" not in df:
+            raise DatasetError(f"{self.name}-{self.id}: its images show no heading (no `heading` label)")
+        return df[["x", "y", "heading"]].to_numpy(np.float32)
+
+    @property
+    def has_headings(self) -> bool:
+        return "heading" in self.manifest.get("label_columns", [])
 
     def follower(self, split: str) -> np.ndarray:
         """`float32 (n, 2)` follower positions, NaN rows where the image has no follower."""

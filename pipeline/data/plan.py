@@ -15,7 +15,7 @@ from omegaconf import DictConfig
 from pipeline import identity, lineage, tracking
 from pipeline.config import build
 from pipeline.data.recipe import SPLITS, Recipe
-from pipeline.data.render import LABEL_COLUMNS, LABELS, shard_name
+from pipeline.data.render import LABELS, label_columns, shard_name
 from pipeline.errors import ConfigError
 from pipeline.render import Camera, Occlusion, load_occlusion
 
@@ -59,7 +59,7 @@ class Plan:
             "render": self.render_cfg, "occlusion": self.occlusion.config(),
             "code_version": tracking.code_version(*identity.dataset_code(self.recipe_cfg)),
             "volatile": list(identity.DATASET_VOLATILE), "shards": {s: shard_name(s) for s in SPLITS},
-            "labels": LABELS, "label_columns": LABEL_COLUMNS, "color_order": "RGB",
+            "labels": LABELS, "label_columns": label_columns(self.recipe), "color_order": "RGB",
         }
 
 

@@ -149,6 +149,7 @@ class Recipe:
     follower: Follower = field(default_factory=Follower)
     preview: int = 32
     chunk_size: int = 4096
+    vehicle: dict | None = None  # a plant node (conf/vehicle/); a unicycle is drawn with its heading, labelled (x, y, θ)
 
     def __post_init__(self):
         object.__setattr__(self, "splits", _as(Splits, self.splits))
@@ -176,6 +177,11 @@ class Recipe:
     @property
     def parent(self) -> str | None:
         return self.sampling.parent
+
+    @property
+    def headings(self) -> bool:
+        """Whether the images show a heading (a vehicle with one, SPEC §1): labels `(x, y, θ)`."""
+        return self.vehicle is not None and str(self.vehicle.get("_target_", "")).endswith("Unicycle")
 
     def check_arena(self, arena) -> None:
         """A follower annulus that fits nowhere in the arena is an impossible recipe (issue 21)."""

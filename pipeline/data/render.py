@@ -24,6 +24,11 @@ PREVIEW = "preview.png"
 LABEL_COLUMNS = ["split", "index", "x", "y", "follower_x", "follower_y", "occluded_frac", "leader_alpha"]
 
 
+def label_columns(recipe) -> list[str]:
+    """The labels table's columns (a recipe with headings adds `heading`, radians)."""
+    return LABEL_COLUMNS + (["heading"] if recipe.headings else [])
+
+
 def shard_name(split: str) -> str:
     return f"images_{split}.npy"
 
@@ -35,7 +40,7 @@ def _progress(total: int, desc: str):
 def _parent_train(p):
     """The parent's train images (memory map, re-hashed first: its bytes go into this dataset) and labels."""
     parent = open_dataset(p.parent_path, verify=True)
-    labels = parent.labels[parent.labels["split"] == "train"][LABEL_COLUMNS]
+    labels = parent.labels[parent.labels["split"] == "train"][label_columns(p.recipe)]
     if len(labels) != p.parent_train:
         raise DatasetError(f"{p.parent_path}: {len(labels)} train labels, manifest {p.parent_train}")
     return parent.images("train"), labels.reset_index(drop=True)
@@ -67,6 +72,7 @@ def render_into(folder: Path, p, perception_map=None) -> pd.DataFrame:
             for s in range(0, len(sp), rec.chunk_size):
                 e = min(s + rec.chunk_size, len(sp))
                 res = cam.render(sp.leader[s:e], sp.follower[s:e], p.occlusion, clouds=sp.clouds[s:e],
+                                 heading=None if sp.heading is None else sp.heading[s:e],
                                  out=images[n0 + s : n0 + e], return_info=True)
                 frac[s:e], lead_alpha[s:e] = res.occluded_frac, res.leader_alpha
                 bar.update(e - s)
@@ -74,13 +80,16 @@ def render_into(folder: Path, p, perception_map=None) -> pd.DataFrame:
                 preview = np.array(images[n0 : n0 + rec.preview])
             images.flush()
             del images
-            tables.append(pd.DataFrame({
+            table = pd.DataFrame({
                 "split": split, "index": np.arange(n0, n),
                 "x": sp.leader[:, 0], "y": sp.leader[:, 1],
                 "follower_x": sp.follower[:, 0], "follower_y": sp.follower[:, 1],
                 "occluded_frac": frac, "leader_alpha": lead_alpha,
-            }))
-    labels = pd.concat(tables, ignore_index=True)[LABEL_COLUMNS]
+            })
+            if sp.heading is not None:
+                table["heading"] = sp.heading
+            tables.append(table)
+    labels = pd.concat(tables, ignore_index=True)[label_columns(rec)]
     labels.to_csv(folder / LABELS, index=False, float_format="%.9g", lineterminator="\n")
     save_png(folder / PREVIEW, cam.preview_grid(preview, cols=8), upscale=2)
     return labels

@@ -55,6 +55,7 @@ class SplitPlan:
     leader: np.ndarray  # float32 (n, 2), world units (the label)
     follower: np.ndarray  # float32 (n, 2), NaN rows = no follower
     clouds: CloudSample
+    heading: np.ndarray | None = None  # float32 (n,) radians: a vehicle with a heading (the label's θ)
 
     def __len__(self) -> int:
         return len(self.leader)
@@ -203,4 +204,6 @@ def plan_split(recipe: Recipe, split: str, camera: Camera, occlusion: Occlusion,
     follower = _followers(rng, leader, camera, recipe)
     follower[~present] = np.nan
     clouds = occlusion.sample(n, rng, camera.shape)
-    return SplitPlan(leader.astype(np.float32), follower.astype(np.float32), clouds)
+    # headings last, uniform over the circle (a recipe without a heading draws nothing more: its bytes stay)
+    heading = rng.uniform(-math.pi, math.pi, n).astype(np.float32) if recipe.headings else None
+    return SplitPlan(leader.astype(np.float32), follower.astype(np.float32), clouds, heading)

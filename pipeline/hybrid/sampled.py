@@ -47,7 +47,7 @@ class _Recorder:
 
 def frame_update(system: HybridSystem, x: State, frame: int, rng, active: np.ndarray):
     """One frame: sample, jump where `x ∈ D` (priority), count `x ∉ C ∪ D`, hold the input. Returns
-    `(x, w, jumped, outside)`; every agent is evaluated (the held input of a stopped agent is zeroed)."""
+    `(x, w, jumped, outside, counts)` (`counts`: the system's per-frame indicators); every agent is evaluated (the held input of a stopped agent is zeroed)."""
     if frame > 0:
         x = system.sample(x, frame, rng, active)
     jumped = system.jump_set(x)
@@ -58,7 +58,7 @@ def frame_update(system: HybridSystem, x: State, frame: int, rng, active: np.nda
     w = np.zeros((len(x), 0)) if w_in is None else np.array(w_in, dtype=float)
     if not active.all():
         w[~active] = 0.0
-    return x, w, jumped, outside
+    return x, w, jumped, outside, system.frame_counts(x, w)
 
 
 def solve_sampled(system: HybridSystem, x0: State, *, dt: float, n_steps: int, every: int,
@@ -79,6 +79,7 @@ def solve_sampled(system: HybridSystem, x0: State, *, dt: float, n_steps: int, e
     active = term == 0
     jumps = np.zeros(n, dtype=np.int64)
     outside = np.zeros(n, dtype=np.int64)
+    counts: dict[str, np.ndarray] = {}
     path = np.zeros(n)
     w = np.zeros((n, plant.inputs))
     free = plant.inputs == 0  # no held input: the plant flows freely between frames
@@ -94,9 +95,11 @@ def solve_sampled(system: HybridSystem, x0: State, *, dt: float, n_steps: int, e
         steps = tqdm(steps, desc=progress, unit="step", leave=False)
     for step in steps:
         if step % every == 0:
-            x, w, jumped, out = frame_update(system, x, step // every, rng, active)
+            x, w, jumped, out, frame_counts = frame_update(system, x, step // every, rng, active)
             jumps += jumped
             outside += out
+            for name, hit in frame_counts.items():
+                counts[name] = counts.get(name, 0) + (hit & active)
             if not free:
                 speed_dt = dt * plant.speed(w)  # the input is held until the next frame
         if free:
@@ -125,4 +128,4 @@ def solve_sampled(system: HybridSystem, x0: State, *, dt: float, n_steps: int, e
         rec.store(t, x, w, jumps)  # the final state (the only one recorded without recording)
     ts, cs, ds, ws, js = rec.arrays()
     return Arc(t=ts, c=cs, d=ds, w=None if free else ws, j=js, final=x, termination=term, jumps=jumps,
-               outside=outside, path=path, t_end=t)
+               outside=outside, path=path, t_end=t, counts={k: np.asarray(v, dtype=np.int64) for k, v in counts.items()})

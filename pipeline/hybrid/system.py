@@ -58,6 +58,10 @@ class HybridSystem:
         """What happens at frame `frame > 0` (a measurement): the state after it. Nothing by default."""
         return x
 
+    def frame_counts(self, x: State, w) -> dict[str, np.ndarray]:
+        """Per-frame indicators a sampled loop adds up per agent (`Arc.counts`): none by default."""
+        return {}
+
     def saturated(self, flow: np.ndarray) -> np.ndarray | None:
         """Rows of a flow value on a clipped branch of `F` (a kink the continuous solver must not step over), or
         None when `F` is smooth."""
@@ -124,6 +128,7 @@ class Arc:
     path: np.ndarray                 # (N,) arc length of the plant's position
     t_end: float = 0.0               # the last time any agent ran
     stats: dict = field(default_factory=dict)
+    counts: dict = field(default_factory=dict)  # (N,) sums of the system's per-frame indicators (sampled)
 
 
 def row_norm(X: np.ndarray) -> np.ndarray:

@@ -77,7 +77,9 @@ class PerceptionMapPredictor:
         self.image_shape = model.image_shape
         self.px_per_unit = model.px_per_unit
         self.has_uncertainty = getattr(model, "uncertainty", "none") != "none"
-        self._n_out = 4 if self.has_uncertainty else 2
+        self.pose = bool(getattr(model, "pose", False))  # a pose map: (x, y, θ)
+        self._n_est = 3 if self.pose else 2
+        self._n_out = self._n_est + (2 if self.has_uncertainty else 0)
         self._fold = fold
         if compile == "auto":
             compile = _compiler_present()
@@ -116,14 +118,15 @@ class PerceptionMapPredictor:
         return torch.from_numpy(images).to(self.device, non_blocking=True)
 
     def predict(self, images) -> np.ndarray:
-        """Positions `(N, 2)` (world units)."""
-        return self._run(images)[:, :2]
+        """Positions `(N, 2)` (world units); a pose map's poses `(N, 3)` (x, y, θ in radians)."""
+        return self._run(images)[:, : self._n_est]
 
     def predict_with_sigma(self, images) -> tuple[np.ndarray, np.ndarray | None]:
         """Positions `(N, 2)` and the map's own calibrated standard deviation per coordinate `(N, 2)` (world
         units), or `None` for a map trained without `model.uncertainty`."""
         out = self._run(images)
-        return out[:, :2], (out[:, 2:] if self.has_uncertainty else None)
+        k = self._n_est
+        return out[:, :k], (out[:, k:] if self.has_uncertainty else None)
 
     def predicted_error(self, images) -> tuple[np.ndarray, np.ndarray | None]:
         """Positions and the predicted Euclidean error `sqrt(sx^2 + sy^2)` (world units; RMS under the model),

@@ -14,6 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.errors import ConfigError
+
 
 class OracleMap:
     """A perfect perception map: returns the true leader position of each image it was rendered from.
@@ -33,8 +35,6 @@ def check_gate(perception_map, gate) -> None:
     """`camera.gate` needs a map that predicts its own error: one line naming the field otherwise."""
     if gate is not None and not isinstance(perception_map, OracleMap) and \
             not getattr(perception_map, "has_uncertainty", False):
-        from pipeline.errors import ConfigError
-
         raise ConfigError("camera.gate", f"perception map {perception_map.name}-{perception_map.id} has no "
                                          "uncertainty head (train it with model.uncertainty=gaussian, or gate=null)")
 
@@ -53,27 +53,39 @@ def gated_predict(perception_map, images, gate: float | None, frame: int) -> tup
 
 @dataclass
 class CameraMeasure:
-    """`measure(p (n, 2), idx, frame, rng) -> l(h(p))`: render every agent's frame, infer in one batch;
-    `gate`: rows whose predicted error exceeds it are NaN (held by the simulator), counted in `gated`."""
+    """`measure(c (n, 2|3), idx, frame, rng) -> l(h(c))`: render every agent's frame, infer in one batch;
+    `gate`: rows whose predicted error exceeds it are NaN (held by the simulator), counted in `gated`.
+
+    A vehicle with a heading (`c` = (x, y, θ), the unicycle of SPEC §3.7) is drawn with its oriented marker; its
+    measured heading is the pose map's (`heading: camera`) or the true one plus Gaussian noise of
+    `heading_noise` radians (`heading: imu`, the ablation)."""
 
     camera: object
     perception_map: object
     occlusion: object | None = None
     gate: float | None = None
+    heading: str = "camera"
+    heading_noise: float = 0.0
     frames: int = 0
     images: int = 0
     gated: int = 0
 
     def __post_init__(self):
         check_gate(self.perception_map, self.gate)
+        if self.heading not in ("camera", "imu"):
+                raise ConfigError("camera.heading", f"must be camera or imu, got {self.heading!r}")
 
-    def __call__(self, p: np.ndarray, idx: np.ndarray, frame: int, rng: np.random.Generator) -> np.ndarray:
+    def __call__(self, c: np.ndarray, idx: np.ndarray, frame: int, rng: np.random.Generator) -> np.ndarray:
         if isinstance(self.perception_map, OracleMap):
-            return np.array(p, dtype=float)
-        imgs = self.camera.render(p, None, occlusion=self.occlusion, rng=rng)
+            return np.array(c, dtype=float)
+        posed = c.shape[1] == 3
+        imgs = self.camera.render(c[:, :2], None, occlusion=self.occlusion, rng=rng,
+                                  heading=c[:, 2] if posed else None)
         est, n_gated = gated_predict(self.perception_map, imgs, self.gate, frame)
+        if posed and (self.heading == "imu" or est.shape[1] == 2):
+            est = np.column_stack([est[:, :2], c[:, 2] + rng.normal(0.0, self.heading_noise, len(c))])
         self.frames += 1
-        self.images += len(p)
+        self.images += len(c)
         self.gated += n_gated
         return est
 

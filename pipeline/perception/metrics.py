@@ -62,3 +62,16 @@ def perception_metrics(pred: np.ndarray, true: np.ndarray, px_per_unit: float, *
         out["hidden"] = {**error_metrics(pred[hidden], true[hidden], px_per_unit),
                          "share": float(hidden.mean()) if len(hidden) else 0.0, "alpha": float(hidden_alpha)}
     return out
+
+
+def heading_error_deg(est: np.ndarray, true: np.ndarray) -> np.ndarray:
+    """`|θ_est - θ|` wrapped to [0, 180] degrees."""
+    d = np.angle(np.exp(1j * (np.asarray(est, float) - np.asarray(true, float))))
+    return np.degrees(np.abs(d))
+
+
+def heading_metrics(est: np.ndarray, true: np.ndarray) -> dict:
+    """A pose map's heading error (degrees, wrapped): mean, median, p95, max."""
+    e = heading_error_deg(est, true)
+    return {"mean_deg": float(e.mean()), "median_deg": float(np.median(e)), "p95_deg": float(np.percentile(e, 95)),
+            "max_deg": float(e.max())}

@@ -18,6 +18,7 @@ from torch import nn
 from pipeline.errors import ConfigError, ModelError
 
 UNCERTAINTY = ("none", "gaussian")
+OUTPUTS = ("position", "pose")
 CHI2_2_95 = 5.991464547107979  # 95% quantile of chi^2 with 2 degrees of freedom: the 95% ellipse of a 2-D Gaussian
 LOGVAR_RANGE = (-14.0, 2.0)  # normalised coordinates: sigma from ~1e-3 (0.05 px) to ~3 half-arenas
 VAR_HIDDEN = 64  # units of the variance head's hidden layer
@@ -127,8 +128,11 @@ class PerceptionMap(L.LightningModule):
         uncertainty_lr: float = 2e-3,
         uncertainty_batch_size: int = 128,
         uncertainty_thumbnail: int = 4,
+        outputs: str = "position",
     ):
         super().__init__()
+        if outputs not in OUTPUTS:
+            raise ConfigError("model.outputs", f"must be one of {', '.join(OUTPUTS)}, got {outputs!r}")
         _validate(image_shape=image_shape, arena=arena, filters=filters, batch_norm=batch_norm, hidden=hidden,
                   dropout=dropout, lr=lr, weight_decay=weight_decay, schedule=schedule, loss=loss,
                   coord_channels=coord_channels, clamp=clamp, name=name, uncertainty=uncertainty,
@@ -157,11 +161,13 @@ class PerceptionMap(L.LightningModule):
             raise ConfigError("model.filters", f"{len(filters)} pooling blocks shrink a {h}x{w} image to nothing")
         flat = int(filters[-1]) * fh * fw
         self.uncertainty = uncertainty
+        self.pose = outputs == "pose"  # a pose map: (x, y, cos θ, sin θ) from the head, θ = atan2 (SPEC §2)
+        n_head = 4 if self.pose else 2
         head: list[nn.Module] = [nn.Flatten(), nn.Dropout(dropout)]
         if hidden:
-            head += [nn.Linear(flat, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, 2)]
+            head += [nn.Linear(flat, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, n_head)]
         else:
-            head += [nn.Linear(flat, 2)]
+            head += [nn.Linear(flat, n_head)]
         # `uncertainty: gaussian`: a second head on the features predicts the log variance of each normalised
         # coordinate. It is fitted AFTER the position network (`pipeline.train.uncertainty.fit_variance_head`, on
         # the trained network's eval-mode features and errors), so it is frozen during training and never changes
@@ -200,10 +206,11 @@ class PerceptionMap(L.LightningModule):
         return x.contiguous(memory_format=torch.channels_last)
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
-        """World coordinates `(N, 2)`; with `uncertainty: gaussian`, `(N, 4)`: the position and the calibrated
-        standard deviation of each coordinate (world units)."""
+        """World coordinates `(N, 2)` (a pose map: `(N, 3)`, the heading θ in radians last); with
+        `uncertainty: gaussian` followed by the calibrated standard deviation of each position coordinate (world
+        units)."""
         return _to_world(self.normalised(images), self.center, self.half_range, self.sigma_scale,
-                         self.clamp and not self.training)
+                         self.clamp and not self.training, self.pose)
 
     def normalised(self, images: torch.Tensor) -> torch.Tensor:
         """Raw head outputs: normalised position (and log variances with `uncertainty: gaussian`)."""
@@ -217,17 +224,25 @@ class PerceptionMap(L.LightningModule):
         return torch.cat([f.detach().flatten(1), thumbnail(x, self.thumb_size)], 1)
 
     # -------------------------------------------------------------------------------- training
+    def targets(self, labels: torch.Tensor) -> torch.Tensor:
+        """The head's targets: the position normalised to [-1, 1] over the arena; a pose map adds (cos θ, sin θ)."""
+        target = (labels[:, :2] - self.center) / self.half_range
+        if self.pose:
+            th = labels[:, 2]
+            target = torch.cat([target, torch.stack([torch.cos(th), torch.sin(th)], 1)], 1)
+        return target
+
     def _step(self, batch, stage: str):
-        images, pos = batch
-        target = (pos - self.center) / self.half_range
+        images, labels = batch
+        target = self.targets(labels)
         pred_n = self.head(self.features(self.prepare(images)))  # the variance head is fitted afterwards
         loss = self._loss(pred_n, target)
-        err_px = (pred_n.detach() - target) * self.half_range * self.px_per_unit
+        err_px = (pred_n.detach()[:, :2] - target[:, :2]) * self.half_range * self.px_per_unit
         sync = stage != "train"  # epoch metrics over every rank's share of the split (a no-op on one device)
         self.log(f"{stage}_loss", loss, prog_bar=stage != "train", on_epoch=True, on_step=stage == "train",
-                 batch_size=len(pos), sync_dist=sync)
+                 batch_size=len(labels), sync_dist=sync)
         self.log(f"{stage}_mae", err_px.abs().mean(), prog_bar=True, on_epoch=True, on_step=False,
-                 batch_size=len(pos), sync_dist=sync)
+                 batch_size=len(labels), sync_dist=sync)
         return loss
 
     def training_step(self, batch, batch_idx):
@@ -264,13 +279,17 @@ class PerceptionMap(L.LightningModule):
         return flops
 
 
-def _to_world(z: torch.Tensor, center, half_range, sigma_scale, clamp: bool) -> torch.Tensor:
-    """Head outputs -> world units: `(N, 2)` positions, or `(N, 4)` positions and per-coordinate sigmas."""
+def _to_world(z: torch.Tensor, center, half_range, sigma_scale, clamp: bool, pose: bool = False) -> torch.Tensor:
+    """Head outputs -> world units: positions `(N, 2)` (a pose map: `(N, 3)` with θ = atan2(sin, cos)), then the
+    per-coordinate sigmas of the position with an uncertainty head."""
     pos = z[:, :2].clamp(-1.0, 1.0) if clamp else z[:, :2]  # an estimate never leaves the arena the camera sees
     pos = pos * half_range + center
-    if z.shape[1] == 2:
+    k = 4 if pose else 2
+    if pose:
+        pos = torch.cat([pos, torch.atan2(z[:, 3], z[:, 2])[:, None]], 1)
+    if z.shape[1] == k:
         return pos
-    sigma = torch.exp(0.5 * z[:, 2:].clamp(*LOGVAR_RANGE)) * half_range * sigma_scale
+    sigma = torch.exp(0.5 * z[:, k:].clamp(*LOGVAR_RANGE)) * half_range * sigma_scale
     return torch.cat([pos, sigma], 1)
 
 
@@ -312,6 +331,7 @@ class FoldedPerceptionNet(nn.Module):
         self.register_buffer("half_range", model.half_range.detach().clone())
         self.register_buffer("sigma_scale", model.sigma_scale.detach().clone())
         self.clamp = model.clamp
+        self.pose = model.pose
         self.image_shape = model.image_shape
         self.to(memory_format=torch.channels_last).requires_grad_(False).eval()
 
@@ -328,7 +348,7 @@ class FoldedPerceptionNet(nn.Module):
             thumb = nn.functional.adaptive_avg_pool2d(img, self.thumb_size).flatten(1)  # `thumbnail` of [0, 255]
             thumb = (thumb * (1.0 / 255.0) - 0.5) * THUMB_SCALE
             z = torch.cat([self.head(f), self.var_head(torch.cat([f, thumb], 1))], 1)
-        return _to_world(z, self.center, self.half_range, self.sigma_scale, self.clamp)
+        return _to_world(z, self.center, self.half_range, self.sigma_scale, self.clamp, self.pose)
 
 
 def _folded_convs(features: nn.Sequential) -> list[tuple[torch.Tensor, torch.Tensor]]:

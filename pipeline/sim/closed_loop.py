@@ -43,6 +43,11 @@ def _hold(new: np.ndarray, last: np.ndarray) -> np.ndarray:
     return new
 
 
+def _counters(n: int) -> dict[str, np.ndarray]:
+    """Jump counters by kind: logic variables that the jump map increments."""
+    return {"cell_jumps": np.zeros(n, dtype=np.int64), "mode_jumps": np.zeros(n, dtype=np.int64)}
+
+
 class _Loop(HybridSystem):
     """What both time models share: the four maps of the feedback law at the measured point."""
 
@@ -95,8 +100,11 @@ class _Loop(HybridSystem):
         return self.controller.jump_set(point, xd, target, ev=ev)
 
     def jump_map(self, x):
+        """`G`: the law's jump; a change of the active obstacle counts as a cell jump, else as a mode jump."""
         point, xd, target, ev = self._law(x)
-        return x.replace(**self.controller.jump_map(point, xd, target, ev=ev))
+        new = self.controller.jump_map(point, xd, target, ev=ev)
+        cell = new["i"] != xd["i"] if "i" in new else np.zeros(len(x), dtype=bool)
+        return x.replace(**new, cell_jumps=x.cell_jumps + cell, mode_jumps=x.mode_jumps + ~cell)
 
     def flow_set(self, x):
         point, xd, target, ev = self._law(x)
@@ -111,13 +119,29 @@ class _Loop(HybridSystem):
 
 
 class SampledLoop(_Loop):
-    """The camera in the loop: `m` held between frames, a frame every `every` steps of `dt`."""
+    """The camera in the loop: `m` held between frames, a frame every `every` steps of `dt`; the velocity held for
+    a frame is the law's through its sampled-data guard (SPEC §3.3, `controller.guard`)."""
 
     def __init__(self, scene, controller, plant, disturbance=None, *, measure: Measure | None = None,
                  target_fn: TargetFn | None = None, p_fail: float = 0.0, dt: float = 0.01, every: int = 1):
         super().__init__(scene, controller, plant, disturbance)
         self.measure = measure or true_state
         self.target_fn, self.p_fail, self.dt, self.every = target_fn, float(p_fail), dt, every
+        self.period = every * dt
+        controller.check_loop(self.period)
+        self._guarded = (None, None)
+
+    def input(self, x):
+        point, xd, target, ev = self._law(x)
+        u = self.controller.flow_map(point, xd, target, ev=ev)
+        u, guarded = self.controller.hold(u, point, xd, ev, self.period)
+        self._guarded = (x, guarded)
+        return self.plant.actuate(self.measured(x), u)
+
+    def frame_counts(self, x, w) -> dict[str, np.ndarray]:
+        """Per frame: the guard acted (SPEC §3.3), the vehicle's input was clipped (the unicycle's |ω|)."""
+        guarded = self._guarded[1] if self._guarded[0] is x else np.zeros(len(x), dtype=bool)
+        return {"guard_frames": guarded, "saturated_frames": self.plant.saturated(w)}
 
     def measured(self, x):
         return x.m
@@ -135,7 +159,7 @@ class SampledLoop(_Loop):
         if self.target_fn is not None:
             target = np.asarray(self.target_fn(0.0, 0, self.plant.position(c0), all_idx, rng), dtype=float)
         xd = self.controller.initial_state(self.plant.point(m), target)
-        return State(c0, m=m, target=target, **xd)
+        return State(c0, m=m, target=target, **xd, **_counters(len(c0)))
 
     def sample(self, x, frame, rng, active):
         n = len(x)
@@ -170,7 +194,7 @@ class ContinuousLoop(_Loop):
         c0 = np.array(c0, dtype=float)
         e = np.zeros_like(c0) if self.exact else self._disturb(c0, 0, rng)
         xd = self.controller.initial_state(self.plant.point(c0 + e))
-        return State(c0, e=e, **xd)
+        return State(c0, e=e, **xd, **_counters(len(c0)))
 
     def sample(self, x, frame, rng, active):
         return x.replace(e=self._disturb(x.c, frame, rng))

@@ -114,6 +114,7 @@ class PerceptionDataModule(L.LightningDataModule):
         self.pin_memory = pin_memory
         self.seed = seed
         self.dataset = None
+        self.pose = False  # the labels a pose map trains on: (x, y, θ) (set by the stage from the model)
         self._splits: dict[str, BatchArrays] = {}
         if dataset is not None:
             self.attach(dataset)
@@ -135,7 +136,8 @@ class PerceptionDataModule(L.LightningDataModule):
 
     def split(self, name: str) -> BatchArrays:
         if name not in self._splits:
-            images, pos = self.dataset.images(name), self.dataset.positions(name)
+            images = self.dataset.images(name)
+            pos = self.dataset.poses(name) if self.pose else self.dataset.positions(name)
             limit = {"train": self.limit_train, "val": self.limit_val}.get(name)
             if limit:
                 images, pos = images[:limit], pos[:limit]

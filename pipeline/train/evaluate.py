@@ -7,7 +7,7 @@ import numpy as np
 
 from pipeline.config import build
 from pipeline.data.sampling import plan_split
-from pipeline.perception.metrics import HIDDEN_ALPHA, NEAR_TARGET_RADIUS, perception_metrics
+from pipeline.perception.metrics import HIDDEN_ALPHA, NEAR_TARGET_RADIUS, heading_metrics, perception_metrics
 from pipeline.render import Occlusion, load_occlusion
 from pipeline.train.uncertainty import clean_gate, false_alarm_upper_bound, flag_metrics
 
@@ -26,9 +26,14 @@ def evaluate(predictor, ds, levels, seed: int, occlusions=None, near_radius: flo
     alpha = labels["leader_alpha"].to_numpy(np.float64) if "leader_alpha" in labels else None
     flags = uncertainty or {}
 
+    heading = ds.poses("test")[:, 2] if getattr(predictor, "pose", False) else None
+
     def metrics(imgs, leader_alpha):
-        pred, sigma = predictor.predict_with_sigma(imgs)
+        est, sigma = predictor.predict_with_sigma(imgs)
+        pred = est[:, :2]
         m = perception_metrics(pred, pos, predictor.px_per_unit, leader_alpha=leader_alpha, **split)
+        if heading is not None:  # a pose map: the heading error beside the position error (SPEC §2)
+            m["heading"] = heading_metrics(est[:, 2], heading)
         if sigma is not None:
             m["uncertainty"] = flag_metrics(pred, sigma, pos, predictor.px_per_unit, **flags)
         return m, pred
@@ -45,8 +50,9 @@ def render_split(ds, split: str, occlusion, seed: int):
     (None: no clouds), clouds drawn from `seed`; returns the camera's render result (images, leader_alpha)."""
     labels = ds.labels[ds.labels["split"] == split]
     follower = labels[["follower_x", "follower_y"]].to_numpy(np.float64) if "follower_x" in labels else None
+    heading = ds.poses(split)[:, 2] if ds.has_headings else None
     return ds.camera().render(ds.positions(split), follower, occlusion=occlusion or Occlusion(),
-                                     rng=np.random.default_rng(seed), return_info=True)
+                              rng=np.random.default_rng(seed), return_info=True, heading=heading)
 
 
 def gate_frames(ds, n: int, seed: int):
@@ -55,7 +61,7 @@ def gate_frames(ds, n: int, seed: int):
     cam = ds.camera()
     plan = plan_split(build(ds.recipe, "data"), "gate", cam, Occlusion(), n=n)
     res = cam.render(plan.leader.astype(np.float64), plan.follower.astype(np.float64), occlusion=Occlusion(),
-                     rng=np.random.default_rng(seed), return_info=True)
+                     rng=np.random.default_rng(seed), return_info=True, heading=plan.heading)
     return res, plan.leader.astype(np.float64)
 
 
@@ -70,12 +76,14 @@ def fit_clean_gate(predictor, ds, false_alarm: float, *, error_px: float, per_va
     ppu = predictor.px_per_unit
     val_pos = ds.positions("val")
     pred, sigma = predictor.predict_with_sigma(render_split(ds, "val", None, seed).images)
+    pred = pred[:, :2]  # a pose map's heading is no part of the position's flag
     errs, sigmas = [np.hypot(*((pred - val_pos) * ppu).T)], [sigma]
     n_fresh = per_val * len(val_pos)
     if n_fresh:
         res, pos = gate_frames(ds, n_fresh, seed)
         for i in range(0, n_fresh, chunk):  # chunks: the float copies of a large set are never all held
             p, s_ = predictor.predict_with_sigma(res.images[i:i + chunk])
+            p = p[:, :2]
             errs.append(np.hypot(*((p - pos[i:i + chunk]) * ppu).T))
             sigmas.append(s_)
     err, sigma = np.concatenate(errs), np.concatenate(sigmas)

@@ -139,6 +139,10 @@ def run(cfg) -> dict:
     _quiet_lightning()
     L.seed_everything(seed, workers=True, verbose=False)
     model = _build(cfg.model, "model", image_shape=list(shape), arena=arena, name=name)
+    if model.pose and not ds.has_headings:
+        raise ConfigError("model.outputs", f"pose: dataset {ds.name}-{ds.id} shows no heading (a recipe with "
+                                           "data.vehicle: a unicycle)")
+    dm.pose = model.pose
     loggers = [_build(node, f"logger.{key}") for key, node in (cfg.get("logger") or {}).items()]
     callbacks = []
     for key, node in (cfg.get("callbacks") or {}).items():

@@ -55,7 +55,7 @@ def _features_and_errors(model, images, positions, device) -> tuple[torch.Tensor
         if feats is None:  # preallocated: the inputs of a large split are held once, not twice
             feats, sq = torch.empty(n, inputs.shape[1]), torch.empty(n, 2)
         feats[i:i + len(f)] = inputs.cpu()
-        sq[i:i + len(f)] = ((model.head(f) - target) ** 2).cpu()
+        sq[i:i + len(f)] = ((model.head(f)[:, :2] - target) ** 2).cpu()  # a pose map's head: position first
     return feats, sq
 
 
@@ -110,6 +110,7 @@ def calibrate(model, predictor, images, true: np.ndarray) -> dict:
     model.sigma_scale.fill_(1.0)
     predictor.refresh()
     pred, sigma = predictor.predict_with_sigma(images)
+    pred = pred[:, :2]  # a pose map: the sigma is the position's
     raw = coverage95(pred, sigma, true)
     scale = float(np.sqrt(np.quantile(mahalanobis2(pred, sigma, true), 0.95) / CHI2_2_95))
     scale = min(max(scale, 1e-3), 1e3)
