@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from pipeline.control.scene import Arena, Barrier, Obstacle, Scene
 from pipeline.control.validity import (
     ARENA_FIELD,
     DEFAULT_APEX_FACTOR,
@@ -30,7 +31,6 @@ from pipeline.control.validity import (
     field_violations,
     to_frames,
 )
-from pipeline.control.scene import Arena, Barrier, Obstacle, Scene
 from pipeline.errors import ConfigError
 
 
