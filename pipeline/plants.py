@@ -60,6 +60,10 @@ class Plant:
         """States `(N, n)` at positions `p` (and headings, for a vehicle that has one)."""
         return np.array(p, dtype=float).reshape(-1, 2)
 
+    def steering_scene(self, scene):
+        """The scene the feedback law steers `point` in (the real one)."""
+        return scene
+
 
 class SingleIntegrator(Plant):
     """`p_dot = u` (SPEC §1). The speed limit `u_max` is the controller's (it saturates its velocity)."""
@@ -137,6 +141,11 @@ class Unicycle(Plant):
 
     def speed(self, w):
         return np.abs(w[:, 0])
+
+    def steering_scene(self, scene):
+        """Every disc inflated by the look-ahead `d`, so that the axle point, `d` from `z`, stays out of the real
+        disc (SPEC §3.7)."""
+        return scene.inflated(self.lookahead)
 
     def lift(self, p, heading=None):
         p = np.array(p, dtype=float).reshape(-1, 2)

@@ -239,10 +239,13 @@ class Scene:
         return self.arena.bounds
 
     def inflated(self, d: float) -> Scene:
-        """Every disc grown by `d` (the unicycle's look-ahead point steers around `r + d`, SPEC §3.7); an apex or
-        barrier scale left at its default follows the new radius."""
-        grown = [Obstacle(center=list(o.center), radius=o.radius + d, apex=o.apex, barrier_scale=o.barrier_scale)
-                 for o in self.obstacles]
+        """Every disc grown by `d` (the unicycle's look-ahead point steers around `r + d`, SPEC §3.7); an explicit
+        apex or barrier scale grows in proportion (the covering keeps its shape)."""
+        def grow(v, r):
+            return None if v is None else v * (r + d) / r
+
+        grown = [Obstacle(center=list(o.center), radius=o.radius + d, apex=grow(o.apex, o.radius),
+                          barrier_scale=grow(o.barrier_scale, o.radius)) for o in self.obstacles]
         return Scene(target=list(self.target), obstacles=grown, barrier=self.barrier, arena=self.arena,
                      name=f"{self.name}+{d:g}")
 
