@@ -12,10 +12,15 @@ import pytest
 import torch
 from torch import nn
 
-from pipeline.perception.attacks import AttackedCamera, ScaledInput, pixel_attack, proposition1_direction, worst_cloud
 from pipeline.errors import ConfigError
-from pipeline.render import Camera, CloudSample
-from pipeline.render.occlusion import occlusion_level
+from pipeline.perception.attacks import (
+    AttackedCamera,
+    ScaledInput,
+    pixel_attack,
+    proposition1_direction,
+    worst_cloud,
+)
+from pipeline.render import Camera, CloudSample, Occlusion
 
 SCENE = SimpleNamespace(obstacle_center=(0.0, 0.0), obstacle_radius=4.0, target=(40.0, 0.0))
 E_B = np.array([0.0, 1.0])  # target to the right of the obstacle: e_a = (1, 0), e_b its left-hand normal
@@ -173,8 +178,8 @@ def test_pixel_attack_validates_its_budget(camera, positions):
 # ------------------------------------------------------------------------------------- worst cloud
 @pytest.fixture(scope="module")
 def clouds():
-    return occlusion_level(name="test", probability=0.3, blobs=(1, 3), radius=(4.0, 10.0), opacity=(0.6, 0.9),
-                           bank=8, seed=2)
+    return Occlusion(name="test", probability=0.3, blobs=(1, 3), radius=(4.0, 10.0), opacity=(0.6, 0.9),
+                     bank=8, seed=2)
 
 
 def test_worst_cloud_is_the_argmax_of_an_explicit_loop(camera, clouds, positions):
@@ -219,7 +224,7 @@ def test_worst_cloud_mask_policy_and_inactive_level(camera, clouds, positions):
     ref = clouds.sample(4 * 50, np.random.default_rng(0), camera.shape)
     np.testing.assert_array_equal(own.candidates.mask, ref.mask)  # the level's own draws
     assert 0 < own.candidates.mask.mean() < 1
-    none = occlusion_level(name="none")
+    none = Occlusion(name="none")
     res = worst_cloud(camera, none, p, d, predict, candidates=3, rng=np.random.default_rng(0))
     np.testing.assert_array_equal(res.attacked, res.clean)
     np.testing.assert_array_equal(res.images, camera.render(p))

@@ -1,5 +1,9 @@
 """One source of truth (issue 9): every run is exactly its composed config, inputs are pinned by id, nothing
-is silently ignored, and every bad input is one line and exit code 2 before any work."""
+is silently ignored, and every bad input is one line and exit code 2 before any work.
+
+Every config node names its `_target_`, whose typed signature is its schema: its keys and value types are
+checked at composition (`pipeline.config.compose` / `preflight`), and the code's defaults are the YAML's of
+the default option (the YAML is what runs)."""
 
 from __future__ import annotations
 
@@ -11,7 +15,7 @@ import numpy as np
 import pytest
 import yaml
 
-from pipeline.cli import REPO_ROOT, compose
+from pipeline.cli import CONF_DIR, REPO_ROOT, compose
 from pipeline.errors import ConfigError
 
 
@@ -90,13 +94,281 @@ def test_hybrid_only_override_is_in_the_cache_key_of_the_hybrid_rows(tmp_path):
 
 # ------------------------------------------------------------------------------------- unknown keys
 @pytest.mark.parametrize("override", ["+controller.lamda=0.05", "controller.chii=2", "+disturbance.epsilon=0.3",
-                                      "++controller.lamda=0.05", "+sim.dtt=0.1", "+camera.rate=10"])
+                                      "++controller.lamda=0.05", "+sim.dtt=0.1", "+camera.rate=10",
+                                      "+scene.obstacles.0.height=3", "scene.obstacles.0.height=3", "+init.mode=points"])
 def test_unknown_keys_with_and_without_plus_are_one_line(override):
     proc = _cli("pipeline.simulate", override, "plot=false", "hydra.run.dir=/tmp/never-used-run-dir")
     key = override.lstrip("+").split("=")[0]
+    key = key.replace("obstacles.0", "obstacles[0]")  # a list element is named by its index
     assert proc.returncode == 2, proc.stderr
     assert proc.stderr.strip().splitlines() == [proc.stderr.strip()] and proc.stderr.startswith(f"error: {key}: ")
     assert "unknown key" in proc.stderr and "Traceback" not in proc.stderr
+
+
+# --------------------------------------------------------------- every `_target_` node is its schema
+# (config, overrides, the field named): a wrong type, a wrong choice, an unknown key with `+`/`++` (composition
+# adds it, the schema rejects it) and without (Hydra rejects it, the preflight names it), in nested nodes too
+SCHEMA_CASES = [
+    ("simulate", ["sim.dt=abc"], "sim.dt", "must be a number"),
+    ("simulate", ["sim.record_every=2.5"], "sim.record_every", "must be an integer"),
+    ("simulate", ["sim.stop_on_success=maybe"], "sim.stop_on_success", "must be true or false"),
+    ("simulate", ["sim.model=hourly"], "sim.model", "must be one of sampled, continuous"),
+    ("simulate", ["sim.method=euler"], "sim.method", "must be one of rosenbrock23, dopri5"),
+    ("simulate", ["camera.period=fast"], "camera.period", "must be a number (or null)"),
+    ("simulate", ["controller.chi=[1.1,1.2]"], "controller.chi", "must be a number"),
+    ("simulate", ["+controller.lamda=0.05"], "controller.lamda", "unknown key"),
+    ("simulate", ["++controller.lamda=0.05"], "controller.lamda", "unknown key"),
+    ("simulate", ["controller.chii=2"], "controller.chii", "unknown key"),
+    ("simulate", ["controller=cbf", "controller.alpha=abc"], "controller.alpha", "must be a number"),
+    ("simulate", ["disturbance=gaussian", "disturbance.sigma=abc"], "disturbance.sigma", "must be a number"),
+    ("simulate", ["+disturbance.epsilon=0.3"], "disturbance.epsilon", "unknown key"),
+    ("simulate", ["init=grid", "init.nx=abc"], "init.nx", "must be an integer"),
+    ("simulate", ["init=grid", "init.exclude_diamond=sometimes"], "init.exclude_diamond", "must be true or false"),
+    ("simulate", ["init=grid", "+init.mode=grid"], "init.mode", "unknown key"),  # the key the options lost
+    ("simulate", ["init=near_k", "init.obstacle=first"], "init.obstacle", "must be an integer (or null)"),
+    ("simulate", ["init.points=[1.0,2.0]"], "init.points[0]", "must be a list"),
+    ("simulate", ["scene.target=far"], "scene.target", "must be a list"),
+    ("simulate", ["scene.obstacles.0.radius=big"], "scene.obstacles[0].radius", "must be a number"),
+    ("simulate", ["scene.obstacles.0.apex=high"], "scene.obstacles[0].apex", "must be a number (or null)"),
+    ("simulate", ["+scene.obstacles.0.height=3"], "scene.obstacles[0].height", "unknown key"),
+    ("simulate", ["scene.obstacles.0.height=3"], "scene.obstacles[0].height", "unknown key"),
+    ("simulate", ["scene.barrier.kind=cubic"], "scene.barrier.kind", "must be one of squared, authors_code"),
+    ("simulate", ["+scene.barrier.rho_b=0.3"], "scene.barrier.rho_b", "unknown key"),
+    ("simulate", ["scene.arena.x=wide"], "scene.arena.x", "must be a list"),
+    ("simulate", ["+scene.obstacle={center:[0,0],radius:4}"], "scene.obstacle", "unknown key"),  # the old key
+    ("data", ["data=clean", "data.splits.train=abc"], "data.splits.train", "must be an integer"),
+    ("data", ["data=clean", "data.sampling.mode=random"], "data.sampling.mode", "must be one of uniform, grid"),
+    ("data", ["data=clean", "+data.sampling.closed_loop.shares=0.3"], "data.sampling.closed_loop.shares", "unknown key"),
+    ("data", ["data=clean", "data.sampling.closed_loop.controller.chi=abc"],
+     "data.sampling.closed_loop.controller.chi", "must be a number"),
+    ("data", ["data=clean", "data.follower.probability=half"], "data.follower.probability", "must be a number"),
+    ("data", ["render.px_per_unit=abc"], "render.px_per_unit", "must be a number"),
+    ("data", ["render.colors.leader=white"], "render.colors.leader", "must be a list"),
+    ("data", ["+render.height=60"], "render.height", "unknown key"),  # the image size is the arena's
+    ("data", ["occlusions.heavy.blobs=many"], "occlusions.heavy.blobs", "must be a list"),
+    ("data", ["+occlusions.heavy.density=2"], "occlusions.heavy.density", "unknown key"),
+    ("train", ["data=clean", "model.lr=fast"], "model.lr", "must be a number"),  # a target read from its source
+    ("train", ["data=clean", "model.filters=wide"], "model.filters", "must be a list"),
+    ("train", ["data=clean", "+model.nll_weight=1"], "model.nll_weight", "unknown key"),
+    ("train", ["data=clean", "datamodule.batch_size=1.5"], "datamodule.batch_size", "must be an integer"),
+    ("train", ["data=clean", "+trainer.max_epoch=3"], "trainer.max_epoch", "unknown key"),
+    ("train", ["data=clean", "uncertainty_eval.gate_px=abc"], "uncertainty_eval.gate_px", "must be a number"),
+    ("train", ["data=clean", "+uncertainty_eval.gate=3"], "uncertainty_eval.gate", "unknown key"),
+    ("experiments", ["experiment=robustness_sweep", "experiment.eps=big"], "experiment.eps", "must be a list"),
+    ("experiments", ["experiment=robustness_sweep", "+experiment.nagents=5"], "experiment.nagents", "unknown key"),
+    ("experiments", ["experiment=robustness_sweep", "controllers.cbf.alpha=abc"], "controllers.cbf.alpha",
+     "must be a number"),
+    ("experiments", ["+controllers.smooth.alpha=1"], "controllers.smooth.alpha", "unknown key"),
+    ("experiments", ["disturbances.adversarial.eps=abc"], "disturbances.adversarial.eps", "must be a number"),
+    ("dagger", ["dagger.collect.controller.chi=abc"], "dagger.collect.controller.chi", "must be a number"),
+]
+
+
+@pytest.mark.parametrize("config,overrides,field,reason", SCHEMA_CASES,
+                         ids=[" ".join(c[1]) for c in SCHEMA_CASES])
+def test_every_node_is_checked_at_composition(config, overrides, field, reason):
+    from pipeline.config import preflight
+
+    hydra_rejects = not overrides[-1].startswith("+") and "unknown key" in reason  # no such key to override
+    if not hydra_rejects:
+        with pytest.raises(ConfigError) as err:
+            compose(config, overrides)
+        assert err.value.field == field and reason in err.value.reason, str(err.value)
+        assert "\n" not in str(err.value)
+    with pytest.raises(ConfigError) as err:  # what every stage's command line runs first
+        preflight(config, overrides)
+    assert err.value.field == field and reason in err.value.reason and "\n" not in str(err.value), str(err.value)
+
+
+WRONG = ("§not-a-value§", 12345, [["x"]], {"not_a_key": ["x"]})
+
+
+def _leaves(value, tp, path):
+    """(path, annotation) of every value under a node's keyword: into nested dataclasses and lists of them."""
+    import dataclasses
+    import types
+    import typing
+
+    union = typing.get_origin(tp) in (typing.Union, types.UnionType)
+    opts = [a for a in typing.get_args(tp) if a is not type(None)] if union else [tp]
+    dc = next((o for o in opts if dataclasses.is_dataclass(o)), None)
+    if dc is not None and isinstance(value, dict):
+        hints = typing.get_type_hints(dc)
+        for k, v in value.items():
+            yield from _leaves(v, hints[k], f"{path}.{k}")
+        return
+    item = typing.get_args(tp)[0] if typing.get_origin(tp) is list and typing.get_args(tp) else None
+    if item is not None and dataclasses.is_dataclass(item) and isinstance(value, list):
+        for i, v in enumerate(value):
+            yield from _leaves(v, item, f"{path}[{i}]")
+        return
+    yield path, tp
+
+
+def _set(cfg, path, value):
+    from omegaconf import OmegaConf, open_dict
+
+    key = path.replace("[", ".").replace("]", "")
+    with open_dict(cfg):
+        OmegaConf.update(cfg, key, value, merge=False, force_add=True)
+
+
+SCHEMA_CONFIGS = [("simulate", []), ("simulate", ["init=grid", "disturbance=adversarial", "controller=cbf"]),
+                  ("simulate", ["init=random", "disturbance=alternating", "controller=smooth"]),
+                  ("simulate", ["init=near_k", "disturbance=gaussian", "scene=authors_code"]),
+                  ("data", ["data=closed_loop", "render=authors_code"]), ("train", ["data=clean"]),
+                  ("dagger", [])] + [("experiments", [f"experiment={e}"])
+                                     for e in sorted(p.stem for p in (CONF_DIR / "experiment").glob("*.yaml"))]
+
+
+@pytest.mark.parametrize("config,overrides", SCHEMA_CONFIGS, ids=[" ".join([c, *o]) for c, o in SCHEMA_CONFIGS])
+def test_every_key_of_every_target_node_is_checked(config, overrides):
+    """In every composed config, every `_target_` node rejects a key its target does not take, and every
+    annotated keyword (nested dataclass fields included) rejects a value of the wrong type: one line naming it.
+    (Targets outside the project, read from their source, are checked by key; their values by the target.)"""
+    import copy
+
+    from omegaconf import OmegaConf
+
+    from pipeline.config import META_KEYS, _plain_value, _walk, check_schema
+    from pipeline.schema import check_value, signature
+
+    cfg = compose(config, overrides)
+    nodes = [(p, n) for p, n in _walk(cfg) if isinstance(n.get("_target_"), str)]
+    assert nodes
+    n_values = 0
+    for path, node in nodes:
+        parent, _, leaf = path.rpartition(".")
+        if OmegaConf.is_interpolation(OmegaConf.select(cfg, parent) if parent else cfg, leaf):
+            continue  # `controllers.hybrid: ${controller}`: checked as the node it points to
+        sig = signature(node["_target_"])
+        assert sig is not None and not sig.any_keyword, path
+        bad = copy.deepcopy(cfg)
+        _set(bad, f"{path}.not_a_keyword", 1)
+        with pytest.raises(ConfigError) as err:
+            check_schema(bad)
+        assert err.value.field == f"{path}.not_a_keyword" and "unknown key" in err.value.reason, str(err.value)
+        for key in node.keys():
+            value = _plain_value(node, key)  # `...`: a `${hydra:...}` value, resolved in a run only
+            if key in META_KEYS or sig.params.get(key) is None or value is ... or (
+                    isinstance(value, dict) and "_target_" in value):
+                continue
+            for where, tp in _leaves(value, sig.params[key], f"{path}.{key}"):
+                wrong = next((w for w in WRONG if _rejects(check_value, w, tp)), None)
+                if wrong is None:
+                    continue  # the annotation accepts anything
+                bad = copy.deepcopy(cfg)
+                _set(bad, where, wrong)
+                with pytest.raises(ConfigError) as err:
+                    check_schema(bad)
+                assert err.value.field.startswith(where) and "\n" not in str(err.value), (where, str(err.value))
+                n_values += 1
+    assert n_values >= len(nodes)
+
+
+def _rejects(check_value, value, tp) -> bool:
+    try:
+        check_value(value, tp, "x")
+    except ConfigError:
+        return True
+    return False
+
+
+# ------------------------------------------------------------------ the code's defaults are the YAML's
+def _plain(x):
+    import dataclasses
+
+    if dataclasses.is_dataclass(x) and not isinstance(x, type):
+        return {f.name: _plain(getattr(x, f.name)) for f in dataclasses.fields(x)}
+    if isinstance(x, list | tuple):
+        return [_plain(v) for v in x]
+    if isinstance(x, dict):
+        return {k: _plain(v) for k, v in x.items()}
+    return x
+
+
+def _code_defaults(cls) -> dict:
+    """Keyword -> default of a dataclass (its fields) or a class / function (its signature)."""
+    import dataclasses
+    import inspect
+
+    if dataclasses.is_dataclass(cls):
+        out = {}
+        for f in dataclasses.fields(cls):
+            if f.default is not dataclasses.MISSING:
+                out[f.name] = f.default
+            elif f.default_factory is not dataclasses.MISSING:
+                out[f.name] = f.default_factory()
+        return out
+    return {n: p.default for n, p in inspect.signature(cls).parameters.items() if p.default is not p.empty}
+
+
+def _yaml(rel: str) -> dict:
+    return yaml.safe_load((REPO_ROOT / "conf" / rel).read_text())
+
+
+def _differences(node: dict, cls, *, skip=()) -> list[str]:
+    """Keys of a YAML node whose value is not the code's default (`name`: the target's keyword, else its label
+    `cls.name`)."""
+    from pipeline.render.camera import DEFAULT_COLORS
+
+    defaults = _code_defaults(cls)
+    if cls.__name__ == "Camera":  # colors=None draws DEFAULT_COLORS
+        defaults["colors"] = DEFAULT_COLORS
+    out = []
+    for key, value in node.items():
+        if key in ("_target_", "defaults", "hydra", *skip):  # hydra: Hydra's own settings (run dirs)
+            continue
+        if key == "name" and key not in defaults:
+            want = getattr(cls, "name", None)
+        else:
+            assert key in defaults, f"{cls.__name__} has no default for {key}"
+            want = defaults[key]
+        if _plain(want) != _plain(value):
+            out.append(f"{key}: YAML {value!r}, code {_plain(want)!r}")
+    return out
+
+
+def _target(node: dict):
+    from pipeline.config import resolve
+
+    module, _, name = node["_target_"].rpartition(".")
+    return resolve(f"{module}:{name}")
+
+
+DEFAULT_NODES = ["sim/default.yaml", "camera/default.yaml", "controller/hybrid.yaml", "controller/smooth.yaml",
+                 "controller/cbf.yaml", "disturbance/none.yaml", "disturbance/gaussian.yaml",
+                 "disturbance/alternating.yaml", "disturbance/adversarial.yaml", "init/points.yaml", "init/grid.yaml",
+                 "init/random.yaml", "init/near_k.yaml", "scene/default.yaml", "render/default.yaml",
+                 "occlusion/none.yaml"]
+
+
+@pytest.mark.parametrize("rel", DEFAULT_NODES)
+def test_code_defaults_are_the_yaml_of_the_default_option(rel):
+    """What runs is the YAML: a target built without that key (a test, a notebook, `Scene()`) gets the same value."""
+    node = _yaml(rel)
+    assert _differences(node, _target(node)) == []
+
+
+def test_nested_and_stage_defaults_are_the_yaml():
+    from pipeline.control import Barrier, Obstacle, Scene
+    from pipeline.data.recipe import ClosedLoopSampling, Sampling
+    from pipeline.errormap.settings import ErrorMapSettings
+    from pipeline.train.settings import UncertaintyEval
+
+    scene = _yaml("scene/default.yaml")  # the nested nodes, key for key
+    assert _differences(scene["barrier"], Barrier) == []
+    assert _plain(Scene().obstacles) == scene["obstacles"]
+    assert _differences(scene["obstacles"][0], Obstacle, skip=("center", "radius")) == []  # those two: required
+    assert _plain(Scene().arena) == scene["arena"] and _plain(Scene().barrier) == scene["barrier"]
+    sampling = _yaml("sampling/closed_loop.yaml")
+    assert _differences(sampling["closed_loop"], ClosedLoopSampling) == []
+    assert _differences(sampling, Sampling, skip=("mode", "closed_loop")) == []  # mode: what this option picks
+    uncertainty = _yaml("train.yaml")["uncertainty_eval"]
+    assert _target(uncertainty) is UncertaintyEval and _differences(uncertainty, UncertaintyEval) == []
+    errormap = _yaml("errormap.yaml")
+    assert _differences(errormap, ErrorMapSettings) == []
+    assert set(errormap) - {"defaults", "hydra"} == set(_code_defaults(ErrorMapSettings))  # every setting in the YAML
 
 
 # ------------------------------------------------------------------------------- bad input, every stage
@@ -109,7 +381,10 @@ def _bad_cases(tmp_path):
         ("pipeline.simulate", ["init=near_k", "init.a_range=[-10.0,-40.0]"], "init.a_range"),
         ("pipeline.simulate", ["init.points=[[0.5,0.5]]"], "init.points"),
         ("pipeline.simulate", ["scene.target=[80.0,0.0]"], "scene.target"),
-        ("pipeline.simulate", ["scene.obstacle.center=[0.0,45.0]"], "scene.obstacle.center"),
+        ("pipeline.simulate", ["scene.obstacles.0.center=[0.0,45.0]"], "scene.obstacles[0].center"),
+        ("pipeline.simulate", ["scene.obstacles.0.radius=big"], "scene.obstacles[0].radius"),
+        ("pipeline.simulate", ["scene.barrier.kind=cubic"], "scene.barrier.kind"),
+        ("pipeline.simulate", ["sim.model=hourly"], "sim.model"),
         ("pipeline.simulate", ["sim.seed=-1"], "sim.seed"),
         ("pipeline.simulate", [f"paths.outputs_dir={afile}"], "paths.outputs_dir"),
         ("pipeline.simulate", [f"paths.outputs_dir={afile}/sub"], "paths.outputs_dir"),
@@ -157,7 +432,7 @@ def test_missing_input_names_the_command_that_makes_it(tmp_path):
 
 # ------------------------------------------------------------------------------------ faults
 def test_stale_temporaries_are_removed_and_verify_fails_without_manifest(tmp_path):
-    from pipeline.data import run as data_run
+    from pipeline.data.stage import run as data_run
     from pipeline.data.verify import verify_datasets
 
     root = tmp_path / "datasets"
@@ -181,7 +456,7 @@ def test_stale_temporaries_are_removed_and_verify_fails_without_manifest(tmp_pat
 # ----------------------------------------------------------------------- lineage: never the newest folder
 def test_a_name_means_the_current_config_never_the_newest_folder(tmp_path):
     from pipeline.data import open_dataset
-    from pipeline.data import run as data_run
+    from pipeline.data.stage import run as data_run
     from pipeline.errors import DatasetError
 
     root = tmp_path / "datasets"
@@ -235,9 +510,16 @@ def test_paper_keeps_its_maps_when_a_quick_experiment_trains_another(tmp_path):
 
 
 def test_schema_rejects_wrong_types_in_instantiated_scenarios():
-    from pipeline.experiments.scenarios import RobustnessSweep
+    """A scenario is built from its node (`experiment._target_`): its typed signature is the node's schema."""
+    from pipeline.config import build
+    from pipeline.experiments.theory import RobustnessSweep
 
-    with pytest.raises(ConfigError, match="experiment.eps"):
-        RobustnessSweep(id="x", title="x", eps="big")
+    node = {"_target_": "pipeline.experiments.theory.RobustnessSweep", "id": "x", "title": "x"}
+    assert isinstance(build(node, "experiment"), RobustnessSweep)
+    with pytest.raises(ConfigError, match="experiment.eps") as err:
+        build({**node, "eps": "big"}, "experiment")
+    assert err.value.field == "experiment.eps" and "\n" not in str(err.value)
+    with pytest.raises(ConfigError, match="experiment.epsilon: unknown key"):
+        build({**node, "epsilon": [0.1]}, "experiment")
     with pytest.raises(TypeError):
         RobustnessSweep(id="x", title="x", epsilon=[0.1])  # no **kwargs: a typo is not a default

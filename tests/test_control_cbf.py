@@ -13,11 +13,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.control import CBFController, Scene
+from pipeline.control import Arena, CBFController, Obstacle, Scene
 from pipeline.control.cbf import cbf_qp, disc_constraints
 
 SETTINGS = settings(max_examples=25, deadline=None)
 SEEDS = st.integers(0, 2**31 - 1)
+ARENA = Arena(x=[-200.0, 200.0], y=[-200.0, 200.0])  # every drawn target and disc inside
 
 
 def closed_form(u_nom, rel, h, alpha):
@@ -83,8 +84,8 @@ def dykstra(u_nom, G, b, max_cycles=100_000):
 def test_single_disc_is_the_closed_form_bit_for_bit(seed, alpha, k, r, cx, cy, theta):
     """M = 1: disc_constraints + cbf_qp equals CBFController._flow exactly, and the controller itself."""
     rng = np.random.default_rng(seed)
-    scene = Scene(target=(cx + 12 * r * math.cos(theta), cy + 12 * r * math.sin(theta)),
-                  obstacle_center=(cx, cy), obstacle_radius=r)
+    scene = Scene(target=[cx + 12 * r * math.cos(theta), cy + 12 * r * math.sin(theta)],
+                  obstacles=[Obstacle(center=[cx, cy], radius=r)], arena=ARENA)
     ang = rng.uniform(-math.pi, math.pi, 1000)
     rad = rng.uniform(0.0, 6 * r, 1000)
     pts = scene.p_0 + rad[:, None] * np.stack([np.cos(ang), np.sin(ang)], axis=1)
@@ -103,7 +104,8 @@ def test_single_disc_is_the_closed_form_bit_for_bit(seed, alpha, k, r, cx, cy, t
     assert np.array_equal(sol.degenerate, ~good & ref_active) and sol.degenerate[:5].all()
     assert np.array_equal(sol.feasible, ~sol.degenerate)
     assert np.isfinite(sol.u).all() and np.array_equal(sol.u[~good], u_nom[~good])
-    ctrl_u = CBFController(scene, k=k, alpha=alpha, u_max=None).flow_map(pts)
+    ctrl = CBFController(scene, k=k, alpha=alpha, u_max=None)
+    ctrl_u = ctrl.flow_map(pts, ctrl.initial_state(pts))
     assert np.array_equal(ctrl_u[good], sol.u[good])
     assert ref_active.any() and (~ref_active).any()
 

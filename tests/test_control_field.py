@@ -13,12 +13,16 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from pipeline.control import Scene
-from pipeline.control.validity import (
+from pipeline.control import Arena, Barrier, Obstacle, Scene
+from pipeline.control.fields import (
     AUTHORS_MULTI,
-    DEFAULT_ARENA,
     analyse_field,
     authors_multi_analysis,
+    random_field,
+    two_in_row,
+)
+from pipeline.control.validity import (
+    DEFAULT_ARENA,
     barrier_reach,
     cell_distance,
     check_field,
@@ -27,9 +31,7 @@ from pipeline.control.validity import (
     field_violations,
     in_diamonds,
     influence_radius,
-    random_field,
     to_frames,
-    two_in_row,
 )
 from pipeline.errors import ConfigError
 
@@ -114,7 +116,8 @@ def test_v1_agrees_with_single_obstacle_scene(r, f, rho_b, s, phi, dist):
     v1 = [v for v in field_violations([[0.0, 0.0]], [r], target, apex=apex, reach=barrier_reach(rho_b, scale))
           if v.condition == "V1"]
     try:
-        Scene(target=target, obstacle_radius=r, apex=apex, barrier_rho=rho_b, barrier_scale=scale)
+        Scene(target=list(target), obstacles=[Obstacle([0.0, 0.0], r, apex=apex)], barrier=Barrier(rho=rho_b, scale=scale),
+              arena=Arena(x=[-70.0, 70.0], y=[-70.0, 70.0]))  # the target rule alone: every target inside the arena
         accepted = True
     except ConfigError:
         accepted = False

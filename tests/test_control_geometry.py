@@ -13,6 +13,9 @@ from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
 from pipeline.control import (
+    Arena,
+    Barrier,
+    Obstacle,
     Scene,
     diamond_vertices,
     in_covering_set,
@@ -48,9 +51,12 @@ def scenes(draw, kinds=("squared",)):
     min_dist = max(c + math.sqrt(2) * reach, 2 * r + reach)
     dist = min_dist * draw(st.floats(1.05, 4.0)) + draw(st.floats(0.0, 20.0))
     target = (cx + dist * math.cos(theta), cy + dist * math.sin(theta))
+    # an arena that holds the obstacle and the target (the scene checks both lie inside it)
+    arena = Arena(x=[min(cx, target[0]) - 1.0, max(cx, target[0]) + 1.0],
+                  y=[min(cy, target[1]) - 1.0, max(cy, target[1]) + 1.0])
     try:
-        scene = Scene(target=target, obstacle_center=(cx, cy), obstacle_radius=r, barrier_rho=rho,
-                      barrier_scale=scale, apex=apex, barrier_kind=kind)
+        scene = Scene(target=list(target), obstacles=[Obstacle(center=[cx, cy], radius=r, apex=apex)],
+                      barrier=Barrier(rho=rho, scale=scale, kind=kind), arena=arena)
     except ConfigError:
         assume(False)
     return scene
@@ -91,7 +97,8 @@ def test_scene_frame_matches_independent_frame():
     for theta in np.linspace(-math.pi, math.pi, 13):
         p0 = np.array([3.0, -7.0])
         target = p0 + 40 * np.array([math.cos(theta), math.sin(theta)])
-        scene = Scene(target=tuple(target), obstacle_center=tuple(p0), obstacle_radius=4)
+        scene = Scene(target=target.tolist(), obstacles=[Obstacle(center=p0.tolist(), radius=4)],
+                      arena=Arena(x=[-60.0, 60.0], y=[-60.0, 60.0]))
         _, e_a, e_b = frame(scene)
         np.testing.assert_allclose(scene.e_a, e_a, atol=1e-12)
         np.testing.assert_allclose(scene.e_b, e_b, atol=1e-12)
@@ -134,7 +141,7 @@ def test_diamond_contains_disc_of_radius_2r_and_lies_in_ball_c(scene, seed):
     ang = rng.uniform(-math.pi, math.pi, 3000)
     unit = np.stack([np.cos(ang), np.sin(ang)], axis=1)
     # inside the disc of radius 2r (up to its boundary) -> inside the diamond (default apex: c = 2 sqrt(2) r)
-    if scene.apex is None:
+    if scene.obstacles[0].apex is None:
         rad = 2 * r * (1 - 1e-9) * np.sqrt(rng.uniform(0, 1, len(ang)))
         rad[:200] = 2 * r * (1 - 1e-9)
         assert in_diamond(scene, p0 + rad[:, None] * unit).all()
@@ -217,7 +224,8 @@ def test_sq_dist_to_wedge_grad_matches_finite_differences(scene, q, seed):
 
 def test_wedge_apex_side():
     """W_1's apex is at b = -c (mode 1 passes below the obstacle), W_2's at b = +c."""
-    scene = Scene(target=(0.0, 40.0), obstacle_center=(0.0, 0.0), obstacle_radius=4)  # e_a = +y, e_b = -x
+    scene = Scene(target=[0.0, 40.0], obstacles=[Obstacle(center=[0.0, 0.0], radius=4)],  # e_a = +y, e_b = -x
+                  arena=Arena(x=[-50.0, 50.0], y=[-50.0, 50.0]))
     c = scene.c
     below = world(scene, [0.0], [-c - 1.0])  # just beyond W_1's apex: in O_1
     above = world(scene, [0.0], [c + 1.0])

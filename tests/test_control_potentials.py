@@ -1,4 +1,8 @@
-"""Potentials, barrier and controllers of SPEC §3.2-§3.4, and config validation of the control core."""
+"""Potentials, barrier and controllers of SPEC §3.2-§3.4, and config validation of the control core.
+
+The feedback laws are pure maps of the perceived point `m` and the logic state `xd`; the sampled-data step
+(one jump where `D`, then the flow map of the new mode; the old `controller(m)`) is the closed loop's frame
+(:func:`sampled_step`: `pipeline.hybrid.sampled.frame_update` on `pipeline.sim.SampledLoop`)."""
 
 from __future__ import annotations
 
@@ -10,9 +14,12 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from test_control_geometry import scenes, world
 
+from pipeline.config import build
 from pipeline.control import (
+    Barrier,
     CBFController,
     HybridController,
+    Obstacle,
     Scene,
     SmoothController,
     barrier,
@@ -28,6 +35,10 @@ from pipeline.control import (
 )
 from pipeline.control.potentials import both_potentials_frame
 from pipeline.errors import ConfigError
+from pipeline.hybrid import State
+from pipeline.hybrid.sampled import frame_update
+from pipeline.plants import SingleIntegrator
+from pipeline.sim import SampledLoop
 
 SETTINGS = settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 KINDS = ("squared", "authors_code")
@@ -44,6 +55,23 @@ def box_points(scene: Scene, seed: int, n: int):
     a = rng.uniform(-L, L, n)
     b = rng.uniform(-L, L, n)
     return a, b, world(scene, a, b)
+
+
+def default_scene(**barrier) -> Scene:
+    """The paper's scene: target (40, 0), one obstacle of radius 4 at the origin."""
+    return Scene(target=[40.0, 0.0], obstacles=[Obstacle(center=[0.0, 0.0], radius=4.0)], barrier=Barrier(**barrier))
+
+
+def sampled_step(ctrl, m: np.ndarray, xd: dict, target=None):
+    """One frame of the sampled loop at the measurement `m` (what the old stateful `controller(m)` did): jump
+    where `(m, xd) ∈ D` (priority), count the states left outside `C ∪ D`, hold `u = flow_map(m, xd+)`.
+
+    Runs `pipeline.hybrid.sampled.frame_update` on the closed loop itself; returns `(u, xd+, jumped, outside)`."""
+    loop = SampledLoop(ctrl.scene, ctrl, SingleIntegrator())
+    m = np.asarray(m, dtype=float)
+    x = State(m.copy(), m=m, target=target, **{k: np.array(v) for k, v in xd.items()})
+    x, w, jumped, outside, _ = frame_update(loop, x, 0, np.random.default_rng(0), np.ones(len(m), dtype=bool))
+    return w, {k: x.d[k] for k in ctrl.logic}, jumped, outside
 
 
 def fd_grad(f, pts: np.ndarray, h: np.ndarray | float) -> np.ndarray:
@@ -209,7 +237,7 @@ def test_no_critical_point_but_the_target(scene, q):
 
 def test_smooth_potential_has_a_saddle_behind_the_obstacle():
     """Proposition 1's set K: V_s has a critical point on the ray behind the obstacle (V_q has none)."""
-    scene = Scene(target=(40.0, 0.0), obstacle_radius=4.0)
+    scene = default_scene()
     r, reach = scene.obstacle_radius, scene.barrier_reach
     a = -(2 * r + np.linspace(1e-4, 1.5 * reach, 20001))
     pts = np.stack([a, np.zeros_like(a)], axis=1)
@@ -235,8 +263,62 @@ def test_both_potentials_frame_matches_potential_and_grad(scene, seed):
         fin = np.isfinite(Vr)
         np.testing.assert_array_equal(np.isfinite(V), fin)
         np.testing.assert_allclose(V[fin], Vr[fin], rtol=1e-9)
+        # the readable potential (SPEC §3.2 as written) agrees with the fused path too
+        Vp = potential(scene, q, pts)
+        np.testing.assert_array_equal(np.isfinite(Vp), fin)
+        np.testing.assert_allclose(V[fin], Vp[fin], rtol=1e-9)
         gw = ga[fin, None] * scene.e_a + gb[fin, None] * scene.e_b
         np.testing.assert_allclose(gw, gr[fin], rtol=1e-8, atol=1e-8 * (1 + np.abs(gr[fin]).max()))
+
+
+@SETTINGS
+@given(scene=scenes(kinds=KINDS), seed=st.integers(0, 2**31 - 1), moving=st.booleans())
+def test_readable_potential_matches_the_controllers_fused_evaluation(scene, seed, moving):
+    """`potential(scene, q, p)` (SPEC §3.2 as written) is what the hybrid controller's fused evaluation reads,
+    for the rows it evaluates (near the wedge of their mode), with a fixed or a moving target."""
+    a, b, pts = box_points(scene, seed, 2000)
+    rng = np.random.default_rng(seed)
+    target = scene.p_T + rng.normal(0.0, 0.5, pts.shape) if moving else None
+    ctrl = HybridController(scene)
+    xd = {"i": np.zeros(len(pts), dtype=np.int64), "q": rng.choice(np.array([1, 2], dtype=np.int8), len(pts))}
+    ev = ctrl.evaluate(pts, xd, target)
+    assert ev.idx.size > 0
+    tgt = None if target is None else target[ev.idx]
+    for q, V in ((1, ev.V1), (2, ev.V2)):
+        Vr = potential(scene, q, pts[ev.idx], tgt)
+        fin = np.isfinite(Vr)
+        np.testing.assert_array_equal(np.isfinite(V), fin)
+        np.testing.assert_allclose(V[fin], Vr[fin], rtol=1e-9)
+    # rows left out are far from the wedge of their mode: there V_q = |p - p_T|^2 <= V_{3-q}
+    rest = np.setdiff1d(np.arange(len(pts)), ev.idx)
+    qr = xd["q"][rest]
+    tr = None if target is None else target[rest]
+    Vq = np.where(qr == 1, potential(scene, 1, pts[rest], tr), potential(scene, 2, pts[rest], tr))
+    Vo = np.where(qr == 1, potential(scene, 2, pts[rest], tr), potential(scene, 1, pts[rest], tr))
+    diff = pts[rest] - (scene.p_T if target is None else tr)
+    np.testing.assert_allclose(Vq, scene.phi_weight * np.einsum("ij,ij->i", diff, diff), rtol=1e-12)
+    assert (Vq <= Vo * (1 + 1e-12)).all()
+
+
+def test_readable_potential_matches_the_fused_path_with_two_obstacles():
+    """With several obstacles the controller evaluates `fused_potentials` on per-row arrays of its active
+    obstacle `i`: the readable `potential(scene.covering(i), q, p)` agrees."""
+    scene = Scene(target=[40.0, 0.0], obstacles=[Obstacle(center=[0.0, 0.0], radius=4.0),
+                                                 Obstacle(center=[-25.0, 12.0], radius=3.0, apex=6.0)])
+    rng = np.random.default_rng(5)
+    pts = rng.uniform([-50.0, -30.0], [50.0, 30.0], (4000, 2))
+    ctrl = HybridController(scene)
+    xd = ctrl.initial_state(pts)
+    ev = ctrl.evaluate(pts, xd)
+    assert set(np.unique(ev.i[ev.idx])) == {0, 1}
+    for j in (0, 1):
+        rows = ev.idx[ev.i[ev.idx] == j]
+        sel = ev.i[ev.idx] == j
+        for q, V in ((1, ev.V1[sel]), (2, ev.V2[sel])):
+            Vr = potential(scene.covering(j), q, pts[rows])
+            fin = np.isfinite(Vr)
+            np.testing.assert_array_equal(np.isfinite(V), fin)
+            np.testing.assert_allclose(V[fin], Vr[fin], rtol=1e-9)
 
 
 # ----------------------------------------------------------------------------------------- controllers
@@ -245,43 +327,43 @@ def test_both_potentials_frame_matches_potential_and_grad(scene, seed):
 @SETTINGS
 @given(scene=scenes(kinds=KINDS), seed=st.integers(0, 2**31 - 1))
 def test_hybrid_flow_and_jump_rule(scene, seed):
-    """One call = at most one jump by SPEC §3.3's rule, then u = -k ∇V_q+ (no speed limit)."""
+    """One frame = at most one jump by SPEC §3.3's rule, then u = -k ∇V_q+ (no speed limit)."""
     a, b, pts = box_points(scene, seed, 2000)
     ctrl = HybridController(scene, k=0.7, chi=1.1, lam=0.09, u_max=None)
-    ctrl.reset(pts)
+    xd0 = ctrl.initial_state(pts)
     rng = np.random.default_rng(seed)
     q0 = rng.choice(np.array([1, 2], dtype=np.int8), len(pts))
-    ctrl.q = q0.copy()
-    u = ctrl(pts)
+    u, xd, jumped, outside = sampled_step(ctrl, pts, {"i": xd0["i"], "q": q0})
+    q = xd["q"]
     assert np.isfinite(u).all()
     V = {q: potential(scene, q, pts) for q in (1, 2)}
     Vq = np.where(q0 == 1, V[1], V[2])
     Vo = np.where(q0 == 1, V[2], V[1])
     with np.errstate(invalid="ignore"):
         jump = (Vq > 0) & np.isfinite(Vo) & (Vq >= (1.1 - 0.09) * Vo)
-    np.testing.assert_array_equal(ctrl.q, np.where(jump, 3 - q0, q0))
-    np.testing.assert_array_equal(ctrl.jumps, jump.astype(int))
+    np.testing.assert_array_equal(q, np.where(jump, 3 - q0, q0))
+    np.testing.assert_array_equal(jumped.astype(int), jump.astype(int))
     # flow: outside the diamond the velocity is the gradient of the (new) mode's potential
     dia = in_diamond(scene, pts)
-    for q in (1, 2):
-        sel = (ctrl.q == q) & ~dia & in_covering_set(scene, q, pts)
-        np.testing.assert_allclose(u[sel], -0.7 * potential_grad(scene, q, pts[sel]), rtol=1e-7,
+    for mode in (1, 2):
+        sel = (q == mode) & ~dia & in_covering_set(scene, mode, pts)
+        np.testing.assert_allclose(u[sel], -0.7 * potential_grad(scene, mode, pts[sel]), rtol=1e-7,
                                    atol=1e-7 * (1 + np.abs(u[sel]).max(initial=0)))
     # after a jump the agent is in the flow set: V_q <= chi V_{3-q}
-    Vnew = np.where(ctrl.q == 1, V[1], V[2])
-    Voth = np.where(ctrl.q == 1, V[2], V[1])
+    Vnew = np.where(q == 1, V[1], V[2])
+    Voth = np.where(q == 1, V[2], V[1])
     fin = np.isfinite(Vnew)
     assert (Vnew[fin] <= 1.1 * Voth[fin]).all()
     # inside the diamond: no jump, push out of W_q at push_speed, counted
-    np.testing.assert_array_equal(ctrl.pushouts, dia.astype(int))
-    np.testing.assert_array_equal(ctrl.q[dia], q0[dia])
+    np.testing.assert_array_equal(outside.astype(int), dia.astype(int))
+    np.testing.assert_array_equal(q[dia], q0[dia])
     np.testing.assert_allclose(np.hypot(u[dia, 0], u[dia, 1]), ctrl.push_speed)
 
 
 def test_hybrid_hysteresis():
     """Between chi - lam and chi the mode is kept; the switch happens once the ratio passes chi - lam."""
     # a strong barrier (gain 1000) so that V_2 / V_1 spans the hysteresis band within |b| < 0.5
-    scene = Scene(target=(40.0, 0.0), obstacle_radius=4.0, barrier_gain=1000.0)
+    scene = default_scene(gain=1000.0)
     ctrl = HybridController(scene, chi=1.1, lam=0.09)
     # behind the obstacle, V_2 / V_1 grows as b decreases (the barrier of W_2 grows)
     c = scene.c
@@ -293,50 +375,57 @@ def test_hybrid_hysteresis():
     keep = (ratio > 1.0) & (ratio < 1.1 - 0.09)
     switch = ratio >= 1.1 - 0.09
     assert keep.any() and switch.any()
-    ctrl.reset(pts)
-    ctrl.q[:] = 2
-    ctrl(pts)
-    assert (ctrl.q[keep] == 2).all()
-    assert (ctrl.q[switch] == 1).all()
+    xd = ctrl.initial_state(pts)
+    xd["q"][:] = 2
+    _, xd, jumps, _ = sampled_step(ctrl, pts, xd)
+    assert (xd["q"][keep] == 2).all()
+    assert (xd["q"][switch] == 1).all()
     # and the switch is not undone at the next sample (hysteresis: 1.01 * V_2 > V_1 there)
-    ctrl(pts)
-    assert (ctrl.jumps[switch] == 1).all() and (ctrl.jumps[keep] == 0).all()
+    _, xd, again, _ = sampled_step(ctrl, pts, xd)
+    jumps = jumps.astype(int) + again
+    assert (jumps[switch] == 1).all() and (jumps[keep] == 0).all()
 
 
 def test_hybrid_jumps_when_measurement_leaves_its_set_and_never_at_target():
-    scene = Scene(target=(40.0, 0.0), obstacle_radius=4.0)
+    scene = default_scene()
     c = scene.c
     ctrl = HybridController(scene)
     below, above = np.array([[0.0, -c - 1.0]]), np.array([[0.0, c + 1.0]])
-    ctrl.reset(below)
-    assert ctrl.q.tolist() == [1]
-    ctrl(above)  # above the diamond: not in O_1, in O_2 -> jump
-    assert ctrl.q.tolist() == [2] and ctrl.jumps.tolist() == [1]
-    ctrl(above)
-    assert ctrl.jumps.tolist() == [1]
+    xd = ctrl.initial_state(below)
+    assert xd["q"].tolist() == [1]
+    _, xd, jumps, _ = sampled_step(ctrl, above, xd)  # above the diamond: not in O_1, in O_2 -> jump
+    jumps = jumps.astype(int)
+    assert xd["q"].tolist() == [2] and jumps.tolist() == [1]
+    _, xd, again, _ = sampled_step(ctrl, above, xd)
+    assert (jumps + again).tolist() == [1]
     at_target = np.array([scene.p_T])
-    ctrl.reset(at_target)
+    xd = ctrl.initial_state(at_target)
+    jumps = np.zeros(1, dtype=int)
     for _ in range(5):
-        u = ctrl(at_target)
-    assert ctrl.jumps.tolist() == [0] and np.abs(u).max() == 0.0
+        u, xd, jumped, _ = sampled_step(ctrl, at_target, xd)
+        jumps += jumped
+    assert jumps.tolist() == [0] and np.abs(u).max() == 0.0
 
 
 def test_controllers_never_return_nan():
-    scene = Scene(target=(40.0, 0.0), obstacle_radius=4.0)
+    scene = default_scene()
     g = np.linspace(-15, 15, 61)
     pts = np.stack(np.meshgrid(g, g), axis=-1).reshape(-1, 2)
     pts = np.concatenate([pts, [[0.0, 0.0], list(scene.p_T)]])
     for cls in (HybridController, SmoothController, CBFController):
         ctrl = cls(scene, u_max=10.0)
-        ctrl.reset(pts)
-        u = ctrl(pts)
+        xd = ctrl.initial_state(pts)
+        u = ctrl.flow_map(pts, xd)
         assert np.isfinite(u).all(), cls
         assert (np.hypot(u[:, 0], u[:, 1]) <= 10.0 * (1 + 1e-12)).all()
-    # the smooth controller pushes radially out of the 2r disc where V_s is infinite
+        u_loop, _, _, _ = sampled_step(ctrl, pts, xd)
+        assert np.isfinite(u_loop).all() and (np.hypot(*u_loop.T) <= 10.0 * (1 + 1e-12)).all(), cls
+    # the smooth controller pushes radially out of the 2r disc where V_s is infinite (counted: outside C ∪ D)
     ctrl = SmoothController(scene, u_max=10.0)
     inner = pts[np.hypot(pts[:, 0], pts[:, 1]) < 2 * scene.obstacle_radius]
-    u = ctrl(inner)
-    assert (np.einsum("ij,ij->i", u, inner) >= 0).all() and (ctrl.pushouts == 1).all()
+    u, _, _, pushed = sampled_step(ctrl, inner, ctrl.initial_state(inner))
+    assert (np.einsum("ij,ij->i", u, inner) >= 0).all() and pushed.all()
+    np.testing.assert_array_equal(u, ctrl.flow_map(inner, ctrl.initial_state(inner)))
 
 
 @SETTINGS
@@ -350,7 +439,7 @@ def test_cbf_filter_is_the_min_norm_safe_velocity(scene, seed, alpha, k):
     rad = 2 * r + rng.exponential(2 * r, 2000)
     pts = scene.p_0 + rad[:, None] * np.stack([np.cos(ang), np.sin(ang)], axis=1)
     ctrl = CBFController(scene, k=k, alpha=alpha, u_max=None)
-    u = ctrl(pts)
+    u = ctrl.flow_map(pts, ctrl.initial_state(pts))
     rel = pts - scene.p_0
     h = np.einsum("ij,ij->i", rel, rel) - (2 * r) ** 2
     gh = 2 * rel
@@ -373,50 +462,79 @@ def test_cbf_filter_is_the_min_norm_safe_velocity(scene, seed, alpha, k):
     assert (dv[feas] >= np.broadcast_to(du, dv.shape)[feas] * (1 - 1e-9) - 1e-9).all()
     # with the speed limit, the output is the same direction scaled down: the condition still holds
     ctrl_sat = CBFController(scene, k=k, alpha=alpha, u_max=1.0)
-    us = ctrl_sat(pts)
+    us = ctrl_sat.flow_map(pts, ctrl_sat.initial_state(pts))
     assert (np.einsum("ij,ij->i", gh, us) >= -alpha * h - tol).all()
 
 
 # ------------------------------------------------------------------------------------------ validation
 
+SCENE_NODE = {"_target_": "pipeline.control.Scene", "target": [40.0, 0.0],
+              "obstacles": [{"center": [0.0, 0.0], "radius": 4.0}]}
+
+
+def _obstacle(**kw) -> dict:
+    return {"obstacles": [{"center": [0.0, 0.0], "radius": 4.0} | kw]}
+
 
 @pytest.mark.parametrize(
-    ("kwargs", "field"),
+    ("patch", "field", "direct"),
     [
-        ({"obstacle_radius": 0.0}, "scene.obstacle.radius"),
-        ({"obstacle_radius": -1.0}, "scene.obstacle.radius"),
-        ({"obstacle_radius": float("nan")}, "scene.obstacle.radius"),
-        ({"target": (5.0, 0.0)}, "scene.target"),  # inside the diamond (c = 11.3)
-        ({"target": (0.0, 11.0)}, "scene.target"),  # inside W_1 / W_2 in any direction
-        ({"target": (14.0, 0.0)}, "scene.target"),  # outside the wedges but within the barrier's reach
-        ({"target": (0.0, 0.0)}, "scene.target"),
-        ({"target": (1.0, 2.0, 3.0)}, "scene.target"),
-        ({"target": ("a", "b")}, "scene.target"),
-        ({"obstacle_center": (float("inf"), 0.0)}, "scene.obstacle.center"),
-        ({"apex": 5.0}, "scene.apex"),  # < sqrt(2) r: the diamond would not contain the obstacle
-        ({"barrier_rho": 0.0}, "scene.barrier.rho"),
-        ({"barrier_rho": 1.5}, "scene.barrier.rho"),
-        ({"barrier_scale": -2.0}, "scene.barrier.scale"),
-        ({"barrier_kind": "cubic"}, "scene.barrier.kind"),
-        ({"barrier_gain": 0.0}, "scene.barrier.gain"),
+        (_obstacle(radius=0.0), "scene.obstacles[0].radius", "scene.obstacles[0].radius"),
+        (_obstacle(radius=-1.0), "scene.obstacles[0].radius", "scene.obstacles[0].radius"),
+        (_obstacle(radius=float("nan")), "scene.obstacles[0].radius", "scene.obstacles[0].radius"),
+        ({"target": [5.0, 0.0]}, "scene.target", "scene.target"),  # inside the diamond (c = 11.3)
+        ({"target": [0.0, 11.0]}, "scene.target", "scene.target"),  # inside W_1 / W_2 in any direction
+        ({"target": [14.0, 0.0]}, "scene.target", "scene.target"),  # outside the wedges but within the reach
+        ({"target": [0.0, 0.0]}, "scene.target", "scene.target"),
+        ({"target": [1.0, 2.0, 3.0]}, "scene.target", "scene.target"),
+        # wrong types and choices are the config's to check (by the signature), naming the element
+        ({"target": ["a", "b"]}, "scene.target[0]", None),
+        (_obstacle(center=[float("inf"), 0.0]), "scene.obstacles[0].center[0]", "scene.obstacles[0].center"),
+        (_obstacle(apex=5.0), "scene.obstacles[0].apex", "scene.obstacles[0].apex"),  # < sqrt(2) r
+        ({"barrier": {"rho": 0.0}}, "scene.barrier.rho", "scene.barrier.rho"),
+        ({"barrier": {"rho": 1.5}}, "scene.barrier.rho", "scene.barrier.rho"),
+        ({"barrier": {"scale": -2.0}}, "scene.barrier.scale", "scene.barrier.scale"),
+        ({"barrier": {"kind": "cubic"}}, "scene.barrier.kind", None),
+        ({"barrier": {"gain": 0.0}}, "scene.barrier.gain", "scene.barrier.gain"),
     ],
 )
-def test_scene_validation(kwargs, field):
-    args = {"target": (40.0, 0.0), "obstacle_center": (0.0, 0.0), "obstacle_radius": 4.0} | kwargs
+def test_scene_validation(patch, field, direct):
+    """A bad scene node is one ConfigError naming its key, through the config (`pipeline.config.build`) and,
+    for range and cross-field rules, from the constructor itself."""
+    node = SCENE_NODE | patch
     with pytest.raises(ConfigError) as info:
-        Scene(**args)
+        build(node, "scene")
     assert info.value.field == field
-    assert field in str(info.value)
+    assert field in str(info.value) and "\n" not in str(info.value)
+    if direct is not None:
+        with pytest.raises(ConfigError) as info, np.errstate(invalid="ignore"):  # an infinite centre's frame
+            Scene(**{k: v for k, v in node.items() if k != "_target_"})
+        assert info.value.field == direct
+        assert direct in str(info.value) and "\n" not in str(info.value)
+
+
+def test_scene_from_its_config_node():
+    """`pipeline.config.build(node, "scene")` (was `Scene.from_config`): every key of the node is the scene's."""
+    scene = build(SCENE_NODE | _obstacle(apex=12.0) | {"barrier": {"rho": 8.0, "scale": 1.0, "kind": "authors_code"},
+                                                      "name": "authors"}, "scene")
+    assert isinstance(scene, Scene) and scene.name == "authors"
+    assert scene.c == 12.0 and scene.ell == 1.0 and scene.barrier_kind == "authors_code"
+    with pytest.raises(ConfigError) as info:
+        build(SCENE_NODE | {"obstacle": {"radius": 4.0}}, "scene")  # the old single-obstacle key
+    assert info.value.field == "scene.obstacle"
+    with pytest.raises(ConfigError) as info:
+        build(SCENE_NODE | _obstacle(radiuss=4.0), "scene")
+    assert info.value.field == "scene.obstacles[0].radiuss"
 
 
 @pytest.mark.parametrize("theta", np.linspace(0, 2 * math.pi, 9))
 def test_scene_target_inside_wedge_rejected_in_any_direction(theta):
     # the wedges plus the barrier's reach extend to c + sqrt(2) * reach = 11.31 + 4.0 along e_a for r = 4
-    near = (15.2 * math.cos(theta), 15.2 * math.sin(theta))
-    far = (15.4 * math.cos(theta), 15.4 * math.sin(theta))
+    near = [15.2 * math.cos(theta), 15.2 * math.sin(theta)]
+    far = [15.4 * math.cos(theta), 15.4 * math.sin(theta)]
     with pytest.raises(ConfigError, match="scene.target"):
-        Scene(target=near, obstacle_radius=4.0)
-    Scene(target=far, obstacle_radius=4.0)
+        Scene(target=near, obstacles=[Obstacle(center=[0.0, 0.0], radius=4.0)])
+    Scene(target=far, obstacles=[Obstacle(center=[0.0, 0.0], radius=4.0)])
 
 
 @pytest.mark.parametrize(
@@ -434,14 +552,18 @@ def test_scene_target_inside_wedge_rejected_in_any_direction(theta):
     ],
 )
 def test_hybrid_controller_validation(kwargs, field):
-    scene = Scene(target=(40.0, 0.0))
+    scene = default_scene()
     with pytest.raises(ConfigError) as info:
         HybridController(scene, **kwargs)
     assert info.value.field == field
+    # the same through the config node
+    with pytest.raises(ConfigError) as info:
+        build({"_target_": "pipeline.control.HybridController", "name": "hybrid", **kwargs}, "controller", scene=scene)
+    assert info.value.field == field and "\n" not in str(info.value)
 
 
 def test_controller_validation_accepts_valid_and_checks_alpha():
-    scene = Scene(target=(40.0, 0.0))
+    scene = default_scene()
     ctrl = HybridController(scene, chi=2.0, lam=0.99, u_max=None)
     assert (ctrl.chi, ctrl.lam, ctrl.u_max) == (2.0, 0.99, None)
     with pytest.raises(ConfigError) as info:

@@ -57,17 +57,16 @@ class LeftHalfWrong:
 
 
 def _stub_recipe(tmp_path, *extra):
-    from pipeline.data.sampling import Recipe
-    from pipeline.render import Camera, load_occlusion
-    from pipeline.sim.build import build_scene
+    from pipeline.config import build
+    from pipeline.render import load_occlusion
 
     cfg = compose("data", ["data=closed_loop", "data.splits.train=2000", f"paths.datasets_dir={tmp_path}",
                            "data.sampling.closed_loop.map=stub-0123456789", "data.sampling.closed_loop.starts=16",
                            "data.sampling.closed_loop.horizon=10", "data.sampling.closed_loop.share=1.0",
                            "data.sampling.closed_loop.jitter=0.0", "data.sampling.closed_loop.min_error=1.0",
                            "data.sampling.closed_loop.error_floor=0.01", *extra])
-    recipe = Recipe.from_config(tracking.to_plain(cfg.data))
-    camera = Camera.from_config(tracking.to_plain(cfg.render), build_scene(cfg.scene))
+    recipe = build(tracking.to_plain(cfg.data), "data")
+    camera = build(tracking.to_plain(cfg.render), "render", scene=build(cfg.scene, "scene"))
     return recipe, camera, load_occlusion(recipe.occlusion, cfg.occlusions)
 
 
@@ -99,7 +98,7 @@ def round0(tmp_path_factory):
     """A tiny `dagger` dataset (heavy clouds, closed-loop share) and a fast_dev_run map trained on it."""
     import torch
 
-    from pipeline.data import run as data_run
+    from pipeline.data.stage import run as data_run
     from pipeline.train.stage import run as train_run
 
     root = tmp_path_factory.mktemp("dagger")
@@ -122,8 +121,8 @@ def _child(round0, *extra):
 
 def test_aggregated_dataset_keeps_every_parent_position_and_names_its_parents(round0, one_thread):
     from pipeline.data import open_dataset
-    from pipeline.data import run as data_run
-    from pipeline.data.stage import plan
+    from pipeline.data.plan import plan
+    from pipeline.data.stage import run as data_run
 
     out = data_run(_child(round0))
     child = open_dataset(out["path"], verify=True)
@@ -169,7 +168,7 @@ def test_aggregated_dataset_keeps_every_parent_position_and_names_its_parents(ro
     ("data.sampling.closed_loop.map=null", "data.sampling.closed_loop.error_weighted"),  # weighs by a map's error
 ])
 def test_bad_inputs_name_the_field(round0, override, field):
-    from pipeline.data.stage import plan
+    from pipeline.data.plan import plan
 
     with pytest.raises(ConfigError) as err:
         plan(_child(round0, override))

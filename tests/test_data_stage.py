@@ -161,8 +161,8 @@ def test_verify_catches_flipped_byte_and_missing_shard(tmp_path):
     [
         ("data.splits.val=-3", "data.splits.val"),
         ("data.occlusion=fog", "data.occlusion"),
-        ("render.height=50", "render.height"),
-        ("render.width=120", "render.height"),
+        ("render.px_per_unit=0.33", "render.px_per_unit"),  # no whole number of pixels (was render.height=50)
+        ("render.px_per_unit=-1", "render.px_per_unit"),
         ("data.sampling.mode=spiral", "data.sampling.mode"),
         ("data.follower.probability=2", "data.follower.probability"),
     ],
@@ -170,7 +170,7 @@ def test_verify_catches_flipped_byte_and_missing_shard(tmp_path):
 def test_bad_config_names_field_and_writes_nothing(tmp_path, override, field):
     with pytest.raises(ConfigError) as err:
         run(cfg_for(tmp_path, "clean", override))
-    assert err.value.field == field
+    assert err.value.field == field and "\n" not in str(err.value)  # one line naming the field
     assert not tmp_path.exists() or list(tmp_path.iterdir()) == []
 
 
@@ -214,8 +214,9 @@ def test_closed_loop_sampling_over_represents_visited_positions_by_the_share(tmp
     """`sampling.mode=closed_loop`: the share of images near the target is share * (the visitation pool's
     share there) + (1 - share) * (the uniform share there), within binomial noise; the pool is what the
     composed controller and disturbance visit."""
-    from pipeline.data.sampling import Recipe, visitation_pool
-    from pipeline.data.stage import plan
+    from pipeline.data.closed_loop import visitation_pool
+    from pipeline.data.plan import plan
+    from pipeline.data.recipe import Recipe
 
     fractions = {}
     for share in (0.0, 0.6):
@@ -235,7 +236,7 @@ def test_closed_loop_sampling_over_represents_visited_positions_by_the_share(tmp
             f_uniform = np.pi * 25.0 / ((x1 - x0 - 2 * m) * (y1 - y0 - 2 * m))
             want = share * f_pool + (1 - share) * f_uniform
             assert abs(fractions[share] - want) < 4 * np.sqrt(want * (1 - want) / 4000) + 1e-3
-            assert isinstance(pl.recipe, Recipe) and pl.recipe.closed_loop["controller"]["_target_"].endswith("HybridController")
+            assert isinstance(pl.recipe, Recipe) and pl.recipe.closed_loop.controller["_target_"].endswith("HybridController")
     assert fractions[0.6] > 10 * fractions[0.0]
     # the composed controller is part of the dataset id: a different gain is a different dataset
     a = plan(cfg_for(tmp_path, "closed_loop"))
@@ -246,8 +247,8 @@ def test_closed_loop_sampling_over_represents_visited_positions_by_the_share(tmp
 def test_near_followers_take_their_share_and_share_zero_draws_nothing(tmp_path):
     """`data.follower.near_share` moves that share of the followers within `near_distance` of the leader
     (overlapping squares included); at 0 the plan is byte for byte the one without the keys."""
+    from pipeline.data.plan import plan
     from pipeline.data.sampling import plan_split
-    from pipeline.data.stage import plan
 
     def followers(*extra):
         p = plan(cfg_for(tmp_path, "clean", "data.splits.train=4000", "data.sampling.mode=uniform",
@@ -268,12 +269,12 @@ def test_near_followers_take_their_share_and_share_zero_draws_nothing(tmp_path):
 
 
 def test_the_gate_stream_draws_fresh_positions_and_leaves_every_split_alone(tmp_path):
-    """The `gate` stream (fresh positions for a map's flag gate, `pipeline.train.stage.gate_frames`) takes the next
+    """The `gate` stream (fresh positions for a map's flag gate, `pipeline.train.evaluate.gate_frames`) takes the next
     child of the recipe's seed sequence: every split keeps the stream it had before the stream existed (the first
     three children of `SeedSequence(seed)`), the gate's positions are none of a split's, follow the recipe's
     distribution (the closed-loop share near the target), and an unknown stream or a missing size is refused."""
+    from pipeline.data.plan import plan
     from pipeline.data.sampling import SPLITS, plan_split, split_seed
-    from pipeline.data.stage import plan
 
     p = plan(cfg_for(tmp_path, "closed_loop", "data.splits.val=3000"))
     before = np.random.SeedSequence(p.recipe.seed).spawn(3)

@@ -15,8 +15,13 @@ from hypothesis import strategies as st
 
 from pipeline import tracking
 from pipeline.cli import REPO_ROOT, compose
+from pipeline.config import settings as stage_settings
 from pipeline.control import Scene, in_diamond
-from pipeline.errormap import core, load_error_map, run, summary_table
+from pipeline.errormap import estimates as core
+from pipeline.errormap.checks import check
+from pipeline.errormap.read import load_error_map, summary_table
+from pipeline.errormap.settings import ErrorMapSettings
+from pipeline.errormap.stage import run
 from pipeline.errors import ConfigError, DatasetError
 
 ARENA = ((-50.0, 50.0), (-30.0, 30.0))
@@ -105,7 +110,7 @@ def test_coverage_is_monotone_in_eps_and_equals_the_covered_set(seed, eps):
     for e, f in zip(eps, frac):  # the set of Assumption 1, straight from its definition
         covered = ((d <= r) & (err[None] + L * d <= e + 1e-12)).any(axis=1)
         assert f == pytest.approx(covered.mean(), abs=1.5 / len(pts))
-    top = core.smallest_covering_eps(eps_min)
+    top = core.smallest_coverage_eps(eps_min)
     if np.isfinite(top):
         assert core.coverage_curve(eps_min, [top])[0] == 1.0
         assert core.coverage_curve(eps_min, [np.nextafter(top, 0)])[0] < 1.0
@@ -204,7 +209,8 @@ class StubMap:
     def __init__(self, field, name="synthetic", id_="stub000001"):
         self.field, self.name, self.id = field, name, id_
         self.manifest = {"dataset_id": "stubdata01",
-                         "scene": {"target": [40.0, 0.0], "obstacle": {"center": [0.0, 0.0], "radius": 4.0}}}
+                         "scene": {"_target_": "pipeline.control.Scene", "target": [40.0, 0.0],
+                                   "obstacles": [{"center": [0.0, 0.0], "radius": 4.0}]}}
         self.calls = 0
 
     def predict(self, images):
@@ -239,7 +245,7 @@ def _cfg(tmp_path, *extra):
 def _grid_and_op(step=2.0, margin=0.0):
     pts, shape, _, _ = core.arena_grid(ARENA, step)
     inside = (np.abs(pts[:, 0]) <= 50 - margin) & (np.abs(pts[:, 1]) <= 30 - margin)
-    return pts, shape, inside & ~in_diamond(Scene(target=(40.0, 0.0)), pts)
+    return pts, shape, inside & ~in_diamond(Scene(target=[40.0, 0.0]), pts)
 
 
 def test_stage_recovers_a_constant_bias_and_its_covered_set(tmp_path):
@@ -329,18 +335,18 @@ def test_random_levels_use_k_draws_deterministically(tmp_path):
     lv = out["summary"]["levels"]
     assert lv["none"]["draws"] == 1 and lv["heavy"]["draws"] == 2
     assert lv["none"]["max"] == pytest.approx(0.0, abs=1e-12)
-    F = out["fields"]["F_heavy"]
+    F = out["fields"]["E_heavy"]
     assert F.shape[0] == 2 and not np.allclose(F[0], F[1])
     # |N(0, 0.5^2 I)|: Rayleigh mean 0.5 sqrt(pi/2)
     assert lv["heavy"]["mean"] == pytest.approx(0.5 * math.sqrt(math.pi / 2), rel=0.08)
     again = run(_cfg(tmp_path, "occlusion_levels=[none,heavy]", "draws=2", "force=true"),
                 perception_map=pmap, occlusions=occ, dataset=StubDataset(samples))
-    assert np.array_equal(again["fields"]["F_heavy"], F)
+    assert np.array_equal(again["fields"]["E_heavy"], F)
     assert lv["heavy"]["L_p99"] > 0.5  # independent clouds: F jumps between neighbours
     # shared clouds: one field per draw at every point -> F is constant within a draw, L = 0
     shared = run(_cfg(tmp_path, "occlusion_levels=[heavy]", "draws=3", "clouds=shared"),
                  perception_map=pmap, occlusions=occ, dataset=StubDataset(samples))
-    Fs = shared["fields"]["F_heavy"]
+    Fs = shared["fields"]["E_heavy"]
     assert Fs.shape[0] == 3 and shared["summary"]["levels"]["heavy"]["L_max"] == pytest.approx(0, abs=1e-9)
     assert np.allclose(Fs, Fs[:, :1, :1]) and not np.allclose(Fs[0], Fs[1])
 
@@ -356,6 +362,11 @@ def test_bad_config_raises_config_error(tmp_path, override, field):
         run(_cfg(tmp_path, override), perception_map=StubMap(lambda p: 0 * p), occlusions={"none": None},
             dataset=StubDataset(np.zeros((3, 2))))
     assert err.value.field == field
+    # the stage's preflight (`validate()` before the refactor) rejects it the same way, in one line
+    for reject in (check, lambda cfg: stage_settings(cfg, ErrorMapSettings)):
+        with pytest.raises(ConfigError) as err:
+            reject(_cfg(tmp_path, override))
+        assert err.value.field == field and "\n" not in str(err.value)
 
 
 def test_load_error_map_unknown(tmp_path):

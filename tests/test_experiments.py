@@ -132,7 +132,7 @@ def test_bad_input(tmp_path):
 @pytest.fixture(scope="module")
 def tiny_maps(tmp_path_factory):
     """Tiny clean/occluded datasets and fast_dev_run perception maps (the camera path, not accuracy)."""
-    from pipeline.data import run as data_run
+    from pipeline.data.stage import run as data_run
     from pipeline.train.stage import run as train_run
 
     root = tmp_path_factory.mktemp("exp_maps")
@@ -150,9 +150,9 @@ def tiny_maps(tmp_path_factory):
 def test_camera_in_the_loop_renders_all_agents_per_frame(tiny_maps):
     root, ids = tiny_maps
     from pipeline.control import HybridController, Scene
+    from pipeline.perception.maps import load_perception_map
     from pipeline.perception.measure import CameraMeasure
     from pipeline.sim import simulate
-    from pipeline.perception.maps import load_perception_map
 
     pm = load_perception_map(ids["clean"], models_dir=root / "models")
     cam = pm.camera()
@@ -182,7 +182,8 @@ def test_margin_map_cell_against_a_direct_simulation(tmp_path):
     """One cell of the hysteresis margin map: robust just below the margin it reports, failing at the ε where
     its bisection stopped, checked by simulating those two ε directly."""
     from pipeline.experiments.context import Context
-    from pipeline.experiments.scenarios import HysteresisMargin, practical_success
+    from pipeline.experiments.scenario import practical_success
+    from pipeline.experiments.theory import HysteresisMargin
 
     cfg = _cfg(tmp_path, "experiment=hysteresis_margin", "perception=oracle")
     ctx = Context(cfg)
@@ -206,9 +207,9 @@ def test_camera_in_the_loop_is_the_same_on_every_device(tiny_maps):
     import torch
 
     from pipeline.control import HybridController, Scene
+    from pipeline.perception.maps import load_perception_map
     from pipeline.perception.measure import CameraMeasure
     from pipeline.sim import simulate
-    from pipeline.perception.maps import load_perception_map
 
     root, ids = tiny_maps
     scene = Scene(target=(40.0, 0.0))

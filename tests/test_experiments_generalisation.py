@@ -4,6 +4,7 @@ errors, the cache key follows the map ids, and map names such as `clean_paper` r
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 
@@ -11,7 +12,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from pipeline import tracking
 from pipeline.cli import REPO_ROOT, compose
+from pipeline.config import build
 from pipeline.errors import ConfigError
 from pipeline.render import Camera
 
@@ -57,14 +60,15 @@ def _cfg(tmp_path, *extra):
 
 
 @pytest.fixture
-def stubs(monkeypatch):
+def stubs(monkeypatch, tmp_path):
     """Maps under the names of the bundle: exact, offset by (3, 4) units, clouds-blind (exact where the leader
     is visible, the obstacle centre (0, 0) where clouds hide it: leader_alpha >= 0.8), always the obstacle
     centre. Context.perception_map answers them instead of trained maps."""
     from pipeline.experiments.context import Context
 
     cfg = compose("experiments")
-    cam = RecordingCamera.from_config(cfg.render, cfg.scene)
+    render = {k: v for k, v in tracking.to_plain(cfg.render).items() if k != "_target_"}
+    cam = RecordingCamera(build(cfg.scene, "scene"), **render)
     maps = {
         "clean": StubMap("exact", cam, lambda p, a: p.copy(), "aaaaaaaaaa"),
         "occluded": StubMap("offset", cam, lambda p, a: p + OFFSET, "bbbbbbbbbb"),
@@ -72,6 +76,13 @@ def stubs(monkeypatch):
         "clean_paper": StubMap("centre", cam, lambda p, a: np.zeros_like(p), "dddddddddd"),
     }
     monkeypatch.setattr(Context, "perception_map", lambda self, kind: maps[kind])
+    # the Context resolves a map's folder (its id, its manifest) without loading it: the stubs' folders
+    folders = tmp_path / "stub_models"
+    for m in maps.values():
+        (folders / f"{m.name}-{m.id}").mkdir(parents=True)
+        (folders / f"{m.name}-{m.id}" / "manifest.json").write_text(json.dumps(m.manifest))
+    monkeypatch.setattr(Context, "map_folder", lambda self, kind="clean": folders / f"{maps[kind].name}-{maps[kind].id}")
+    monkeypatch.setattr(Context, "camera", lambda self, kind="clean": maps[kind].camera())
     return maps
 
 
@@ -139,8 +150,9 @@ def test_follower_success_perfect_map_all_obstacle_centre_none(stubs, tmp_path):
 
 def test_cache_key_follows_the_map_ids(stubs, tmp_path):
     from pipeline import tracking
+    from pipeline.experiments.checks import build_scenario
     from pipeline.experiments.context import Context
-    from pipeline.experiments.stage import build_scenario, cache_key
+    from pipeline.experiments.stage import cache_key
 
     cfg = _cfg(tmp_path, "experiment.maps=[clean,occluded]")
     scen = build_scenario(cfg)
@@ -182,9 +194,9 @@ def test_scenario_rejects_bad_parameters():
 
 
 def test_map_names_resolve_by_the_id_their_train_config_makes(tmp_path):
+    from pipeline.identity import map_identity
     from pipeline.lineage import expected_map_id, map_command, map_recipe
     from pipeline.paper import check
-    from pipeline.train.stage import model_identity
 
     assert map_recipe("authors") == ("authors", []) and map_recipe("clean_paper") == ("clean", ["model=paper"])
     assert map_recipe("closed_loop_paper") == ("closed_loop", ["model=paper"]) and map_recipe("clean_papr") is None
@@ -192,7 +204,8 @@ def test_map_names_resolve_by_the_id_their_train_config_makes(tmp_path):
     from pipeline.lineage import train_dataset_id
 
     tcfg = compose("train", ["data=clean", "model=paper"])
-    assert model_identity(tcfg, *train_dataset_id(tcfg)) == ("clean_paper", expected_map_id("clean_paper"))
+    assert map_identity(tracking.to_plain_lenient(tcfg), *train_dataset_id(tcfg)) == \
+        ("clean_paper", expected_map_id("clean_paper"))
     assert expected_map_id("clean_paper") != expected_map_id("clean")
     assert expected_map_id("clean_default") is None  # model=default makes `clean`, not `clean_default`
     check(compose("paper_full"))

@@ -5,6 +5,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from pipeline.config import build
 from pipeline.control import Scene
 from pipeline.errors import ConfigError
 from pipeline.render import (
@@ -16,7 +17,7 @@ from pipeline.render import (
     world_to_pixel,
 )
 
-SCENE = Scene(target=(40.0, 0.0))
+SCENE = Scene(target=[40.0, 0.0])
 LEVELS = ("none", "light", "medium", "heavy")
 
 
@@ -173,35 +174,49 @@ def test_level_none_is_a_no_op(cam):
 
 
 # --------------------------------------------------------------------------------------- bad input
+RENDER = "pipeline.render.Camera"
+OCCLUSION = "pipeline.render.Occlusion"
+
+
 def test_bad_config_names_the_field():
+    # the image size is the arena times px_per_unit (square pixels): a size that is no whole number of pixels
+    # (the old mismatched height/width) names px_per_unit, in one line with the arena's size
     with pytest.raises(ConfigError) as e:
-        Camera(SCENE, height=50, width=100)
-    assert e.value.field == "render.height" and "aspect" in str(e.value)
+        Camera(SCENE, px_per_unit=0.33)
+    assert e.value.field == "render.px_per_unit" and "whole numbers" in str(e.value) and "60 x 100" in str(e.value)
+    assert "\n" not in str(e.value)
+    with pytest.raises(ConfigError) as e:
+        Camera(SCENE, px_per_unit=0)
+    assert e.value.field == "render.px_per_unit"
     with pytest.raises(ConfigError) as e:
         Camera(SCENE, robot_size=0)
     assert e.value.field == "render.robot_size"
     with pytest.raises(ConfigError) as e:
-        Camera.from_config({"height": 60, "width": 100, "colors": {"leader": [300, 0, 0]}}, SCENE)
+        build({"_target_": RENDER, "px_per_unit": 1.0, "colors": {"leader": [300, 0, 0]}}, "render", scene=SCENE)
     assert e.value.field == "render.colors.leader"
+    with pytest.raises(ConfigError) as e:  # the removed keys are unknown keys of the render node
+        build({"_target_": RENDER, "height": 60, "width": 100}, "render", scene=SCENE)
+    assert e.value.field in ("render.height", "render.width") and "px_per_unit" in str(e.value)
     with pytest.raises(ConfigError) as e:
         load_occlusion("fog", field="data.occlusion")
     assert e.value.field == "data.occlusion" and "heavy" in str(e.value)
     with pytest.raises(ConfigError) as e:
-        Occlusion.from_config({"probability": 1.5})
+        build({"_target_": OCCLUSION, "probability": 1.5}, "occlusion")
     assert e.value.field == "occlusion.probability"
     with pytest.raises(ConfigError) as e:
-        Occlusion.from_config({"blobs": [3, 1]})
+        build({"_target_": OCCLUSION, "blobs": [3, 1]}, "occlusion")
     assert e.value.field == "occlusion.blobs"
 
 
 def test_from_config_matches_constructor():
-    cam = Camera.from_config({"height": 30, "width": 50, "robot_size": 1.5}, SCENE)
+    cam = build({"_target_": RENDER, "px_per_unit": 0.5, "robot_size": 1.5}, "render", scene=SCENE)
     assert cam.shape == (30, 50) and cam.scale == 0.5
     np.testing.assert_allclose(cam.world_to_pixel([[0.0, 0.0]]), [[25.0, 15.0]])
-    cfg = {"target": [40.0, 0.0], "arena": {"x": [-50.0, 50.0], "y": [-30.0, 30.0]}}
-    assert Camera.from_config({}, cfg).shape == (60, 100)
+    cfg = {"_target_": "pipeline.control.Scene", "target": [40.0, 0.0], "arena": {"x": [-50.0, 50.0], "y": [-30.0, 30.0]}}
+    assert build({"_target_": RENDER}, "render", scene=build(cfg, "scene")).shape == (60, 100)
     occ = load_occlusion("heavy")
-    assert Occlusion.from_config(occ.config()) == occ
+    assert build({"_target_": OCCLUSION, **occ.config()}, "occlusion") == occ
+    assert Occlusion(**occ.config()) == occ
 
 
 def test_authors_clouds_are_clustered_bubbles_and_the_disc_target():
@@ -216,11 +231,12 @@ def test_authors_clouds_are_clustered_bubbles_and_the_disc_target():
     tight = Occlusion(**base, cluster=0.5).fields((60, 100))[0][:, :60, :100]
     loose = Occlusion(**base).fields((60, 100))[0][:, :60, :100]
     assert (tight > 0).mean() < 0.75 * (loose > 0).mean()
-    assert Occlusion(**base).config() == Occlusion.from_config(Occlusion(**base).config()).config()
+    rebuilt = build({"_target_": OCCLUSION, **Occlusion(**base).config()}, "occlusion")
+    assert Occlusion(**base).config() == rebuilt.config()
     assert "cluster" not in Occlusion(**base).config()  # levels without clustering keep their mapping
     with pytest.raises(ConfigError, match="occlusion.cluster"):
-        Occlusion.from_config({**base, "cluster": -1})
-    scene = Scene(target=(40.0, 0.0))
+        build({"_target_": OCCLUSION, **base, "cluster": -1}, "occlusion")
+    scene = Scene(target=[40.0, 0.0])
     disc = Camera(scene, target_radius=4.0, target_ring_width=None, colors={"target": (255, 0, 0)})
     ring = Camera(scene, target_radius=4.0, colors={"target": (255, 0, 0)})
     (tu, tv), = disc.world_to_pixel([scene.target])

@@ -8,11 +8,11 @@ from types import SimpleNamespace as NS
 import numpy as np
 import pytest
 
-from pipeline.control import Scene
-from pipeline.render import Camera, load_occlusion
-from pipeline.render.camera import heading_marker, polygon_coverage
+from pipeline.control import Obstacle, Scene
+from pipeline.render import DEFAULT_ARENA, Camera, load_occlusion
+from pipeline.render.marker import heading_marker, polygon_coverage
 
-SCENE = Scene(target=(40.0, 0.0))
+SCENE = Scene(target=[40.0, 0.0])
 # sha256 of the bytes the renderer produced before several obstacles and headings were added (computed with the
 # implementation of commit eec9f6c): the single-obstacle background and a leader/follower batch stay bit-identical.
 BG_SHA = "1d5f54faed6fc79ed521421856c88892209deb4b973b87dfe6dcd0ea470e5ec5"
@@ -24,8 +24,10 @@ DISCS = [[-84, 16, 8], [-64, -20, 5], [-50, 34, 9], [-36, 0, 6], [-16, -28, 6], 
          [34, -36, 8], [74, 30, 7], [70, -4, 8], [70, -34, 5]]
 
 
-def multi_scene(discs, target=(90.0, 40.0)):
-    return NS(obstacles=[NS(center=[float(x), float(y)], radius=float(r)) for x, y, r in discs], target=list(target))
+def multi_scene(discs, target=(90.0, 40.0), bounds=DEFAULT_ARENA):
+    """A stand-in scene: the camera reads `bounds` (its arena), `obstacles` and `target`."""
+    return NS(obstacles=[NS(center=[float(x), float(y)], radius=float(r)) for x, y, r in discs], target=list(target),
+              bounds=bounds)
 
 
 @pytest.fixture(scope="module")
@@ -35,7 +37,7 @@ def cam():
 
 @pytest.fixture(scope="module")
 def big():
-    return Camera(multi_scene(DISCS), arena=ARENA_BIG, height=100, width=200)
+    return Camera(multi_scene(DISCS, bounds=ARENA_BIG), px_per_unit=1.0)
 
 
 def sha(a) -> str:
@@ -78,7 +80,7 @@ def wrap(a):
 # ------------------------------------------------------------------------------------ unchanged bytes
 def test_single_obstacle_background_and_square_render_bit_identical(cam):
     assert sha(cam.background) == BG_SHA
-    c2 = Camera(Scene(target=(40.0, 0.0), obstacle_center=(3.3, -2.1), obstacle_radius=6.5), robot_size=1.7,
+    c2 = Camera(Scene(target=[40.0, 0.0], obstacles=[Obstacle(center=[3.3, -2.1], radius=6.5)]), robot_size=1.7,
                 target_radius=4.0, target_ring_width=None)
     assert sha(c2.background) == BG2_SHA
     rng = np.random.default_rng(123)
@@ -94,9 +96,9 @@ def test_single_obstacle_background_and_square_render_bit_identical(cam):
 def test_obstacles_list_with_one_disc_equals_the_single_obstacle_scene(cam):
     one = Camera(multi_scene([[0, 0, 4]], target=(40.0, 0.0)))
     np.testing.assert_array_equal(one.background, cam.background)
-    mapping = NS(obstacles=[{"center": (0.0, 0.0), "radius": 4.0}], target=(40.0, 0.0))
+    mapping = NS(obstacles=[{"center": (0.0, 0.0), "radius": 4.0}], target=(40.0, 0.0), bounds=DEFAULT_ARENA)
     np.testing.assert_array_equal(Camera(mapping).background, cam.background)
-    none = Camera(NS(obstacles=[], target=(40.0, 0.0)))
+    none = Camera(NS(obstacles=[], target=(40.0, 0.0), bounds=DEFAULT_ARENA))
     assert not np.any(np.all(none.background == none.colors["obstacle"], axis=-1))
 
 
@@ -134,7 +136,7 @@ def test_overlapping_discs_are_one_layer():
 
 def test_large_arena_with_twelve_discs_renders_fast(big):
     t = time.perf_counter()
-    Camera(multi_scene(DISCS), arena=ARENA_BIG, height=100, width=200)
+    Camera(multi_scene(DISCS, bounds=ARENA_BIG), px_per_unit=1.0)
     assert time.perf_counter() - t < 2.0
     rng = np.random.default_rng(0)
     p = rng.uniform([-100, -50], [100, 50], size=(64, 2))

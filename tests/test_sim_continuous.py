@@ -9,14 +9,12 @@ import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from pipeline.control import CBFController, HybridController, Scene, SmoothController
-from pipeline.control.controllers import Controller
+from pipeline.control import CBFController, Feedback, HybridController, Obstacle, Scene, SmoothController
 from pipeline.errors import ConfigError
+from pipeline.hybrid.steppers import hermite, locate
 from pipeline.sim import Adversarial, Alternating, Gaussian, simulate, true_state
-from pipeline.sim.build import initial_conditions
-from pipeline.sim.continuous import _hermite, _locate
+from pipeline.sim.starts import Grid, NearK, Random
 
-ARENA = {"arena": {"x": [-50.0, 50.0], "y": [-30.0, 30.0]}}
 # two starts whose path slides along the diamond's edge (the issue's), three that stay away from it
 STARTS = np.array([[-12.0, 2.0], [-45.0, 0.3], [-37.0, -17.0], [-30.0, 20.0], [10.0, 25.0]])
 SLIDING = [0, 1]
@@ -25,7 +23,7 @@ LIMIT_DT = 0.0005
 
 @pytest.fixture(scope="module")
 def scene() -> Scene:
-    return Scene(target=(40.0, 0.0), obstacle_center=(0.0, 0.0), obstacle_radius=4.0)
+    return Scene(target=[40.0, 0.0], obstacles=[Obstacle(center=[0.0, 0.0], radius=4.0)])
 
 
 @pytest.fixture(scope="module")
@@ -110,39 +108,24 @@ def test_arrival_time_is_exact_in_the_far_field(scene, angle, d0):
         assert res.metrics["final_error"][0] == pytest.approx(1.0, abs=1e-7)
 
 
-class _Toggle(Controller):
+class _Toggle(Feedback):
     """A two-mode hybrid system with a known arc: q = 1 flows right at unit speed; D = {x >= 0, q = 1},
     G(q) = 2; q = 2 flows up at unit speed (no jump). Started at x = -s the jump is at t = s."""
 
     name = "toggle"
     hybrid = True
 
-    def reset(self, m0, target=None):
-        super().reset(m0, target)
+    def flow_map(self, m, xd, target=None, ev=None):
+        return np.where((np.asarray(xd["q"]) == 1)[:, None], [1.0, 0.0], [0.0, 1.0])
 
-    def flow_map(self, m, q, target=None, with_pushout=False):
-        u = np.where((np.asarray(q) == 1)[:, None], [1.0, 0.0], [0.0, 1.0])
-        return (u, np.zeros(len(m), bool)) if with_pushout else u
+    def jump_map(self, m, xd, target=None, ev=None):
+        return {"q": np.full_like(xd["q"], 2)}
 
-    def jump_map(self, q):
-        return np.full_like(q, 2)
+    def flow_set(self, m, xd, target=None, ev=None):
+        return ~self.jump_set(m, xd)
 
-    def flow_set(self, m, q, target=None):
-        return ~self.jump_set(m, q)
-
-    def jump_set(self, m, q, target=None):
-        return (np.asarray(m)[:, 0] >= 0) & (np.asarray(q) == 1)
-
-    def _flow(self, m, target):
-        return self.flow_map(m, self.q, with_pushout=True)
-
-    def __call__(self, m, target=None):
-        if len(self.q) != len(m):
-            self.reset(m, target)
-        jump = self.jump_set(m, self.q)
-        self.q = np.where(jump, self.jump_map(self.q), self.q).astype(np.int8)
-        self.jumps += jump
-        return self.flow_map(m, self.q)
+    def jump_set(self, m, xd, target=None, ev=None):
+        return (np.asarray(m)[:, 0] >= 0) & (np.asarray(xd["q"]) == 1)
 
 
 @pytest.mark.parametrize("s", [0.013, 0.5, 1.0371])
@@ -171,11 +154,11 @@ def test_locate_finds_the_first_crossing():
     p0, p1 = rng.normal(size=(50, 2)), rng.normal(size=(50, 2))
     f = p1 - p0  # straight lines
     h = np.full(50, 1.0)
-    line = _hermite(p0, f, p1, f, h, np.full(50, 0.3))
+    line = hermite(p0, f, p1, f, h, np.full(50, 0.3))
     np.testing.assert_allclose(line, p0 + 0.3 * (p1 - p0))
     level = np.minimum(p0[:, 0], p1[:, 0]) + 0.37 * np.abs(p1[:, 0] - p0[:, 0])
     up = p1[:, 0] > p0[:, 0]
-    th = _locate(lambda X: np.where(up, X[:, 0] >= level, X[:, 0] <= level), p0, f, p1, f, h)
+    th = locate(lambda X: np.where(up, X[:, 0] >= level, X[:, 0] <= level), p0, f, p1, f, h)
     expected = np.where(up, 0.37, 0.63)
     np.testing.assert_allclose(th, expected, atol=1e-6)
 
@@ -184,7 +167,7 @@ def test_locate_finds_the_first_crossing():
 
 
 def test_continuous_determinism(scene):
-    x0 = initial_conditions({"mode": "random", "n": 12, "seed": 3, "margin": 2.0}, scene, ARENA)
+    x0 = Random(n=12, seed=3, margin=2.0)(scene)
     kw = {"dt": 0.01, "horizon": 3.0, "camera_period": 0.05, "model": "continuous", "record_every": 5}
     a = simulate(scene, HybridController(scene), x0, disturbance=Gaussian(0.5), seed=7, **kw)
     b = simulate(scene, HybridController(scene), x0, disturbance=Gaussian(0.5), seed=np.random.default_rng(7), **kw)
@@ -218,7 +201,7 @@ def test_disturbance_is_held_per_frame(scene):
 @pytest.mark.parametrize("cls", [HybridController, CBFController])
 def test_proposition_1_in_continuous_time(scene, cls):
     """Near K under the adversary: the CBF filter stalls, the hybrid controller reaches the target."""
-    x0 = initial_conditions({"mode": "near_k", "n": 30, "seed": 0, "band": 0.5}, scene, ARENA)
+    x0 = NearK(n=30, seed=0, band=0.5)(scene)
     res = simulate(scene, cls(scene), x0, dt=0.01, horizon=20.0, camera_period=0.05, disturbance=Adversarial(0.5),
                    model="continuous", record=False)
     m = res.metrics
@@ -231,14 +214,14 @@ def test_proposition_1_in_continuous_time(scene, cls):
 
 @pytest.mark.slow
 def test_proposition_1_smooth_in_continuous_time(scene):
-    x0 = initial_conditions({"mode": "near_k", "n": 30, "seed": 0, "band": 0.5}, scene, ARENA)
+    x0 = NearK(n=30, seed=0, band=0.5)(scene)
     res = simulate(scene, SmoothController(scene), x0, dt=0.01, horizon=20.0, camera_period=0.05,
                    disturbance=Adversarial(0.5), model="continuous", record=False)
     assert not res.metrics["success"].any() and set(res.metrics["outcome"]) == {"stalled"}
 
 
 def test_hybrid_reaches_target_from_grid_continuous(scene):
-    x0 = initial_conditions({"mode": "grid", "nx": 15, "ny": 9, "margin": 2.0}, scene, ARENA)
+    x0 = Grid(nx=15, ny=9, margin=2.0)(scene)
     for dist in (None, Alternating(0.5)):
         res = simulate(scene, HybridController(scene), x0, dt=0.01, horizon=30.0, camera_period=0.05,
                        disturbance=dist, model="continuous", record=False)

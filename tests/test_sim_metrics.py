@@ -8,8 +8,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.control import CBFController, HybridController, Scene, SmoothController
-from pipeline.control.controllers import Controller
+from pipeline.config import build
+from pipeline.control import CBFController, Feedback, HybridController, Obstacle, Scene, SmoothController
 from pipeline.errors import ConfigError
 from pipeline.sim import (
     OUTCOMES,
@@ -21,7 +21,6 @@ from pipeline.sim import (
     summarise_agents,
     wilson,
 )
-from pipeline.sim.build import build_controller, build_disturbance
 from pipeline.sim.metrics import StallMonitor
 
 MODELS = ["sampled", "continuous"]
@@ -29,10 +28,10 @@ MODELS = ["sampled", "continuous"]
 
 @pytest.fixture(scope="module")
 def scene() -> Scene:
-    return Scene(target=(40.0, 0.0), obstacle_center=(0.0, 0.0), obstacle_radius=4.0)
+    return Scene(target=[40.0, 0.0], obstacles=[Obstacle(center=[0.0, 0.0], radius=4.0)])
 
 
-class _Straight(Controller):
+class _Straight(Feedback):
     """Drives straight at the target at u_max, blind to the obstacle."""
 
     name = "straight"
@@ -220,18 +219,20 @@ def test_disturbances_reject_unknown_keywords(cls, kw):
 
 
 def test_builders_strip_name_and_reject_typos(scene):
-    ctrl = build_controller({"_target_": "pipeline.control.SmoothController", "name": "smooth", "k": 2.0}, scene)
-    assert isinstance(ctrl, SmoothController) and ctrl.k == 2.0
-    assert isinstance(build_disturbance({"_target_": "pipeline.sim.NoDisturbance", "name": "none"}), NoDisturbance)
+    ctrl = build({"_target_": "pipeline.control.SmoothController", "name": "smooth", "k": 2.0}, "controller",
+                 scene=scene)
+    assert isinstance(ctrl, SmoothController) and ctrl.k == 2.0 and ctrl.name == "smooth"
+    assert isinstance(build({"_target_": "pipeline.sim.NoDisturbance", "name": "none"}, "disturbance"), NoDisturbance)
     with pytest.raises(ConfigError) as info:
-        build_controller({"_target_": "pipeline.control.HybridController", "name": "hybrid", "lamda": 0.05}, scene)
+        build({"_target_": "pipeline.control.HybridController", "name": "hybrid", "lamda": 0.05}, "controller",
+              scene=scene)
     assert info.value.field == "controller.lamda"
     with pytest.raises(ConfigError) as info:
-        build_disturbance({"_target_": "pipeline.sim.Gaussian", "name": "gaussian", "sigmaa": 0.1})
+        build({"_target_": "pipeline.sim.Gaussian", "name": "gaussian", "sigmaa": 0.1}, "disturbance")
     assert info.value.field == "disturbance.sigmaa"
 
 
-class _Constant(Controller):
+class _Constant(Feedback):
     """Constant velocity (10, 0): straight horizontal lines, at the largest step the integrator allows."""
 
     name = "constant"

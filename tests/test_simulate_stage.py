@@ -35,8 +35,8 @@ def _check_outputs(run_dir, cfg):
     np.testing.assert_allclose(df[["x0", "y0"]].to_numpy(), x0)
     np.testing.assert_allclose(p[0], x0)
     pT = np.asarray(cfg.scene.target, dtype=float)
-    p0 = np.asarray(cfg.scene.obstacle.center, dtype=float)
-    r = float(cfg.scene.obstacle.radius)
+    p0 = np.asarray(cfg.scene.obstacles[0].center, dtype=float)
+    r = float(cfg.scene.obstacles[0].radius)
     # final error and jump count of the last recorded state (agents stop where they end)
     np.testing.assert_allclose(df.final_error, np.hypot(*(p[-1] - pT).T), rtol=1e-9, atol=1e-9)
     np.testing.assert_array_equal(df.jumps, j[-1])
@@ -147,7 +147,9 @@ def test_cli_run_writes_outputs(tmp_path):
     [
         ("controller.chi=0.9", "controller.chi"),
         ("controller.lam=0.5", "controller.lam"),
-        ("scene.obstacle.radius=-1", "scene.obstacle.radius"),
+        ("scene.obstacles.0.radius=-1", "scene.obstacles[0].radius"),
+        ("scene.obstacles.0.apex=5.0", "scene.obstacles[0].apex"),
+        ("scene.obstacle.radius=4", "scene.obstacle.radius: unknown key"),  # the old single-obstacle key
         ("sim.dt=0", "sim.dt"),
         ("scene.target=[5.0,0.0]", "scene.target"),
         ("camera.period=0.015", "camera.period"),

@@ -19,7 +19,7 @@ SMALL = ["data.splits.train=512", "data.splits.val=64", "data.splits.test=64"]
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
     """A 512/64/64 clean dataset and a models folder, shared by the module's tests."""
-    from pipeline.data import run as data_run
+    from pipeline.data.stage import run as data_run
 
     root = tmp_path_factory.mktemp("train")
     ds_dir, models_dir = root / "datasets", root / "models"
@@ -34,9 +34,11 @@ def _train_cfg(tiny, *extra):
 
 
 def test_fast_dev_run_reload_and_noop(tiny):
+    from pipeline import identity, tracking
     from pipeline.data import open_dataset
     from pipeline.perception.maps import load_perception_map
-    from pipeline.train.stage import error_metrics, run
+    from pipeline.perception.metrics import error_metrics
+    from pipeline.train.stage import run
 
     cfg = _train_cfg(tiny, "trainer=debug", "eval_levels=[none,heavy]")
     out = run(cfg)
@@ -45,9 +47,8 @@ def test_fast_dev_run_reload_and_noop(tiny):
     manifest = json.loads((folder / "manifest.json").read_text())
     ds = open_dataset(tiny["id"], datasets_dir=tiny["datasets"])
     assert manifest["dataset_id"] == ds.id
-    from pipeline.train.stage import model_identity
-
-    assert model_identity(cfg, ds.name, ds.id) == (out["name"], out["id"])  # the stage uses the pure rule
+    # the stage uses the pure rule
+    assert identity.map_identity(tracking.to_plain_lenient(cfg), ds.name, ds.id) == (out["name"], out["id"])
     assert set(out["metrics"]) >= {"test_split", "none", "heavy"}
 
     # a saved map reloads and predicts the numbers the stage reported
@@ -58,7 +59,7 @@ def test_fast_dev_run_reload_and_noop(tiny):
     assert again["mae_px"] == pytest.approx(saved["mae_px"], rel=1e-6)
     assert np.array_equal(pred, pm.predict(ds.images("test")))  # inference is deterministic
     # the flag operating point: the gate is fitted on the validation positions re-rendered without clouds
-    from pipeline.train.stage import gate_frames, render_split
+    from pipeline.train.evaluate import gate_frames, render_split
     from pipeline.train.uncertainty import clean_gate
 
     metrics = json.loads((folder / "metrics.json").read_text())
@@ -99,7 +100,8 @@ def test_overfits_256_images(tiny):
     """The map can memorise 256 images: train MAE below 1 px (the model is able to localise sub-pixel)."""
     from pipeline.data import open_dataset
     from pipeline.perception.maps import load_perception_map
-    from pipeline.train.stage import error_metrics, run
+    from pipeline.perception.metrics import error_metrics
+    from pipeline.train.stage import run
 
     # a narrow variant of the default architecture (CoordConv, one-cycle), without dropout and BatchNorm
     cfg = _train_cfg(tiny, "datamodule.limit_train_samples=256", "datamodule.batch_size=16", "trainer.max_epochs=40",
@@ -114,8 +116,8 @@ def test_overfits_256_images(tiny):
 
 
 def test_wrong_image_shape_is_a_model_error(tiny):
-    from pipeline.perception.network import PerceptionMap
     from pipeline.perception.maps import PerceptionMapPredictor
+    from pipeline.perception.network import PerceptionMap
 
     pm = PerceptionMapPredictor(PerceptionMap())
     assert pm.predict(np.zeros((3, 60, 100, 3), np.uint8)).shape == (3, 2)
@@ -208,9 +210,9 @@ BAD_INPUTS = [
 def test_bad_input_is_one_config_error(tiny, tmp_path, overrides, field):
     from pipeline.train.stage import run
 
-    cfg = compose("train", [f"paths.datasets_dir={tiny['datasets']}", f"paths.models_dir={tmp_path / 'm'}",
-                            "trainer.max_epochs=1", "eval_levels=[]", *SMALL, *overrides])
-    with pytest.raises(ConfigError) as info:
+    with pytest.raises(ConfigError) as info:  # at composition (keys and types) or in the run, before any work
+        cfg = compose("train", [f"paths.datasets_dir={tiny['datasets']}", f"paths.models_dir={tmp_path / 'm'}",
+                                "trainer.max_epochs=1", "eval_levels=[]", *SMALL, *overrides])
         run(cfg)
     assert info.value.field == field
     assert "\n" not in str(info.value)
@@ -230,13 +232,18 @@ def test_gpu_trainer_without_gpu_is_one_config_error(tiny, tmp_path):
 
 
 @pytest.mark.parametrize("override", ["+trainer.foo=1", "model.lr=abc", "trainer=gpu", "datamodule.batch_size=-4"])
-def test_cli_bad_input_one_line_exit_2(tmp_path, override):
+def test_cli_bad_input_one_line_exit_2(request, tmp_path, override):
     import torch
 
     if override == "trainer=gpu" and torch.cuda.is_available():
         pytest.skip("this machine has a GPU")
+    datasets, extra = tmp_path, []
+    if override in ("trainer=gpu", "datamodule.batch_size=-4"):
+        # the preflight imports no torch: a missing GPU (`check_devices`) and the DataModule's values (its
+        # constructor) are found in the job, after the preflight has found the dataset, so these cases need one
+        datasets, extra = request.getfixturevalue("tiny")["datasets"], SMALL
     proc = subprocess.run(
-        [sys.executable, "-m", "pipeline.train", override, f"paths.datasets_dir={tmp_path}",
+        [sys.executable, "-m", "pipeline.train", override, f"paths.datasets_dir={datasets}", *extra,
          f"paths.models_dir={tmp_path / 'm'}", f"hydra.run.dir={tmp_path / 'run'}"],
         cwd=REPO_ROOT, capture_output=True, text=True, timeout=300,
     )

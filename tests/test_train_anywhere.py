@@ -20,9 +20,16 @@ def _cfg(*extra):
     return compose("train", ["paths.output_dir=/nonexistent", *extra])
 
 
+def model_identity(cfg, dataset_name, dataset_id):
+    """The map id rule on a composed train config (what the train stage computes)."""
+    from pipeline import identity, tracking
+
+    return identity.map_identity(tracking.to_plain_lenient(cfg), dataset_name, dataset_id)
+
+
 # ----------------------------------------------------------------------------------------- model id
 def test_model_identity_placement_vs_weights():
-    from pipeline.train.stage import model_identity
+    from pipeline.train.checks import check_settings
 
     base = model_identity(_cfg(), "clean", "abc")
     assert base == model_identity(_cfg(), "clean", "abc")  # pure and deterministic
@@ -43,8 +50,8 @@ def test_model_identity_placement_vs_weights():
     assert len(changed) == 9
     assert model_identity(_cfg(), "clean", "xyz")[1] != base[1]  # another dataset
     assert model_identity(_cfg("model=paper"), "clean", "abc")[0] == "clean_paper"
-    with pytest.raises(ConfigError, match="name"):
-        model_identity(_cfg("name=../x"), "clean", "abc")
+    with pytest.raises(ConfigError, match="name"):  # the name is checked with the stage's settings (the id rule is pure)
+        check_settings(_cfg("name=../x"))
 
 
 def test_trainer_configs_compose_to_lightning_arguments():
@@ -157,7 +164,7 @@ def test_sharded_batches_partition_the_global_batches():
 # ---------------------------------------------------------------------------------- loggers, search
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
-    from pipeline.data import run as data_run
+    from pipeline.data.stage import run as data_run
 
     root = tmp_path_factory.mktemp("anywhere")
     cfg = compose("data", ["data=clean", *SMALL, f"paths.datasets_dir={root / 'datasets'}"])
@@ -214,7 +221,7 @@ def _cli(tmp_path, tiny, *args, timeout=540):
     flags = [a for a in args if a.startswith("-")]
     return subprocess.run(
         [sys.executable, "-m", "pipeline.train", *flags, f"paths.datasets_dir={tiny / 'datasets'}",
-         f"paths.models_dir={tmp_path / 'm'}", "eval_levels=[]", *(a for a in args if a not in flags)],
+         f"paths.models_dir={tmp_path / 'm'}", "eval_levels=[]", *SMALL, *(a for a in args if a not in flags)],
         cwd=REPO_ROOT, capture_output=True, text=True, timeout=timeout,
     )
 
@@ -223,8 +230,6 @@ def _cli(tmp_path, tiny, *args, timeout=540):
 def test_ddp_two_cpu_processes(tiny, tmp_path):
     """`trainer=ddp trainer.devices=2 trainer.accelerator=cpu`: two ranks, one saved map, same id as one device."""
     import json
-
-    from pipeline.train.stage import model_identity
 
     args = ["trainer=ddp", "trainer.devices=2", "trainer.accelerator=cpu", "trainer.max_epochs=2",
             "datamodule.batch_size=32", "trainer.enable_progress_bar=false", f"hydra.run.dir={tmp_path / 'run'}"]

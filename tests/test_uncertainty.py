@@ -9,12 +9,12 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.control import HybridController, Scene
+from pipeline.control import HybridController, Obstacle, Scene
 from pipeline.errors import ConfigError
-from pipeline.perception.measure import CameraMeasure
-from pipeline.sim import simulate
-from pipeline.perception.network import PerceptionMap, gaussian_nll
 from pipeline.perception.maps import PerceptionMapPredictor
+from pipeline.perception.measure import CameraMeasure
+from pipeline.perception.network import PerceptionMap, gaussian_nll
+from pipeline.sim import simulate
 from pipeline.train.uncertainty import (
     calibrate,
     clean_gate,
@@ -156,6 +156,7 @@ def test_the_confident_gate_keeps_new_frames_within_the_target_at_its_confidence
     with pytest.raises(ValueError, match="confidence"):
         clean_gate(sigma, 1.0, fa, confidence=1.0)
 
+
 class _Identity:
     """A 'camera' whose image of p is p itself (the map below reads positions)."""
 
@@ -177,7 +178,7 @@ class _DoubtfulMap:
 
 
 def test_gated_frames_are_failures_the_last_estimate_is_held():
-    scene = Scene(target=(40.0, 0.0), obstacle_center=(0.0, 0.0), obstacle_radius=4.0)
+    scene = Scene(target=[40.0, 0.0], obstacles=[Obstacle(center=[0.0, 0.0], radius=4.0)])
     x0 = np.array([[-30.0, 15.0], [-20.0, -18.0], [30.0, 10.0]])
     runs = {}
     for gate in (None, 5.0):
@@ -223,26 +224,3 @@ def test_the_head_never_changes_the_position_estimate():
         preds.append(PerceptionMapPredictor(model.eval()).predict(images))
     np.testing.assert_allclose(preds[0], preds[1], atol=1e-5)
 
-
-def test_maps_saved_before_the_fitted_head_load_or_say_why(tmp_path):
-    """Maps saved when the variance head trained beside the position carry `nll_weight`: one without the head
-    loads and predicts as saved; one with the earlier head is refused with its name, not a state-dict error."""
-    import json
-
-    from pipeline.errors import ModelError
-    from pipeline.perception.maps import load_perception_map
-
-    images = _synthetic(8, 4)[0]
-    for unc in ("none", "gaussian"):
-        model = PerceptionMap(image_shape=[16, 16, 3], arena=[[-10, 10], [-10, 10]], filters=[4], uncertainty=unc)
-        folder = tmp_path / f"old_{unc}-0123456789"
-        folder.mkdir()
-        torch.save({"hparams": {**dict(model.hparams), "nll_weight": 1.0}, "state_dict": model.state_dict()},
-                   folder / "model.pt")
-        (folder / "manifest.json").write_text(json.dumps({"id": "0123456789"}))
-        if unc == "none":
-            np.testing.assert_array_equal(load_perception_map(folder, device="cpu").predict(images),
-                                          PerceptionMapPredictor(model.eval()).predict(images))
-        else:
-            with pytest.raises(ModelError, match="old_gaussian-0123456789.*earlier uncertainty head"):
-                load_perception_map(folder, device="cpu")
