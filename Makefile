@@ -26,6 +26,9 @@ run: paper ## the main job: regenerate every figure and table of the paper (alia
 paper: $(STAMP) ## data -> train -> errormap -> experiments; writes outputs/paper/
 	$(PY) -m pipeline.paper $(ARGS)
 
+multi: $(STAMP) ## several obstacles + the unicycle (issue 19): their data -> train -> errormap -> experiments
+	$(PY) -m pipeline.paper --config-name multi $(ARGS)
+
 dagger: $(STAMP) ## DAgger-style rounds: data -> train -> closed loop with the map -> aggregated data -> ... (outputs/dagger/)
 	$(PY) -m pipeline.dagger $(ARGS)
 
@@ -68,4 +71,4 @@ lint: $(STAMP) ## ruff
 clean: ## remove generated data and outputs (keeps .venv)
 	rm -rf data/datasets outputs/* && touch outputs/.gitkeep
 
-.PHONY: help setup run paper dagger generalisation simulate data verify-data train errormap experiments test test-all bench lint clean
+.PHONY: help setup run paper multi dagger generalisation simulate data verify-data train errormap experiments test test-all bench lint clean

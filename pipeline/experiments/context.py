@@ -190,6 +190,11 @@ class Context:
         m = tracking.read_manifest(folder)
         return build(m["render"], "render", scene=build(m["scene"], "scene"))
 
+    def map_scene(self, kind: str = "clean") -> Scene | None:
+        """The scene map `kind`'s training images show (from its manifest; None with a perfect map)."""
+        folder = self.map_folder(kind)
+        return None if folder is None else build(tracking.read_manifest(folder)["scene"], "scene")
+
     # simulation ------------------------------------------------------------------------------
     def simulate(self, controller, x0, *, scene: Scene | None = None, disturbance=None, measure=None,
                  target_fn=None, p_fail: float = 0.0, seed: int | None = None, record: bool = True,

@@ -51,7 +51,7 @@ def _counters(n: int) -> dict[str, np.ndarray]:
 class _Loop(HybridSystem):
     """What both time models share: the four maps of the feedback law at the measured point."""
 
-    recorded = ("m", "q", "target")
+    recorded = ("m", "q", "i", "target")
 
     def __init__(self, scene, controller, plant, disturbance):
         self.scene, self.controller, self.plant, self.disturbance = scene, controller, plant, disturbance
@@ -185,7 +185,7 @@ class SampledLoop(_Loop):
 class ContinuousLoop(_Loop):
     """The paper's continuous-time closed loop: `m = c + e(t_k)` along the flow (true state, held disturbance)."""
 
-    recorded = ("e", "q")
+    recorded = ("e", "q", "i")
 
     def measured(self, x):
         return x.c + x.e

@@ -44,6 +44,7 @@ class SimResult:
     metrics: dict = field(default_factory=dict)  # name -> (N,) arrays
     heading: np.ndarray | None = None  # (T, N) true headings (a vehicle with one)
     heading_measured: np.ndarray | None = None  # (T, N) measured headings
+    i: np.ndarray | None = None  # (T, N) active obstacles (SPEC §3.6; a law with cells)
 
     def metrics_frame(self) -> pd.DataFrame:
         """One row per agent: the columns of `metrics.csv`."""
@@ -148,5 +149,5 @@ def _result(scene, controller, plant, x0, arc, m, monitor: ArrivalCollision, del
         controller=controller.name, x0=x0, t=arc.t, p=arc.c[..., :2], m=m[..., :2], u=arc.w,
         q=(np.ones(arc.j.shape, dtype=np.int8) if q is None else q.astype(np.int8)), j=arc.j,
         target=arc.d.get("target"), metrics=metrics, heading=heading,
-        heading_measured=m[..., 2] if plant.heading else None,
+        heading_measured=m[..., 2] if plant.heading else None, i=arc.d.get("i"),
     )

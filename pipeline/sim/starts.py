@@ -141,3 +141,52 @@ class NearK:
             rows = which == i
             out[rows] = scene.covering(i).from_frame(a[rows], b[rows])
         return out
+
+
+@dataclass(frozen=True)
+class BehindObstacles:
+    """Near the set `K_i` behind the obstacles of a field (SPEC §3.6: Proposition 1 once per obstacle): `n` starts
+    on obstacle i's ray away from the target, at `a` in `-(c_i + gap + depth) .. -(c_i + gap)` of its frame (`c_i`
+    its apex: just behind its diamond) and `|b| < band`, kept where obstacle i's cell is the nearest
+    (`dist_j = |p - c_j| - R_j`), inside the arena by `margin` and outside every disc and diamond (rejection,
+    seeded). The starts are dealt out over the obstacles whose K lies in the arena (`obstacles(scene)`: an
+    obstacle near the arena's edge with its back to it has none there)."""
+
+    n: int = 200
+    seed: int = 0
+    band: float = 0.5
+    gap: float = 1.0
+    depth: float = 10.0
+    margin: float = 1.0
+
+    def _candidates(self, scene: Scene, i: int, k: int, rng) -> np.ndarray:
+        arr = scene.arrays
+        (x0, x1), (y0, y1) = _box(scene, self.margin, "init")
+        c = float(arr["c"][i])
+        a = -rng.uniform(c + self.gap, c + self.gap + self.depth, k)
+        p = scene.covering(i).from_frame(a, rng.uniform(-self.band, self.band, k))
+        rel = p[:, None, :] - arr["center"][None]
+        dist = np.hypot(rel[..., 0], rel[..., 1]) - arr["R"][None]
+        ok = ((dist.argmin(axis=1) == i) & _outside(scene, p) & (p[:, 0] > x0) & (p[:, 0] < x1)
+              & (p[:, 1] > y0) & (p[:, 1] < y1))
+        return p[ok]
+
+    def obstacles(self, scene: Scene) -> list[int]:
+        """The obstacles with room behind them (at least a tenth of a probe batch lands in the allowed region)."""
+        rng = np.random.default_rng(self.seed)
+        return [i for i in range(scene.n_obstacles) if len(self._candidates(scene, i, 200, rng)) >= 20]
+
+    def __call__(self, scene: Scene, field_: str = "init") -> np.ndarray:
+        _box(scene, self.margin, field_)
+        which = self.obstacles(scene)
+        if not which:
+            raise ConfigError(f"{field_}.depth", "no obstacle has room behind it in the arena: lower depth or gap")
+        rng = np.random.default_rng(self.seed)
+        out = []
+        for j, i in enumerate(which):
+            want = self.n // len(which) + (j < self.n % len(which))
+            got = np.zeros((0, 2))
+            while len(got) < want:
+                got = np.concatenate([got, self._candidates(scene, i, 8 * want + 16, rng)])
+            out.append(got[:want])
+        return np.concatenate(out)
