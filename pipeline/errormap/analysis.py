@@ -45,7 +45,7 @@ def analyse_level(E: np.ndarray, points: np.ndarray, shape: tuple[int, int], ope
                   settings: Mapping) -> dict:
     """All numbers of one occlusion level from its error field `E (K, N, 2)` (K draws per point).
 
-    Statistics pool the K draws; the worst draw per point, `e(p) = max_k |F_k(p)|`, is what Assumption 1
+    Statistics pool the K draws; the worst draw per point, `e(p) = max_k |E_k(p)|`, is what Assumption 1
     bounds, so it is the heat map, the Lipschitz bound check and the error-vs-distance quantity.
     """
     k = E.shape[0]

@@ -19,8 +19,8 @@ def default_errormaps_dir() -> Path:
 
 
 def load_error_map(ref, errormaps_dir=None) -> dict:
-    """A finished error map by model name (latest), id, `name-id` or path: its summary.json plus
-    `"path"` (Path) and `"paths"` (`{file name: Path}`). Unknown or incomplete -> DatasetError."""
+    """A finished error map by id, `name-id`, path, or a model name that one error map alone has: its
+    summary.json plus `"path"` (Path) and `"paths"` (`{file name: Path}`). Unknown or incomplete -> DatasetError."""
     root = Path(errormaps_dir) if errormaps_dir is not None else default_errormaps_dir()
     folder = resolve_errormap(ref, root)
     problems = tracking.verify(folder, full=False)

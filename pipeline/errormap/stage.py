@@ -16,6 +16,7 @@ import json
 import sys
 import time
 from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -144,6 +145,56 @@ def run_one(cfg: DictConfig, *, perception_map=None, camera=None, occlusions: Ma
     `.manifest`, `.camera()`), `camera` (`.render(points, occlusion=, rng=)`), `occlusions`
     (`{level: occlusion object}`), `dataset` (`.positions("train")`, `.images("train")`).
     """
+    plan = _plan(cfg, perception_map, camera, occlusions)
+    pmap, settings, final = plan.pmap, plan.settings, plan.final
+    if tracking.is_complete(final) and not settings.get("force", False):
+        print(f"errormap: {final} is complete (force=true to recompute)")
+        return {"path": final, "summary": json.loads((final / "summary.json").read_text()), "skipped": True,
+                "fields": None}
+    ds = dataset if dataset is not None else _dataset(pmap, plan.manifest, cfg)
+    progress = bool(settings.get("progress", True)) and sys.stderr.isatty()
+
+    t0 = time.perf_counter()
+    samples, sample_pred = _train_samples(ds, pmap.predict, settings.get("train_samples"), int(settings["batch"]),
+                                          settings["seed"], progress)
+    t_train = time.perf_counter() - t0
+    sample_err_vec = sample_pred - samples
+    margin = operational_margin(settings.get("operational_margin", "auto"), plan.camera)
+    results, fields, operational = _compute_levels(plan, samples, sample_err_vec, margin, progress)
+    settings = _coverage_marks(settings, plan.levels, results, fields, operational)
+    summary = _summary(cfg, plan, settings, results, samples, sample_err_vec, t_train, margin, operational)
+
+    meta = {"recipe": plan.recipe, "inputs": {"model": str(pmap.id), "dataset": getattr(ds, "id", None)},
+            "model_name": pmap.name, "code_version": tracking.code_version(*identity.ERRORMAP_CODE),
+            "occlusions": {lv: o.config() for lv, o in plan.occ.items() if hasattr(o, "config")}}
+    with tracking.tracked_output(plan.root, pmap.name, plan.id, meta) as tmp:
+        write_outputs(tmp, summary, fields, results, plan.scene, plan.arena, settings, samples, sample_err_vec)
+    print(f"errormap: wrote {final}")
+    return {"path": final, "summary": summary, "skipped": False, "fields": fields}
+
+
+@dataclass(frozen=True, eq=False)
+class _Plan:
+    """What one error map is computed from: its settings (plain), the perception map, camera and cloud levels, the
+    scene and arena of the map's images, the grid `(points, shape, xs, ys)`, and where it goes (id, folder)."""
+
+    settings: dict
+    levels: list
+    pmap: Any
+    camera: Any
+    occ: dict
+    scene: Scene
+    arena: tuple
+    manifest: dict
+    grid: tuple
+    recipe: dict
+    id: str
+    root: Path
+    final: Path
+
+
+def _plan(cfg: DictConfig, perception_map, camera, occlusions) -> _Plan:
+    """Check the settings, load (or take) the objects, lay the grid and name the output: no work yet."""
     settings_(cfg, ErrorMapSettings)
     settings = errormap_settings(cfg)
     levels = settings["occlusion_levels"]
@@ -151,88 +202,100 @@ def run_one(cfg: DictConfig, *, perception_map=None, camera=None, occlusions: Ma
         cfg.maps, models_dir=cfg.paths.models_dir, device=cfg.get("device", "auto"))
     camera = camera if camera is not None else pmap.camera()
     occ = dict(occlusions) if occlusions is not None else _occlusions(cfg, levels)
-    shared_clouds = settings.get("clouds", "independent") == "shared"
     missing = [lv for lv in levels if lv not in occ]
     if missing:
         raise ConfigError("occlusion_levels", f"no occlusion object for {missing}")
     scene, arena, scene_cfg = _scene_and_arena(pmap, camera)
     manifest = getattr(pmap, "manifest", None) or {}
     try:
-        points, shape, xs, ys = core.arena_grid(arena, settings["grid"]["step"])
+        grid = core.arena_grid(arena, settings["grid"]["step"])
     except ValueError as err:
         raise ConfigError("grid.step", str(err)) from None
-
     recipe = tracking.strip_keys(settings, identity.ERRORMAP_VOLATILE)
     id_ = identity.errormap_id(settings, {lv: _occlusion_config(o) for lv, o in occ.items()}, str(pmap.id),
                                scene_cfg, arena)
     root = Path(cfg.paths.errormaps_dir)
-    final = root / f"{pmap.name}-{id_}"
-    if tracking.is_complete(final) and not settings.get("force", False):
-        print(f"errormap: {final} is complete (force=true to recompute)")
-        return {"path": final, "summary": json.loads((final / "summary.json").read_text()), "skipped": True,
-                "fields": None}
+    return _Plan(settings, levels, pmap, camera, occ, scene, arena, manifest, grid, recipe, id_, root,
+                 root / f"{pmap.name}-{id_}")
 
-    ds = dataset
-    if ds is None:
-        ds_ref = manifest.get("dataset_id") or manifest.get("dataset_name")
-        if not ds_ref:
-            raise DatasetError(f"perception map {pmap.name}-{pmap.id}: manifest names no dataset_id")
-        ds = open_dataset(ds_ref, datasets_dir=cfg.paths.get("datasets_dir"))
-    progress = bool(settings.get("progress", True)) and sys.stderr.isatty()
-    batch = int(settings["batch"])
 
-    t0 = time.perf_counter()
-    samples, sample_pred = _train_samples(ds, pmap.predict, settings.get("train_samples"), batch,
-                                          settings["seed"], progress)
-    t_train = time.perf_counter() - t0
-    sample_err_vec = sample_pred - samples
-    sample_err = np.linalg.norm(sample_err_vec, axis=1)
-    margin = operational_margin(settings.get("operational_margin", "auto"), camera)
-    operational = operational_set(points, scene, arena, margin)
+def _dataset(pmap, manifest: dict, cfg: DictConfig):
+    """The dataset the perception map was trained on, by the id (or name) its manifest records."""
+    ds_ref = manifest.get("dataset_id") or manifest.get("dataset_name")
+    if not ds_ref:
+        raise DatasetError(f"perception map {pmap.name}-{pmap.id}: manifest names no dataset_id")
+    return open_dataset(ds_ref, datasets_dir=cfg.paths.get("datasets_dir"))
+
+
+def _compute_levels(plan: _Plan, samples, sample_err_vec, margin, progress: bool):
+    """E over the grid for each occlusion level and its analysis: `(results, fields, operational)`."""
+    settings, (points, shape, xs, ys) = plan.settings, plan.grid
+    operational = operational_set(points, plan.scene, plan.arena, margin)
     near = core.nearest_distance(points, samples)
-
+    sample_err = np.linalg.norm(sample_err_vec, axis=1)
     results, fields = {}, {"x": xs, "y": ys, "operational": operational.reshape(shape), "nearest": near.reshape(shape)}
-    for li, level in enumerate(levels):
-        random = not _is_deterministic(level, occ[level])
-        k = int(settings["draws"]) if random else 1
+    for li, level in enumerate(plan.levels):
         t1 = time.perf_counter()
-        draws = []
-        for d in range(k):
-            rng = np.random.default_rng([int(settings["seed"]), li, d])
-            shared = occ[level].sample(1, rng, tuple(camera.shape)) if random and shared_clouds else None
-            draws.append(core.error_field(pmap.predict, _render_fn(camera, occ[level], shared), points,
-                                          batch=batch, rng=rng, progress=progress,
-                                          desc=f"error map [{level}{f' {d + 1}/{k}' if k > 1 else ''}]"))
-        E = np.stack(draws)  # (K, N, 2)
+        E = _error_draws(plan, li, level, progress)  # (K, N, 2)
         seconds = time.perf_counter() - t1
-        results[level] = analyse_level(E, points, shape, operational, samples, sample_err, near, scene,
-                                       settings)
-        results[level].update(draws=k, seconds=seconds, points_per_s=k * len(points) / max(seconds, 1e-12))
+        k = len(E)
+        r = results[level] = analyse_level(E, points, shape, operational, samples, sample_err, near, plan.scene,
+                                           settings)
+        r.update(draws=k, seconds=seconds, points_per_s=k * len(points) / max(seconds, 1e-12))
         fields[f"E_{level}"] = E.reshape(k, *shape, 2).astype(np.float32)
-        fields[f"eps_min_{level}"] = results[level].pop("_eps_min").reshape(shape)
-        fields[f"slope_{level}"] = results[level].pop("_slope")
-        r = results[level]
-        print(f"errormap: {pmap.name} [{level}]: |E| over the operational set mean {r['mean']:.3g}, "
+        fields[f"eps_min_{level}"] = r.pop("_eps_min").reshape(shape)
+        fields[f"slope_{level}"] = r.pop("_slope")
+        print(f"errormap: {plan.pmap.name} [{level}]: |E| over the operational set mean {r['mean']:.3g}, "
               f"p95 {r['p95']:.3g}, max {r['max']:.3g}; L {r['L_max']:.3g} (p99 {r['L_p99']:.3g}); "
               f"covered for eps >= {_fmt_eps(r['eps_cover'])}; {r['points_per_s']:.0f} points/s")
+    return results, fields, operational
 
+
+def _error_draws(plan: _Plan, li: int, level: str, progress: bool) -> np.ndarray:
+    """The K rendered draws of E over the grid at one level (one for a deterministic level), `(K, N, 2)`; draw d
+    uses the stream `(seed, li, d)`, and with `clouds: shared` one cloud sample shown at every point."""
+    settings, occ, camera = plan.settings, plan.occ[level], plan.camera
+    random = not _is_deterministic(level, occ)
+    k = int(settings["draws"]) if random else 1
+    shared_clouds = settings.get("clouds", "independent") == "shared"
+    draws = []
+    for d in range(k):
+        rng = np.random.default_rng([int(settings["seed"]), li, d])
+        shared = occ.sample(1, rng, tuple(camera.shape)) if random and shared_clouds else None
+        draws.append(core.error_field(plan.pmap.predict, _render_fn(camera, occ, shared), plan.grid[0],
+                                      batch=int(settings["batch"]), rng=rng, progress=progress,
+                                      desc=f"error map [{level}{f' {d + 1}/{k}' if k > 1 else ''}]"))
+    return np.stack(draws)
+
+
+def _coverage_marks(settings: dict, levels, results: dict, fields: dict, operational) -> dict:
+    """The ε marks whose covered sets are drawn (given, or per level's thresholds), each level's covered fraction
+    at them (`coverage_at`, into `results`); returns the settings with the marks."""
     marks = eps_marks(settings, [fields[f"eps_min_{lv}"].ravel()[operational] for lv in levels])
     for lv in levels:
         em = fields[f"eps_min_{lv}"].ravel()[operational]
         results[lv]["coverage_at"] = {f"{m:g}": float(core.coverage_curve(em, [m])[0]) for m in marks}
-    settings = {**settings, "coverage": {**settings["coverage"], "eps_marks": marks}}
-    center = _dean_center(settings["dean"].get("center", "origin"), scene)
+    return {**settings, "coverage": {**settings["coverage"], "eps_marks": marks}}
+
+
+def _summary(cfg, plan: _Plan, settings, results, samples, sample_err_vec, t_train, margin, operational) -> dict:
+    """summary.json: the model, the grid, the coverage settings, the train samples' errors and Dean et al.'s fit,
+    and every level's numbers."""
+    points, shape = plan.grid[0], plan.grid[1]
+    pmap, manifest, marks = plan.pmap, plan.manifest, settings["coverage"]["eps_marks"]
+    center = _dean_center(settings["dean"].get("center", "origin"), plan.scene)
+    sample_err = np.linalg.norm(sample_err_vec, axis=1)
     train_summary = {**core.error_stats(sample_err), "seconds": t_train,
                      "dean": _jsonable(core.dean_fit(sample_err_vec, samples, center, settings["dean"]["eps_C"]))}
-    summary = {
-        "id": id_,
+    return {
+        "id": plan.id,
         "name": pmap.name,
         "model": {"ref": str(cfg.maps), "id": str(pmap.id), "name": pmap.name,
                   "dataset_id": manifest.get("dataset_id"), "dataset_name": manifest.get("dataset_name")},
         "grid": {"step": float(settings["grid"]["step"]), "nx": int(shape[1]), "ny": int(shape[0]),
                  "n_points": int(len(points)), "n_operational": int(operational.sum()),
                  "operational_margin": margin,
-                 "arena": [list(a) for a in arena]},
+                 "arena": [list(a) for a in plan.arena]},
         "r_cov": settings["coverage"]["r_cov"],
         "eps_marks": marks,
         "lipschitz_used": settings["coverage"]["lipschitz"],
@@ -240,10 +303,3 @@ def run_one(cfg: DictConfig, *, perception_map=None, camera=None, occlusions: Ma
         "train_samples": train_summary,
         "levels": _jsonable(results),
     }
-    meta = {"recipe": recipe, "inputs": {"model": str(pmap.id), "dataset": getattr(ds, "id", None)},
-            "model_name": pmap.name, "code_version": tracking.code_version(*identity.ERRORMAP_CODE),
-            "occlusions": {lv: o.config() for lv, o in occ.items() if hasattr(o, "config")}}
-    with tracking.tracked_output(root, pmap.name, id_, meta) as tmp:
-        write_outputs(tmp, summary, fields, results, scene, arena, settings, samples, sample_err_vec)
-    print(f"errormap: wrote {final}")
-    return {"path": final, "summary": summary, "skipped": False, "fields": fields}
