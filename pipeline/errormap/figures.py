@@ -75,7 +75,7 @@ def _slope_figure(fields: dict, results: dict, *, scene, arena, extent, levels):
         draw_scene(ax, scene, arena)
         ax.set_title(f"occlusion {lv}: L max {results[lv]['L_max']:.3g}, p99 {results[lv]['L_p99']:.3g}",
                      fontsize=9)
-        fig.colorbar(im, ax=ax, label="|ΔF| / |Δp|", extend="max", shrink=0.85)
+        fig.colorbar(im, ax=ax, label="|ΔE| / |Δp|", extend="max", shrink=0.85)
     return fig
 
 
