@@ -278,16 +278,21 @@ class SampleAndHold(Scenario):
 
     def compute(self, ctx: Context) -> Results:
         x0 = np.asarray(self.initial_conditions, float)
-        runs = {"sampled": ctx.simulate(ctx.controller("hybrid"), x0, model="sampled", record_every=1),
-                "continuous": ctx.simulate(ctx.controller("hybrid"), x0, model="continuous", record_every=1),
-                "limit": simulate(ctx.scene, ctx.controller("hybrid"), x0, dt=self.limit_dt, horizon=ctx.horizon,
+        literal, guarded = ctx.controller("hybrid", guard=False), ctx.controller("hybrid", guard=True)
+        runs = {"sampled": ctx.simulate(literal, x0, model="sampled", record_every=1),  # SPEC §3.3's literal rule
+                "guarded": ctx.simulate(guarded, x0, model="sampled", record_every=1),  # with its sampled-data guard
+                "continuous": ctx.simulate(literal, x0, model="continuous", record_every=1),
+                "limit": simulate(ctx.scene, literal, x0, dt=self.limit_dt, horizon=ctx.horizon,
                                   delta=ctx.delta, camera_period=self.limit_dt, record=False)}
         df = pd.DataFrame({"x0": x0[:, 0], "y0": x0[:, 1]})
         for name, res in runs.items():
             df[f"t_{name}"] = res.metrics["time_to_target"]
             df[f"jumps_{name}"] = res.metrics["jumps"]
             df[f"path_{name}"] = res.metrics["path_length"]
-        for name in ("sampled", "continuous"):
+        for name in ("sampled", "guarded"):
+            df[f"pushouts_{name}"] = runs[name].metrics["pushouts"]
+        df["guard_frames"] = runs["guarded"].metrics["guard_frames"]
+        for name in ("sampled", "guarded", "continuous"):
             df[f"err_{name}_%"] = 100 * (df[f"t_{name}"] - df["t_limit"]) / df["t_limit"]
-        arrays = {"sampled_p": runs["sampled"].p[:, 0], "continuous_p": runs["continuous"].p[:, 0]}
+        arrays = {f"{k}_p": runs[k].p[:, 0] for k in ("sampled", "guarded", "continuous")}
         return Results({"sample_and_hold": df}, arrays, {"period": ctx.frame_period})
