@@ -104,7 +104,8 @@ class _Loop(HybridSystem):
         point, xd, target, ev = self._law(x)
         new = self.controller.jump_map(point, xd, target, ev=ev)
         cell = new["i"] != xd["i"] if "i" in new else np.zeros(len(x), dtype=bool)
-        return x.replace(**new, cell_jumps=x.cell_jumps + cell, mode_jumps=x.mode_jumps + ~cell)
+        counts = {k: x.d.get(k, np.zeros(len(x), dtype=np.int64)) for k in ("cell_jumps", "mode_jumps")}
+        return x.replace(**new, cell_jumps=counts["cell_jumps"] + cell, mode_jumps=counts["mode_jumps"] + ~cell)
 
     def flow_set(self, x):
         point, xd, target, ev = self._law(x)
