@@ -104,9 +104,11 @@ ERRORMAP_VOLATILE = ("force", "progress", "paths", "hydra", "maps", "occlusions"
 ERRORMAP_CODE = ("errormap", "render")
 
 
-def errormap_id(settings: Mapping, occlusions: Mapping, map_id: str, scene: Mapping, arena) -> str:
+def errormap_id(settings: Mapping, occlusions: Mapping, map_id: str, scene: Mapping, arena, pose: bool = False) -> str:
     """Id of the error map of perception map `map_id` (its scene and arena, from its manifest) under the errormap
-    settings (plain, minus volatile keys) and the cloud levels' parameters."""
-    return tracking.content_id(tracking.strip_keys(settings, ERRORMAP_VOLATILE), dict(occlusions), str(map_id),
+    settings (plain, minus volatile keys; `headings` only for a pose map, the only one that reads it) and the
+    cloud levels' parameters."""
+    volatile = ERRORMAP_VOLATILE if pose else (*ERRORMAP_VOLATILE, "headings")
+    return tracking.content_id(tracking.strip_keys(settings, volatile), dict(occlusions), str(map_id),
                                dict(scene), [float(v) for pair in arena for v in pair],
                                tracking.code_version(*ERRORMAP_CODE))

@@ -55,6 +55,20 @@ def figures(folder: Path, fields: dict, results: dict, scene: Scene, arena, sett
         fig.colorbar(im, ax=ax, label="|E| (world units)", extend="max", shrink=0.85)
     out += save(fig, folder / "error_map", fmts)
 
+    if all(f"H_{lv}" in fields for lv in levels):  # a pose map: the worst heading error per point, beside |E|
+        worst_h = {lv: np.abs(fields[f"H_{lv}"]).max(axis=0) for lv in levels}
+        norm, floor = _shared_norm(list(worst_h.values()))
+        fig, axes = panels("heading error |θ̂ - θ| of a pose map (worst over the headings drawn)")
+        for ax, lv in zip(axes, levels):
+            im = ax.imshow(np.maximum(worst_h[lv], floor), origin="lower", extent=extent, cmap="magma_r", norm=norm,
+                           interpolation="nearest")
+            draw_scene(ax, scene, arena)
+            h = results[lv]["heading"]
+            ax.set_title(f"occlusion {lv}: mean {h['mean_deg']:.2f}°, p95 {h['p95_deg']:.2f}°, max "
+                         f"{h['max_deg']:.1f}° (operational set, all headings)", fontsize=9)
+            fig.colorbar(im, ax=ax, label="|Δθ| (degrees)", extend="max", shrink=0.85)
+        out += save(fig, folder / "heading_error_map", fmts)
+
     # local slope map
     slopes = {lv: fields[f"slope_{lv}"] for lv in levels}
     norm, floor = _shared_norm(list(slopes.values()))
