@@ -218,3 +218,62 @@ def test_experiment_cache_key_of_the_integrator_has_no_vehicle_nor_heading_keys(
     assert keys["noise"] == keys["default"]  # an integrator reads no heading
     assert keys["uni"]["vehicle"]["_target_"] == "pipeline.plants.Unicycle"
     assert tracking.content_id(keys["uni"]) != tracking.content_id(keys["uni_imu"])
+
+
+# ------------------------------------------------------------------------------------- pose maps
+def _pose_map(**kw):
+    import torch
+
+    from pipeline.perception.network import PerceptionMap
+
+    torch.manual_seed(0)
+    model = PerceptionMap(outputs="pose", uncertainty="none", **kw)
+    for m in model.modules():
+        if isinstance(m, torch.nn.BatchNorm2d):  # non-trivial running statistics
+            m.running_mean.uniform_(-0.2, 0.2)
+            m.running_var.uniform_(0.5, 1.5)
+    return model.eval()
+
+
+@pytest.mark.parametrize("head", ["pooled", "flat"])
+def test_folded_pose_map_matches_the_module(head):
+    import torch
+
+    from pipeline.perception.maps import PerceptionMapPredictor
+
+    model = _pose_map(filters=[4, 8, 8], batch_norm=True, coord_channels=True, heading_head=head, heading_hidden=8)
+    assert (model.heading_head is not None) == (head == "pooled")
+    images = np.random.default_rng(1).integers(0, 256, (40, 60, 100, 3), dtype=np.uint8)
+    with torch.inference_mode():
+        ref = model(torch.from_numpy(images)).double().numpy()
+    out = PerceptionMapPredictor(model, batch_size=16).predict(images)
+    assert out.shape == (40, 3) and np.all(np.abs(out[:, 2]) <= math.pi)
+    np.testing.assert_allclose(out[:, :2], ref[:, :2], atol=2e-3, rtol=0)
+    d = np.angle(np.exp(1j * (out[:, 2] - ref[:, 2])))
+    assert np.abs(d).max() < 1e-3
+
+
+def test_pooled_heading_is_the_same_wherever_the_marker_lies():
+    """Whole-cell shifts of the image (8 px: three pooling blocks) leave the max-pooled features' values, so the
+    pooled head's heading, unchanged, where the flat head's changes (it reads each cell with its own weights)."""
+    import torch
+
+    from pipeline.render import Camera
+
+    cam = Camera(None)  # a blank arena: only the vehicle's marker
+    a = cam.render([[-20.0, 4.0]], heading=[0.7])
+    b = cam.render([[-20.0 + 16.0, 4.0 - 8.0]], heading=[0.7])
+    for head, same in (("pooled", True), ("flat", False)):
+        model = _pose_map(filters=[4, 8, 8], batch_norm=False, coord_channels=False, heading_head=head)
+        with torch.inference_mode():
+            ta, tb = (model(torch.from_numpy(x))[0, 2].item() for x in (a, b))
+        assert (abs(ta - tb) < 1e-5) == same, (head, ta, tb)
+
+
+def test_pose_model_bad_keys():
+    from pipeline.perception.network import PerceptionMap
+
+    for kw, field in (({"heading_head": "conv"}, "model.heading_head"), ({"heading_hidden": 0}, "model.heading_hidden"),
+                      ({"heading_weight": 0.0}, "model.heading_weight")):
+        with pytest.raises(ConfigError, match=field):
+            PerceptionMap(outputs="pose", **kw)
