@@ -277,3 +277,131 @@ def test_pose_model_bad_keys():
                       ({"heading_weight": 0.0}, "model.heading_weight")):
         with pytest.raises(ConfigError, match=field):
             PerceptionMap(outputs="pose", **kw)
+
+
+# ---------------------------------------------------------------- the unicycle in the experiments Context
+class MomentsMap:
+    """A pose map that reads the image: the leader's intensity centroid (the marker's area centroid is the position,
+    SPEC §1) and the marker's principal axis, pointed by the sign of its third moment (the apex is the long tail)."""
+
+    pose, has_uncertainty, name, id, manifest = True, False, "moments", "0123456789", {}
+
+    def __init__(self, camera):
+        self.cam, self.bg = camera, camera.background[..., 2].astype(float)
+        self.frames = 0
+
+    def predict(self, images):
+        self.frames += 1
+        w = np.clip((np.asarray(images)[..., 2] - self.bg) / (255.0 - self.bg), 0.0, 1.0)  # the white marker
+        h, wd = w.shape[1:]
+        u, v = np.arange(wd) + 0.5, np.arange(h) + 0.5
+        m = w.sum((1, 2))
+        cu, cv = (w * u).sum((1, 2)) / m, (w * v[:, None]).sum((1, 2)) / m
+        dx, dy = u[None, None] - cu[:, None, None], cv[:, None, None] - v[None, :, None]  # world axes
+        sxx, syy, sxy = ((w * a * b).sum((1, 2)) / m for a, b in ((dx, dx), (dy, dy), (dx, dy)))
+        axis = 0.5 * np.arctan2(2 * sxy, sxx - syy)
+        along = dx * np.cos(axis)[:, None, None] + dy * np.sin(axis)[:, None, None]
+        axis = np.where((w * along**3).sum((1, 2)) > 0, axis, axis + np.pi)
+        return np.column_stack([self.cam.pixel_to_world(np.column_stack([cu, cv])), np.angle(np.exp(1j * axis))])
+
+
+def _map_folder(root, name, outputs):
+    """A tracked perception-map folder as the train stage writes its manifest (the model's outputs, scene, render)."""
+    cfg = compose("train", [])
+    meta = {"kind": "perception_map", "model": {"outputs": outputs}, "scene": tracking.to_plain(cfg.scene),
+            "render": tracking.to_plain(cfg.render), "image_shape": [60, 100, 3], "arena": [[-50, 50], [-30, 30]]}
+    with tracking.tracked_output(root, name, "0123456789", meta) as tmp:
+        (tmp / "model.pt").write_text("stub")
+    return root / f"{name}-0123456789"
+
+
+def _uni_context(tmp_path, folder, *extra):
+    from pipeline.experiments.context import Context
+
+    cfg = compose("experiments", [f"paths.outputs_dir={tmp_path}", f"paths.models_dir={folder.parent}",
+                                  "experiment=noise_failure", "vehicle=unicycle", f"maps.clean={folder.name}",
+                                  "+controller.guard=true", "sim.horizon=15", *extra])
+    maps = {}
+
+    def load_map(f, models_dir=None, device=None):
+        ctx_cam = ctx.camera("clean")
+        maps.setdefault("pm", MomentsMap(ctx_cam))
+        return maps["pm"]
+
+    ctx = Context(cfg, load_map=load_map)
+    return ctx
+
+
+def test_unicycle_with_a_pose_map_from_the_camera_reaches_the_target(tmp_path):
+    folder = _map_folder(tmp_path / "models", "moments", "pose")
+    ctx = _uni_context(tmp_path, folder)
+    x0 = np.array([[-12.0, 2.0], [-37.0, -17.0], [-30.0, 20.0], [10.0, -20.0]])
+    res = ctx.simulate(ctx.controller("hybrid"), x0, measure=ctx.camera_measure("clean"))
+    m = res.metrics
+    assert m["success"].all() and not m["collision"].any(), m
+    assert ctx.perception_map("clean").frames > 10  # the heading came from the images
+    live = np.isfinite(res.heading_measured) & np.isfinite(res.heading)
+    err = np.degrees(np.abs(np.angle(np.exp(1j * (res.heading_measured - res.heading)))))[live]
+    assert 0 < err.mean() < 5.0  # read from the image, not copied
+    # the controller steers the look-ahead point around the inflated disc, the axle point stays out of the real one
+    assert ctx.controller("hybrid").scene.obstacles[0].radius == pytest.approx(4.0 + 0.5)
+    assert np.all(m["min_clearance"] > 0)
+
+
+def test_imu_heading_is_the_true_heading_plus_noise(tmp_path):
+    folder = _map_folder(tmp_path / "models", "moments", "pose")
+    ctx = _uni_context(tmp_path, folder, "camera.heading=imu", "camera.heading_noise=0.1")
+    measure = ctx.camera_measure("clean")
+    rng = np.random.default_rng(0)
+    c = np.column_stack([rng.uniform([-45, -25], [45, 25], (2000, 2)), rng.uniform(-np.pi, np.pi, 2000)])
+    est = measure(c, np.arange(len(c)), 1, rng)
+    assert np.abs(est[:, :2] - c[:, :2]).max() < 0.1  # the position: the map's, from the image
+    d = np.angle(np.exp(1j * (est[:, 2] - c[:, 2])))
+    assert d.std() == pytest.approx(0.1, rel=0.08) and abs(d.mean()) < 0.01  # N(0, 0.1): not the map's heading
+    res = ctx.simulate(ctx.controller("hybrid"), np.array([[-12.0, 2.0], [-37.0, -17.0]]), measure=measure)
+    assert res.metrics["success"].all()
+
+
+def test_heading_from_the_camera_needs_a_pose_map_before_any_work(tmp_path):
+    from pipeline.experiments.checks import check
+
+    folder = _map_folder(tmp_path / "models", "clean", "position")
+    base = [f"paths.outputs_dir={tmp_path}", f"paths.models_dir={folder.parent}", "experiment=noise_failure",
+            f"maps.clean={folder.name}"]
+    check(compose("experiments", base))  # the integrator reads no heading
+    with pytest.raises(ConfigError, match="camera.heading"):
+        check(compose("experiments", [*base, "vehicle=unicycle"]))
+    check(compose("experiments", [*base, "vehicle=unicycle", "camera.heading=imu"]))
+
+
+def test_a_tiny_pose_map_through_data_train_errormap_and_the_context(tmp_path):
+    """The plumbing with a real (tiny, untrained) pose map: the unicycle recipe's dataset, the train stage's pose
+    metrics, the error map's heading error, and the map's heading in the camera-in-the-loop measurement."""
+    from pipeline.data.stage import run as data_run
+    from pipeline.errormap.stage import run as errormap_run
+    from pipeline.experiments.context import Context
+    from pipeline.perception.maps import load_perception_map
+    from pipeline.train.stage import run as train_run
+
+    paths = [f"paths.datasets_dir={tmp_path / 'datasets'}", f"paths.models_dir={tmp_path / 'models'}"]
+    small = ["data=unicycle", "data.splits.train=256", "data.splits.val=64", "data.splits.test=64",
+             "data.sampling.closed_loop.starts=8", "data.sampling.closed_loop.horizon=5.0"]
+    assert data_run(compose("data", [*small, *paths]))["counts"]["train"] == 256
+    out = train_run(compose("train", [*small, *paths, "model=pose", "trainer=debug", "eval_levels=[none]"]))
+    metrics = out["metrics"]
+    assert set(metrics["test_split"]["heading"]) == {"mean_deg", "median_deg", "p95_deg", "max_deg"}
+    folder = tmp_path / "models" / f"{out['name']}-{out['id']}"
+    pm = load_perception_map(folder, device="cpu")
+    assert pm.pose
+    em = errormap_run(compose("errormap", [f"maps={folder}", f"paths.errormaps_dir={tmp_path / 'em'}", *paths,
+                                           "grid.step=10.0", "headings=2", "occlusion_levels=[none]",
+                                           "formats=[png]", "train_samples=64", "progress=false", "device=cpu"]))
+    h = em["summary"]["levels"]["none"]["heading"]
+    assert h["fields"] == 2 and 0 <= h["mean_deg"] <= 180
+    cfg = compose("experiments", [f"paths.outputs_dir={tmp_path / 'out'}", *paths, "experiment=noise_failure",
+                                  "vehicle=unicycle", f"maps.clean={folder.name}", "sim.horizon=0.5", "device=cpu"])
+    ctx = Context(cfg, load_map=load_perception_map)
+    res = ctx.simulate(ctx.controller("hybrid"), np.array([[-12.0, 2.0], [-37.0, -17.0]]),
+                       measure=ctx.camera_measure("clean"), record_every=1)
+    m0 = ctx.perception_map("clean").predict(ctx.camera("clean").render(res.p[0], heading=res.heading[0]))
+    assert np.allclose(res.heading_measured[0], m0[:, 2])  # the first frame's heading is the map's
