@@ -58,7 +58,8 @@ def run(cfg: DictConfig) -> dict:
                                 title=f"{controller.name} controller, disturbance {disturbance.name}, {kw['model']}")
         save(fig, run_dir / "trajectories")
     med = df.time_to_target.dropna().median() if df.success.any() else float("nan")
-    print(f"simulate ({kw['model']}): {controller.name} / {disturbance.name}: {len(df)} agents, "
+    vehicle = f", {kw['plant'].name}" if kw["plant"].heading else ""
+    print(f"simulate ({kw['model']}{vehicle}): {controller.name} / {disturbance.name}: {len(df)} agents, "
           f"success {df.success.mean():.1%}, collision {df.collision.mean():.1%}, median time {med:.2f} s, "
           f"{elapsed:.2f} s -> {run_dir}")
     return {"metrics": df, "result": result, "run_dir": run_dir}

@@ -224,9 +224,9 @@ class Context:
             return
         outputs = (tracking.read_manifest(folder).get("model") or {}).get("outputs", "position")
         if outputs != "pose":
-            raise ConfigError("camera.heading", f"camera: map {folder.name} (maps.{kind}) predicts no heading; train a "
-                                                "pose map (python -m pipeline.train data=unicycle model=pose) or read "
-                                                "it from an onboard sensor (camera.heading=imu)")
+            raise ConfigError("camera.heading", f"'camera' needs a pose map, and {folder.name} (maps.{kind}) predicts no "
+                                                "heading: train one (python -m pipeline.train data=unicycle model=pose) "
+                                                "or read it from an onboard sensor (camera.heading=imu)")
 
     def camera_measure(self, kind: str = "clean", level: str | None = None):
         pm = self.perception_map(kind)
