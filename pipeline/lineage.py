@@ -130,7 +130,8 @@ def errormap_identity(cfg, map_manifest: dict) -> tuple[str, str]:
     settings = errormap_settings(cfg)
     occ = {lv: load_occlusion(lv, cfg.occlusions, field="occlusion_levels").config()
            for lv in settings["occlusion_levels"]}
-    id_ = identity.errormap_id(settings, occ, map_manifest["id"], map_manifest["scene"], map_manifest["arena"])
+    pose = (map_manifest.get("model") or {}).get("outputs") == "pose"
+    id_ = identity.errormap_id(settings, occ, map_manifest["id"], map_manifest["scene"], map_manifest["arena"], pose)
     return map_manifest["name"], id_
 
 

@@ -13,19 +13,26 @@ from omegaconf import DictConfig
 
 from pipeline.cli import stage_main
 from pipeline.config import build
+from pipeline.plants import SingleIntegrator
 from pipeline.sim import frame_steps, simulate
-from pipeline.sim.settings import run_keywords
+from pipeline.sim.settings import check_vehicle, run_keywords
 
 
 def objects(cfg: DictConfig):
-    """Every object of the run, built from its node and checked: (scene, controller, disturbance, starts, keywords)."""
+    """Every object of the run, built from its node and checked: (scene, controller, disturbance, starts, keywords).
+
+    The controller steers the vehicle's steered point in `vehicle.steering_scene(scene)` (the unicycle's discs
+    inflated by its look-ahead, SPEC §3.7); the keywords carry the plant and its initial headings."""
     scene = build(cfg.scene, "scene")
-    controller = build(cfg.controller, "controller", scene=scene)
+    plant = build(cfg.vehicle, "vehicle") if cfg.get("vehicle") is not None else SingleIntegrator()
+    controller = build(cfg.controller, "controller", scene=plant.steering_scene(scene))
     disturbance = build(cfg.disturbance, "disturbance")
     x0 = build(cfg.init, "init")(scene)
     sim, camera = build(cfg.sim, "sim"), build(cfg.camera, "camera")
     frame_steps(sim.dt, camera.period)
-    return scene, controller, disturbance, x0, run_keywords(sim, camera)
+    check_vehicle(plant, sim)
+    kw = {**run_keywords(sim, camera), "plant": plant, "heading0": plant.initial_heading(x0, scene)}
+    return scene, controller, disturbance, x0, kw
 
 
 def check(cfg: DictConfig) -> None:
@@ -51,7 +58,8 @@ def run(cfg: DictConfig) -> dict:
                                 title=f"{controller.name} controller, disturbance {disturbance.name}, {kw['model']}")
         save(fig, run_dir / "trajectories")
     med = df.time_to_target.dropna().median() if df.success.any() else float("nan")
-    print(f"simulate ({kw['model']}): {controller.name} / {disturbance.name}: {len(df)} agents, "
+    vehicle = f", {kw['plant'].name}" if kw["plant"].heading else ""
+    print(f"simulate ({kw['model']}{vehicle}): {controller.name} / {disturbance.name}: {len(df)} agents, "
           f"success {df.success.mean():.1%}, collision {df.collision.mean():.1%}, median time {med:.2f} s, "
           f"{elapsed:.2f} s -> {run_dir}")
     return {"metrics": df, "result": result, "run_dir": run_dir}

@@ -35,6 +35,8 @@ def figures(folder: Path, fields: dict, results: dict, scene: Scene, arena, sett
     view = dict(scene=scene, arena=arena, extent=(x0, x1, y0, y1), levels=levels)
     worst = {lv: np.linalg.norm(fields[f"E_{lv}"], axis=-1).max(axis=0) for lv in levels}  # worst |E| per point
     out = save(_error_map_figure(worst, results, **view), folder / "error_map", fmts)
+    if all(f"H_{lv}" in fields for lv in levels):
+        out += save(_heading_figure(fields, results, **view), folder / "heading_error_map", fmts)
     out += save(_slope_figure(fields, results, **view), folder / "slope_map", fmts)
     out += save(_coverage_figure(fields, results, settings, **view), folder / "coverage", fmts)
     out += save(_distance_figure(fields, worst, results, levels), folder / "error_vs_distance", fmts)
@@ -60,6 +62,23 @@ def _error_map_figure(worst: dict, results: dict, *, scene, arena, extent, level
         ax.set_title(f"occlusion {lv}: mean {r['mean']:.2f}, p95 {r['p95']:.2f}, max {r['max']:.2f}"
                      f" (operational set)", fontsize=9)
         fig.colorbar(im, ax=ax, label="|E| (world units)", extend="max", shrink=0.85)
+    return fig
+
+
+
+def _heading_figure(fields: dict, results: dict, *, scene, arena, extent, levels):
+    """A pose map: the worst heading error per point over the headings drawn, beside |E|."""
+    worst_h = {lv: np.abs(fields[f"H_{lv}"]).max(axis=0) for lv in levels}
+    norm, floor = _shared_norm(list(worst_h.values()))
+    fig, axes = _panels(len(levels), "heading error |θ̂ - θ| of a pose map (worst over the headings drawn)")
+    for ax, lv in zip(axes, levels):
+        im = ax.imshow(np.maximum(worst_h[lv], floor), origin="lower", extent=extent, cmap="magma_r", norm=norm,
+                       interpolation="nearest")
+        draw_scene(ax, scene, arena)
+        h = results[lv]["heading"]
+        ax.set_title(f"occlusion {lv}: mean {h['mean_deg']:.2f}°, p95 {h['p95_deg']:.2f}°, max "
+                     f"{h['max_deg']:.1f}° (operational set, all headings)", fontsize=9)
+        fig.colorbar(im, ax=ax, label="|Δθ| (degrees)", extend="max", shrink=0.85)
     return fig
 
 

@@ -58,6 +58,7 @@ class ErrorMapSettings:
     operational_margin: Literal["auto"] | float = "auto"
     near_target_radius: float = 5.0
     draws: int = 1
+    headings: int = 8
     clouds: Literal["independent", "shared"] = "independent"
     seed: int = 0
     batch: int = 2048
@@ -82,7 +83,7 @@ class ErrorMapSettings:
         set_("occlusion_levels", levels)
         if isinstance(self.maps, list) and not self.maps:
             raise ConfigError("maps", "needs at least one perception map")
-        for k in ("draws", "batch", "distance_bins"):
+        for k in ("draws", "headings", "batch", "distance_bins"):
             if getattr(self, k) < 1:
                 raise ConfigError(k, f"must be an integer >= 1, got {getattr(self, k)!r}")
         if self.train_samples is not None and self.train_samples < 1:

@@ -34,6 +34,7 @@ from pipeline.errormap.analysis import (
     _dean_center,
     _fmt_eps,
     _jsonable,
+    analyse_heading,
     analyse_level,
     eps_marks,
     operational_margin,
@@ -77,17 +78,26 @@ def _images_of(result) -> Any:
     return getattr(result, "images", result)
 
 
-def _render_fn(camera, occlusion, shared=None):
-    """`render(points, rng)` for core.error_field; `shared`: one cloud sample shown in every image."""
+def _render_fn(camera, occlusion, shared=None, heading: float | None = None):
+    """`render(points, rng)` for core.error_field; `shared`: one cloud sample shown in every image; `heading`: the
+    heading every image shows (a pose map's error map)."""
+    def pose(points):
+        return {} if heading is None else {"heading": np.full(len(points), heading)}
+
     if shared is not None:
         def render(points: np.ndarray, rng: np.random.Generator | None):
             clouds = shared[np.zeros(len(points), dtype=np.intp)]
-            return _images_of(camera.render(points, occlusion=occlusion, clouds=clouds))
+            return _images_of(camera.render(points, occlusion=occlusion, clouds=clouds, **pose(points)))
     else:
         def render(points: np.ndarray, rng: np.random.Generator | None):
-            return _images_of(camera.render(points, occlusion=occlusion, rng=rng))
+            return _images_of(camera.render(points, occlusion=occlusion, rng=rng, **pose(points)))
 
     return render
+
+
+def heading_grid(n: int) -> np.ndarray:
+    """`n` headings evenly spaced over the circle from -π (radians)."""
+    return -np.pi + 2.0 * np.pi * np.arange(n) / n
 
 
 def _is_deterministic(name: str, occlusion) -> bool:
@@ -110,7 +120,7 @@ def _train_samples(dataset, predict, n_max, batch, seed, progress):
     bar = core._progress(len(idx), "train samples", progress)
     for s in range(0, len(idx), batch):
         sel = idx[s : s + batch]
-        pred[s : s + batch] = np.asarray(predict(np.asarray(images[sel])), dtype=float)
+        pred[s : s + batch] = np.asarray(predict(np.asarray(images[sel])), dtype=float)[:, :2]  # a pose: its position
         bar.update(len(sel))
     bar.close()
     return positions[idx], pred
@@ -191,6 +201,8 @@ class _Plan:
     id: str
     root: Path
     final: Path
+    pose: bool = False
+    headings: tuple = (None,)
 
 
 def _plan(cfg: DictConfig, perception_map, camera, occlusions) -> _Plan:
@@ -211,12 +223,17 @@ def _plan(cfg: DictConfig, perception_map, camera, occlusions) -> _Plan:
         grid = core.arena_grid(arena, settings["grid"]["step"])
     except ValueError as err:
         raise ConfigError("grid.step", str(err)) from None
+
+    pose = bool(getattr(pmap, "pose", False))  # a pose map: each point at `headings` headings, heading errors too
+    headings = heading_grid(int(settings["headings"])) if pose else [None]
+    if not pose:
+        settings = {k: v for k, v in settings.items() if k != "headings"}
     recipe = tracking.strip_keys(settings, identity.ERRORMAP_VOLATILE)
     id_ = identity.errormap_id(settings, {lv: _occlusion_config(o) for lv, o in occ.items()}, str(pmap.id),
-                               scene_cfg, arena)
+                               scene_cfg, arena, pose)
     root = Path(cfg.paths.errormaps_dir)
     return _Plan(settings, levels, pmap, camera, occ, scene, arena, manifest, grid, recipe, id_, root,
-                 root / f"{pmap.name}-{id_}")
+                 root / f"{pmap.name}-{id_}", pose, headings)
 
 
 def _dataset(pmap, manifest: dict, cfg: DictConfig):
@@ -236,23 +253,29 @@ def _compute_levels(plan: _Plan, samples, sample_err_vec, margin, progress: bool
     results, fields = {}, {"x": xs, "y": ys, "operational": operational.reshape(shape), "nearest": near.reshape(shape)}
     for li, level in enumerate(plan.levels):
         t1 = time.perf_counter()
-        E = _error_draws(plan, li, level, progress)  # (K, N, 2)
+        E = _error_draws(plan, li, level, progress)  # (K, N, 2), a pose map's (K * headings, N, 3)
         seconds = time.perf_counter() - t1
-        k = len(E)
-        r = results[level] = analyse_level(E, points, shape, operational, samples, sample_err, near, plan.scene,
-                                           settings)
-        r.update(draws=k, seconds=seconds, points_per_s=k * len(points) / max(seconds, 1e-12))
-        fields[f"E_{level}"] = E.reshape(k, *shape, 2).astype(np.float32)
+        r = results[level] = analyse_level(E[..., :2], points, shape, operational, samples, sample_err, near,
+                                           plan.scene, settings)
+        r.update(draws=len(E) // len(plan.headings), seconds=seconds,
+                 points_per_s=len(E) * len(points) / max(seconds, 1e-12))
+        fields[f"E_{level}"] = E[..., :2].reshape(len(E), *shape, 2).astype(np.float32)
+        if plan.pose:
+            r["heading"] = analyse_heading(E[..., 2], points, operational, plan.scene, settings)
+            fields[f"H_{level}"] = np.degrees(E[..., 2]).reshape(len(E), *shape).astype(np.float32)
         fields[f"eps_min_{level}"] = r.pop("_eps_min").reshape(shape)
         fields[f"slope_{level}"] = r.pop("_slope")
+        head = (f"; heading error mean {r['heading']['mean_deg']:.3g}°, p95 {r['heading']['p95_deg']:.3g}°"
+                if plan.pose else "")
         print(f"errormap: {plan.pmap.name} [{level}]: |E| over the operational set mean {r['mean']:.3g}, "
               f"p95 {r['p95']:.3g}, max {r['max']:.3g}; L {r['L_max']:.3g} (p99 {r['L_p99']:.3g}); "
-              f"covered for eps >= {_fmt_eps(r['eps_cover'])}; {r['points_per_s']:.0f} points/s")
+              f"covered for eps >= {_fmt_eps(r['eps_cover'])}{head}; {r['points_per_s']:.0f} points/s")
     return results, fields, operational
 
 
 def _error_draws(plan: _Plan, li: int, level: str, progress: bool) -> np.ndarray:
-    """The K rendered draws of E over the grid at one level (one for a deterministic level), `(K, N, 2)`; draw d
+    """The K rendered draws of E over the grid at one level (one for a deterministic level), `(K, N, 2)` (a pose
+    map's `(K * headings, N, 3)`, the heading error last); draw d
     uses the stream `(seed, li, d)`, and with `clouds: shared` one cloud sample shown at every point."""
     settings, occ, camera = plan.settings, plan.occ[level], plan.camera
     random = not _is_deterministic(level, occ)
@@ -262,9 +285,10 @@ def _error_draws(plan: _Plan, li: int, level: str, progress: bool) -> np.ndarray
     for d in range(k):
         rng = np.random.default_rng([int(settings["seed"]), li, d])
         shared = occ.sample(1, rng, tuple(camera.shape)) if random and shared_clouds else None
-        draws.append(core.error_field(plan.pmap.predict, _render_fn(camera, occ, shared), plan.grid[0],
-                                      batch=int(settings["batch"]), rng=rng, progress=progress,
-                                      desc=f"error map [{level}{f' {d + 1}/{k}' if k > 1 else ''}]"))
+        for th in plan.headings:  # a pose map: one field per heading (a draw each); else one field
+            draws.append(core.error_field(plan.pmap.predict, _render_fn(camera, occ, shared, th), plan.grid[0],
+                                          batch=int(settings["batch"]), rng=rng, progress=progress, heading=th,
+                                          desc=f"error map [{level}{f' {d + 1}/{k}' if k > 1 else ''}]"))
     return np.stack(draws)
 
 
@@ -299,6 +323,7 @@ def _summary(cfg, plan: _Plan, settings, results, samples, sample_err_vec, t_tra
         "r_cov": settings["coverage"]["r_cov"],
         "eps_marks": marks,
         "lipschitz_used": settings["coverage"]["lipschitz"],
+        **({"headings_deg": np.degrees(plan.headings).tolist()} if plan.pose else {}),
         "dean_center": [float(c) for c in center],
         "train_samples": train_summary,
         "levels": _jsonable(results),

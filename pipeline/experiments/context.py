@@ -21,10 +21,11 @@ from pipeline.errormap.read import load_error_map
 from pipeline.errors import ConfigError, DatasetError, ModelError
 from pipeline.experiments.settings import ExperimentSettings
 from pipeline.perception.measure import CameraMeasure, FollowerTarget, LeaderTrack, OracleMap
+from pipeline.plants import SingleIntegrator
 from pipeline.render import load_occlusion
 from pipeline.sim import frame_steps, simulate, true_state
 from pipeline.sim.metrics import summarise_agents, wilson  # noqa: F401 - wilson: for the scenarios
-from pipeline.sim.settings import run_keywords
+from pipeline.sim.settings import check_vehicle, run_keywords
 
 
 # --------------------------------------------------------------------------------------- results
@@ -78,6 +79,9 @@ class Context:
         self.perception = self.settings.perception
         self.camera_settings = build(cfg.camera, "camera")
         self.sim = build(cfg.sim, "sim")
+        # the plant of every run (`vehicle`, SPEC §3.7): controllers steer its steered point in its steering scene
+        self.vehicle = build(cfg.vehicle, "vehicle") if cfg.get("vehicle") is not None else SingleIntegrator()
+        check_vehicle(self.vehicle, self.sim)
         self.dt, self.horizon, self.delta = self.sim.dt, self.sim.horizon, self.sim.delta
         frame_steps(self.dt, self.camera_settings.period)
         self.frame_period = self.camera_settings.period
@@ -92,12 +96,14 @@ class Context:
 
     # composed objects --------------------------------------------------------------------------
     def controller(self, name: str = "hybrid", scene: Scene | None = None, **params):
-        """The controller `controllers.<name>` of the composed config (hybrid: the run's `controller`)."""
+        """The controller `controllers.<name>` of the composed config (hybrid: the run's `controller`), on the
+        vehicle's steering scene of `scene` (the unicycle's look-ahead point: every disc inflated, SPEC §3.7)."""
         nodes = self.cfg.controllers
         if name not in nodes:
             raise ConfigError("experiment.controllers", f"unknown controller {name!r}; known: {', '.join(nodes)}")
         node = nodes[name] if not params else {**tracking.to_plain(nodes[name]), **params}
-        ctrl = build(node, "controller" if name == "hybrid" else f"controllers.{name}", scene=scene or self.scene)
+        ctrl = build(node, "controller" if name == "hybrid" else f"controllers.{name}",
+                     scene=self.vehicle.steering_scene(scene or self.scene))
         ctrl.name = name
         return ctrl
 
@@ -207,14 +213,34 @@ class Context:
                   record_every=record_every or self.sim.record_every, horizon=horizon or self.horizon,
                   model=model or self.sim.model,
                   stop_on_success=self.sim.stop_on_success if stop_on_success is None else bool(stop_on_success))
-        return simulate(scene or self.scene, controller, np.asarray(x0, float), disturbance=disturbance,
-                        measure=measure, target_fn=target_fn, progress=len(x0) >= 2000 and sys.stderr.isatty(), **kw)
+        scene = scene or self.scene
+        x0 = np.asarray(x0, float)
+        return simulate(scene, controller, x0, disturbance=disturbance, measure=measure, target_fn=target_fn,
+                        progress=len(x0) >= 2000 and sys.stderr.isatty(), plant=self.vehicle,
+                        heading0=self.vehicle.initial_heading(x0, scene), **kw)
+
+    def check_heading(self, kind: str = "clean") -> None:
+        """A vehicle with a heading read from the camera (`camera.heading: camera`) needs a pose map: one line
+        otherwise (read from the map's manifest: no map loaded)."""
+        if not self.vehicle.heading or self.camera_settings.heading != "camera":
+            return
+        folder = self.map_folder(kind)
+        if folder is None:  # a perfect map returns the true pose
+            return
+        outputs = (tracking.read_manifest(folder).get("model") or {}).get("outputs", "position")
+        if outputs != "pose":
+            raise ConfigError("camera.heading", f"'camera' needs a pose map, and {folder.name} (maps.{kind}) predicts no "
+                                                "heading: train one (python -m pipeline.train data=unicycle model=pose) "
+                                                "or read it from an onboard sensor (camera.heading=imu)")
 
     def camera_measure(self, kind: str = "clean", level: str | None = None):
         pm = self.perception_map(kind)
         if isinstance(pm, OracleMap):
             return true_state
-        return CameraMeasure(self.camera(kind), pm, self.occlusion(level), gate=self.gate)
+        self.check_heading(kind)
+        cs = self.camera_settings
+        return CameraMeasure(self.camera(kind), pm, self.occlusion(level), gate=self.gate, heading=cs.heading,
+                             heading_noise=cs.heading_noise)
 
     def leader_follower(self, leader_x0, follower_x0, *, kind: str = "clean", level: str | None = None,
                         sigma: float = 0.0, p_fail: float = 0.0, seed: int | None = None,

@@ -30,6 +30,7 @@ from pipeline.experiments.report import FIGURES, Outputs, write_index
 from pipeline.experiments.scenario import Scenario
 from pipeline.lineage import pinned_folders
 from pipeline.perception.maps import load_perception_map, resolve_device
+from pipeline.plants import SingleIntegrator
 
 # the code whose changes change the numbers (figures.py and report.py only draw)
 COMPUTE_CODE = ("experiments/scenario", "experiments/theory", "experiments/camera_loop", "experiments/generalisation",
@@ -78,6 +79,10 @@ def cache_key(cfg, scen: Scenario, ctx: Context) -> dict:
     }
     if "other_scene" in plain:
         key["other_scene"] = plain["other_scene"]
+    if not isinstance(ctx.vehicle, SingleIntegrator):  # the paper's vehicle keeps the key it always had
+        key["vehicle"] = tracking.to_plain(cfg.vehicle)
+    if not ctx.vehicle.heading:  # a vehicle without a heading reads no heading from the camera
+        key["camera"] = {k: v for k, v in key["camera"].items() if k not in ("heading", "heading_noise")}
     errormaps = {k: (s["id"] if (s := ctx.error_map(k)) else "oracle") for k in getattr(scen, "errormaps", ())}
     if errormaps:
         key["errormaps"] = errormaps

@@ -9,13 +9,16 @@ the network predicts positions normalised to `[-1, 1]` over the arena and the mo
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Sequence
+from typing import Literal
 
 import lightning as L
 import torch
 from torch import nn
 
 from pipeline.errors import ConfigError, ModelError
+from pipeline.perception.heading import HeadingHead, check_heading, heading_deg
 
 UNCERTAINTY = ("none", "gaussian")
 OUTPUTS = ("position", "pose")
@@ -129,10 +132,14 @@ class PerceptionMap(L.LightningModule):
         uncertainty_batch_size: int = 128,
         uncertainty_thumbnail: int = 4,
         outputs: str = "position",
+        heading_head: Literal["pooled", "flat"] = "pooled",
+        heading_hidden: int = 64,
+        heading_weight: float = 1.0,
     ):
         super().__init__()
         if outputs not in OUTPUTS:
             raise ConfigError("model.outputs", f"must be one of {', '.join(OUTPUTS)}, got {outputs!r}")
+        check_heading(heading_head, heading_hidden, heading_weight)
         _validate(image_shape=image_shape, arena=arena, filters=filters, batch_norm=batch_norm, hidden=hidden,
                   dropout=dropout, lr=lr, weight_decay=weight_decay, schedule=schedule, loss=loss,
                   coord_channels=coord_channels, clamp=clamp, name=name, uncertainty=uncertainty,
@@ -162,7 +169,12 @@ class PerceptionMap(L.LightningModule):
         flat = int(filters[-1]) * fh * fw
         self.uncertainty = uncertainty
         self.pose = outputs == "pose"  # a pose map: (x, y, cos θ, sin θ) from the head, θ = atan2 (SPEC §2)
-        n_head = 4 if self.pose else 2
+        # its (cos θ, sin θ): from the pooled features (`heading_head: pooled`, pipeline.perception.heading) or two
+        # more outputs of the position's head (`flat`)
+        self.heading_head = HeadingHead(int(filters[-1]), int(heading_hidden)) \
+            if self.pose and heading_head == "pooled" else None
+        self.heading_weight = float(heading_weight)
+        n_head = 4 if self.pose and self.heading_head is None else 2
         head: list[nn.Module] = [nn.Flatten(), nn.Dropout(dropout)]
         if hidden:
             head += [nn.Linear(flat, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, n_head)]
@@ -216,8 +228,13 @@ class PerceptionMap(L.LightningModule):
         """Raw head outputs: normalised position (and log variances with `uncertainty: gaussian`)."""
         x = self.prepare(images)
         f = self.features(x)
-        z = self.head(f)
+        z = self.head_outputs(f)
         return z if self.var_head is None else torch.cat([z, self.var_head(self.variance_inputs(x, f))], 1)
+
+    def head_outputs(self, f: torch.Tensor) -> torch.Tensor:
+        """The normalised position (a pose map: and `(cos θ, sin θ)`) from the features `f`."""
+        z = self.head(f)
+        return z if self.heading_head is None else torch.cat([z, self.heading_head(f)], 1)
 
     def variance_inputs(self, x: torch.Tensor, f: torch.Tensor) -> torch.Tensor:
         """What the variance head reads: the (detached) features and the thumbnail of the prepared images `x`."""
@@ -235,8 +252,14 @@ class PerceptionMap(L.LightningModule):
     def _step(self, batch, stage: str):
         images, labels = batch
         target = self.targets(labels)
-        pred_n = self.head(self.features(self.prepare(images)))  # the variance head is fitted afterwards
-        loss = self._loss(pred_n, target)
+        pred_n = self.head_outputs(self.features(self.prepare(images)))  # the variance head is fitted afterwards
+        if self.pose:  # position and heading, the heading's loss weighted (pipeline.perception.heading)
+            loss = self._loss(pred_n[:, :2], target[:, :2]) + self.heading_weight * self._loss(pred_n[:, 2:4],
+                                                                                               target[:, 2:])
+            self.log(f"{stage}_heading_deg", heading_deg(pred_n.detach()[:, 2:4], target[:, 2:]), prog_bar=True,
+                     on_epoch=True, on_step=False, batch_size=len(labels), sync_dist=stage != "train")
+        else:
+            loss = self._loss(pred_n, target)
         err_px = (pred_n.detach()[:, :2] - target[:, :2]) * self.half_range * self.px_per_unit
         sync = stage != "train"  # epoch metrics over every rank's share of the split (a no-op on one device)
         self.log(f"{stage}_loss", loss, prog_bar=stage != "train", on_epoch=True, on_step=stage == "train",
@@ -273,7 +296,7 @@ class PerceptionMap(L.LightningModule):
                 flops += 2 * h * w * m.in_channels * m.out_channels * 9
             elif isinstance(m, nn.MaxPool2d):
                 h, w = h // 2, w // 2
-        for m in [*self.head, *(self.var_head or [])]:
+        for m in [*self.head, *(self.var_head or []), *(self.heading_head.mlp if self.heading_head else [])]:
             if isinstance(m, nn.Linear):
                 flops += 2 * m.in_features * m.out_features
         return flops
@@ -325,6 +348,7 @@ class FoldedPerceptionNet(nn.Module):
                 conv.bias.copy_(bk)
             self.convs.append(conv)
         self.head = nn.Sequential(*[m for m in model.head if not isinstance(m, nn.Flatten | nn.Dropout)])
+        self.heading_head = copy.deepcopy(model.heading_head)
         self.var_head = None if model.var_head is None else nn.Sequential(*model.var_head)
         self.thumb_size = model.thumb_size
         self.register_buffer("center", model.center.detach().clone())
@@ -342,12 +366,13 @@ class FoldedPerceptionNet(nn.Module):
         for conv in self.convs:
             x = nn.functional.max_pool2d(nn.functional.relu_(conv(x)), 2)
         f = x.flatten(1)
-        if self.var_head is None:
-            z = self.head(f)
-        else:
+        z = self.head(f)
+        if self.heading_head is not None:
+            z = torch.cat([z, self.heading_head(x)], 1)
+        if self.var_head is not None:
             thumb = nn.functional.adaptive_avg_pool2d(img, self.thumb_size).flatten(1)  # `thumbnail` of [0, 255]
             thumb = (thumb * (1.0 / 255.0) - 0.5) * THUMB_SCALE
-            z = torch.cat([self.head(f), self.var_head(torch.cat([f, thumb], 1))], 1)
+            z = torch.cat([z, self.var_head(torch.cat([f, thumb], 1))], 1)
         return _to_world(z, self.center, self.half_range, self.sigma_scale, self.clamp, self.pose)
 
 

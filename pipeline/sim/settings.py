@@ -13,6 +13,7 @@ from pipeline.errors import ConfigError
 
 TimeModel = Literal["sampled", "continuous"]
 Method = Literal["rosenbrock23", "dopri5"]
+HeadingSource = Literal["camera", "imu"]
 
 
 def _at_least(value, low, strict: bool) -> bool:
@@ -65,13 +66,22 @@ class SimSettings:
 class CameraSettings:
     """`camera`: a frame every `period` seconds (a multiple of `sim.dt`; null: every step), lost with probability
     `p_fail` (the last estimate is held); with `gate`, a frame whose predicted error (a map with an uncertainty
-    head) exceeds `gate` world units is lost too."""
+    head) exceeds `gate` world units is lost too. A vehicle with a heading (the unicycle) reads it from the pose
+    map (`heading: camera`) or from an onboard sensor: the true heading plus Gaussian noise of `heading_noise`
+    radians (`heading: imu`, the ablation of SPEC §3.7)."""
 
     period: float | None = 0.05
     p_fail: float = 0.0
     gate: float | None = None
+    heading: HeadingSource = "camera"
+    heading_noise: float = 0.0
 
     def __post_init__(self):
+        if self.heading not in get_args(HeadingSource):
+            raise ConfigError("camera.heading", f"must be one of {', '.join(get_args(HeadingSource))}, "
+                                                f"got {self.heading!r}")
+        if not _at_least(self.heading_noise, 0, strict=False):
+            raise ConfigError("camera.heading_noise", f"must be >= 0 (radians), got {self.heading_noise!r}")
         if self.period is not None and not _at_least(self.period, 0, strict=True):
             raise ConfigError("camera.period", f"must be > 0 (or null), got {self.period!r}")
         if not (_at_least(self.p_fail, 0.0, strict=False) and self.p_fail < 1.0):
@@ -88,6 +98,14 @@ def frame_steps(dt: float, period: float | None) -> int:
     if every < 1 or abs(every * dt - period) > 1e-9 * max(1.0, period):
         raise ConfigError("camera.period", f"must be a positive multiple of sim.dt = {dt}, got {period!r}")
     return every
+
+
+def check_vehicle(plant, sim: SimSettings) -> None:
+    """A look-ahead point must settle inside the success radius: `vehicle.lookahead < sim.delta` (SPEC §3.7)."""
+    d = getattr(plant, "lookahead", None)
+    if d is not None and d >= sim.delta:
+        raise ConfigError("vehicle.lookahead", f"must be < sim.delta = {sim.delta:g} (the axle settles `lookahead` "
+                                               f"from the target, SPEC §3.7), got {d:g}")
 
 
 def run_keywords(sim: SimSettings, camera: CameraSettings) -> dict:

@@ -21,7 +21,7 @@ from pipeline.plants import Plant, SingleIntegrator
 from pipeline.sim.closed_loop import ContinuousLoop, Measure, SampledLoop, TargetFn, true_state
 from pipeline.sim.metrics import StallMonitor, outcome
 from pipeline.sim.monitor import COLLISION, TARGET, ArrivalCollision
-from pipeline.sim.settings import CameraSettings, SimSettings, frame_steps
+from pipeline.sim.settings import CameraSettings, SimSettings, check_vehicle, frame_steps
 
 MODELS = ("sampled", "continuous")
 TERMINATIONS = ("horizon", "target", "collision", "non_finite")
@@ -87,9 +87,7 @@ def simulate(scene, controller, x0: np.ndarray, *, dt: float = 0.01, horizon: fl
     x0 = np.asarray(x0, dtype=float)
     if x0.ndim != 2 or x0.shape[1] != 2 or len(x0) == 0:
         raise ConfigError("init.points", f"initial conditions must be a non-empty (N, 2) array, got shape {x0.shape}")
-    if getattr(plant, "lookahead", 0.0) >= delta:
-        raise ConfigError("vehicle.lookahead", f"must be < sim.delta = {delta:g} (the axle settles `lookahead` from "
-                                               f"the target, SPEC §3.7), got {plant.lookahead:g}")
+    check_vehicle(plant, sim)
     c0 = plant.lift(x0, heading0)
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
     stall = StallMonitor(len(x0), sim.stall_speed, sim.stall_time, dt)

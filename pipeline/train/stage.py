@@ -151,6 +151,8 @@ def run(cfg) -> dict:
                 f"{name}-{id_} on {ds.name}-{ds.id} test: MAE {metrics['test_split']['mae_px']:.3f} px")
     shutil.rmtree(work, ignore_errors=True)
     line = ", ".join(f"{k} {v['mae_px']:.3f}" for k, v in metrics.items() if isinstance(v, dict) and "mae_px" in v)
+    if "heading" in metrics["test_split"]:  # a pose map: the heading error beside the position error
+        line += f"; heading error mean {metrics['test_split']['heading']['mean_deg']:.2f} deg"
     print(f"[train] {name}-{id_}: test MAE px ({line}); {metrics['epochs']} epochs in {fit_s:.0f} s "
           f"-> {final} ({time.perf_counter() - t_start:.0f} s total)")
     return {"id": id_, "name": name, "path": str(final), "skipped": False, "metrics": metrics,
