@@ -100,7 +100,7 @@ def map_identity(cfg: Mapping, dataset_name: str, dataset_id_: str) -> tuple[str
 
 
 # ------------------------------------------------------------------------------------------ error maps
-ERRORMAP_VOLATILE = ("force", "progress", "paths", "hydra", "maps", "occlusions", "device")
+ERRORMAP_VOLATILE = ("force", "progress", "paths", "hydra", "maps", "occlusions", "device", "debug")
 ERRORMAP_CODE = ("errormap", "render")
 
 

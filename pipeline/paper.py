@@ -23,7 +23,14 @@ from pipeline.cli import CONF_DIR, REPO_ROOT, stage_main
 from pipeline.config import compose
 from pipeline.errors import ConfigError, PipelineError
 from pipeline.experiments.report import write_index
-from pipeline.lineage import dataset_identity, expected_errormap_id, map_identity, map_recipe, write_lock
+from pipeline.lineage import (
+    dataset_identity,
+    debug_overrides,
+    expected_errormap_id,
+    map_identity,
+    map_recipe,
+    write_lock,
+)
 
 STAGE_ARGS = ("data", "train", "errormap", "experiments")
 
@@ -93,7 +100,8 @@ def run_stage(stage: str, argv: list[str], timings: dict, stop: bool, *, tag: st
 def run(cfg) -> dict:
     check(cfg)
     t0 = time.perf_counter()
-    args, paths = _args(cfg), path_overrides()
+    # paths.* and debug=<level> go to every stage and to every config whose ids are computed here
+    args, paths = _args(cfg), [*path_overrides(), *debug_overrides(cfg)]
     stop = bool(cfg.get("stop_on_error", True))
     timings: dict[str, float] = {}
     datasets, maps, errormaps, experiments = list(cfg.datasets), list(cfg.maps), list(cfg.errormaps), list(cfg.experiments)

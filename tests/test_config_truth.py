@@ -32,7 +32,7 @@ def _cli(module, *args, timeout=300):
 
 def _exp_cfg(tmp_path, *extra):
     return compose("experiments", [f"paths.paper_dir={tmp_path / 'paper'}", f"paths.outputs_dir={tmp_path / 'out'}",
-                                   "perception=oracle", *extra])
+                                   "perception=oracle", "publish=true", *extra])
 
 
 # ------------------------------------------------------------------------------ shared controller gains

@@ -111,20 +111,11 @@ def _predict_chunk(predict, images, pts: np.ndarray) -> np.ndarray:
     return err
 
 
-class _NoBar:
-    def update(self, n):
-        pass
-
-    def close(self):
-        pass
-
-
 def _progress(total: int, desc: str, enabled: bool):
-    if not enabled:
-        return _NoBar()
-    from tqdm.auto import tqdm
+    """A bar on a terminal, one line every few seconds in a log (pipeline.progress); `enabled=False`: silent."""
+    from pipeline.progress import progress
 
-    return tqdm(total=total, desc=desc, unit="pt", leave=False)
+    return progress(total=total, desc=desc, unit="pt", enabled=enabled)
 
 
 # ---------------------------------------------------------------------------------------- summaries

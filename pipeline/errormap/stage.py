@@ -13,7 +13,6 @@ code path with a synthetic map.
 from __future__ import annotations
 
 import json
-import sys
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -45,7 +44,7 @@ from pipeline.errormap.read import summary_table
 from pipeline.errormap.settings import ErrorMapSettings
 from pipeline.errormap.writers import write_outputs
 from pipeline.errors import ConfigError, DatasetError, ModelError
-from pipeline.lineage import errormap_settings
+from pipeline.lineage import debug_overrides, errormap_settings, resolve_map
 from pipeline.perception.maps import load_perception_map
 from pipeline.render import load_occlusion
 
@@ -126,6 +125,15 @@ def _train_samples(dataset, predict, n_max, batch, seed, progress):
     return positions[idx], pred
 
 
+def _load_map(cfg, ref):
+    """The map `ref` names, resolved with the run's `debug` level (a name means the map of the same debug size)."""
+    try:
+        folder = resolve_map(ref, cfg.paths.models_dir, overrides=debug_overrides(cfg))
+    except DatasetError as err:
+        raise ModelError(str(err)) from None
+    return load_perception_map(folder, models_dir=cfg.paths.models_dir, device=cfg.get("device", "auto"))
+
+
 def run(cfg: DictConfig, *, perception_map=None, camera=None, occlusions: Mapping | None = None,
         dataset=None) -> dict:
     """Error map of `cfg.maps` (one perception map, or each of a list); returns the result dict (see `run_one`).
@@ -136,8 +144,7 @@ def run(cfg: DictConfig, *, perception_map=None, camera=None, occlusions: Mappin
     models = tracking.to_plain(cfg.get("maps"))
     if isinstance(models, list) and perception_map is None:
         check(cfg)
-        loaded = [load_perception_map(ref, models_dir=cfg.paths.models_dir, device=cfg.get("device", "auto"))
-                  for ref in models]
+        loaded = [_load_map(cfg, ref) for ref in models]
         results = [run_one(OmegaConf.merge(cfg, {"maps": ref}), perception_map=pm)
                    for ref, pm in zip(models, loaded)]
         table = summary_table([r["summary"] for r in results])
@@ -162,7 +169,7 @@ def run_one(cfg: DictConfig, *, perception_map=None, camera=None, occlusions: Ma
         return {"path": final, "summary": json.loads((final / "summary.json").read_text()), "skipped": True,
                 "fields": None}
     ds = dataset if dataset is not None else _dataset(pmap, plan.manifest, cfg)
-    progress = bool(settings.get("progress", True)) and sys.stderr.isatty()
+    progress = bool(settings.get("progress", True))  # a bar on a terminal, one line every few seconds in a log
 
     t0 = time.perf_counter()
     samples, sample_pred = _train_samples(ds, pmap.predict, settings.get("train_samples"), int(settings["batch"]),
@@ -210,8 +217,7 @@ def _plan(cfg: DictConfig, perception_map, camera, occlusions) -> _Plan:
     settings_(cfg, ErrorMapSettings)
     settings = errormap_settings(cfg)
     levels = settings["occlusion_levels"]
-    pmap = perception_map if perception_map is not None else load_perception_map(
-        cfg.maps, models_dir=cfg.paths.models_dir, device=cfg.get("device", "auto"))
+    pmap = perception_map if perception_map is not None else _load_map(cfg, cfg.maps)
     camera = camera if camera is not None else pmap.camera()
     occ = dict(occlusions) if occlusions is not None else _occlusions(cfg, levels)
     missing = [lv for lv in levels if lv not in occ]

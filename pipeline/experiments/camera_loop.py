@@ -190,6 +190,7 @@ class MonteCarlo(Scenario):
         x0_all = starts.Random(n=max(n, n_cam), seed=ctx.seed, margin=2.0)(scene)
         frames = []
         for cond, kw in self.conditions(ctx, camera):
+            ctx.label = f"{label} {cond}"
             kw = dict(kw)
             measure, x0 = None, x0_all[:n]
             if "camera" in kw:
@@ -201,6 +202,7 @@ class MonteCarlo(Scenario):
         return pd.concat(frames, ignore_index=True)
 
     def compute(self, ctx: Context) -> Results:
+        ctx.expect(len(self.conditions(ctx, self.camera)) * len(self.controllers))
         metrics = self.metrics(ctx, ctx.scene, "default", camera=self.camera)
         table = summarise(metrics, ["condition", "controller"], seed=ctx.seed, delta_practical=self.delta_practical)
         return Results({"metrics": metrics, "summary": table}, {}, {})

@@ -89,10 +89,24 @@ class Context:
         self.seed = self.sim.seed
         self.used: dict[str, str] = {}  # inputs used (map/dataset/error-map ids), for the index
         self._maps: dict = {}
+        self.bar = None  # the stage's progress (pipeline.progress): one step per simulation (a batch of agents)
+        self.label = ""  # what the scenario is at (a sweep's cell), shown with each step
 
     # sizes -------------------------------------------------------------------------------------
     def n(self, count: int, minimum: int = 2) -> int:
         return max(minimum, int(round(count * self.scale)))
+
+    def expect(self, runs: int) -> None:
+        """How many simulations the scenario will run (the total of the stage's progress), when it knows it."""
+        if self.bar is not None:
+            self.bar.total = int(runs)
+
+    def advance(self, runs: int = 1, what: str = "") -> None:
+        """`runs` simulations done (or skipped: a bisection that stopped early), `what` the last one."""
+        if self.bar is not None:
+            if what:
+                self.bar.set_postfix_str(what, refresh=False)
+            self.bar.update(runs)
 
     # composed objects --------------------------------------------------------------------------
     def controller(self, name: str = "hybrid", scene: Scene | None = None, **params):
@@ -135,7 +149,8 @@ class Context:
         if ref is None:
             raise ConfigError(f"maps.{kind}", "no perception map configured")
         try:
-            return lineage.resolve_map(ref, self.cfg.paths.models_dir, field=f"maps.{kind}")
+            return lineage.resolve_map(ref, self.cfg.paths.models_dir, field=f"maps.{kind}",
+                                       overrides=lineage.debug_overrides(self.cfg))
         except DatasetError as err:  # unknown name/id: the map's error, as load_perception_map reports it
             raise ModelError(str(err)) from None
 
@@ -170,7 +185,7 @@ class Context:
             return None
         map_id = folder.name.rsplit("-", 1)[1]
         ref = (tracking.to_plain(self.cfg.get("errormaps")) or {}).get(kind)
-        em = lineage.resolve_errormap(ref, self.cfg.paths.errormaps_dir, folder)
+        em = lineage.resolve_errormap(ref, self.cfg.paths.errormaps_dir, folder, lineage.debug_overrides(self.cfg))
         s = load_error_map(em)
         if s.get("model", {}).get("id") != map_id:
             raise ConfigError(f"errormaps.{kind}", f"{em.name} is the error map of map {s['model'].get('id')}, "
@@ -215,9 +230,12 @@ class Context:
                   stop_on_success=self.sim.stop_on_success if stop_on_success is None else bool(stop_on_success))
         scene = scene or self.scene
         x0 = np.asarray(x0, float)
-        return simulate(scene, controller, x0, disturbance=disturbance, measure=measure, target_fn=target_fn,
-                        progress=len(x0) >= 2000 and sys.stderr.isatty(), plant=self.vehicle,
-                        heading0=self.vehicle.initial_heading(x0, scene), **kw)
+        res = simulate(scene, controller, x0, disturbance=disturbance, measure=measure, target_fn=target_fn,
+                       progress=len(x0) >= 2000 and sys.stderr.isatty(), plant=self.vehicle,
+                       heading0=self.vehicle.initial_heading(x0, scene), **kw)
+        what = f"{getattr(controller, 'name', 'controller')}, {len(x0)} agents"
+        self.advance(1, f"{self.label}: {what}" if self.label else what)
+        return res
 
     def check_heading(self, kind: str = "clean") -> None:
         """A vehicle with a heading read from the camera (`camera.heading: camera`) needs a pose map: one line

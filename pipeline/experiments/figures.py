@@ -330,6 +330,7 @@ def _gif(ctx, out, stem: str, caption: str, t, lead, foll, perceived, level=None
     def frame(k: int):
         return cam.render(lead[k:k + 1], foll[k:k + 1], occlusion=occ, rng=np.random.default_rng(k))[0]
 
+    frames = max(8, round(60 * min(1.0, ctx.scale)))  # 60; a small scale (debug=tiny) draws fewer
     path = leader_follower_gif(out.dir / f"{stem}.gif", ctx.scene, ctx.arena, t, lead, foll, perceived, frame,
-                               title=caption)
+                               title=caption, max_frames=frames)
     out.items.append({"kind": "animation", "files": [path.name], "caption": caption})

@@ -12,8 +12,8 @@ from pipeline.errors import ConfigError
 class ExperimentSettings:
     """`perception`: the camera and a learned map in the loop (`cnn`) or a perfect map (`oracle`); `maps` and
     `errormaps`: the inputs by reference (names, ids); `device` where maps run; `scale` multiplies every agent count
-    (and coarsens grids below 1); `force` recomputes cached results; `publish` where figures go (auto | true |
-    false; docs/experiments.md)."""
+    (and coarsens grids below 1); `force` recomputes cached results; `publish` where figures go (false: the side
+    folder | true: the paper folder | auto; docs/experiments.md)."""
 
     perception: Literal["cnn", "oracle"] = "cnn"
     maps: dict[str, str] = field(default_factory=dict)
@@ -21,7 +21,7 @@ class ExperimentSettings:
     device: str = "auto"
     scale: float = 1.0
     force: bool = False
-    publish: Literal["auto"] | bool = "auto"
+    publish: Literal["auto"] | bool = False
 
     def __post_init__(self):
         if not self.scale > 0:

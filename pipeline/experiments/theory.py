@@ -4,6 +4,7 @@ authors' scene and the scheme of the closed loop."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import ClassVar
 
@@ -102,6 +103,7 @@ class RobustnessSweep(Scenario):
         rows = []
         for dist in self.disturbances:
             for eps in self.eps:
+                ctx.label = f"{label} {dist} eps={eps:g}"
                 band = max(eps, self.min_band)
                 x0 = starts.NearK(n=n, seed=ctx.seed, band=band, a_range=list(self.a_range))(scene)
                 for ctrl in self.controllers:
@@ -120,7 +122,12 @@ class RobustnessSweep(Scenario):
                                  "mean_jumps": float(res.metrics["jumps"].mean())})
         return pd.DataFrame(rows)
 
+    def runs(self) -> int:
+        """Simulations of one sweep (the progress total): disturbance x eps x controller."""
+        return len(self.disturbances) * len(self.eps) * len(self.controllers)
+
     def compute(self, ctx: Context) -> Results:
+        ctx.expect(self.runs())
         return Results({"sweep": self.sweep(ctx, ctx.scene, "default")}, {}, {})
 
 
@@ -157,6 +164,7 @@ class AuthorsCode(Scenario):
         mc = MonteCarlo(id=self.id, title=self.title, controllers=self.controllers, sigma=self.sigma,
                         p_fail=self.p_fail, camera=False, n_agents=self.n_agents, n_agents_camera=1)
         sweeps, mcs = [], []
+        ctx.expect(2 * (sweep.runs() + len(mc.conditions(ctx, camera=False)) * len(self.controllers)))
         for label, scene in (("default", ctx.scene), ctx.other_scene()):
             sweeps.append(sweep.sweep(ctx, scene, label))
             mcs.append(mc.metrics(ctx, scene, label, camera=False))
@@ -233,12 +241,19 @@ class HysteresisMargin(Scenario):
                 hi = mid
         return lo, hi, sims
 
+    def steps(self) -> int:
+        """The most simulations one cell's bisection runs: eps = 0, eps_max, then halving down to `tol`."""
+        return 2 + math.ceil(math.log2(self.eps_max / self.tol))
+
     def compute(self, ctx: Context) -> Results:
         x0 = self.starts(ctx)
         rows = []
+        ctx.expect(len(self.disturbances) * len(self.cells()) * self.steps())
         for dist in self.disturbances:
             for chi, lam in self.cells():
+                ctx.label = f"{dist} chi={chi:g} lam={lam:g}"
                 lo, hi, sims = self.margin(ctx, x0, chi, lam, dist)
+                ctx.advance(self.steps() - sims)  # a bisection that stopped early
                 rows.append({"disturbance": dist, "chi": chi, "lam": lam, "eps_margin": lo, "eps_fails": hi,
                              "n_starts": len(x0), "simulations": sims})
         return Results({"margin": pd.DataFrame(rows)}, {"x0": x0}, {"paper_cell": list(self.paper_cell)})
