@@ -18,7 +18,7 @@ import math
 
 import numpy as np
 
-from pipeline.errors import ConfigError
+from pipeline.schema import Positive, checked
 
 
 class Plant:
@@ -83,6 +83,7 @@ class SingleIntegrator(Plant):
         return np.hypot(w[:, 0], w[:, 1])
 
 
+@checked("vehicle")
 class Unicycle(Plant):
     """The unicycle of SPEC §3.7, steered through its look-ahead point `z = p + d (cos θ, sin θ)`.
 
@@ -95,11 +96,7 @@ class Unicycle(Plant):
     dim = 3
     heading = True
 
-    def __init__(self, lookahead: float = 0.5, omega_max: float | None = 4.0 * math.pi):
-        if not lookahead > 0:
-            raise ConfigError("vehicle.lookahead", f"must be > 0, got {lookahead!r}")
-        if omega_max is not None and not omega_max > 0:
-            raise ConfigError("vehicle.omega_max", f"must be > 0 (or null: no limit), got {omega_max!r}")
+    def __init__(self, lookahead: Positive = 0.5, omega_max: Positive | None = 4.0 * math.pi):
         self.lookahead = float(lookahead)
         self.omega_max = None if omega_max is None else float(omega_max)
 
