@@ -143,9 +143,10 @@ def settings(cfg: DictConfig, cls):
     """A stage's root-level settings (the keys of its config file that are no node of their own) as the typed
     dataclass `cls`: every field's value checked against its annotation, then the object's own rules."""
     import dataclasses
-    import typing
 
-    hints = typing.get_type_hints(cls)
+    from pipeline.schema import _hints
+
+    hints = _hints(cls)
     values = {}
     for f in dataclasses.fields(cls):
         if f.name in cfg:

@@ -20,6 +20,7 @@ from typing import Literal
 import numpy as np
 
 from pipeline.errors import ConfigError
+from pipeline.schema import NonNegativeInt, Positive, checked
 
 
 class Plant:
@@ -88,6 +89,7 @@ class SingleIntegrator(Plant):
         return np.hypot(w[:, 0], w[:, 1])
 
 
+@checked("vehicle")
 class Unicycle(Plant):
     """The unicycle of SPEC §3.7, steered through its look-ahead point `z = p + d (cos θ, sin θ)`.
 
@@ -101,17 +103,10 @@ class Unicycle(Plant):
     dim = 3
     heading = True
 
-    def __init__(self, lookahead: float = 0.5, omega_max: float | None = 4.0 * math.pi,
-                 heading0: Literal["random", "target"] | float = "random", heading_seed: int = 0):
-        if not lookahead > 0:
-            raise ConfigError("vehicle.lookahead", f"must be > 0, got {lookahead!r}")
-        if omega_max is not None and not omega_max > 0:
-            raise ConfigError("vehicle.omega_max", f"must be > 0 (or null: no limit), got {omega_max!r}")
-        if heading0 not in ("random", "target") and not (isinstance(heading0, int | float)
-                                                         and not isinstance(heading0, bool) and math.isfinite(heading0)):
+    def __init__(self, lookahead: Positive = 0.5, omega_max: Positive | None = 4.0 * math.pi,
+                 heading0: Literal["random", "target"] | float = "random", heading_seed: NonNegativeInt = 0):
+        if isinstance(heading0, float) and not math.isfinite(heading0):
             raise ConfigError("vehicle.heading0", f"must be random, target or a finite number (radians), got {heading0!r}")
-        if isinstance(heading_seed, bool) or not isinstance(heading_seed, int) or heading_seed < 0:
-            raise ConfigError("vehicle.heading_seed", f"must be an integer >= 0, got {heading_seed!r}")
         self.lookahead = float(lookahead)
         self.omega_max = None if omega_max is None else float(omega_max)
         self.heading0, self.heading_seed = heading0, heading_seed

@@ -109,13 +109,18 @@ class Context:
             self.bar.update(runs)
 
     # composed objects --------------------------------------------------------------------------
+    def _node(self, group: str, name: str):
+        """The node `<group>.<name>` a scenario names (in `experiment.<group>`)."""
+        nodes = self.cfg[group]
+        if name not in nodes:
+            raise ConfigError(f"experiment.{group}", f"unknown {group[:-1]} {name!r}; known: {', '.join(nodes)}")
+        return nodes[name]
+
     def controller(self, name: str = "hybrid", scene: Scene | None = None, **params):
         """The controller `controllers.<name>` of the composed config (hybrid: the run's `controller`), on the
         vehicle's steering scene of `scene` (the unicycle's look-ahead point: every disc inflated, SPEC §3.7)."""
-        nodes = self.cfg.controllers
-        if name not in nodes:
-            raise ConfigError("experiment.controllers", f"unknown controller {name!r}; known: {', '.join(nodes)}")
-        node = nodes[name] if not params else {**tracking.to_plain(nodes[name]), **params}
+        node = self._node("controllers", name)
+        node = node if not params else {**tracking.to_plain(node), **params}
         ctrl = build(node, "controller" if name == "hybrid" else f"controllers.{name}",
                      scene=self.vehicle.steering_scene(scene or self.scene))
         ctrl.name = name
@@ -123,10 +128,7 @@ class Context:
 
     def disturbance(self, name: str, **params):
         """The disturbance `disturbances.<name>`; `params` set what the scenario sweeps (eps, sigma)."""
-        nodes = self.cfg.disturbances
-        if name not in nodes:
-            raise ConfigError("experiment.disturbances", f"unknown disturbance {name!r}; known: {', '.join(nodes)}")
-        return build(nodes[name], f"disturbances.{name}", **params)
+        return build(self._node("disturbances", name), f"disturbances.{name}", **params)
 
     def occlusion(self, level: str | None):
         if level is None:

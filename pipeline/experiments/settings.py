@@ -5,9 +5,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
-from pipeline.errors import ConfigError
+from pipeline.schema import Device, Positive, checked
 
 
+@checked("")
 @dataclass(frozen=True)
 class ExperimentSettings:
     """`perception`: the camera and a learned map in the loop (`cnn`) or a perfect map (`oracle`); `maps` and
@@ -16,15 +17,11 @@ class ExperimentSettings:
     folder | true: the paper folder | auto; docs/experiments.md)."""
 
     perception: Literal["cnn", "oracle"] = "cnn"
-    maps: dict[str, str] = field(default_factory=dict)
-    errormaps: dict[str, str | None] = field(default_factory=dict)
-    device: str = "auto"
-    scale: float = 1.0
+    maps: dict[str, str] = field(default_factory=lambda: {"clean": "clean", "occluded": "occluded",
+                                                          "authors": "authors", "clean_paper": "clean_paper",
+                                                          "field_heavy": "field_heavy"})
+    errormaps: dict[str, str | None] = field(default_factory=lambda: {"clean": None})
+    device: Device = "auto"
+    scale: Positive = 1.0
     force: bool = False
     publish: Literal["auto"] | bool = False
-
-    def __post_init__(self):
-        if not self.scale > 0:
-            raise ConfigError("scale", f"must be a number > 0, got {self.scale!r}")
-        if not (self.device in ("auto", "cpu", "cuda") or self.device.startswith("cuda:")):
-            raise ConfigError("device", f"must be auto, cpu, cuda or cuda:N, got {self.device!r}")

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import ClassVar
+from typing import Annotated, ClassVar
 
 import numpy as np
 import pandas as pd
@@ -16,14 +16,16 @@ from pipeline.errors import ConfigError
 from pipeline.experiments.camera_loop import MonteCarlo
 from pipeline.experiments.context import Context, Results, summarise, wilson
 from pipeline.experiments.scenario import Points, Scenario, practical_success
+from pipeline.schema import Interval, NonEmpty, NonNegative, Positive, PositiveInt, Range
 from pipeline.sim import simulate, starts
+from pipeline.sim.settings import FailureRate, TimeModel
 
 
 # --------------------------------------------------------------------------------- coverings
 @dataclass(kw_only=True)
 class Coverings(Scenario):
     figures: ClassVar[str] = "pipeline.experiments.figures:draw_coverings"
-    grid_step: float = 0.25
+    grid_step: Positive = 0.25
 
     def uses(self):
         return {"controllers": [], "disturbances": [], "occlusions": []}
@@ -49,10 +51,10 @@ class Coverings(Scenario):
 @dataclass(kw_only=True)
 class SensitiveSet(Scenario):
     figures: ClassVar[str] = "pipeline.experiments.figures:draw_sensitive_set"
-    grid_step: float = 1.0
-    grid_step_y: float = 0.25   # fine across K to resolve the ε band
-    eps: float = 0.5            # size of the adversarial disturbance in the second column
-    time_model: str = "continuous"  # the paper's hybrid arcs (true state): sim.model for this figure
+    grid_step: Positive = 1.0
+    grid_step_y: Positive = 0.25   # fine across K to resolve the ε band
+    eps: NonNegative = 0.5         # size of the adversarial disturbance in the second column
+    time_model: TimeModel = "continuous"  # the paper's hybrid arcs (true state): sim.model for this figure
 
     def uses(self):
         return {"controllers": ["smooth", "hybrid"], "disturbances": ["adversarial"], "occlusions": []}
@@ -87,13 +89,13 @@ class SensitiveSet(Scenario):
 @dataclass(kw_only=True)
 class RobustnessSweep(Scenario):
     figures: ClassVar[str] = "pipeline.experiments.figures:draw_robustness_sweep"
-    eps: list[float] = field(default_factory=lambda: [0.0, 0.1, 0.25, 0.5, 1.0, 1.5])
+    eps: list[NonNegative] = field(default_factory=lambda: [0.0, 0.1, 0.25, 0.5, 1.0, 1.5])
     disturbances: list[str] = field(default_factory=lambda: ["adversarial", "alternating"])
     controllers: list[str] = field(default_factory=lambda: ["hybrid", "smooth", "cbf"])
-    n_agents: int = 200      # initial conditions within eps of K per cell
-    min_band: float = 0.1    # at eps = 0 the starts are within this band of K
-    a_range: list[float] = field(default_factory=lambda: [-45.0, -15.0])
-    time_model: str = "continuous"  # the paper's hybrid arcs (true state)
+    n_agents: PositiveInt = 200      # initial conditions within eps of K per cell
+    min_band: NonNegative = 0.1      # at eps = 0 the starts are within this band of K
+    a_range: Interval = field(default_factory=lambda: [-45.0, -15.0])
+    time_model: TimeModel = "continuous"  # the paper's hybrid arcs (true state)
 
     def uses(self):
         return {"controllers": list(self.controllers), "disturbances": list(self.disturbances), "occlusions": []}
@@ -139,15 +141,15 @@ class AuthorsCode(Scenario):
 
     figures: ClassVar[str] = "pipeline.experiments.figures:draw_authors_code"
 
-    eps: list[float] = field(default_factory=lambda: [0.0, 0.25, 0.5, 1.0])
+    eps: list[NonNegative] = field(default_factory=lambda: [0.0, 0.25, 0.5, 1.0])
     disturbances: list[str] = field(default_factory=lambda: ["adversarial"])
     controllers: list[str] = field(default_factory=lambda: ["hybrid", "smooth", "cbf"])
-    n_agents: int = 200
-    min_band: float = 0.1
-    a_range: list[float] = field(default_factory=lambda: [-45.0, -15.0])
-    sigma: float = 0.5
-    p_fail: float = 0.5
-    time_model: str = "continuous"  # of the sweep (the Monte Carlo has camera failures: sampled)
+    n_agents: PositiveInt = 200
+    min_band: NonNegative = 0.1
+    a_range: Interval = field(default_factory=lambda: [-45.0, -15.0])
+    sigma: NonNegative = 0.5
+    p_fail: FailureRate = 0.5
+    time_model: TimeModel = "continuous"  # of the sweep (the Monte Carlo has camera failures: sampled)
 
     def uses(self):
         return {"controllers": list(self.controllers), "disturbances": sorted({*self.disturbances, "gaussian"}),
@@ -181,28 +183,21 @@ class HysteresisMargin(Scenario):
 
     figures: ClassVar[str] = "pipeline.experiments.figures:draw_hysteresis_margin"
 
-    chi: list[float] = field(default_factory=lambda: [1.05, 1.1, 1.2, 1.4, 1.8])
-    lam: list[float] = field(default_factory=lambda: [0.01, 0.03, 0.09, 0.2, 0.4])
+    chi: Annotated[list[float], Range(gt=1), NonEmpty()] = field(default_factory=lambda: [1.05, 1.1, 1.2, 1.4, 1.8])
+    lam: Annotated[list[float], Range(gt=0), NonEmpty()] = field(default_factory=lambda: [0.01, 0.03, 0.09, 0.2, 0.4])
     disturbances: list[str] = field(default_factory=lambda: ["adversarial", "alternating"])
-    n_agents: int = 100          # starts near K (a < -c, |b| < band), the same in every cell
-    band: float = 0.5
-    a_range: list[float] = field(default_factory=lambda: [-45.0, -15.0])
-    success: float = 0.99        # a cell is robust at ε when this share of the starts reaches the target
-    eps_max: float = 12.0        # bisection bracket [0, eps_max]
-    tol: float = 0.02            # bisection stops when the bracket is this narrow
+    n_agents: PositiveInt = 100   # starts near K (a < -c, |b| < band), the same in every cell
+    band: Positive = 0.5
+    a_range: Interval = field(default_factory=lambda: [-45.0, -15.0])
+    success: Annotated[float, Range(gt=0, le=1)] = 0.99  # a cell is robust at ε when this share reaches the target
+    eps_max: Positive = 12.0      # bisection bracket [0, eps_max]
+    tol: Positive = 0.02          # bisection stops when the bracket is this narrow
     paper_cell: list[float] = field(default_factory=lambda: [1.1, 0.09])
-    time_model: str = "continuous"  # the paper's hybrid arcs (true state)
+    time_model: TimeModel = "continuous"  # the paper's hybrid arcs (true state)
 
     def validate(self) -> None:
-        super().validate()
-        if not (0 < self.success <= 1):
-            raise ConfigError("experiment.success", f"must be in (0, 1], got {self.success}")
-        if not (self.eps_max > 0 and 0 < self.tol < self.eps_max):
-            raise ConfigError("experiment.tol", f"needs 0 < tol < eps_max, got tol={self.tol}, eps_max={self.eps_max}")
-        if not self.chi or any(c <= 1 for c in self.chi):
-            raise ConfigError("experiment.chi", f"must be a non-empty list of values > 1, got {self.chi}")
-        if not self.lam or any(v <= 0 for v in self.lam):
-            raise ConfigError("experiment.lam", f"must be a non-empty list of values > 0, got {self.lam}")
+        if not self.tol < self.eps_max:
+            raise ConfigError("experiment.tol", f"needs tol < eps_max, got tol={self.tol}, eps_max={self.eps_max}")
         if not self.cells():
             raise ConfigError("experiment.lam", "no (chi, lam) cell with lam < chi - 1")
 
@@ -284,12 +279,7 @@ class SampleAndHold(Scenario):
 
     initial_conditions: Points = field(default_factory=lambda: [[-12.0, 2.0], [-45.0, 0.3], [-37.0, -17.0],
                                                                 [-30.0, 20.0], [10.0, 25.0]])
-    limit_dt: float = 0.0005
-
-    def validate(self) -> None:
-        super().validate()
-        if not self.limit_dt > 0:
-            raise ConfigError("experiment.limit_dt", f"must be > 0, got {self.limit_dt}")
+    limit_dt: Positive = 0.0005
 
     def compute(self, ctx: Context) -> Results:
         x0 = np.asarray(self.initial_conditions, float)

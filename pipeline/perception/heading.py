@@ -17,21 +17,6 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from pipeline.errors import ConfigError
-
-HEADING_HEADS = ("pooled", "flat")
-
-
-def check_heading(heading_head, heading_hidden, heading_weight) -> None:
-    """The heading keys of `conf/model/`: one `ConfigError` naming the field."""
-    if heading_head not in HEADING_HEADS:
-        raise ConfigError("model.heading_head", f"must be one of {', '.join(HEADING_HEADS)}, got {heading_head!r}")
-    if isinstance(heading_hidden, bool) or not isinstance(heading_hidden, int) or heading_hidden < 1:
-        raise ConfigError("model.heading_hidden", f"must be an integer >= 1, got {heading_hidden!r}")
-    if (isinstance(heading_weight, bool) or not isinstance(heading_weight, int | float)
-            or not heading_weight > 0):
-        raise ConfigError("model.heading_weight", f"must be a number > 0, got {heading_weight!r}")
-
 
 class HeadingHead(nn.Module):
     """`(N, C, h, w)` features -> `(N, 2)` = `(cos θ, sin θ)` (unnormalised): global max pool, then an MLP."""

@@ -21,6 +21,7 @@ from pipeline.errors import ConfigError, DatasetError, ModelError
 from pipeline.lineage import resolve_map
 from pipeline.perception.network import FoldedPerceptionNet, PerceptionMap
 from pipeline.repo import REPO_ROOT
+from pipeline.schema import Device, check_value
 
 DEFAULT_MODELS_DIR = REPO_ROOT / "outputs" / "models"
 log = logging.getLogger(__name__)
@@ -35,16 +36,10 @@ def resolve_device(spec="auto") -> torch.device:
         spec = str(spec)
     if spec is None or spec == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if not isinstance(spec, str):
-        raise ConfigError("device", f"must be auto, cpu, cuda or cuda:N, got {spec!r}")
-    try:
-        dev = torch.device(spec)
-    except (RuntimeError, ValueError):
-        raise ConfigError("device", f"must be auto, cpu, cuda or cuda:N, got {spec!r}") from None
+    check_value(spec, Device, "device")
+    dev = torch.device(spec)
     if dev.type == "cpu":
-        return torch.device("cpu")
-    if dev.type != "cuda":
-        raise ConfigError("device", f"must be auto, cpu, cuda or cuda:N, got {spec!r}")
+        return dev
     if not torch.cuda.is_available():
         raise ConfigError("device", f"{spec!r} requested but no CUDA device is available on this machine "
                                     "(use device=auto or device=cpu)")

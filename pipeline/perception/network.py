@@ -11,17 +11,26 @@ from __future__ import annotations
 
 import copy
 from collections.abc import Sequence
-from typing import Literal
+from typing import Annotated, Literal
 
 import lightning as L
 import torch
 from torch import nn
 
 from pipeline.errors import ConfigError, ModelError
-from pipeline.perception.heading import HeadingHead, check_heading, heading_deg
+from pipeline.perception.heading import HeadingHead, heading_deg
+from pipeline.schema import (
+    Interval,
+    Name,
+    NonEmpty,
+    NonNegative,
+    NonNegativeInt,
+    Positive,
+    PositiveInt,
+    Range,
+    checked,
+)
 
-UNCERTAINTY = ("none", "gaussian")
-OUTPUTS = ("position", "pose")
 CHI2_2_95 = 5.991464547107979  # 95% quantile of chi^2 with 2 degrees of freedom: the 95% ellipse of a 2-D Gaussian
 LOGVAR_RANGE = (-14.0, 2.0)  # normalised coordinates: sigma from ~1e-3 (0.05 px) to ~3 half-arenas
 VAR_HIDDEN = 64  # units of the variance head's hidden layer
@@ -41,62 +50,6 @@ def gaussian_nll(logvar: torch.Tensor, sq_residual: torch.Tensor) -> torch.Tenso
     return 0.5 * (logvar + sq_residual * torch.exp(-logvar)).mean()
 
 
-def _is_num(v) -> bool:
-    return isinstance(v, int | float) and not isinstance(v, bool)
-
-
-def _validate(*, image_shape, arena, filters, batch_norm, hidden, dropout, lr, weight_decay, schedule, loss,
-              coord_channels, clamp, name, uncertainty, uncertainty_epochs, uncertainty_lr,
-              uncertainty_batch_size, uncertainty_thumbnail) -> None:
-    """Every constructor argument checked before anything is built: one `ConfigError` naming the field."""
-    def bad(field: str, reason: str, value) -> ConfigError:
-        return ConfigError(f"model.{field}", f"{reason}, got {value!r}")
-
-    if (not isinstance(image_shape, Sequence) or len(image_shape) != 3 or image_shape[2] != 3
-            or not all(isinstance(s, int) and s > 0 for s in image_shape)):
-        raise bad("image_shape", "must be [H, W, 3]", image_shape)
-    try:
-        (x0, x1), (y0, y1) = arena
-        ok = all(_is_num(v) for v in (x0, x1, y0, y1)) and x1 > x0 and y1 > y0
-    except (TypeError, ValueError):
-        ok = False
-    if not ok:
-        raise bad("arena", "must be [[x_min, x_max], [y_min, y_max]] with min < max", arena)
-    if (isinstance(filters, str) or not isinstance(filters, Sequence) or not filters
-            or not all(isinstance(f, int) and not isinstance(f, bool) and f > 0 for f in filters)):
-        raise bad("filters", "must be a non-empty list of positive integers", filters)
-    for field, v in (("batch_norm", batch_norm), ("coord_channels", coord_channels), ("clamp", clamp)):
-        if not isinstance(v, bool):
-            raise bad(field, "must be true or false", v)
-    if isinstance(hidden, bool) or not isinstance(hidden, int) or hidden < 0:
-        raise bad("hidden", "must be an integer >= 0 (0 = no hidden layer)", hidden)
-    if not _is_num(dropout) or not 0.0 <= dropout < 1.0:
-        raise bad("dropout", "must be a number in [0, 1)", dropout)
-    if not _is_num(lr) or not lr > 0:
-        raise bad("lr", "must be a positive number", lr)
-    if not _is_num(weight_decay) or not weight_decay >= 0:
-        raise bad("weight_decay", "must be a number >= 0", weight_decay)
-    if schedule not in ("constant", "cosine", "onecycle"):
-        raise bad("schedule", "must be constant, cosine or onecycle", schedule)
-    if loss not in ("mse", "l1", "smooth_l1"):
-        raise bad("loss", "must be mse, l1 or smooth_l1", loss)
-    if uncertainty not in UNCERTAINTY:
-        raise bad("uncertainty", f"must be one of {', '.join(UNCERTAINTY)}", uncertainty)
-    if isinstance(uncertainty_epochs, bool) or not isinstance(uncertainty_epochs, int) or uncertainty_epochs < 1:
-        raise bad("uncertainty_epochs", "must be an integer >= 1", uncertainty_epochs)
-    if not _is_num(uncertainty_lr) or not uncertainty_lr > 0:
-        raise bad("uncertainty_lr", "must be a positive number", uncertainty_lr)
-    if (isinstance(uncertainty_batch_size, bool) or not isinstance(uncertainty_batch_size, int)
-            or uncertainty_batch_size < 1):
-        raise bad("uncertainty_batch_size", "must be an integer >= 1", uncertainty_batch_size)
-    if (isinstance(uncertainty_thumbnail, bool) or not isinstance(uncertainty_thumbnail, int)
-            or not 1 <= uncertainty_thumbnail <= min(image_shape[:2])):
-        raise bad("uncertainty_thumbnail", f"must be an integer in [1, {min(image_shape[:2])}] (pixels per side of "
-                  "a thumbnail cell)", uncertainty_thumbnail)
-    if not isinstance(name, str) or not name or "/" in name or "\\" in name or name.startswith("."):
-        raise bad("name", "must be a non-empty name without '/', '\\' or a leading '.'", name)
-
-
 def conv_blocks(in_ch: int, filters: Sequence[int], batch_norm: bool) -> nn.Sequential:
     layers: list[nn.Module] = []
     for out_ch in filters:
@@ -108,43 +61,44 @@ def conv_blocks(in_ch: int, filters: Sequence[int], batch_norm: bool) -> nn.Sequ
     return nn.Sequential(*layers)
 
 
+@checked("model")
 class PerceptionMap(L.LightningModule):
-    """CNN perception map; `forward(uint8 or float images NHWC) -> (N, 2)` world coordinates."""
+    """CNN perception map; `forward(uint8 or float images NHWC) -> (N, 2)` world coordinates.
+
+    The defaults are conf/model/default.yaml's (the project's map); conf/model/paper.yaml is the paper's. The
+    annotations are the node's schema (read from this source at composition: keep them to builtins, `Literal`
+    and the aliases of :mod:`pipeline.schema`); a thumbnail cell that does not fit the image and filters that
+    pool it away are the cross-field rules here."""
 
     def __init__(
         self,
-        image_shape: Sequence[int] = (60, 100, 3),
-        arena: Sequence[Sequence[float]] = ((-50.0, 50.0), (-30.0, 30.0)),
-        filters: Sequence[int] = (32, 64, 128),
-        batch_norm: bool = False,
-        hidden: int = 0,
-        dropout: float = 0.5,
-        lr: float = 1e-3,
-        weight_decay: float = 0.0,
-        schedule: str = "constant",
-        loss: str = "mse",
-        coord_channels: bool = False,
+        image_shape: tuple[PositiveInt, PositiveInt, Literal[3]] = (60, 100, 3),
+        arena: tuple[Interval, Interval] = ((-50.0, 50.0), (-30.0, 30.0)),
+        filters: Annotated[Sequence[int], Range(ge=1), NonEmpty()] = (16, 32, 64),
+        batch_norm: bool = True,
+        hidden: NonNegativeInt = 0,
+        dropout: Annotated[float, Range(ge=0, lt=1)] = 0.1,
+        lr: Positive = 2e-3,
+        weight_decay: NonNegative = 0.0,
+        schedule: Literal["constant", "cosine", "onecycle"] = "onecycle",
+        loss: Literal["mse", "l1", "smooth_l1"] = "mse",
+        coord_channels: bool = True,
         clamp: bool = True,
-        name: str = "perception_map",
-        uncertainty: str = "none",
-        uncertainty_epochs: int = 10,
-        uncertainty_lr: float = 2e-3,
-        uncertainty_batch_size: int = 128,
-        uncertainty_thumbnail: int = 4,
-        outputs: str = "position",
+        name: Name = "default",
+        uncertainty: Literal["none", "gaussian"] = "gaussian",
+        uncertainty_epochs: PositiveInt = 10,
+        uncertainty_lr: Positive = 2e-3,
+        uncertainty_batch_size: PositiveInt = 128,
+        uncertainty_thumbnail: PositiveInt = 4,
+        outputs: Literal["position", "pose"] = "position",
         heading_head: Literal["pooled", "flat"] = "pooled",
-        heading_hidden: int = 64,
-        heading_weight: float = 1.0,
+        heading_hidden: PositiveInt = 64,
+        heading_weight: Positive = 1.0,
     ):
         super().__init__()
-        if outputs not in OUTPUTS:
-            raise ConfigError("model.outputs", f"must be one of {', '.join(OUTPUTS)}, got {outputs!r}")
-        check_heading(heading_head, heading_hidden, heading_weight)
-        _validate(image_shape=image_shape, arena=arena, filters=filters, batch_norm=batch_norm, hidden=hidden,
-                  dropout=dropout, lr=lr, weight_decay=weight_decay, schedule=schedule, loss=loss,
-                  coord_channels=coord_channels, clamp=clamp, name=name, uncertainty=uncertainty,
-                  uncertainty_epochs=uncertainty_epochs, uncertainty_lr=uncertainty_lr,
-                  uncertainty_batch_size=uncertainty_batch_size, uncertainty_thumbnail=uncertainty_thumbnail)
+        if uncertainty_thumbnail > min(image_shape[:2]):
+            raise ConfigError("model.uncertainty_thumbnail", f"must be <= {min(image_shape[:2])} (pixels per side of "
+                                                             f"a thumbnail cell), got {uncertainty_thumbnail!r}")
         self.save_hyperparameters()
         h, w, _ = (int(s) for s in image_shape)
         self.image_shape = (h, w, 3)

@@ -8,11 +8,22 @@ disc); `NearK` draws within a band of the ray behind an obstacle (the set K of P
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Annotated
 
 import numpy as np
 
 from pipeline.control import Scene, in_diamond
 from pipeline.errors import ConfigError
+from pipeline.schema import (
+    Interval,
+    NonEmpty,
+    NonNegative,
+    NonNegativeInt,
+    Pair,
+    Positive,
+    PositiveInt,
+    checked,
+)
 
 
 def _in_obstacle(scene: Scene, pts: np.ndarray) -> np.ndarray:
@@ -41,15 +52,12 @@ def _nonempty(pts: np.ndarray, field_: str) -> np.ndarray:
     return pts
 
 
+@checked("init")
 @dataclass(frozen=True)
 class Points:
     """Explicit initial conditions (the paper's two by default)."""
 
-    points: list[list[float]] = field(default_factory=lambda: [[-12.0, 2.0], [-37.0, -17.0]])
-
-    def __post_init__(self):
-        if not self.points or any(len(p) != 2 for p in self.points):
-            raise ConfigError("init.points", f"must be a non-empty list of [x, y] pairs, got {self.points!r}")
+    points: Annotated[list[Pair], NonEmpty()] = field(default_factory=lambda: [[-12.0, 2.0], [-37.0, -17.0]])
 
     def __call__(self, scene: Scene, field_: str = "init") -> np.ndarray:
         pts = np.asarray(self.points, dtype=float)
@@ -60,21 +68,15 @@ class Points:
         return pts
 
 
+@checked("init")
 @dataclass(frozen=True)
 class Grid:
     """A regular grid over the arena minus a margin (and the diamonds)."""
 
-    nx: int = 21
-    ny: int = 13
-    margin: float = 2.0
+    nx: PositiveInt = 21
+    ny: PositiveInt = 13
+    margin: NonNegative = 2.0
     exclude_diamond: bool = True
-
-    def __post_init__(self):
-        for k in ("nx", "ny"):
-            if getattr(self, k) < 1:
-                raise ConfigError(f"init.{k}", f"must be >= 1, got {getattr(self, k)}")
-        if self.margin < 0:
-            raise ConfigError("init.margin", f"must be >= 0, got {self.margin}")
 
     def __call__(self, scene: Scene, field_: str = "init") -> np.ndarray:
         (x0, x1), (y0, y1) = _box(scene, self.margin, field_)
@@ -82,22 +84,15 @@ class Grid:
         return _nonempty(pts[_outside(scene, pts)] if self.exclude_diamond else pts, field_)
 
 
+@checked("init")
 @dataclass(frozen=True)
 class Random:
     """Uniform over the arena minus a margin (and the diamonds), seeded."""
 
-    n: int = 1000
-    seed: int = 0
-    margin: float = 2.0
+    n: PositiveInt = 1000
+    seed: NonNegativeInt = 0
+    margin: NonNegative = 2.0
     exclude_diamond: bool = True
-
-    def __post_init__(self):
-        if self.n < 1:
-            raise ConfigError("init.n", f"must be >= 1, got {self.n}")
-        if self.seed < 0:
-            raise ConfigError("init.seed", f"must be >= 0, got {self.seed}")
-        if self.margin < 0:
-            raise ConfigError("init.margin", f"must be >= 0, got {self.margin}")
 
     def __call__(self, scene: Scene, field_: str = "init") -> np.ndarray:
         (x0, x1), (y0, y1) = _box(scene, self.margin, field_)
@@ -108,26 +103,17 @@ class Random:
         return _nonempty(pts[: self.n], field_)
 
 
+@checked("init")
 @dataclass(frozen=True)
 class NearK:
     """Within `band` of the set K of Proposition 1 behind obstacle `obstacle` (`a` in `a_range` of its frame,
     `|b| < band`); with several obstacles and `obstacle: null`, the starts are dealt out over every obstacle."""
 
-    n: int = 200
-    seed: int = 0
-    band: float = 0.5
-    a_range: list[float] = field(default_factory=lambda: [-45.0, -15.0])
+    n: PositiveInt = 200
+    seed: NonNegativeInt = 0
+    band: Positive = 0.5
+    a_range: Interval = field(default_factory=lambda: [-45.0, -15.0])
     obstacle: int | None = None
-
-    def __post_init__(self):
-        if self.n < 1:
-            raise ConfigError("init.n", f"must be >= 1, got {self.n}")
-        if self.seed < 0:
-            raise ConfigError("init.seed", f"must be >= 0, got {self.seed}")
-        if not self.band > 0:
-            raise ConfigError("init.band", f"must be > 0, got {self.band}")
-        if not (len(self.a_range) == 2 and self.a_range[0] < self.a_range[1]):
-            raise ConfigError("init.a_range", f"must be [min, max] with min < max, got {self.a_range!r}")
 
     def __call__(self, scene: Scene, field_: str = "init") -> np.ndarray:
         rng = np.random.default_rng(self.seed)
