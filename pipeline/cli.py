@@ -4,7 +4,7 @@ Each stage's `__main__` is::
 
     main = stage_main("train", run="pipeline.train.stage:run", check="pipeline.train.checks:check")
 
-Before Hydra runs any job, :func:`pipeline.config.preflight` composes every job of the command line (each sweep
+Before Hydra runs any job, :func:`pipeline.preflight.preflight` composes every job of the command line (each sweep
 value) and checks it (Hydra's composition errors, unknown keys and wrong values with or without `+`, output
 paths, the stage's own `check`), importing nothing heavy: a user error is one line on stderr and exit code 2 in
 about a second, before any work and before torch or Lightning is imported. The stage's `run(cfg) -> dict` (what
@@ -20,8 +20,9 @@ import sys
 
 from omegaconf import DictConfig
 
-from pipeline.config import compose, preflight, resolve
+from pipeline.config import compose, resolve
 from pipeline.errors import PipelineError
+from pipeline.preflight import preflight
 from pipeline.repo import CONF_DIR, REPO_ROOT
 
 __all__ = ["CONF_DIR", "REPO_ROOT", "compose", "report_error", "stage_main"]

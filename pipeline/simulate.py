@@ -52,7 +52,7 @@ def run(cfg: DictConfig) -> dict:
     df.to_csv(run_dir / "metrics.csv", index=False)
     result.save_npz(run_dir / "trajectories.npz")
     if cfg.get("plot", True):
-        from pipeline.viz import save, trajectory_figure
+        from pipeline.viz import save, trajectory_figure  # matplotlib: not imported by the preflight
 
         fig = trajectory_figure(scene, result.p, result.metrics["success"], arena=scene.bounds,
                                 title=f"{controller.name} controller, disturbance {disturbance.name}, {kw['model']}")

@@ -19,6 +19,8 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
+from pipeline.config import resolve
+
 SUMMARY = "summary.json"
 
 
@@ -40,8 +42,6 @@ def headline_of(ref: str | None, result) -> dict[str, Any]:
         return {"objective": _plain(float(result))}
     if ref is None or result is None:
         return {}
-    from pipeline.config import resolve
-
     return {str(k): _plain(v) for k, v in (resolve(ref)(result) or {}).items()}
 
 

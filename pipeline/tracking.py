@@ -26,6 +26,7 @@ from typing import Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
+from pipeline import __version__
 from pipeline.errors import DatasetError, PipelineError
 
 MANIFEST = "manifest.json"
@@ -100,8 +101,6 @@ def package_version() -> str:
 
         return version("hycontrol-vision")
     except Exception:  # noqa: BLE001 - not installed (running from a source tree)
-        from pipeline import __version__
-
         return __version__
 
 

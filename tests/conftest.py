@@ -4,6 +4,9 @@ import os
 
 os.environ.setdefault("MPLBACKEND", "Agg")
 os.environ.setdefault("HYDRA_FULL_ERROR", "0")
+# torch's OpenMP threads sleep instead of spinning while they wait: the numbers are the same, and on a busy
+# machine (CI beside other jobs) a spinning thread steals the core its partner needs (5-8x slower steps)
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import pytest  # noqa: E402
 from hypothesis import settings  # noqa: E402

@@ -2,7 +2,7 @@
 is silently ignored, and every bad input is one line and exit code 2 before any work.
 
 Every config node names its `_target_`, whose typed signature is its schema: its keys and value types are
-checked at composition (`pipeline.config.compose` / `preflight`), and the code's defaults are the YAML's of
+checked at composition (`pipeline.config.compose` / `pipeline.preflight`), and the code's defaults are the YAML's of
 the default option (the YAML is what runs)."""
 
 from __future__ import annotations
@@ -66,12 +66,30 @@ def compose_yaml(cfg) -> str:
 
 
 # ---------------------------------------------------------------------------------------- cache keys
+# one cell of the sweep per controller, the sampled loop (what a run reads, not how long it takes, is tested here)
+SMALL_SWEEP = ["experiment=robustness_sweep", "scale=0.05", "experiment.eps=[0.5]",
+               "experiment.disturbances=[adversarial]", "experiment.time_model=sampled", "sim.horizon=20"]
+
+
+def _cache_id(cfg) -> str:
+    """The id of the folder `run(cfg)` computes into, from the key alone (no simulation)."""
+    from pipeline import tracking
+    from pipeline.experiments.checks import build_scenario
+    from pipeline.experiments.context import Context
+    from pipeline.experiments.stage import cache_key
+    from pipeline.perception.maps import load_perception_map
+
+    scen = build_scenario(cfg)
+    return tracking.content_id(cache_key(cfg, scen, Context(cfg, load_map=load_perception_map)))
+
+
 def test_baseline_parameter_recomputes_and_a_title_only_redraws(tmp_path):
     from pipeline.experiments.stage import COMPUTE_CODE, run
 
-    small = ["experiment=robustness_sweep", "scale=0.05", "experiment.eps=[0.5]", "experiment.disturbances=[adversarial]"]
+    small = SMALL_SWEEP
     first = run(_exp_cfg(tmp_path, *small))
     assert not first["cached"]
+    assert first["cache"].name == f"robustness_sweep-{_cache_id(_exp_cfg(tmp_path, *small))}"
     retitled = run(_exp_cfg(tmp_path, *small, "experiment.title=Another title", "experiment.paper=nothing"))
     assert retitled["cached"] and retitled["cache"] == first["cache"]
     baseline = run(_exp_cfg(tmp_path, *small, "controllers.smooth.k=2"))
@@ -84,12 +102,11 @@ def test_baseline_parameter_recomputes_and_a_title_only_redraws(tmp_path):
 
 
 def test_hybrid_only_override_is_in_the_cache_key_of_the_hybrid_rows(tmp_path):
-    from pipeline.experiments.stage import run
-
-    small = ["experiment=robustness_sweep", "scale=0.05", "experiment.eps=[0.5]", "experiment.disturbances=[adversarial]"]
-    a = run(_exp_cfg(tmp_path, *small))
-    b = run(_exp_cfg(tmp_path, *small, "controller.chi=1.3", "controller.lam=0.2"))
-    assert a["cache"] != b["cache"]
+    """The key `run` names its folder by (tied to it above) changes with a hybrid-only parameter."""
+    a = _cache_id(_exp_cfg(tmp_path, *SMALL_SWEEP))
+    b = _cache_id(_exp_cfg(tmp_path, *SMALL_SWEEP, "controller.chi=1.3", "controller.lam=0.2"))
+    c = _cache_id(_exp_cfg(tmp_path, *SMALL_SWEEP, "experiment.title=Another title"))
+    assert a != b and a == c
 
 
 # ------------------------------------------------------------------------------------- unknown keys
@@ -167,7 +184,7 @@ SCHEMA_CASES = [
 @pytest.mark.parametrize("config,overrides,field,reason", SCHEMA_CASES,
                          ids=[" ".join(c[1]) for c in SCHEMA_CASES])
 def test_every_node_is_checked_at_composition(config, overrides, field, reason):
-    from pipeline.config import preflight
+    from pipeline.preflight import preflight
 
     hydra_rejects = not overrides[-1].startswith("+") and "unknown key" in reason  # no such key to override
     if not hydra_rejects:
@@ -231,7 +248,8 @@ def test_every_key_of_every_target_node_is_checked(config, overrides):
     from omegaconf import OmegaConf
 
     from pipeline.config import META_KEYS, _plain_value, _walk, check_schema
-    from pipeline.schema import check_value, signature
+    from pipeline.schema import check_value
+    from pipeline.signatures import signature
 
     cfg = compose(config, overrides)
     nodes = [(p, n) for p, n in _walk(cfg) if isinstance(n.get("_target_"), str)]

@@ -197,7 +197,7 @@ def test_make_experiments_runs_the_experiments_make_paper_builds_inputs_for():
     """Right after `make paper`: no experiment whose map `make paper` does not build (perception_generalisation)."""
     import yaml
 
-    from pipeline.config import _expand
+    from pipeline.preflight import _expand
 
     line = next(ln for ln in (REPO_ROOT / "Makefile").read_text().splitlines()
                 if ln.strip().startswith("$(PY) -m pipeline.experiments"))

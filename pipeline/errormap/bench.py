@@ -1,7 +1,7 @@
 """Benchmark: error-map points/s (render + infer, batched) vs raw inference of the same model (issue 5).
 
 The model is the newest trained perception map under outputs/models, else a fresh untrained
-`PerceptionMap` (same architecture, same cost); without pipeline.train/torch the rows say why.
+`PerceptionMap` (same architecture, same cost).
 """
 
 from __future__ import annotations
@@ -9,37 +9,29 @@ from __future__ import annotations
 import time
 
 import numpy as np
+import torch
 
-from pipeline.cli import REPO_ROOT
-from pipeline.errormap import core
+from pipeline import tracking
+from pipeline.control import Scene
+from pipeline.errormap.estimates import arena_grid, error_field
+from pipeline.perception.maps import load_perception_map
+from pipeline.perception.network import PerceptionMap
+from pipeline.render import Camera, load_occlusion
+from pipeline.repo import REPO_ROOT
 
 
 def _predictor():
-    """`(predict, camera, label)` or `(None, None, reason)`."""
-    try:
-        from pipeline import tracking
-        from pipeline.control import Scene
-        from pipeline.render import Camera
-    except ImportError as err:  # pragma: no cover - render missing
-        return None, None, f"pipeline.render unavailable ({err})"
+    """`(predict, camera, label)`: the newest trained map's, else an untrained one's (the same cost)."""
     models_dir = REPO_ROOT / "outputs" / "models"
     found = tracking.entries(models_dir)
     if found:
         try:
-            from pipeline.perception.maps import load_perception_map
-
             pmap = load_perception_map(found[0].name, models_dir=models_dir)
             return pmap.predict, pmap.camera(), f"model {pmap.name}-{pmap.id}"
         except Exception as err:  # noqa: BLE001 - fall back to an untrained network and say so
             note = f"trained model unusable ({type(err).__name__}); "
     else:
         note = "no trained model; "
-    try:
-        import torch
-
-        from pipeline.perception.network import PerceptionMap
-    except ImportError as err:
-        return None, None, f"{note}pipeline.train unavailable ({err})"
     net = PerceptionMap().eval()
 
     def predict(images: np.ndarray) -> np.ndarray:
@@ -60,13 +52,8 @@ def _best(fn, repeat: int) -> float:
 
 def bench(quick: bool = False) -> list[dict]:
     predict, camera, label = _predictor()
-    if predict is None:
-        return [{"section": "errormap", "case": "error map vs raw inference", "value": "skipped", "unit": "",
-                 "note": label}]
-    from pipeline.render import load_occlusion
-
     n, batch, repeat = (1024, 512, 1) if quick else (4096, 2048, 3)
-    pts, _, _, _ = core.arena_grid(camera.arena, 0.5)
+    pts, _, _, _ = arena_grid(camera.arena, 0.5)
     pts = pts[np.random.default_rng(0).choice(len(pts), n, replace=False)]
     predict(camera.render(pts[:batch]))  # warm-up at full batch size (threads, allocator)
     rows = []
@@ -81,7 +68,7 @@ def bench(quick: bool = False) -> list[dict]:
         for _ in range(repeat):  # interleaved, best of `repeat`: both see the same machine load
             t_raw = min(t_raw, _best(lambda images=images: [predict(images[s : s + batch])
                                                             for s in range(0, n, batch)], 1))
-            t_full = min(t_full, _best(lambda render=render: core.error_field(
+            t_full = min(t_full, _best(lambda render=render: error_field(
                 predict, render, pts, batch=batch, rng=np.random.default_rng(1)), 1))
         raw, full = n / t_raw, n / t_full
         rows += [

@@ -23,6 +23,8 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
+from pipeline.progress import progress
+
 # The 4 neighbour offsets (row, col) that visit each horizontal, vertical and diagonal pair once.
 NEIGHBOUR_OFFSETS = ((0, 1), (1, 0), (1, 1), (1, -1))
 # With these 8 directions the largest quotient of a linear field A p is at least cos(22.5°) ||A||_2.
@@ -113,8 +115,6 @@ def _predict_chunk(predict, images, pts: np.ndarray) -> np.ndarray:
 
 def _progress(total: int, desc: str, enabled: bool):
     """A bar on a terminal, one line every few seconds in a log (pipeline.progress); `enabled=False`: silent."""
-    from pipeline.progress import progress
-
     return progress(total=total, desc=desc, unit="pt", enabled=enabled)
 
 

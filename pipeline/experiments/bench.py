@@ -9,17 +9,16 @@ import time
 import torch
 
 from pipeline.control import HybridController, Scene
+from pipeline.perception.maps import PerceptionMapPredictor, load_perception_map
 from pipeline.perception.measure import CameraMeasure
+from pipeline.perception.network import PerceptionMap
 from pipeline.render import Camera
 from pipeline.sim import simulate
-from pipeline.sim.build import initial_conditions
+from pipeline.sim.starts import Random
 
 
 def _map():
     """The trained `clean` map when there is one, else a fresh one of the default architecture."""
-    from pipeline.perception.maps import PerceptionMapPredictor, load_perception_map
-    from pipeline.perception.network import PerceptionMap
-
     try:
         return load_perception_map("clean"), "trained map `clean`"
     except Exception:  # noqa: BLE001 - no trained map yet
@@ -34,7 +33,7 @@ def bench(quick: bool = False) -> list[dict]:
     scene = Scene(target=[40.0, 0.0])
     cam = Camera(scene)
     pm, which = _map()
-    x0 = initial_conditions({"mode": "random", "n": n, "seed": 0, "margin": 2.0}, scene)
+    x0 = Random(n=n, seed=0, margin=2.0)(scene)
     dt, period = 0.01, 0.05
 
     # (a) raw batched inference on pre-rendered images

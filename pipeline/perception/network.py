@@ -61,6 +61,24 @@ def conv_blocks(in_ch: int, filters: Sequence[int], batch_norm: bool) -> nn.Sequ
     return nn.Sequential(*layers)
 
 
+def position_head(flat: int, hidden: int, dropout: float, n_out: int) -> nn.Sequential:
+    """Flatten, Dropout, (Linear-ReLU,) Linear -> `n_out` normalised outputs from `flat` features."""
+    head: list[nn.Module] = [nn.Flatten(), nn.Dropout(dropout)]
+    if hidden:
+        head += [nn.Linear(flat, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, n_out)]
+    else:
+        head += [nn.Linear(flat, n_out)]
+    return nn.Sequential(*head)
+
+
+def variance_head(n_in: int) -> nn.Sequential:
+    """The log-variance head (2 outputs), initialised on a forked random stream (everything drawn after it is
+    what a map without it draws) and frozen: not a parameter of the position fit (DDP ignores frozen ones)."""
+    with torch.random.fork_rng(devices=[]):
+        head = nn.Sequential(nn.Linear(n_in, VAR_HIDDEN), nn.ReLU(inplace=True), nn.Linear(VAR_HIDDEN, 2))
+    return head.requires_grad_(False)
+
+
 @checked("model")
 class PerceptionMap(L.LightningModule):
     """CNN perception map; `forward(uint8 or float images NHWC) -> (N, 2)` world coordinates.
@@ -128,12 +146,7 @@ class PerceptionMap(L.LightningModule):
         self.heading_head = HeadingHead(int(filters[-1]), int(heading_hidden)) \
             if self.pose and heading_head == "pooled" else None
         self.heading_weight = float(heading_weight)
-        n_head = 4 if self.pose and self.heading_head is None else 2
-        head: list[nn.Module] = [nn.Flatten(), nn.Dropout(dropout)]
-        if hidden:
-            head += [nn.Linear(flat, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, n_head)]
-        else:
-            head += [nn.Linear(flat, n_head)]
+        head = position_head(flat, hidden, dropout, 4 if self.pose and self.heading_head is None else 2)
         # `uncertainty: gaussian`: a second head on the features predicts the log variance of each normalised
         # coordinate. It is fitted AFTER the position network (`pipeline.train.uncertainty.fit_variance_head`, on
         # the trained network's eval-mode features and errors), so it is frozen during training and never changes
@@ -143,14 +156,10 @@ class PerceptionMap(L.LightningModule):
         self.var_head = None
         self.thumb_size = (h // int(uncertainty_thumbnail), w // int(uncertainty_thumbnail))
         if uncertainty == "gaussian":
-            thumb = 3 * self.thumb_size[0] * self.thumb_size[1]
-            with torch.random.fork_rng(devices=[]):
-                self.var_head = nn.Sequential(nn.Linear(flat + thumb, VAR_HIDDEN), nn.ReLU(inplace=True),
-                                              nn.Linear(VAR_HIDDEN, 2))
-            self.var_head.requires_grad_(False)  # not a parameter of the position fit (DDP ignores frozen ones)
+            self.var_head = variance_head(flat + 3 * self.thumb_size[0] * self.thumb_size[1])
         # calibration of the predicted sigma on the validation split (set after training; 1 = raw NLL sigma)
         self.register_buffer("sigma_scale", torch.ones(()))
-        self.head = nn.Sequential(*head)
+        self.head = head
         self._loss = {"mse": nn.functional.mse_loss, "l1": nn.functional.l1_loss,
                       "smooth_l1": nn.functional.smooth_l1_loss}[loss]
         self.to(memory_format=torch.channels_last)

@@ -12,6 +12,7 @@ import pandas as pd
 
 from pipeline.control import HybridController, Scene
 from pipeline.sim.simulator import simulate
+from pipeline.viz import draw_scene
 
 EDGE_STARTS = ((-12.0, 2.0), (-45.0, 0.3), (-37.0, -17.0), (-30.0, 20.0), (10.0, 25.0))
 
@@ -43,8 +44,6 @@ def zigzag_figure(scene: Scene, start=(-12.0, 2.0), *, dt: float = 0.01, camera_
                   horizon: float = 12.0):
     """The arc from `start` under both models: whole path, and a zoom on the diamond's edge (the zigzag)."""
     from matplotlib.figure import Figure
-
-    from pipeline.viz import draw_scene
 
     x0 = np.asarray([start], dtype=float)
     samp = simulate(scene, HybridController(scene), x0, dt=dt, horizon=horizon, camera_period=camera_period,

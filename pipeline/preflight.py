@@ -1,0 +1,131 @@
+"""Preflight: every job of a command line (each value of a sweep) composed and checked before any job runs.
+
+:func:`preflight` splits a Hydra command line into its config name and overrides, expands the sweeps into the
+jobs to check (the first value of every sweep, then each other value of one sweep at a time), composes each
+(:func:`pipeline.config.compose`) and runs the schema check (unknown keys, `+`/`++` additions, types),
+the output paths' check and the stage's own cheap check, so a bad input is one line and exit code 2.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+from collections.abc import Callable
+
+from omegaconf import DictConfig, OmegaConf
+
+from pipeline.config import check_folder, check_paths, check_schema, compose, hydra_error_line
+from pipeline.errors import ConfigError, PipelineError
+from pipeline.repo import CONF_DIR
+
+_SKIP_FLAGS = {"-h", "--help", "--hydra-help", "-i", "--info", "-c", "--cfg", "--resolve", "-sc", "--shell-completion",
+               "--version"}
+_VALUE_FLAGS = {"-cn", "--config-name", "-cp", "--config-path", "-cd", "--config-dir", "-p", "--package",
+                "--experimental-rerun"}
+
+
+def _split_argv(argv: list[str], config_name: str) -> tuple[str, list[str], bool]:
+    """(config name, task overrides, skip) from a Hydra command line."""
+    overrides, it = [], iter(argv)
+    for a in it:
+        if a in _SKIP_FLAGS or a.startswith("--info") or a.startswith("--cfg"):
+            return config_name, [], True
+        if a in _VALUE_FLAGS:
+            value = next(it, "")
+            if a in ("-cn", "--config-name"):
+                config_name = value
+            continue
+        if a.startswith("--config-name="):
+            config_name = a.split("=", 1)[1]
+            continue
+        if a in ("-m", "--multirun") or a.startswith("-"):
+            continue
+        key = a.lstrip("+~").split("=", 1)[0]
+        if key == "hydra" or key.startswith(("hydra.", "hydra/")):
+            continue
+        overrides.append(a)
+    return config_name, overrides, False
+
+
+def _group_options(group: str) -> list[str]:
+    return sorted(p.stem for p in (CONF_DIR / group).glob("*.yaml"))
+
+
+def _expand(overrides: list[str]) -> list[list[str]]:
+    """Jobs to check: the first value of every sweep, then each other value of one sweep at a time."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.core.override_parser.types import Glob
+
+    parser = OverridesParser.create()
+    parsed = []
+    for raw in overrides:
+        try:
+            parsed += parser.parse_overrides([raw])
+        except Exception as err:  # noqa: BLE001 - Hydra's parse errors
+            reason = " ".join(str(err).split()).split(" See https://")[0]
+            raise ConfigError(raw.lstrip("+~").split("=")[0], f"cannot parse {raw!r}: {reason}") from None
+    choices: list[list[str]] = []
+    for ov, raw in zip(parsed, overrides):
+        if not ov.is_sweep_override():
+            choices.append([raw])
+            continue
+        prefix = raw.split("=", 1)[0]
+        value = ov.value()
+        if isinstance(value, Glob):
+            opts = [o for o in _group_options(ov.key_or_group)
+                    if any(fnmatch.fnmatch(o, p) for p in value.include)
+                    and not any(fnmatch.fnmatch(o, p) for p in value.exclude)]
+            vals = opts or [raw.split("=", 1)[1]]
+        else:
+            vals = list(ov.sweep_string_iterator())
+        choices.append([f"{prefix}={v}" for v in vals])
+    jobs = [[c[0] for c in choices]]
+    for i, c in enumerate(choices):
+        for v in c[1:]:
+            job = [cc[0] for cc in choices]
+            job[i] = v
+            jobs.append(job)
+    return jobs
+
+
+def _added_keys(job: list[str]) -> list[str]:
+    """Keys that `+key=value` / `++key=value` overrides add (group selections are not keys)."""
+    out = []
+    for o in job:
+        if not o.startswith("+"):
+            continue
+        key = o.lstrip("+").split("=", 1)[0]
+        if "/" in key or "@" in key or (CONF_DIR / key).is_dir():
+            continue
+        out.append(key)
+    return out
+
+
+def preflight(config_name: str, argv: list[str], check: Callable[[DictConfig], None] | None = None) -> int:
+    """Compose and check every job of a command line; returns the number of jobs checked."""
+    config_name, overrides, skip = _split_argv(argv, config_name)
+    if skip:
+        return 0
+    for a in argv:  # Hydra creates its run/sweep dir before any job: an explicit one is checked here
+        key, _, value = a.lstrip("+").partition("=")
+        if key in ("hydra.run.dir", "hydra.sweep.dir") and value and "${" not in value:
+            check_folder(value, key)
+    jobs = _expand(overrides)
+    for job in jobs:
+        try:
+            cfg = compose(config_name, job, check=False)
+        except PipelineError:
+            raise
+        except Exception as err:  # noqa: BLE001 - Hydra composition errors, reported in one line
+            line = hydra_error_line(err)
+            field, _, reason = line.partition(": ")
+            raise ConfigError(field, reason or line) from None
+        added = _added_keys(job)
+        base = None
+        if any(o.startswith("++") for o in job):
+            base = compose(config_name, [o for o in job if not o.startswith("++")], check=False)
+        added = [k for k in added if base is None or OmegaConf.select(base, k, default="__missing__") == "__missing__"]
+        check_schema(cfg, added)
+        check_paths(cfg.get("paths"))
+        if check is not None:
+            check(cfg)
+    return len(jobs)
