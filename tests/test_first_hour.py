@@ -72,6 +72,21 @@ def test_the_path_check_leaves_nothing_behind(tmp_path):
 
 
 # -------------------------------------------------------------------- already fixed on main: their tests
+def test_every_bench_module_imports_and_the_error_map_predictor_gives_positions():
+    """`make bench` crashed: two areas' benchmarks imported modules the refactor had removed (errormap.core,
+    sim.build), and the untrained map's predictor returned its variance outputs too."""
+    import importlib
+
+    import numpy as np
+
+    from pipeline.bench import AREAS
+
+    for area in AREAS:
+        importlib.import_module(f"pipeline.{area}.bench")
+    predict, camera, _ = importlib.import_module("pipeline.errormap.bench")._predictor()
+    assert predict(camera.render(np.array([[0.0, 20.0], [-30.0, 5.0]]))).shape == (2, 2)
+
+
 def test_bench_trains_the_default_map_with_its_uncertainty_head():
     """`make bench` crashed: the default map has four outputs (position + variance), the loss took them all."""
     from pipeline.config import build

@@ -14,7 +14,7 @@ import torch
 from pipeline import tracking
 from pipeline.control import Scene
 from pipeline.errormap.estimates import arena_grid, error_field
-from pipeline.perception.maps import load_perception_map
+from pipeline.perception.maps import PerceptionMapPredictor, load_perception_map
 from pipeline.perception.network import PerceptionMap
 from pipeline.render import Camera, load_occlusion
 from pipeline.repo import REPO_ROOT
@@ -32,13 +32,8 @@ def _predictor():
             note = f"trained model unusable ({type(err).__name__}); "
     else:
         note = "no trained model; "
-    net = PerceptionMap().eval()
-
-    def predict(images: np.ndarray) -> np.ndarray:
-        with torch.inference_mode():
-            return net(torch.from_numpy(np.ascontiguousarray(images))).double().numpy()
-
-    return predict, Camera(Scene(target=[40.0, 0.0])), note + "untrained PerceptionMap (same cost)"
+    torch.manual_seed(0)
+    return PerceptionMapPredictor(PerceptionMap()).predict, Camera(Scene(target=[40.0, 0.0])), note + "untrained PerceptionMap (same cost)"
 
 
 def _best(fn, repeat: int) -> float:
