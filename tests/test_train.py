@@ -238,9 +238,10 @@ def test_cli_bad_input_one_line_exit_2(request, tmp_path, override):
     if override == "trainer=gpu" and torch.cuda.is_available():
         pytest.skip("this machine has a GPU")
     datasets, extra = tmp_path, []
-    if override in ("trainer=gpu", "datamodule.batch_size=-4"):
-        # the preflight imports no torch: a missing GPU (`check_devices`) and the DataModule's values (its
-        # constructor) are found in the job, after the preflight has found the dataset, so these cases need one
+    if override == "trainer=gpu":
+        # the preflight imports no torch: a missing GPU (`check_devices`) is found in the job, after the preflight
+        # has found the dataset, so this case needs one (the DataModule's values are its signature's, checked at
+        # composition: `batch_size=-4` is rejected before the dataset is looked for)
         datasets, extra = request.getfixturevalue("tiny")["datasets"], SMALL
     proc = subprocess.run(
         [sys.executable, "-m", "pipeline.train", override, f"paths.datasets_dir={datasets}", *extra,
