@@ -117,6 +117,94 @@ def test_ctrl_c_is_one_line_and_exit_130(tmp_path, monkeypatch, capsys):
     assert len(err) == 1 and "interrupted" in err[0], err
 
 
+def test_ctrl_c_sent_to_a_stage_process_is_one_line_exit_130_and_leaves_no_folder(tmp_path):
+    """A real SIGINT while the data stage writes its temporary folder: one line, exit 130, no dataset folder, no
+    temporary one (a tqdm bar cut in its `__init__` printed an `Exception ignored` traceback after the line)."""
+    import signal
+    import time
+
+    datasets = tmp_path / "data" / "datasets"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "pipeline.data", "data=clean", "debug=tiny", "data.sampling.mode=uniform",
+         "data.splits.train=12000", f"paths.root_dir={tmp_path}"], cwd=REPO_ROOT, env=_env(), text=True,
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    deadline = time.monotonic() + 300
+    while proc.poll() is None and time.monotonic() < deadline and not (
+            datasets.is_dir() and any(d.name.startswith(".tmp-") for d in datasets.iterdir())):
+        time.sleep(0.005)
+    assert proc.poll() is None, "the stage ended before its temporary folder was seen"
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=300)
+    msg = f"rc {proc.returncode}\n{err[-3000:]}"
+    lines = [ln for ln in err.strip().splitlines() if not re.match(r"^[\w ]+: \d+/\d+ ", ln)]  # progress lines
+    assert proc.returncode == 130 and len(lines) == 1 and lines[0].startswith("interrupted"), msg
+    assert "Traceback" not in err + out and "Exception ignored" not in err, msg
+    assert list(datasets.iterdir()) == [], list(datasets.iterdir())
+
+
+def test_ctrl_c_during_lightning_training_is_one_line_and_exit_130(tmp_path, monkeypatch, capsys):
+    """Lightning catches Ctrl-C in `fit` and calls `sys.exit(1)` (its graceful shutdown): the stage exited 1,
+    silently; it must be the same one line and exit 130 as anywhere else."""
+    import signal
+
+    import lightning as L
+    import torch
+
+    from pipeline.cli import stage_main
+    from pipeline.train.stage import _quiet_lightning
+
+    class Net(L.LightningModule):
+        def __init__(self):
+            super().__init__()
+            self.w = torch.nn.Linear(1, 1)
+
+        def training_step(self, batch, _):
+            os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C in the middle of an epoch
+            return self.w(batch[0]).sum()
+
+        def configure_optimizers(self):
+            return torch.optim.SGD(self.parameters(), lr=0.1)
+
+    def run(cfg):
+        _quiet_lightning()  # as the train stage does
+        data = torch.utils.data.DataLoader(torch.utils.data.TensorDataset(torch.ones(4, 1)), batch_size=2)
+        L.Trainer(max_epochs=3, accelerator="cpu", logger=False, enable_checkpointing=False,
+                  enable_progress_bar=False, enable_model_summary=False).fit(Net(), data)
+        raise AssertionError("training went on after Ctrl-C")
+
+    fake = types.ModuleType("fake_lightning_stage")
+    fake.run = run
+    monkeypatch.setitem(sys.modules, "fake_lightning_stage", fake)
+    monkeypatch.setattr(sys, "argv", ["simulate", f"paths.root_dir={tmp_path}", f"hydra.run.dir={tmp_path / 'run'}"])
+    before = signal.getsignal(signal.SIGINT)
+    with pytest.raises(SystemExit) as exit_:
+        stage_main("simulate", run="fake_lightning_stage:run")()
+    assert exit_.value.code == 130
+    err = capsys.readouterr().err
+    assert err.strip().splitlines() == ["interrupted (Ctrl-C): nothing half-written was kept"], err
+    assert signal.getsignal(signal.SIGINT) is before  # the stage's handler is gone after it returns
+
+
+def test_a_progress_bar_cut_in_its_init_by_ctrl_c_leaves_no_traceback(monkeypatch):
+    import gc
+
+    import tqdm.std
+
+    from pipeline import progress as pr
+
+    def interrupted(*_):
+        raise KeyboardInterrupt
+
+    caught = []
+    monkeypatch.setattr(sys, "unraisablehook", caught.append)
+    monkeypatch.setattr(tqdm.std, "_supports_unicode", interrupted)  # called half-way through tqdm.__init__
+    for file in (io.StringIO(), type("Tty", (io.StringIO,), {"isatty": lambda self: True})()):
+        with pytest.raises(KeyboardInterrupt):
+            pr.progress(total=3, desc="render", file=file)
+        gc.collect()
+    assert caught == [], [c.exc_value for c in caught]
+
+
 @pytest.mark.parametrize("stage", ["data", "train", "errormap", "experiments", "simulate", "paper", "dagger"])
 def test_run_folders_are_named_by_stage(stage):
     """Not `outputs/runs/__main__/` for every stage; an experiment's runs by experiment id."""
