@@ -26,9 +26,8 @@ from pipeline.errors import ConfigError, DatasetError
 def _visits(p: Plan) -> tuple[object, dict]:
     """Load the recipe's map (on `closed_loop.device`) and simulate its closed loop once (the train split's
     pool, cached); returns the map and what the manifest records about its visits."""
-    from pipeline.perception.maps import (
-        load_perception_map,  # torch: only for a recipe with a map in the loop
-    )
+    # torch is imported only for a recipe with a map in the loop
+    from pipeline.perception.maps import load_perception_map
 
     cl = p.recipe.closed_loop
     pm = load_perception_map(p.map_path, device=cl.device)
