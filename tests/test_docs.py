@@ -245,6 +245,22 @@ def test_a_documented_config_file_is_the_one_in_conf():
     assert shown >= 1
 
 
+def test_where_outputs_go_names_every_output_folder():
+    """README's "Where outputs go" lists each folder of conf/paths/default.yaml, the experiments' cache and the
+    MLflow store (the logger's `tracking_uri`)."""
+    import yaml
+
+    section = (REPO_ROOT / "README.md").read_text().split("## Where outputs go", 1)[1].split("\n## ", 1)[0]
+    paths = yaml.safe_load((REPO_ROOT / "conf" / "paths" / "default.yaml").read_text())
+    folders = [v.replace("${paths.outputs_dir}", "outputs").replace("${paths.data_dir}", "data")
+               for k, v in paths.items() if k.endswith("_dir") and isinstance(v, str) and "${paths." in v
+               and k not in ("data_dir", "outputs_dir")]
+    mlflow = compose("train", ["logger=mlflow"]).logger.mlflow
+    store = mlflow.tracking_uri.removeprefix("sqlite:///").replace(compose("train").paths.outputs_dir, "outputs")
+    folders += ["outputs/experiments", "outputs/runs", "outputs/multirun", store]
+    assert [f for f in folders if f"`{f}" not in section] == [], section
+
+
 def test_the_docs_test_finds_what_it_checks():
     """The extraction itself: it sees the README's commands and snippets (a test that finds nothing passes)."""
     wheres = {w.split(":")[0] for w, _ in COMMANDS}

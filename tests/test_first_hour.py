@@ -81,6 +81,23 @@ def test_bench_trains_the_default_map_with_its_uncertainty_head():
     assert raw_loop(build(compose("train").model, "model"), images, pos, batch=8, steps=1) > 0
 
 
+def test_every_bench_area_imports_and_its_maps_predict_positions():
+    """`make bench` crashed after the refactors: `pipeline.errormap.bench` imported a module that had gone
+    (`errormap.core`), `pipeline.experiments.bench` another (`sim.build`), and the error-map bench's untrained
+    map returned four columns (position + variance) where positions were expected."""
+    import importlib
+
+    import numpy as np
+
+    from pipeline.bench import AREAS
+    from pipeline.errormap.bench import _predictor
+
+    for area in AREAS:
+        assert callable(importlib.import_module(f"pipeline.{area}.bench").bench), area
+    predict, camera, _ = _predictor()
+    assert predict(camera.render(np.array([[0.0, 10.0], [-20.0, 5.0], [30.0, -4.0]]))).shape == (3, 2)
+
+
 @pytest.mark.parametrize("module,args,field", [
     ("pipeline.train", ["trainer.max_epochs=0"], "trainer.max_epochs"),
     ("pipeline.errormap", ["grid.step=-1"], "grid.step"),
