@@ -104,6 +104,8 @@ def test_every_bench_area_imports_and_its_maps_predict_positions():
     ("pipeline.experiments", ["experiment=robustness_sweep", "scale=-1"], "scale"),
     ("pipeline.data", ["data.seed=-1"], "data.seed"),
     ("pipeline.train", ["data=clean"], "dataset clean-"),  # a missing input, too
+    ("pipeline.experiments", ["experiment=noise_failure"], "perception map 'clean'"),  # a missing map
+    ("pipeline.paper", ["debug=huge"], "debug"),
 ])
 def test_config_errors_answer_before_torch_is_imported(tmp_path, module, args, field):
     code = ("import atexit, runpy, sys; atexit.register(lambda: print('torch imported' if 'torch' in sys.modules "
