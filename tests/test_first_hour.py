@@ -258,6 +258,20 @@ def test_the_missing_map_hint_of_the_experiments_stage_is_a_valid_override(tmp_p
     assert "maps.clean=<name-id>" in proc.stderr and "maps=<" not in proc.stderr, proc.stderr
 
 
+def test_a_missing_input_hint_names_a_command_only_where_a_config_makes_that_name(tmp_path):
+    """`data.sampling.parent=dagger_r0-<id>` (not built) said "`python -m pipeline.data data=dagger_r0` makes the
+    current config's", and an unknown name `mine` "run `python -m pipeline.data data=mine`": no such recipe."""
+    from pipeline.errors import DatasetError
+    from pipeline.lineage import resolve_dataset
+
+    for ref in ("dagger_r0-0123456789", "mine"):
+        with pytest.raises(DatasetError) as err:
+            resolve_dataset(ref, tmp_path)
+        assert "python -m" not in str(err.value), err.value
+    with pytest.raises(DatasetError, match=r"`python -m pipeline.data data=clean` makes the current config's"):
+        resolve_dataset("clean-0123456789", tmp_path)
+
+
 # --------------------------------------------------------------------------------- publishing (item 2)
 def test_a_debug_run_before_any_paper_lock_writes_nothing_into_the_paper_folder(tmp_path):
     from pipeline.experiments.stage import run
