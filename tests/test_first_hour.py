@@ -272,6 +272,22 @@ def test_a_missing_input_hint_names_a_command_only_where_a_config_makes_that_nam
         resolve_dataset("clean-0123456789", tmp_path)
 
 
+def test_a_launcher_or_sweeper_whose_plugin_is_missing_is_one_line_naming_the_extra(tmp_path):
+    """`hydra/launcher=joblib` without the `launchers` extra: Hydra's 9-line error and exit 1."""
+    import importlib.util
+
+    from pipeline.config import preflight
+
+    if importlib.util.find_spec("hydra_plugins") is not None:
+        pytest.skip("Hydra plugins installed: nothing is missing")
+    for argv, field, extra in ((["-m", "hydra/launcher=joblib"], "hydra/launcher", "launchers"),
+                               (["-m", "hparams_search=perception_optuna"], "hydra/sweeper", "search")):
+        with pytest.raises(ConfigError) as err:
+            preflight("train", [*argv, f"paths.root_dir={tmp_path}"])
+        assert err.value.field == field and f"-e '.[{extra}]'" in err.value.reason, err.value
+        assert "\n" not in str(err.value)
+
+
 # --------------------------------------------------------------------------------- publishing (item 2)
 def test_a_debug_run_before_any_paper_lock_writes_nothing_into_the_paper_folder(tmp_path):
     from pipeline.experiments.stage import run
