@@ -76,8 +76,8 @@ def stage_main(config_name: str, run: str, check: str | None = None):
             sys.exit(2)
         except KeyboardInterrupt:
             _interrupted()
-        except SystemExit:
-            if _SIGINT["seen"]:
+        except SystemExit as done:
+            if _SIGINT["seen"] and done.code != 130:  # 130: reported already (here, or by a stage of make paper)
                 _interrupted()
             raise
 

@@ -204,6 +204,23 @@ def test_ctrl_c_during_lightning_training_is_one_line_and_exit_130(tmp_path, mon
     assert signal.getsignal(signal.SIGINT) is before  # the stage's handler is gone after it returns
 
 
+def test_ctrl_c_during_make_paper_is_the_stage_s_one_line_only(monkeypatch, capsys):
+    """Ctrl-C reaches `make paper` and its running stage alike: the stage prints its line and exits 130; the
+    orchestrator, interrupted while it waits, printed a second one."""
+    import subprocess as sp
+
+    from pipeline import paper
+
+    def interrupted_wait(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(sp, "run", interrupted_wait)
+    with pytest.raises(SystemExit) as exit_:
+        paper.run_stage("data", ["data=clean"], {}, stop=True)
+    assert exit_.value.code == 130
+    assert "interrupted" not in capsys.readouterr().err
+
+
 def test_a_progress_bar_cut_in_its_init_by_ctrl_c_leaves_no_traceback(monkeypatch):
     import gc
 
