@@ -118,6 +118,36 @@ def _without_missing_plugins(args: list[str]) -> tuple[list[str], list[str]]:
     return [a for a in args if a not in missing and not (launcher and a.startswith("hydra.launcher."))], missing
 
 
+@pytest.fixture(scope="module")
+def composed_once():
+    """`pipeline.config.compose` memoised for this module's dry checks: the commands compose the same configs
+    again and again (each stage's check recomputes the ids of its inputs); a copy of the cached config each time."""
+    import copy
+    import sys
+
+    from pipeline import config
+
+    real, cache = config.compose, {}
+
+    def compose(config_name, overrides=None, *, check=True):
+        key = (config_name, tuple(overrides or ()), check)
+        if key not in cache:
+            try:
+                cache[key] = real(config_name, overrides, check=check)
+            except Exception as err:  # noqa: BLE001 - the same error each time
+                cache[key] = err
+        if isinstance(cache[key], Exception):
+            raise cache[key]
+        return copy.deepcopy(cache[key])
+
+    patched = [m for m in list(sys.modules.values()) if getattr(m, "compose", None) is real]
+    for m in patched:
+        m.compose = compose
+    yield
+    for m in patched:
+        m.compose = real
+
+
 def _check_key(words: list[str]):
     cmd = _as_python(words)
     return None if cmd is None else (cmd[2], tuple(sorted(_without_missing_plugins(cmd[3:])[0])))
@@ -128,7 +158,7 @@ CHECKS = [(w, c) for i, (w, c) in enumerate(COMMANDS)  # one check per distinct 
 
 
 @pytest.mark.parametrize("where,words", CHECKS, ids=[w for w, _ in CHECKS])
-def test_every_documented_command_composes_and_passes_its_preflight(where, words, tmp_path):
+def test_every_documented_command_composes_and_passes_its_preflight(where, words, tmp_path_factory, composed_once):
     cmd = _as_python(words)
     if cmd is None:  # make test / lint / setup: the target exists (checked above), it is not a stage
         return
@@ -147,7 +177,8 @@ def test_every_documented_command_composes_and_passes_its_preflight(where, words
     if any(m.startswith("hparams_search=") for m in missing):  # the search space is the sweeper's config
         pytest.skip(f"{where}: needs {', '.join(missing)} (extra not installed)")
     try:
-        jobs = preflight(name, [*args, f"paths.root_dir={tmp_path}"], resolve(check) if check else None)
+        root = tmp_path_factory.getbasetemp() / "docs_empty_root"  # one empty root: the cache's keys repeat
+        jobs = preflight(name, [*args, f"paths.root_dir={root}"], resolve(check) if check else None)
     except PipelineError as err:
         assert NOT_BUILT.search(str(err)), f"{where}: `{' '.join(words)}` -> error: {err}"
         return
