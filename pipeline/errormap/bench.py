@@ -11,7 +11,7 @@ import time
 import numpy as np
 
 from pipeline.cli import REPO_ROOT
-from pipeline.errormap import core
+from pipeline.errormap import estimates as core
 
 
 def _predictor():
@@ -35,18 +35,13 @@ def _predictor():
     else:
         note = "no trained model; "
     try:
-        import torch
-
+        from pipeline.perception.maps import PerceptionMapPredictor
         from pipeline.perception.network import PerceptionMap
     except ImportError as err:
         return None, None, f"{note}pipeline.train unavailable ({err})"
-    net = PerceptionMap().eval()
-
-    def predict(images: np.ndarray) -> np.ndarray:
-        with torch.inference_mode():
-            return net(torch.from_numpy(np.ascontiguousarray(images))).double().numpy()
-
-    return predict, Camera(Scene(target=[40.0, 0.0])), note + "untrained PerceptionMap (same cost)"
+    # the predictor, not the raw network: the default map has four outputs (position + its variance)
+    pm = PerceptionMapPredictor(PerceptionMap().eval())
+    return pm.predict, Camera(Scene(target=[40.0, 0.0])), note + "untrained PerceptionMap (same cost)"
 
 
 def _best(fn, repeat: int) -> float:

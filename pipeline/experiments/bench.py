@@ -12,7 +12,7 @@ from pipeline.control import HybridController, Scene
 from pipeline.perception.measure import CameraMeasure
 from pipeline.render import Camera
 from pipeline.sim import simulate
-from pipeline.sim.build import initial_conditions
+from pipeline.sim.starts import Random
 
 
 def _map():
@@ -34,7 +34,7 @@ def bench(quick: bool = False) -> list[dict]:
     scene = Scene(target=[40.0, 0.0])
     cam = Camera(scene)
     pm, which = _map()
-    x0 = initial_conditions({"mode": "random", "n": n, "seed": 0, "margin": 2.0}, scene)
+    x0 = Random(n=n, seed=0, margin=2.0)(scene)
     dt, period = 0.01, 0.05
 
     # (a) raw batched inference on pre-rendered images
