@@ -14,9 +14,12 @@ through temporary folders, so nothing is left half-written.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
+import signal
 import sys
+import threading
 
 from omegaconf import DictConfig
 
@@ -33,9 +36,33 @@ def report_error(err: BaseException) -> None:
     print(f"error: {err}", file=sys.stderr)
 
 
+_SIGINT = {"seen": False}
+
+
 def _interrupted() -> None:
     print("interrupted (Ctrl-C): nothing half-written was kept", file=sys.stderr)
     sys.exit(130)
+
+
+def _on_sigint(signum, frame):
+    """Ctrl-C as Python's own handler, remembered: Lightning turns it into `sys.exit(1)` (its graceful
+    shutdown), which the stage then reports as an interruption (exit 130) all the same."""
+    _SIGINT["seen"] = True
+    raise KeyboardInterrupt
+
+
+@contextlib.contextmanager
+def _watching_sigint():
+    _SIGINT["seen"] = False
+    watch = threading.current_thread() is threading.main_thread() and \
+        signal.getsignal(signal.SIGINT) is signal.default_int_handler  # not where Ctrl-C is ignored
+    if watch:
+        signal.signal(signal.SIGINT, _on_sigint)
+    try:
+        yield
+    finally:
+        if watch:
+            signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def stage_main(config_name: str, run: str, check: str | None = None):
@@ -50,6 +77,10 @@ def stage_main(config_name: str, run: str, check: str | None = None):
             sys.exit(2)
         except KeyboardInterrupt:
             _interrupted()
+        except SystemExit as done:
+            if _SIGINT["seen"] and done.code != 130:  # 130: reported already (here, or by a stage of make paper)
+                _interrupted()
+            raise
 
     import hydra
 
@@ -59,12 +90,17 @@ def stage_main(config_name: str, run: str, check: str | None = None):
     def entry():
         os.environ.setdefault("HYDRA_FULL_ERROR", "0")
         try:
-            preflight(config_name, sys.argv[1:], resolve(check) if check else None)
-            return main()
+            with _watching_sigint():
+                preflight(config_name, sys.argv[1:], resolve(check) if check else None)
+                return main()
         except PipelineError as err:
             report_error(err)
             sys.exit(2)
         except KeyboardInterrupt:
             _interrupted()
+        except SystemExit as done:
+            if _SIGINT["seen"] and done.code != 130:
+                _interrupted()
+            raise
 
     return entry

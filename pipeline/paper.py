@@ -92,7 +92,10 @@ def run_stage(stage: str, argv: list[str], timings: dict, stop: bool, *, tag: st
     cmd = [sys.executable, "-m", f"pipeline.{stage}", *argv]
     print(f"\n[{tag}] === {label or stage}: {' '.join(cmd[1:])}", flush=True)
     ts = time.perf_counter()
-    proc = subprocess.run(cmd, cwd=REPO_ROOT, check=False)
+    try:
+        proc = subprocess.run(cmd, cwd=REPO_ROOT, check=False)
+    except KeyboardInterrupt:  # Ctrl-C reached the stage too, which said so in its one line: say nothing more
+        raise SystemExit(130) from None
     key = label or stage
     timings[key] = timings.get(key, 0.0) + time.perf_counter() - ts
     if proc.returncode != 0:

@@ -100,6 +100,28 @@ def _added_keys(job: list[str]) -> list[str]:
     return out
 
 
+_EXTRAS = {"hydra/launcher": "launchers", "hydra/sweeper": "search"}  # pyproject's extras for Hydra's plugins
+
+
+def _check_hydra_groups(config_name: str, argv: list[str]) -> None:
+    """`hydra/launcher=joblib` without its plugin installed: one line naming the extra, not Hydra's 9 lines."""
+    groups = [a for a in argv if a.lstrip("+").split("=", 1)[0].startswith("hydra/")]
+    if not groups:
+        return
+    try:
+        compose(config_name, groups, check=False)
+    except Exception as err:  # noqa: BLE001 - Hydra's composition errors, in one line
+        raise _composition_error(err) from None
+
+
+def _composition_error(err: BaseException) -> ConfigError:
+    line = hydra_error_line(err)
+    field, _, reason = line.partition(": ")
+    extra = _EXTRAS.get(field)
+    hint = f"; its plugin comes with `pip install -c constraints.txt -e '.[{extra}]'`" if extra else ""
+    return ConfigError(field, (reason or line) + hint)
+
+
 def preflight(config_name: str, argv: list[str], check: Callable[[DictConfig], None] | None = None) -> int:
     """Compose and check every job of a command line; returns the number of jobs checked."""
     config_name, overrides, skip = _split_argv(argv, config_name)
@@ -109,6 +131,7 @@ def preflight(config_name: str, argv: list[str], check: Callable[[DictConfig], N
         key, _, value = a.lstrip("+").partition("=")
         if key in ("hydra.run.dir", "hydra.sweep.dir") and value and "${" not in value:
             check_folder(value, key)
+    _check_hydra_groups(config_name, argv)
     jobs = _expand(overrides)
     for job in jobs:
         try:
@@ -116,9 +139,7 @@ def preflight(config_name: str, argv: list[str], check: Callable[[DictConfig], N
         except PipelineError:
             raise
         except Exception as err:  # noqa: BLE001 - Hydra composition errors, reported in one line
-            line = hydra_error_line(err)
-            field, _, reason = line.partition(": ")
-            raise ConfigError(field, reason or line) from None
+            raise _composition_error(err) from None
         added = _added_keys(job)
         base = None
         if any(o.startswith("++") for o in job):

@@ -37,7 +37,16 @@ class _Lines:
         self.file.flush()
 
 
-class _LineBar(tqdm):
+class _Bar(tqdm):
+    """tqdm that a Ctrl-C in the middle of its `__init__` leaves quiet: its `__del__` would read attributes never
+    set (`'_LineBar' object has no attribute 'disable'`, a traceback after the one-line interruption)."""
+
+    def __del__(self) -> None:
+        if hasattr(self, "disable"):
+            super().__del__()
+
+
+class _LineBar(_Bar):
     """tqdm drawing one line per `mininterval`: a new postfix waits for the next line instead of drawing one."""
 
     def set_postfix_str(self, s: str = "", refresh: bool = False) -> None:
@@ -58,7 +67,7 @@ def progress(iterable=None, *, total: float | None = None, desc: str = "", unit:
     `LINE_INTERVAL`); `enabled=False`: silent (tqdm's `disable`)."""
     file = sys.stderr if file is None else file
     if is_terminal(file):
-        return tqdm(iterable, total=total, desc=desc, unit=unit, unit_scale=unit_scale, leave=False, file=file,
+        return _Bar(iterable, total=total, desc=desc, unit=unit, unit_scale=unit_scale, leave=False, file=file,
                     dynamic_ncols=True, delay=DELAY, disable=not enabled)
     every = LINE_INTERVAL if interval is None else interval
     return _LineBar(iterable, total=total, desc=desc, unit=unit, unit_scale=unit_scale, leave=False,

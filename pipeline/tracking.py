@@ -213,7 +213,8 @@ def resolve(root: Path, ref: str | os.PathLike, *, kind: str = "output", expecte
     others = f"; other builds: {', '.join(d.name for d in named)}{pin}" if named else ""
     base = re.fullmatch(rf"(.+)-[0-9a-f]{{{ID_LEN}}}", ref_s)
     if base and expected is not None:  # a pinned `name-id` that is not built: say so, and what makes `name`
-        make = f"; `{cmd(base.group(1))}` makes the current config's" if cmd else ""
+        made = cmd is not None and expected(base.group(1)) is not None  # no command for a name no config makes
+        make = f"; `{cmd(base.group(1))}` makes the current config's" if made else ""
         raise DatasetError(f"{kind} {ref_s} is not built under {root}{make}")
     make = f"; run `{cmd(ref_s)}`" if cmd else ""
     want = expected(ref_s) if expected is not None else None
@@ -229,7 +230,7 @@ def resolve(root: Path, ref: str | os.PathLike, *, kind: str = "output", expecte
         raise DatasetError(f"{kind} {ref_s!r} is ambiguous: {', '.join(d.name for d in named)}{pin}")
     known = sorted({d.name.rsplit("-", 1)[0] for d in all_entries})
     hint = f"known: {', '.join(known)}" if known else f"none under {root}"
-    raise DatasetError(f"unknown {kind} {ref_s!r} ({hint}){make}")
+    raise DatasetError(f"unknown {kind} {ref_s!r} ({hint}){make if expected is None else ''}")  # no config makes it
 
 
 def _command_fn(command):

@@ -31,7 +31,7 @@ def test_hybrid_data_properties(scene, seed, chi, frac):
     """C ∪ D covers the covering O = O_1 ∪ O_2; after a jump the state is in C \\ D (hysteresis: no Zeno);
     the sampled step is `jump where D, then flow_map of the new mode`; the data are pure."""
     lam = frac * (chi - 1)
-    ctrl = HybridController(scene, k=0.8, chi=chi, lam=lam, u_max=10.0)
+    ctrl = HybridController(scene, k=0.8, chi=chi, lam=lam, u_max=10.0, guard=False)  # the literal rule
     a, b, m = box_points(scene, seed, 1500)
     q = np.random.default_rng(seed).choice(np.array([1, 2], dtype=np.int8), len(m))
     xd = {"i": np.zeros(len(m), dtype=np.int64), "q": q}

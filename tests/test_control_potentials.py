@@ -329,7 +329,7 @@ def test_readable_potential_matches_the_fused_path_with_two_obstacles():
 def test_hybrid_flow_and_jump_rule(scene, seed):
     """One frame = at most one jump by SPEC §3.3's rule, then u = -k ∇V_q+ (no speed limit)."""
     a, b, pts = box_points(scene, seed, 2000)
-    ctrl = HybridController(scene, k=0.7, chi=1.1, lam=0.09, u_max=None)
+    ctrl = HybridController(scene, k=0.7, chi=1.1, lam=0.09, u_max=None, guard=False)  # the literal rule
     xd0 = ctrl.initial_state(pts)
     rng = np.random.default_rng(seed)
     q0 = rng.choice(np.array([1, 2], dtype=np.int8), len(pts))

@@ -96,12 +96,31 @@ def test_bench_trains_the_default_map_with_its_uncertainty_head():
     assert raw_loop(build(compose("train").model, "model"), images, pos, batch=8, steps=1) > 0
 
 
+def test_every_bench_area_imports_and_its_maps_predict_positions():
+    """`make bench` crashed after the refactors: `pipeline.errormap.bench` imported a module that had gone
+    (`errormap.core`), `pipeline.experiments.bench` another (`sim.build`), and the error-map bench's untrained
+    map returned four columns (position + variance) where positions were expected."""
+    import importlib
+
+    import numpy as np
+
+    from pipeline.bench import AREAS
+    from pipeline.errormap.bench import _predictor
+
+    for area in AREAS:
+        assert callable(importlib.import_module(f"pipeline.{area}.bench").bench), area
+    predict, camera, _ = _predictor()
+    assert predict(camera.render(np.array([[0.0, 10.0], [-20.0, 5.0], [30.0, -4.0]]))).shape == (3, 2)
+
+
 @pytest.mark.parametrize("module,args,field", [
     ("pipeline.train", ["trainer.max_epochs=0"], "trainer.max_epochs"),
     ("pipeline.errormap", ["grid.step=-1"], "grid.step"),
     ("pipeline.experiments", ["experiment=robustness_sweep", "scale=-1"], "scale"),
     ("pipeline.data", ["data.seed=-1"], "data.seed"),
     ("pipeline.train", ["data=clean"], "dataset clean-"),  # a missing input, too
+    ("pipeline.experiments", ["experiment=noise_failure"], "perception map 'clean'"),  # a missing map
+    ("pipeline.paper", ["debug=huge"], "debug"),
 ])
 def test_config_errors_answer_before_torch_is_imported(tmp_path, module, args, field):
     code = ("import atexit, runpy, sys; atexit.register(lambda: print('torch imported' if 'torch' in sys.modules "
@@ -130,6 +149,111 @@ def test_ctrl_c_is_one_line_and_exit_130(tmp_path, monkeypatch, capsys):
     assert exit_.value.code == 130
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "interrupted" in err[0], err
+
+
+def test_ctrl_c_sent_to_a_stage_process_is_one_line_exit_130_and_leaves_no_folder(tmp_path):
+    """A real SIGINT while the data stage writes its temporary folder: one line, exit 130, no dataset folder, no
+    temporary one (a tqdm bar cut in its `__init__` printed an `Exception ignored` traceback after the line)."""
+    import signal
+    import time
+
+    datasets = tmp_path / "data" / "datasets"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "pipeline.data", "data=clean", "debug=tiny", "data.sampling.mode=uniform",
+         "data.splits.train=12000", f"paths.root_dir={tmp_path}"], cwd=REPO_ROOT, env=_env(), text=True,
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    deadline = time.monotonic() + 300
+    while proc.poll() is None and time.monotonic() < deadline and not (
+            datasets.is_dir() and any(d.name.startswith(".tmp-") for d in datasets.iterdir())):
+        time.sleep(0.005)
+    assert proc.poll() is None, "the stage ended before its temporary folder was seen"
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=300)
+    msg = f"rc {proc.returncode}\n{err[-3000:]}"
+    lines = [ln for ln in err.strip().splitlines() if " elapsed, " not in ln]  # but its progress lines
+    assert proc.returncode == 130 and len(lines) == 1 and lines[0].startswith("interrupted"), msg
+    assert "Traceback" not in err + out and "Exception ignored" not in err, msg
+    assert list(datasets.iterdir()) == [], list(datasets.iterdir())
+
+
+def test_ctrl_c_during_lightning_training_is_one_line_and_exit_130(tmp_path, monkeypatch, capsys):
+    """Lightning catches Ctrl-C in `fit` and calls `sys.exit(1)` (its graceful shutdown): the stage exited 1,
+    silently; it must be the same one line and exit 130 as anywhere else."""
+    import signal
+
+    import lightning as L
+    import torch
+
+    from pipeline.cli import stage_main
+    from pipeline.train.stage import _quiet_lightning
+
+    class Net(L.LightningModule):
+        def __init__(self):
+            super().__init__()
+            self.w = torch.nn.Linear(1, 1)
+
+        def training_step(self, batch, _):
+            os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C in the middle of an epoch
+            return self.w(batch[0]).sum()
+
+        def configure_optimizers(self):
+            return torch.optim.SGD(self.parameters(), lr=0.1)
+
+    def run(cfg):
+        _quiet_lightning()  # as the train stage does
+        data = torch.utils.data.DataLoader(torch.utils.data.TensorDataset(torch.ones(4, 1)), batch_size=2)
+        L.Trainer(max_epochs=3, accelerator="cpu", logger=False, enable_checkpointing=False,
+                  enable_progress_bar=False, enable_model_summary=False).fit(Net(), data)
+        raise AssertionError("training went on after Ctrl-C")
+
+    fake = types.ModuleType("fake_lightning_stage")
+    fake.run = run
+    monkeypatch.setitem(sys.modules, "fake_lightning_stage", fake)
+    monkeypatch.setattr(sys, "argv", ["simulate", f"paths.root_dir={tmp_path}", f"hydra.run.dir={tmp_path / 'run'}"])
+    before = signal.getsignal(signal.SIGINT)
+    with pytest.raises(SystemExit) as exit_:
+        stage_main("simulate", run="fake_lightning_stage:run")()
+    assert exit_.value.code == 130
+    err = capsys.readouterr().err
+    assert err.strip().splitlines() == ["interrupted (Ctrl-C): nothing half-written was kept"], err
+    assert signal.getsignal(signal.SIGINT) is before  # the stage's handler is gone after it returns
+
+
+def test_ctrl_c_during_make_paper_is_the_stage_s_one_line_only(monkeypatch, capsys):
+    """Ctrl-C reaches `make paper` and its running stage alike: the stage prints its line and exits 130; the
+    orchestrator, interrupted while it waits, printed a second one."""
+    import subprocess as sp
+
+    from pipeline import paper
+
+    def interrupted_wait(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(sp, "run", interrupted_wait)
+    with pytest.raises(SystemExit) as exit_:
+        paper.run_stage("data", ["data=clean"], {}, stop=True)
+    assert exit_.value.code == 130
+    assert "interrupted" not in capsys.readouterr().err
+
+
+def test_a_progress_bar_cut_in_its_init_by_ctrl_c_leaves_no_traceback(monkeypatch):
+    import gc
+
+    import tqdm.std
+
+    from pipeline import progress as pr
+
+    def interrupted(*_):
+        raise KeyboardInterrupt
+
+    caught = []
+    monkeypatch.setattr(sys, "unraisablehook", caught.append)
+    monkeypatch.setattr(tqdm.std, "_supports_unicode", interrupted)  # called half-way through tqdm.__init__
+    for file in (io.StringIO(), type("Tty", (io.StringIO,), {"isatty": lambda self: True})()):
+        with pytest.raises(KeyboardInterrupt):
+            pr.progress(total=3, desc="render", file=file)
+        gc.collect()
+    assert caught == [], [c.exc_value for c in caught]
 
 
 @pytest.mark.parametrize("stage", ["data", "train", "errormap", "experiments", "simulate", "paper", "dagger"])
@@ -164,6 +288,36 @@ def test_the_missing_map_hint_of_the_experiments_stage_is_a_valid_override(tmp_p
     proc = _cli("pipeline.experiments", "experiment=noise_failure", f"paths.root_dir={tmp_path}")
     assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
     assert "maps.clean=<name-id>" in proc.stderr and "maps=<" not in proc.stderr, proc.stderr
+
+
+def test_a_missing_input_hint_names_a_command_only_where_a_config_makes_that_name(tmp_path):
+    """`data.sampling.parent=dagger_r0-<id>` (not built) said "`python -m pipeline.data data=dagger_r0` makes the
+    current config's", and an unknown name `mine` "run `python -m pipeline.data data=mine`": no such recipe."""
+    from pipeline.errors import DatasetError
+    from pipeline.lineage import resolve_dataset
+
+    for ref in ("dagger_r0-0123456789", "mine"):
+        with pytest.raises(DatasetError) as err:
+            resolve_dataset(ref, tmp_path)
+        assert "python -m" not in str(err.value), err.value
+    with pytest.raises(DatasetError, match=r"`python -m pipeline.data data=clean` makes the current config's"):
+        resolve_dataset("clean-0123456789", tmp_path)
+
+
+def test_a_launcher_or_sweeper_whose_plugin_is_missing_is_one_line_naming_the_extra(tmp_path):
+    """`hydra/launcher=joblib` without the `launchers` extra: Hydra's 9-line error and exit 1."""
+    import importlib.util
+
+    from pipeline.preflight import preflight
+
+    if importlib.util.find_spec("hydra_plugins") is not None:
+        pytest.skip("Hydra plugins installed: nothing is missing")
+    for argv, field, extra in ((["-m", "hydra/launcher=joblib"], "hydra/launcher", "launchers"),
+                               (["-m", "hparams_search=perception_optuna"], "hydra/sweeper", "search")):
+        with pytest.raises(ConfigError) as err:
+            preflight("train", [*argv, f"paths.root_dir={tmp_path}"])
+        assert err.value.field == field and f"-e '.[{extra}]'" in err.value.reason, err.value
+        assert "\n" not in str(err.value)
 
 
 # --------------------------------------------------------------------------------- publishing (item 2)

@@ -62,7 +62,7 @@ class HybridController(Feedback):
 
     def __init__(self, scene: Scene, k: Positive = 1.0, chi: Annotated[float, Range(gt=1)] = 1.1, lam: Positive = 0.09,
                  u_max: Positive | None = 10.0, push_speed: Positive | None = None, cell_hysteresis: Positive = 1.0,
-                 guard: bool = False, guard_gamma: OpenShare = 0.5):
+                 guard: bool = True, guard_gamma: OpenShare = 0.5):
         super().__init__(scene, k=k, u_max=u_max, push_speed=push_speed)
         if not lam < chi - 1:
             raise ConfigError("controller.lam", f"must be in (0, chi - 1) = (0, {chi - 1:.6g}), got {lam!r}")

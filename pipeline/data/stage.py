@@ -21,12 +21,14 @@ from pipeline.data.plan import Plan, plan
 from pipeline.data.render import render_into
 from pipeline.data.sampling import split_pool
 from pipeline.errors import ConfigError, DatasetError
-from pipeline.perception.maps import load_perception_map, resolve_device
 
 
 def _visits(p: Plan) -> tuple[object, dict]:
     """Load the recipe's map (on `closed_loop.device`) and simulate its closed loop once (the train split's
     pool, cached); returns the map and what the manifest records about its visits."""
+    # torch is imported only for a recipe with a map in the loop
+    from pipeline.perception.maps import load_perception_map
+
     cl = p.recipe.closed_loop
     pm = load_perception_map(p.map_path, device=cl.device)
     t0 = time.perf_counter()
@@ -57,6 +59,8 @@ def run(cfg: DictConfig) -> dict:
         print(f"data: {p.folder_name} exists and matches its manifest -> {p.path} (nothing to do; force=true re-renders)")
         return {**out, "skipped": True, "seconds": time.perf_counter() - t0}
     if p.map_path is not None:
+        from pipeline.perception.maps import resolve_device
+
         try:
             resolve_device(p.recipe.closed_loop.device)
         except ConfigError as err:

@@ -32,8 +32,10 @@ def _predictor():
             note = f"trained model unusable ({type(err).__name__}); "
     else:
         note = "no trained model; "
+    # the predictor, not the raw network: the default map has four outputs (position + its variance)
     torch.manual_seed(0)
-    return PerceptionMapPredictor(PerceptionMap()).predict, Camera(Scene(target=[40.0, 0.0])), note + "untrained PerceptionMap (same cost)"
+    pm = PerceptionMapPredictor(PerceptionMap())
+    return pm.predict, Camera(Scene(target=[40.0, 0.0])), note + "untrained PerceptionMap (same cost)"
 
 
 def _best(fn, repeat: int) -> float:

@@ -2,7 +2,8 @@
 
 `model_comparison` gives the table (time to target, jumps, path length per start for the sampled model,
 the continuous model and the sampled model with `dt = camera.period = limit_dt`); `zigzag_figure` draws
-both arcs along the diamond's edge. Pure: no I/O.
+both arcs along the diamond's edge. Both run the literal sample-and-hold rule by default (`guard=False`: the
+zigzag issue 12 measured); `guard=True` runs SPEC §3.3's sampled-data guard (the controller's default). Pure: no I/O.
 """
 
 from __future__ import annotations
@@ -18,15 +19,16 @@ EDGE_STARTS = ((-12.0, 2.0), (-45.0, 0.3), (-37.0, -17.0), (-30.0, 20.0), (10.0,
 
 
 def model_comparison(scene: Scene, starts=EDGE_STARTS, *, dt: float = 0.01, camera_period: float = 0.05,
-                     limit_dt: float = 0.0005, horizon: float = 30.0) -> pd.DataFrame:
+                     limit_dt: float = 0.0005, horizon: float = 30.0, guard: bool = False) -> pd.DataFrame:
     """One row per start: time to target, jumps and path length of the three runs, and the relative errors."""
     x0 = np.asarray(starts, dtype=float)
+    ctrl = HybridController(scene, guard=guard)
     runs = {
-        "sampled": simulate(scene, HybridController(scene), x0, dt=dt, horizon=horizon, camera_period=camera_period,
+        "sampled": simulate(scene, ctrl, x0, dt=dt, horizon=horizon, camera_period=camera_period,
                             record=False),
-        "continuous": simulate(scene, HybridController(scene), x0, dt=dt, horizon=horizon, model="continuous",
+        "continuous": simulate(scene, ctrl, x0, dt=dt, horizon=horizon, model="continuous",
                                record=False),
-        "limit": simulate(scene, HybridController(scene), x0, dt=limit_dt, horizon=horizon, camera_period=limit_dt,
+        "limit": simulate(scene, ctrl, x0, dt=limit_dt, horizon=horizon, camera_period=limit_dt,
                           record=False),
     }
     df = pd.DataFrame({"x0": x0[:, 0], "y0": x0[:, 1]})
@@ -41,14 +43,14 @@ def model_comparison(scene: Scene, starts=EDGE_STARTS, *, dt: float = 0.01, came
 
 
 def zigzag_figure(scene: Scene, start=(-12.0, 2.0), *, dt: float = 0.01, camera_period: float = 0.05,
-                  horizon: float = 12.0):
+                  horizon: float = 12.0, guard: bool = False):
     """The arc from `start` under both models: whole path, and a zoom on the diamond's edge (the zigzag)."""
     from matplotlib.figure import Figure
 
     x0 = np.asarray([start], dtype=float)
-    samp = simulate(scene, HybridController(scene), x0, dt=dt, horizon=horizon, camera_period=camera_period,
-                    record_every=1)
-    cont = simulate(scene, HybridController(scene), x0, dt=dt, horizon=horizon, model="continuous", record_every=1)
+    ctrl = HybridController(scene, guard=guard)
+    samp = simulate(scene, ctrl, x0, dt=dt, horizon=horizon, camera_period=camera_period, record_every=1)
+    cont = simulate(scene, ctrl, x0, dt=dt, horizon=horizon, model="continuous", record_every=1)
     fig = Figure(figsize=(11, 4))
     axes = fig.subplots(1, 2)
     ts, tc = samp.metrics["time_to_target"][0], cont.metrics["time_to_target"][0]
