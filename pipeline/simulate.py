@@ -13,6 +13,8 @@ from omegaconf import DictConfig
 
 from pipeline.cli import stage_main
 from pipeline.config import build
+from pipeline.errors import ConfigError
+from pipeline.perception.adversary import is_attack
 from pipeline.sim import frame_steps, simulate
 from pipeline.sim.settings import run_keywords
 
@@ -22,6 +24,9 @@ def objects(cfg: DictConfig):
     scene = build(cfg.scene, "scene")
     controller = build(cfg.controller, "controller", scene=scene)
     disturbance = build(cfg.disturbance, "disturbance")
+    if is_attack(disturbance):
+        raise ConfigError("disturbance", f"{disturbance.name} acts through the camera, and this stage simulates the "
+                                         "true state: run it in a camera experiment (experiment=camera_attack)")
     x0 = build(cfg.init, "init")(scene)
     sim, camera = build(cfg.sim, "sim"), build(cfg.camera, "camera")
     frame_steps(sim.dt, camera.period)

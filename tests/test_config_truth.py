@@ -338,7 +338,8 @@ def _target(node: dict):
 
 DEFAULT_NODES = ["sim/default.yaml", "camera/default.yaml", "controller/hybrid.yaml", "controller/smooth.yaml",
                  "controller/cbf.yaml", "disturbance/none.yaml", "disturbance/gaussian.yaml",
-                 "disturbance/alternating.yaml", "disturbance/adversarial.yaml", "init/points.yaml", "init/grid.yaml",
+                 "disturbance/alternating.yaml", "disturbance/adversarial.yaml", "disturbance/pixel_attack.yaml",
+                 "disturbance/worst_cloud.yaml", "init/points.yaml", "init/grid.yaml",
                  "init/random.yaml", "init/near_k.yaml", "scene/default.yaml", "render/default.yaml",
                  "occlusion/none.yaml"]
 

@@ -33,7 +33,8 @@ from pipeline.perception.maps import load_perception_map, resolve_device
 
 # the code whose changes change the numbers (figures.py and report.py only draw)
 COMPUTE_CODE = ("experiments/scenario", "experiments/theory", "experiments/camera_loop", "experiments/generalisation",
-                "experiments/context", "perception/measure", "perception/metrics", "control", "hybrid", "plants", "sim",
+                "experiments/context", "experiments/attacks", "experiments/margin", "perception/measure",
+                "perception/metrics", "perception/attacks", "perception/adversary", "control", "hybrid", "plants", "sim",
                 "render", "data/sampling", "data/recipe")
 
 
