@@ -14,7 +14,6 @@
 from __future__ import annotations
 
 import fnmatch
-import os
 import re
 from collections.abc import Callable, Iterable
 from pathlib import Path
@@ -144,9 +143,10 @@ def settings(cfg: DictConfig, cls):
     """A stage's root-level settings (the keys of its config file that are no node of their own) as the typed
     dataclass `cls`: every field's value checked against its annotation, then the object's own rules."""
     import dataclasses
-    import typing
 
-    hints = typing.get_type_hints(cls)
+    from pipeline.schema import _hints
+
+    hints = _hints(cls)
     values = {}
     for f in dataclasses.fields(cls):
         if f.name in cfg:
@@ -171,8 +171,38 @@ def check_schema(cfg: DictConfig, added: Iterable[str] = ()) -> None:
         raise ConfigError(key, "unknown key (not in the config; check the spelling: `+` does not add keys here)")
 
 
+def check_folder(value, field: str) -> None:
+    """`value` must be a folder this process can write in, or one it can create: tried for real (a temporary
+    folder made in it, or the missing folders made, then removed), so a read-only or virtual filesystem
+    (`/proc/...`), a file in the way or a missing permission is one `ConfigError` naming `field`."""
+    import tempfile
+
+    p = Path(str(value)).expanduser()
+    if p.exists() and not p.is_dir():
+        raise ConfigError(field, f"{p} is a file, not a folder")
+    missing = []
+    parent = p
+    while not parent.exists() and parent != parent.parent:
+        missing.append(parent)
+        parent = parent.parent
+    if not parent.is_dir():
+        raise ConfigError(field, f"cannot create {p}: {parent} is a file")
+    try:
+        if missing:
+            p.mkdir(parents=True)
+        tempfile.TemporaryDirectory(dir=p, prefix=".write-check-").cleanup()
+    except OSError as err:
+        raise ConfigError(field, f"cannot create or write {p}: {err.strerror or err}") from None
+    finally:
+        for folder in missing:  # deepest first: remove only what this check made
+            try:
+                folder.rmdir()
+            except OSError:
+                break
+
+
 def check_paths(paths) -> None:
-    """Every `paths.*` entry (but the Hydra run dir) must be a folder or creatable as one."""
+    """Every `paths.*` entry (but the Hydra run dir) must be a folder this process can write, or create."""
     if paths is None:
         return
     for key in paths.keys():
@@ -182,22 +212,8 @@ def check_paths(paths) -> None:
             value = paths[key]
         except Exception:  # noqa: BLE001 - hydra: interpolations outside a run
             continue
-        if value is None:
-            continue
-        p = Path(str(value))
-        if p.exists():
-            if not p.is_dir():
-                raise ConfigError(f"paths.{key}", f"{p} is a file, not a folder")
-            if not os.access(p, os.W_OK):
-                raise ConfigError(f"paths.{key}", f"{p} is not writable")
-            continue
-        parent = p
-        while not parent.exists() and parent != parent.parent:
-            parent = parent.parent
-        if not parent.is_dir():
-            raise ConfigError(f"paths.{key}", f"cannot create {p}: {parent} is a file")
-        if not os.access(parent, os.W_OK):
-            raise ConfigError(f"paths.{key}", f"cannot create {p}: {parent} is not writable")
+        if value is not None:
+            check_folder(value, f"paths.{key}")
 
 
 # ----------------------------------------------------------------------------------------- compose
@@ -362,6 +378,10 @@ def preflight(config_name: str, argv: list[str], check: Callable[[DictConfig], N
     config_name, overrides, skip = _split_argv(argv, config_name)
     if skip:
         return 0
+    for a in argv:  # Hydra creates its run/sweep dir before any job: an explicit one is checked here
+        key, _, value = a.lstrip("+").partition("=")
+        if key in ("hydra.run.dir", "hydra.sweep.dir") and value and "${" not in value:
+            check_folder(value, key)
     jobs = _expand(overrides)
     for job in jobs:
         try:

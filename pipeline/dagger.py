@@ -18,57 +18,71 @@ from __future__ import annotations
 import json
 import sys
 import time
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Annotated, Any
 
 import pandas as pd
 from omegaconf import DictConfig
 
 from pipeline import identity, tracking
-from pipeline.cli import CONF_DIR, stage_main
+from pipeline.cli import stage_main
 from pipeline.config import build, compose, hydra_error_line, override_value
 from pipeline.data.plan import plan
 from pipeline.errors import ConfigError, PipelineError
 from pipeline.experiments.report import markdown_table
 from pipeline.lineage import write_lock
 from pipeline.paper import path_overrides, run_stage
+from pipeline.schema import Node, Option, PositiveInt, check_value
 from pipeline.train.checks import check_settings
 
-ARGS = ("data", "data_later", "train")
-COLLECT = ("controller", "disturbance", "starts", "horizon", "error_weighted", "min_error", "error_floor")
 LATER = ("error_weighted", "min_error", "error_floor")  # collect keys that need a map: rounds >= 1 only
 CL = "data.sampling.closed_loop"
 
 
 # ------------------------------------------------------------------------------------------ config
+@dataclass(frozen=True)
+class Collect:
+    """`dagger.collect`: the `data.sampling.closed_loop.*` keys of every round (their types and ranges are that
+    node's, checked when the rounds' data configs are composed, and named here, :func:`_renamed`)."""
+
+    controller: Annotated[dict, Node()]
+    disturbance: Annotated[dict, Node()]
+    starts: Any
+    horizon: Any
+    error_weighted: Any
+    min_error: Any
+    error_floor: Any
+
+
+@dataclass(frozen=True)
+class Args:
+    """`dagger.args`: extra Hydra overrides of every round's data job, of rounds >= 1's, of every train job."""
+
+    data: list[str] = field(default_factory=list)
+    data_later: list[str] = field(default_factory=list)
+    train: list[str] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class Dagger:
+    """The `dagger` node (conf/dagger.yaml documents each key)."""
+
+    rounds: PositiveInt
+    recipe: Annotated[str, Option("data")]
+    collect: Collect
+    levels: list[str] = field(default_factory=list)
+    args: Args = field(default_factory=Args)
+
+
+COLLECT = tuple(Collect.__dataclass_fields__)
+
+
 def _settings(cfg) -> dict:
     """`dagger` node, checked (types and names; the stage configs are checked by :func:`check`)."""
     d = tracking.to_plain(cfg.get("dagger"))
-    if not isinstance(d, dict):
-        raise ConfigError("dagger", "missing (see conf/dagger.yaml)")
-    rounds = d.get("rounds")
-    if isinstance(rounds, bool) or not isinstance(rounds, int) or rounds < 1:
-        raise ConfigError("dagger.rounds", f"must be an integer >= 1, got {rounds!r}")
-    recipe = d.get("recipe")
-    if not isinstance(recipe, str) or not (CONF_DIR / "data" / f"{recipe}.yaml").is_file():
-        known = ", ".join(sorted(p.stem for p in (CONF_DIR / "data").glob("*.yaml")))
-        raise ConfigError("dagger.recipe", f"unknown recipe {recipe!r} (conf/data/: {known})")
-    args = d.get("args") or {}
-    for k, v in args.items():
-        if k not in ARGS:
-            raise ConfigError(f"dagger.args.{k}", f"unknown key (one of {', '.join(ARGS)})")
-        if not isinstance(v, list) or not all(isinstance(x, str) for x in v):
-            raise ConfigError(f"dagger.args.{k}", f"must be a list of override strings, got {v!r}")
-    d["args"] = {k: list(args.get(k) or []) for k in ARGS}
-    collect = d.get("collect") or {}
-    for k in set(collect) - set(COLLECT):
-        raise ConfigError(f"dagger.collect.{k}", f"unknown key (known: {', '.join(COLLECT)})")
-    for k in COLLECT:
-        if k not in collect:
-            raise ConfigError(f"dagger.collect.{k}", "missing (see conf/dagger.yaml)")
-    levels = d.get("levels") or []
-    if not isinstance(levels, list) or not all(isinstance(x, str) for x in levels):
-        raise ConfigError("dagger.levels", f"must be a list of occlusion level names, got {levels!r}")
-    return d
+    check_value(d, Dagger, "dagger")
+    return {**d, "args": asdict(Args(**(d.get("args") or {}))), "levels": list(d.get("levels") or [])}
 
 
 def _collect(d: dict, later: bool) -> list[str]:

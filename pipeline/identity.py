@@ -25,7 +25,7 @@ def dataset_code(recipe: Mapping) -> tuple[str, ...]:
     sampling = recipe.get("sampling") or {}
     if sampling.get("mode") != "closed_loop":
         return DATASET_CODE
-    with_map = ("perception/measure", "perception/maps", "perception/network") \
+    with_map = ("perception/measure", "perception/maps", "perception/network", "perception/heading") \
         if (sampling.get("closed_loop") or {}).get("map") else ()
     return DATASET_CODE + ("data/closed_loop", "sim", "hybrid", "control", "plants", *with_map)
 
@@ -55,7 +55,7 @@ PLACEMENT_KEYS = ("_target_", "accelerator", "strategy", "devices", "num_nodes",
 DATAMODULE_SPEED_KEYS = ("_target_", "eval_batch_size", "num_workers", "pin_memory")
 # Callbacks that change the saved weights, and which of their arguments do (None = all).
 WEIGHT_CALLBACKS = {"ModelCheckpoint": ("monitor", "mode"), "EarlyStopping": None}
-MAP_CODE = ("train", "perception/network")
+MAP_CODE = ("train", "perception/network", "perception/heading")
 
 
 def map_name(dataset_name: str, model_cfg: Mapping, override: str | None) -> str:
@@ -100,13 +100,15 @@ def map_identity(cfg: Mapping, dataset_name: str, dataset_id_: str) -> tuple[str
 
 
 # ------------------------------------------------------------------------------------------ error maps
-ERRORMAP_VOLATILE = ("force", "progress", "paths", "hydra", "maps", "occlusions", "device")
+ERRORMAP_VOLATILE = ("force", "progress", "paths", "hydra", "maps", "occlusions", "device", "debug")
 ERRORMAP_CODE = ("errormap", "render")
 
 
-def errormap_id(settings: Mapping, occlusions: Mapping, map_id: str, scene: Mapping, arena) -> str:
+def errormap_id(settings: Mapping, occlusions: Mapping, map_id: str, scene: Mapping, arena, pose: bool = False) -> str:
     """Id of the error map of perception map `map_id` (its scene and arena, from its manifest) under the errormap
-    settings (plain, minus volatile keys) and the cloud levels' parameters."""
-    return tracking.content_id(tracking.strip_keys(settings, ERRORMAP_VOLATILE), dict(occlusions), str(map_id),
+    settings (plain, minus volatile keys; `headings` only for a pose map, the only one that reads it) and the
+    cloud levels' parameters."""
+    volatile = ERRORMAP_VOLATILE if pose else (*ERRORMAP_VOLATILE, "headings")
+    return tracking.content_id(tracking.strip_keys(settings, volatile), dict(occlusions), str(map_id),
                                dict(scene), [float(v) for pair in arena for v in pair],
                                tracking.code_version(*ERRORMAP_CODE))

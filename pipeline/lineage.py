@@ -26,6 +26,17 @@ COMMANDS = {
 }
 
 
+def debug_overrides(cfg) -> list[str]:
+    """`[debug=<level>]` of a composed config (conf/debug/; none: `[]`): what a stage passes on when it resolves its
+    inputs by name, so that a `debug=tiny` run finds the tiny upstream outputs (and its hints say `debug=tiny`)."""
+    level = cfg.get("debug") if cfg is not None else None
+    return [] if level in (None, "none") else [f"debug={level}"]
+
+
+def _with(command: str | None, overrides) -> str | None:
+    return " ".join([command, *overrides]) if command and overrides else command
+
+
 def _recipe(name: str) -> bool:
     return (CONF_DIR / "data" / f"{name}.yaml").is_file()
 
@@ -54,15 +65,17 @@ def dataset_identity(cfg) -> tuple[str, str, dict]:
     map in the loop resolved to `name-id`s (which the recipe then holds, so they are in the id)."""
     recipe = tracking.to_plain(cfg.data)
     sampling = recipe.get("sampling") or {}
+    debug = debug_overrides(cfg)
     if sampling.get("parent") is not None:
         try:
-            sampling["parent"] = resolve_dataset(sampling["parent"], cfg.paths.datasets_dir).name
+            sampling["parent"] = resolve_dataset(sampling["parent"], cfg.paths.datasets_dir, debug).name
         except DatasetError as err:
             raise ConfigError("data.sampling.parent", str(err)) from None
     cl = sampling.get("closed_loop") or {}
     if cl.get("map") is not None:
         try:
-            cl["map"] = resolve_map(cl["map"], cfg.paths.models_dir, field="data.sampling.closed_loop.map").name
+            cl["map"] = resolve_map(cl["map"], cfg.paths.models_dir, field="data.sampling.closed_loop.map",
+                                    overrides=debug).name
         except DatasetError as err:
             raise ConfigError("data.sampling.closed_loop.map", str(err)) from None
     occlusion = load_occlusion(recipe.get("occlusion", "none"), cfg.occlusions, field="data.occlusion").config()
@@ -81,16 +94,19 @@ def train_dataset_id(cfg) -> tuple[str, str]:
     """(name, id) of the dataset a composed train config trains on: `dataset` if set (resolved), else the
     dataset its `data` recipe renders with this very config."""
     if cfg.get("dataset"):
-        folder = resolve_dataset(cfg.dataset, cfg.paths.datasets_dir)
+        folder = resolve_dataset(cfg.dataset, cfg.paths.datasets_dir, debug_overrides(cfg))
         name, _, id_ = folder.name.rpartition("-")
         return name, id_
     name, id_, _ = dataset_identity(cfg)
     return name, id_
 
 
-def resolve_dataset(ref, datasets_dir) -> Path:
-    return tracking.resolve(Path(datasets_dir), ref, kind="dataset", expected=expected_dataset_id,
-                            command=COMMANDS["dataset"], field="dataset")
+def resolve_dataset(ref, datasets_dir, overrides=()) -> Path:
+    """A dataset by path, `name-id`, id or name (`overrides`, e.g. `debug=tiny`, join the config a name means)."""
+    return tracking.resolve(Path(datasets_dir), ref, kind="dataset",
+                            expected=lambda name: expected_dataset_id(name, overrides),
+                            command=lambda name: _with(COMMANDS["dataset"].format(name=name), overrides),
+                            field="dataset")
 
 
 # ------------------------------------------------------------------------------------- perception maps
@@ -110,9 +126,12 @@ def expected_map_id(name: str, overrides=()) -> str | None:
     return id_ if model_name == name else None
 
 
-def resolve_map(ref, models_dir, field: str = "maps") -> Path:
-    return tracking.resolve(Path(models_dir), ref, kind="perception map", expected=expected_map_id,
-                            command=map_command, field=field)
+def resolve_map(ref, models_dir, field: str = "maps", overrides=()) -> Path:
+    """A perception map by path, `name-id`, id or name (`overrides`, e.g. `debug=tiny`, join the train config a
+    name means)."""
+    return tracking.resolve(Path(models_dir), ref, kind="perception map",
+                            expected=lambda name: expected_map_id(name, overrides),
+                            command=lambda name: _with(map_command(name), overrides), field=field)
 
 
 # ------------------------------------------------------------------------------------------ error maps
@@ -130,7 +149,8 @@ def errormap_identity(cfg, map_manifest: dict) -> tuple[str, str]:
     settings = errormap_settings(cfg)
     occ = {lv: load_occlusion(lv, cfg.occlusions, field="occlusion_levels").config()
            for lv in settings["occlusion_levels"]}
-    id_ = identity.errormap_id(settings, occ, map_manifest["id"], map_manifest["scene"], map_manifest["arena"])
+    pose = (map_manifest.get("model") or {}).get("outputs") == "pose"
+    id_ = identity.errormap_id(settings, occ, map_manifest["id"], map_manifest["scene"], map_manifest["arena"], pose)
     return map_manifest["name"], id_
 
 
@@ -140,17 +160,18 @@ def expected_errormap_id(map_folder: Path, overrides=()) -> tuple[str, str]:
     return errormap_identity(compose("errormap", [f"maps={m['name']}-{m['id']}", *overrides]), m)
 
 
-def resolve_errormap(ref, errormaps_dir, map_folder: Path | None = None) -> Path:
-    """An error map by path, `name-id` or id; `None` means the current config's error map of the map folder."""
+def resolve_errormap(ref, errormaps_dir, map_folder: Path | None = None, overrides=()) -> Path:
+    """An error map by path, `name-id` or id; `None` means the current config's error map of the map folder (with
+    `overrides`, e.g. `debug=tiny`)."""
     if ref is None:
         if map_folder is None:
             raise ValueError("resolve_errormap: a reference or a perception map is needed")
-        name, id_ = expected_errormap_id(map_folder)
+        name, id_ = expected_errormap_id(map_folder, overrides)
         folder = Path(errormaps_dir) / f"{name}-{id_}"
         if not tracking.is_complete(folder):
             raise DatasetError(f"error map of {map_folder.name}: the current errormap config makes {folder.name}, "
-                               f"which is not built under {errormaps_dir}; run `python -m pipeline.errormap "
-                               f"maps=[{map_folder.name}]`")
+                               f"which is not built under {errormaps_dir}; run `"
+                               f"{_with(f'python -m pipeline.errormap maps=[{map_folder.name}]', overrides)}`")
         return folder
     return tracking.resolve(Path(errormaps_dir), ref, kind="error map", command=COMMANDS["error map"],
                             field="errormaps")

@@ -13,19 +13,50 @@ import json
 import subprocess
 import sys
 import time
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Annotated
 
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from pipeline import tracking
-from pipeline.cli import CONF_DIR, REPO_ROOT, stage_main
-from pipeline.config import compose
+from pipeline.cli import REPO_ROOT, stage_main
+from pipeline.config import compose, settings
 from pipeline.errors import ConfigError, PipelineError
 from pipeline.experiments.report import write_index
-from pipeline.lineage import dataset_identity, expected_errormap_id, map_identity, map_recipe, write_lock
+from pipeline.lineage import (
+    dataset_identity,
+    debug_overrides,
+    expected_errormap_id,
+    map_identity,
+    map_recipe,
+    write_lock,
+)
+from pipeline.schema import NonEmpty, Option, Pattern
 
-STAGE_ARGS = ("data", "train", "errormap", "experiments")
+
+@dataclass(frozen=True)
+class StageArgs:
+    """Extra Hydra overrides of each stage's jobs."""
+
+    data: list[str] = field(default_factory=list)
+    train: list[str] = field(default_factory=list)
+    errormap: list[str] = field(default_factory=list)
+    experiments: list[str] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class PaperSettings:
+    """The root keys of conf/paper.yaml (documented there); the cross-field rules in :func:`check`."""
+
+    datasets: Annotated[list[Annotated[str, Option("data")]], NonEmpty()]
+    maps: list[str]
+    errormaps: list[str]
+    experiments: list[Annotated[str, Option("experiment")]]
+    args: StageArgs
+    stop_on_error: bool
+    lock: Annotated[str, Pattern(r"[^/]+\.yaml", "a file name ending in .yaml")]
 
 
 def path_overrides() -> list[str]:
@@ -37,22 +68,12 @@ def path_overrides() -> list[str]:
 
 
 def _args(cfg) -> dict[str, list[str]]:
-    args = tracking.to_plain(cfg.args) or {}
-    for k, v in args.items():
-        if k not in STAGE_ARGS:
-            raise ConfigError(f"args.{k}", f"unknown stage (one of {', '.join(STAGE_ARGS)})")
-        if not isinstance(v, list) or not all(isinstance(x, str) for x in v):
-            raise ConfigError(f"args.{k}", f"must be a list of override strings, got {v!r}")
-    return {k: list(args.get(k, [])) for k in STAGE_ARGS}
+    return {k: list(v) for k, v in asdict(StageArgs(**(tracking.to_plain(cfg.args) or {}))).items()}
 
 
 def check(cfg: DictConfig) -> None:
-    datasets, maps = list(cfg.datasets), list(cfg.maps)
-    if not datasets:
-        raise ConfigError("datasets", "needs at least one recipe")
-    for name in datasets:
-        if not (CONF_DIR / "data" / f"{name}.yaml").is_file():
-            raise ConfigError("datasets", f"unknown recipe {name!r} (conf/data/)")
+    s = settings(cfg, PaperSettings)
+    datasets, maps = s.datasets, s.maps
     for name in maps:
         if map_recipe(name) is None:
             raise ConfigError("maps", f"unknown map {name!r}: a recipe of conf/data/, or <recipe>_<model> with a "
@@ -60,15 +81,8 @@ def check(cfg: DictConfig) -> None:
     missing = {name for name in maps if map_recipe(name)[0] not in datasets}
     if missing:
         raise ConfigError("maps", f"{sorted(missing)} are trained on datasets not among {datasets}")
-    if set(cfg.errormaps) - set(maps):
-        raise ConfigError("errormaps", f"{sorted(set(cfg.errormaps) - set(maps))} are not among the maps {maps}")
-    for exp in cfg.experiments:
-        if not (CONF_DIR / "experiment" / f"{exp}.yaml").is_file():
-            raise ConfigError("experiments", f"unknown experiment {exp!r} (conf/experiment/)")
-    lock = cfg.lock
-    if not (isinstance(lock, str) and lock.endswith(".yaml") and "/" not in lock):
-        raise ConfigError("lock", f"must be a file name ending in .yaml, got {lock!r}")
-    _args(cfg)
+    if set(s.errormaps) - set(maps):
+        raise ConfigError("errormaps", f"{sorted(set(s.errormaps) - set(maps))} are not among the maps {maps}")
 
 
 def run_stage(stage: str, argv: list[str], timings: dict, stop: bool, *, tag: str = "paper",
@@ -93,7 +107,8 @@ def run_stage(stage: str, argv: list[str], timings: dict, stop: bool, *, tag: st
 def run(cfg) -> dict:
     check(cfg)
     t0 = time.perf_counter()
-    args, paths = _args(cfg), path_overrides()
+    # paths.* and debug=<level> go to every stage and to every config whose ids are computed here
+    args, paths = _args(cfg), [*path_overrides(), *debug_overrides(cfg)]
     stop = bool(cfg.get("stop_on_error", True))
     timings: dict[str, float] = {}
     datasets, maps, errormaps, experiments = list(cfg.datasets), list(cfg.maps), list(cfg.errormaps), list(cfg.experiments)

@@ -15,10 +15,12 @@ A plant maps the input `w` it is given to its flow `c_dot = flow(c, w)`, and int
 from __future__ import annotations
 
 import math
+from typing import Literal
 
 import numpy as np
 
 from pipeline.errors import ConfigError
+from pipeline.schema import NonNegativeInt, Positive, checked
 
 
 class Plant:
@@ -60,6 +62,10 @@ class Plant:
         """States `(N, n)` at positions `p` (and headings, for a vehicle that has one)."""
         return np.array(p, dtype=float).reshape(-1, 2)
 
+    def initial_heading(self, p: np.ndarray, scene) -> np.ndarray | None:
+        """The initial headings `(N,)` of vehicles starting at `p` (None: a vehicle without one)."""
+        return None
+
     def steering_scene(self, scene):
         """The scene the feedback law steers `point` in (the real one)."""
         return scene
@@ -83,25 +89,27 @@ class SingleIntegrator(Plant):
         return np.hypot(w[:, 0], w[:, 1])
 
 
+@checked("vehicle")
 class Unicycle(Plant):
     """The unicycle of SPEC §3.7, steered through its look-ahead point `z = p + d (cos θ, sin θ)`.
 
     `lookahead` is `d` (> 0; SPEC requires `d < δ`, the success radius, checked by the closed loop), `omega_max`
     the turn-rate limit (rad/s, null: none). Its speed `|v| <= |u| <= u_max` follows from the controller's
-    saturation.
+    saturation. `heading0`: the initial heading of every start: `random` (uniform over the circle, from
+    `heading_seed`, the same for the same starts), `target` (facing the target) or a number (radians).
     """
 
     name = "unicycle"
     dim = 3
     heading = True
 
-    def __init__(self, lookahead: float = 0.5, omega_max: float | None = 4.0 * math.pi):
-        if not lookahead > 0:
-            raise ConfigError("vehicle.lookahead", f"must be > 0, got {lookahead!r}")
-        if omega_max is not None and not omega_max > 0:
-            raise ConfigError("vehicle.omega_max", f"must be > 0 (or null: no limit), got {omega_max!r}")
+    def __init__(self, lookahead: Positive = 0.5, omega_max: Positive | None = 4.0 * math.pi,
+                 heading0: Literal["random", "target"] | float = "random", heading_seed: NonNegativeInt = 0):
+        if isinstance(heading0, float) and not math.isfinite(heading0):
+            raise ConfigError("vehicle.heading0", f"must be random, target or a finite number (radians), got {heading0!r}")
         self.lookahead = float(lookahead)
         self.omega_max = None if omega_max is None else float(omega_max)
+        self.heading0, self.heading_seed = heading0, heading_seed
 
     def point(self, c):
         d = self.lookahead
@@ -146,6 +154,15 @@ class Unicycle(Plant):
         """Every disc inflated by the look-ahead `d`, so that the axle point, `d` from `z`, stays out of the real
         disc (SPEC §3.7)."""
         return scene.inflated(self.lookahead)
+
+    def initial_heading(self, p, scene):
+        """`heading0` at every start `p` `(N, 2)`: seeded uniform, facing the scene's target, or one angle."""
+        p = np.asarray(p, dtype=float).reshape(-1, 2)
+        if self.heading0 == "random":
+            return np.random.default_rng(self.heading_seed).uniform(-math.pi, math.pi, len(p))
+        if self.heading0 == "target":
+            return np.arctan2(scene.p_T[1] - p[:, 1], scene.p_T[0] - p[:, 0])
+        return np.full(len(p), float(self.heading0))
 
     def lift(self, p, heading=None):
         p = np.array(p, dtype=float).reshape(-1, 2)

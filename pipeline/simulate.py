@@ -15,14 +15,19 @@ from pipeline.cli import stage_main
 from pipeline.config import build
 from pipeline.errors import ConfigError
 from pipeline.perception.adversary import is_attack
+from pipeline.plants import SingleIntegrator
 from pipeline.sim import frame_steps, simulate
-from pipeline.sim.settings import run_keywords
+from pipeline.sim.settings import check_vehicle, run_keywords
 
 
 def objects(cfg: DictConfig):
-    """Every object of the run, built from its node and checked: (scene, controller, disturbance, starts, keywords)."""
+    """Every object of the run, built from its node and checked: (scene, controller, disturbance, starts, keywords).
+
+    The controller steers the vehicle's steered point in `vehicle.steering_scene(scene)` (the unicycle's discs
+    inflated by its look-ahead, SPEC §3.7); the keywords carry the plant and its initial headings."""
     scene = build(cfg.scene, "scene")
-    controller = build(cfg.controller, "controller", scene=scene)
+    plant = build(cfg.vehicle, "vehicle") if cfg.get("vehicle") is not None else SingleIntegrator()
+    controller = build(cfg.controller, "controller", scene=plant.steering_scene(scene))
     disturbance = build(cfg.disturbance, "disturbance")
     if is_attack(disturbance):
         raise ConfigError("disturbance", f"{disturbance.name} acts through the camera, and this stage simulates the "
@@ -30,7 +35,9 @@ def objects(cfg: DictConfig):
     x0 = build(cfg.init, "init")(scene)
     sim, camera = build(cfg.sim, "sim"), build(cfg.camera, "camera")
     frame_steps(sim.dt, camera.period)
-    return scene, controller, disturbance, x0, run_keywords(sim, camera)
+    check_vehicle(plant, sim)
+    kw = {**run_keywords(sim, camera), "plant": plant, "heading0": plant.initial_heading(x0, scene)}
+    return scene, controller, disturbance, x0, kw
 
 
 def check(cfg: DictConfig) -> None:
@@ -56,7 +63,8 @@ def run(cfg: DictConfig) -> dict:
                                 title=f"{controller.name} controller, disturbance {disturbance.name}, {kw['model']}")
         save(fig, run_dir / "trajectories")
     med = df.time_to_target.dropna().median() if df.success.any() else float("nan")
-    print(f"simulate ({kw['model']}): {controller.name} / {disturbance.name}: {len(df)} agents, "
+    vehicle = f", {kw['plant'].name}" if kw["plant"].heading else ""
+    print(f"simulate ({kw['model']}{vehicle}): {controller.name} / {disturbance.name}: {len(df)} agents, "
           f"success {df.success.mean():.1%}, collision {df.collision.mean():.1%}, median time {med:.2f} s, "
           f"{elapsed:.2f} s -> {run_dir}")
     return {"metrics": df, "result": result, "run_dir": run_dir}

@@ -270,7 +270,7 @@ def test_hook_without_budget_is_the_camera_measurement(camera, clouds, positions
     for frame in range(2):
         np.testing.assert_array_equal(hook(positions, None, frame, r1), plain(positions, None, frame, r2))
     assert r1.random() == r2.random()  # the hook draws the scenario's clouds from the simulator's rng, no more
-    with pytest.raises(ConfigError, match="attack.kind"):
+    with pytest.raises(ConfigError, match="attack.attack: must be one of pixel, cloud"):
         AttackedCamera(camera, pm, directions, attack="laser")
 
 

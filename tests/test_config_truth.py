@@ -32,7 +32,7 @@ def _cli(module, *args, timeout=300):
 
 def _exp_cfg(tmp_path, *extra):
     return compose("experiments", [f"paths.paper_dir={tmp_path / 'paper'}", f"paths.outputs_dir={tmp_path / 'out'}",
-                                   "perception=oracle", *extra])
+                                   "perception=oracle", "publish=true", *extra])
 
 
 # ------------------------------------------------------------------------------ shared controller gains
@@ -114,7 +114,7 @@ SCHEMA_CASES = [
     ("simulate", ["sim.stop_on_success=maybe"], "sim.stop_on_success", "must be true or false"),
     ("simulate", ["sim.model=hourly"], "sim.model", "must be one of sampled, continuous"),
     ("simulate", ["sim.method=euler"], "sim.method", "must be one of rosenbrock23, dopri5"),
-    ("simulate", ["camera.period=fast"], "camera.period", "must be a number (or null)"),
+    ("simulate", ["camera.period=fast"], "camera.period", "must be a number > 0 (or null)"),
     ("simulate", ["controller.chi=[1.1,1.2]"], "controller.chi", "must be a number"),
     ("simulate", ["+controller.lamda=0.05"], "controller.lamda", "unknown key"),
     ("simulate", ["++controller.lamda=0.05"], "controller.lamda", "unknown key"),
@@ -341,7 +341,7 @@ DEFAULT_NODES = ["sim/default.yaml", "camera/default.yaml", "controller/hybrid.y
                  "disturbance/alternating.yaml", "disturbance/adversarial.yaml", "disturbance/pixel_attack.yaml",
                  "disturbance/worst_cloud.yaml", "init/points.yaml", "init/grid.yaml",
                  "init/random.yaml", "init/near_k.yaml", "scene/default.yaml", "render/default.yaml",
-                 "occlusion/none.yaml"]
+                 "occlusion/none.yaml", "model/default.yaml", "datamodule/default.yaml"]
 
 
 @pytest.mark.parametrize("rel", DEFAULT_NODES)
@@ -370,6 +370,20 @@ def test_nested_and_stage_defaults_are_the_yaml():
     errormap = _yaml("errormap.yaml")
     assert _differences(errormap, ErrorMapSettings) == []
     assert set(errormap) - {"defaults", "hydra"} == set(_code_defaults(ErrorMapSettings))  # every setting in the YAML
+
+
+def test_experiment_settings_and_simulate_defaults_are_the_yaml():
+    """The experiments stage's root keys, and `simulate()`'s keywords: those of conf/sim and conf/camera."""
+    from pipeline.experiments.settings import ExperimentSettings
+    from pipeline.sim import simulate
+
+    experiments = _yaml("experiments.yaml")
+    assert _differences(experiments, ExperimentSettings) == []
+    assert set(experiments) - {"defaults", "hydra"} == set(_code_defaults(ExperimentSettings))
+    sim, camera = _yaml("sim/default.yaml"), _yaml("camera/default.yaml")
+    run = {**{k: v for k, v in sim.items() if k != "_target_"}, "camera_period": camera["period"],
+           "p_fail": camera["p_fail"]}
+    assert _differences(run, simulate) == []
 
 
 # ------------------------------------------------------------------------------- bad input, every stage

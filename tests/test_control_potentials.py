@@ -489,7 +489,7 @@ def _obstacle(**kw) -> dict:
         ({"target": [1.0, 2.0, 3.0]}, "scene.target", "scene.target"),
         # wrong types and choices are the config's to check (by the signature), naming the element
         ({"target": ["a", "b"]}, "scene.target[0]", None),
-        (_obstacle(center=[float("inf"), 0.0]), "scene.obstacles[0].center[0]", "scene.obstacles[0].center"),
+        (_obstacle(center=[float("inf"), 0.0]), "scene.obstacles[0].center[0]", "scene.obstacles[0].center[0]"),
         (_obstacle(apex=5.0), "scene.obstacles[0].apex", "scene.obstacles[0].apex"),  # < sqrt(2) r
         ({"barrier": {"rho": 0.0}}, "scene.barrier.rho", "scene.barrier.rho"),
         ({"barrier": {"rho": 1.5}}, "scene.barrier.rho", "scene.barrier.rho"),

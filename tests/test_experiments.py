@@ -17,15 +17,16 @@ BUNDLES = sorted(p.stem for p in (CONF_DIR / "experiment").glob("*.yaml"))
 
 
 def _cfg(tmp_path, *extra):
+    publish = [] if any(e.startswith("publish=") for e in extra) else ["publish=true"]  # files in paths.paper_dir
     return compose("experiments", [f"paths.paper_dir={tmp_path / 'paper'}", f"paths.outputs_dir={tmp_path / 'out'}",
-                                   *extra])
+                                   *publish, *extra])
 
 
 def test_every_bundle_runs_in_one_multirun(tmp_path):
     """`-m experiment=glob(*) debug=tiny` with a perfect map: every figure/table and index.md appear."""
     proc = subprocess.run(
         [sys.executable, "-m", "pipeline.experiments", "-m", "experiment=glob(*)", "debug=tiny", "perception=oracle",
-         f"paths.paper_dir={tmp_path / 'paper'}", f"paths.outputs_dir={tmp_path / 'out'}",
+         "publish=true", f"paths.paper_dir={tmp_path / 'paper'}", f"paths.outputs_dir={tmp_path / 'out'}",
          f"hydra.sweep.dir={tmp_path / 'sweep'}"],
         cwd=REPO_ROOT, capture_output=True, text=True, timeout=600,
     )
@@ -240,7 +241,8 @@ def test_leader_keeps_regulating_after_success(tmp_path):
 def test_a_run_on_the_side_never_replaces_a_pinned_paper_figure(tmp_path):
     """Once make paper has pinned an experiment's computation (`paper.lock.yaml`), a run of it with another config
     writes to `paths.side_dir/<experiment>-<id>/` and leaves the paper's figure, table and index entry as pinned;
-    the pinned computation itself, and `publish=true` (what make paper passes), still write to the paper."""
+    the pinned computation itself, and `publish=true` (what make paper passes), still write to the paper
+    (`publish=auto`; the default, false, always writes to the side folder)."""
     import json
 
     from omegaconf import OmegaConf
@@ -249,20 +251,21 @@ def test_a_run_on_the_side_never_replaces_a_pinned_paper_figure(tmp_path):
 
     paper = tmp_path / "paper"
     fig = paper / "fig3_coverings.png"
-    pinned = run(_cfg(tmp_path, "experiment=coverings", "debug=tiny"))
+    pinned = run(_cfg(tmp_path, "experiment=coverings", "debug=tiny", "publish=auto"))
     assert fig.is_file() and pinned["files"][0].parent == paper
     OmegaConf.save({"experiments": {"coverings": {"id": pinned["cache"].name.split("-")[-1],
                                                   "folder": pinned["cache"].name}}}, paper / "paper.lock.yaml")
     before, entry = fig.read_bytes(), (paper / "index" / "coverings.json").read_text()
 
-    side = run(_cfg(tmp_path, "experiment=coverings", "debug=tiny", "experiment.grid_step=0.5"))
+    side = run(_cfg(tmp_path, "experiment=coverings", "debug=tiny", "experiment.grid_step=0.5",
+                    "publish=auto"))
     assert side["cache"] != pinned["cache"]
     assert fig.read_bytes() == before and (paper / "index" / "coverings.json").read_text() == entry
     side_dir = tmp_path / "out" / "side" / side["cache"].name
     assert (side_dir / "fig3_coverings.png").is_file() and all(f.parent == side_dir for f in side["files"])
     assert json.loads((side_dir / "index" / "coverings.json").read_text())["cache"].endswith(side["cache"].name)
 
-    again = run(_cfg(tmp_path, "experiment=coverings", "debug=tiny"))  # the pinned computation: the paper
+    again = run(_cfg(tmp_path, "experiment=coverings", "debug=tiny", "publish=auto"))  # the pinned computation: the paper
     assert again["cached"] and again["files"][0].parent == paper
     run(_cfg(tmp_path, "experiment=coverings", "debug=tiny", "experiment.grid_step=0.5", "publish=true"))
     assert fig.read_bytes() != before

@@ -56,7 +56,7 @@ class StubMap:
 
 def _cfg(tmp_path, *extra):
     return compose("experiments", ["experiment=perception_generalisation", f"paths.paper_dir={tmp_path / 'paper'}",
-                                   f"paths.outputs_dir={tmp_path / 'out'}", *extra])
+                                   f"paths.outputs_dir={tmp_path / 'out'}", "publish=true", *extra])
 
 
 @pytest.fixture

@@ -261,7 +261,7 @@ class _Straight(Feedback):
 
 def test_collision_detection_and_termination(scene):
     x0 = np.array([[-20.0, 0.0], [-20.0, 10.0], [1.0, 1.0], [-20.0, 3.9]])
-    res = simulate(scene, _Straight(scene, u_max=10.0), x0, dt=0.01, horizon=30.0, record_every=1)
+    res = simulate(scene, _Straight(scene, u_max=10.0), x0, dt=0.01, horizon=30.0, camera_period=None, record_every=1)
     m = res.metrics
     assert m["collision"].tolist() == [True, False, True, True]
     assert m["success"].tolist() == [False, True, False, False]

@@ -68,18 +68,18 @@ def test_outcome_classes(scene, model):
     assert set(m["outcome"]) <= set(OUTCOMES)
     # a horizon shorter than stall_time cannot tell a stall: the smooth saddle is `timed_out` then
     res = simulate(scene, SmoothController(scene), np.array([[-20.0, 0.0]]), dt=0.01, horizon=4.0, model=model,
-                   stall_time=5.0, record=False)
+                   camera_period=None, stall_time=5.0, record=False)
     assert list(res.metrics["outcome"]) == ["timed_out"]
 
 
 def test_stall_thresholds_are_config(scene):
     x0 = np.array([[-20.0, 0.0], [-45.0, 20.0]])
     # the second agent moves at ~10 units/s: stalled only if the threshold is above its speed
-    slow = simulate(scene, SmoothController(scene), x0, dt=0.01, horizon=5.0, stall_time=2.0, stall_speed=0.1,
-                    record=False)
+    slow = simulate(scene, SmoothController(scene), x0, dt=0.01, horizon=5.0, camera_period=None, stall_time=2.0,
+                    stall_speed=0.1, record=False)
     assert list(slow.metrics["outcome"]) == ["stalled", "timed_out"]
-    fast = simulate(scene, SmoothController(scene), x0, dt=0.01, horizon=5.0, stall_time=2.0, stall_speed=20.0,
-                    record=False)
+    fast = simulate(scene, SmoothController(scene), x0, dt=0.01, horizon=5.0, camera_period=None, stall_time=2.0,
+                    stall_speed=20.0, record=False)
     assert list(fast.metrics["outcome"]) == ["stalled", "stalled"]
     for kw, field in (({"stall_speed": 0.0}, "sim.stall_speed"), ({"stall_time": -1.0}, "sim.stall_time"),
                       ({"stall_time": "x"}, "sim.stall_time")):
@@ -247,7 +247,7 @@ def test_grazing_chord_is_a_collision(scene, model):
     step lie outside it; 0.05 outside, the clearance is 0.05."""
     r = scene.obstacle_radius
     x0 = np.array([[-30.0, r - 0.05], [-30.0, r + 0.05], [-30.0, -r + 0.05]])
-    res = simulate(scene, _Constant(scene), x0, dt=0.01, horizon=6.0, model=model, record=False)
+    res = simulate(scene, _Constant(scene), x0, dt=0.01, horizon=6.0, model=model, camera_period=None, record=False)
     m = res.metrics
     assert m["collision"].tolist() == [True, False, True]
     assert m["outcome"].tolist() == ["collided", "timed_out", "collided"]

@@ -160,7 +160,7 @@ def test_the_confident_gate_keeps_new_frames_within_the_target_at_its_confidence
 class _Identity:
     """A 'camera' whose image of p is p itself (the map below reads positions)."""
 
-    def render(self, leader, follower=None, occlusion=None, rng=None):
+    def render(self, leader, follower=None, occlusion=None, rng=None, heading=None):
         return np.asarray(leader, float).copy()
 
 

@@ -17,7 +17,7 @@ from pipeline.control.cbf import cbf_qp, disc_constraints
 from pipeline.control.feedback import Feedback, radial
 from pipeline.control.potentials import smooth_potential_grad
 from pipeline.control.scene import Scene
-from pipeline.errors import ConfigError
+from pipeline.schema import Positive, checked
 
 
 class SmoothController(Feedback):
@@ -31,16 +31,15 @@ class SmoothController(Feedback):
         return self._finalise(u, inside, radial(self.scene, m))
 
 
+@checked("controller", objects=("scene",))
 class CBFController(Feedback):
     """CBF safety filter (SPEC §3.4, §3.6) on `u_nom = -k (m - p_T)`, one constraint per obstacle, exact QP."""
 
     name = "cbf"
 
-    def __init__(self, scene: Scene, k: float = 1.0, alpha: float = 1.0, u_max: float | None = 10.0,
-                 push_speed: float | None = None):
+    def __init__(self, scene: Scene, k: Positive = 1.0, alpha: Positive = 1.0, u_max: Positive | None = 10.0,
+                 push_speed: Positive | None = None):
         super().__init__(scene, k=k, u_max=u_max, push_speed=push_speed)
-        if not alpha > 0:
-            raise ConfigError("controller.alpha", f"must be > 0, got {alpha!r}")
         self.alpha = float(alpha)
 
     def _flow(self, m, target):

@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.control.scene import Scene
-from pipeline.errors import ConfigError
+from pipeline.schema import Positive, checked
 
 _SQRT1_2 = float(np.sqrt(0.5))
 
@@ -33,6 +33,7 @@ def saturate(u: np.ndarray, u_max: float | None) -> np.ndarray:
     return u * scale[:, None]
 
 
+@checked("controller", objects=("scene",))
 class Feedback:
     """Base of the feedback laws: `k`, the speed limit `u_max` and the push-out speed of SPEC §3.3's fallback."""
 
@@ -40,15 +41,10 @@ class Feedback:
     hybrid = False
     logic: tuple[str, ...] = ("q",)  # logic variables (a law without modes keeps q = 1)
 
-    def __init__(self, scene: Scene, k: float = 1.0, u_max: float | None = 10.0, push_speed: float | None = None):
+    def __init__(self, scene: Scene, k: Positive = 1.0, u_max: Positive | None = 10.0,
+                 push_speed: Positive | None = None):
         if not isinstance(scene, Scene):
             raise TypeError(f"scene must be a pipeline.control.Scene, got {type(scene).__name__}")
-        if not k > 0:
-            raise ConfigError("controller.k", f"must be > 0, got {k!r}")
-        if u_max is not None and not u_max > 0:
-            raise ConfigError("controller.u_max", f"must be > 0 (or null for no limit), got {u_max!r}")
-        if push_speed is not None and not push_speed > 0:
-            raise ConfigError("controller.push_speed", f"must be > 0 (or null: u_max), got {push_speed!r}")
         self.scene = scene
         self.k = float(k)
         self.u_max = None if u_max is None else float(u_max)

@@ -91,47 +91,90 @@ def random_field(
         if np.any(pt < box[:, 0]) or np.any(pt > box[:, 1]):
             raise ConfigError(name, f"({_fmt(pt[0])}, {_fmt(pt[1])}) lies outside the arena {box.tolist()}")
     gap_need = max(2.0 * step, 0.0) + 2.0 * margin  # V2 (gap > 0) and V3 (gap / 2 > u_max T_s), with the margin
+    plan = _FieldDraw(M, box, half, r_lo, r_hi, apex_factor, rho_b, scale_f, k_R, h, margin, d, p_T, P, clear, gap_need)
     rng = np.random.default_rng(seed)
     for _ in range(max_restarts):
-        cs, rs, Rs = np.zeros((0, 2)), np.zeros(0), np.zeros(0)
-        for _m in range(M):
-            chosen = None
-            for _b in range(batches_per_obstacle):
-                r = rng.uniform(r_lo, min(r_hi, half.min() - margin - 1e-9), batch)
-                u = rng.uniform(0.0, 1.0, (batch, 2))
-                lo = box[:, 0] + (r + margin)[:, None]
-                span = np.maximum((box[:, 1] - box[:, 0]) - 2.0 * (r + margin)[:, None], 0.0)
-                c = lo + u * span
-                R = k_R * (r + d)
-                ok = np.hypot(*(p_T - c).T) > R + margin  # V1
-                if len(P):
-                    a_ = apex_factor * (r + d)
-                    ok &= np.all(diamond_signed_distance(P, c, a_, p_T) > clear + margin, axis=0)
-                if len(rs):
-                    dij = np.hypot(*np.moveaxis(c[:, None, :] - cs[None, :, :], -1, 0))
-                    ok &= np.all(dij - R[:, None] - Rs[None, :] - h > gap_need, axis=1)
-                idx = np.flatnonzero(ok)
-                if idx.size:
-                    chosen = idx[0]
-                    break
-            if chosen is None:
-                break
-            cs = np.vstack([cs, c[chosen]])
-            rs = np.append(rs, r[chosen])
-            Rs = np.append(Rs, R[chosen])
-        if len(rs) == M:
-            kw = dict(apex=apex_factor * (rs + d), reach=barrier_reach(rho_b, scale_f * (rs + d)), h=h, u_max=u_max,
-                      T_s=T_s, arena=box, starts=P if len(P) else None, inflation=d, start_clearance=clear, margin=margin)
-            left = field_violations(cs, rs, p_T, **kw)
-            if not left:
-                return cs, rs
-            raise AssertionError(f"random_field drew an invalid field: {left[0].line}")  # pragma: no cover
+        placed = _place_obstacles(plan, rng, batch, batches_per_obstacle)
+        if placed is not None:
+            return _checked_field(plan, *placed, u_max=u_max, T_s=T_s)
     raise ConfigError(
         f"{RANDOM_FIELD}.n_obstacles",
         f"no valid field of {M} obstacles found in {max_restarts} tries (influence radius R = {_fmt(k_R)} (r + d), "
         f"radii {r_lo}..{r_hi}, arena {box.tolist()}): use fewer or smaller discs, a larger arena, or a smaller "
         f"apex factor or barrier",
     )
+
+
+@dataclass(frozen=True, eq=False)
+class _FieldDraw:
+    """What `random_field` draws from (its checked arguments): the arena `box` (2, 2) and its `half` sides, the
+    radii, the covering factors (`R_i = k_R (r_i + d)`), the margin, the starts `P` (K, 2) and the V2/V3 gap."""
+
+    M: int
+    box: np.ndarray
+    half: np.ndarray
+    r_lo: float
+    r_hi: float
+    apex_factor: float
+    rho_b: float
+    scale_f: float
+    k_R: float
+    h: float
+    margin: float
+    d: float
+    p_T: np.ndarray
+    P: np.ndarray
+    clear: float
+    gap_need: float
+
+
+def _place_obstacles(plan: _FieldDraw, rng: np.random.Generator, batch: int, batches_per_obstacle: int):
+    """One attempt: each obstacle in turn is the first candidate of a batch that passes V1, the start condition
+    and V2/V3 against those already placed. `(centers, radii)`, or None after `batches_per_obstacle` empty
+    batches for one obstacle."""
+    cs, rs, Rs = np.zeros((0, 2)), np.zeros(0), np.zeros(0)
+    for _m in range(plan.M):
+        for _b in range(batches_per_obstacle):
+            c, r, R, ok = _candidates(plan, rng, batch, cs, Rs)
+            if ok.any():
+                break
+        else:
+            return None
+        k = np.flatnonzero(ok)[0]
+        cs, rs, Rs = np.vstack([cs, c[k]]), np.append(rs, r[k]), np.append(Rs, R[k])
+    return cs, rs
+
+
+def _candidates(plan: _FieldDraw, rng: np.random.Generator, batch: int, cs: np.ndarray, Rs: np.ndarray):
+    """A batch of candidate discs (centres uniform over the arena shrunk by `r + margin`): `(c, r, R, ok)` with
+    `ok` where V1, the start condition and V2/V3 against the placed discs `cs` (influence radii `Rs`) hold."""
+    box, margin, d = plan.box, plan.margin, plan.d
+    r = rng.uniform(plan.r_lo, min(plan.r_hi, plan.half.min() - margin - 1e-9), batch)
+    u = rng.uniform(0.0, 1.0, (batch, 2))
+    lo = box[:, 0] + (r + margin)[:, None]
+    span = np.maximum((box[:, 1] - box[:, 0]) - 2.0 * (r + margin)[:, None], 0.0)
+    c = lo + u * span
+    R = plan.k_R * (r + d)
+    ok = np.hypot(*(plan.p_T - c).T) > R + margin  # V1
+    if len(plan.P):
+        a_ = plan.apex_factor * (r + d)
+        ok &= np.all(diamond_signed_distance(plan.P, c, a_, plan.p_T) > plan.clear + margin, axis=0)
+    if len(Rs):
+        dij = np.hypot(*np.moveaxis(c[:, None, :] - cs[None, :, :], -1, 0))
+        ok &= np.all(dij - R[:, None] - Rs[None, :] - plan.h > plan.gap_need, axis=1)
+    return c, r, R, ok
+
+
+def _checked_field(plan: _FieldDraw, cs: np.ndarray, rs: np.ndarray, *, u_max, T_s) -> tuple[np.ndarray, np.ndarray]:
+    """The drawn field, confirmed by `field_violations` (same margin)."""
+    d, P = plan.d, plan.P
+    kw = dict(apex=plan.apex_factor * (rs + d), reach=barrier_reach(plan.rho_b, plan.scale_f * (rs + d)), h=plan.h,
+              u_max=u_max, T_s=T_s, arena=plan.box, starts=P if len(P) else None, inflation=d,
+              start_clearance=plan.clear, margin=plan.margin)
+    left = field_violations(cs, rs, plan.p_T, **kw)
+    if not left:
+        return cs, rs
+    raise AssertionError(f"random_field drew an invalid field: {left[0].line}")  # pragma: no cover
 
 
 # ----------------------------------------------------------------------------- example fields

@@ -20,6 +20,7 @@ error only) the flow map pushes out of `W_q` along its outward normal at `push_s
 from __future__ import annotations
 
 import math
+from typing import Annotated
 
 import numpy as np
 
@@ -28,6 +29,7 @@ from pipeline.control.potentials import both_potentials_frame, fused_potentials,
 from pipeline.control.scene import Scene
 from pipeline.control.validity import check_field
 from pipeline.errors import ConfigError
+from pipeline.schema import OpenShare, Positive, Range, checked
 
 
 class Evaluation:
@@ -47,6 +49,7 @@ class Evaluation:
         return self.cell & (xd["i"] == self.i_from)
 
 
+@checked("controller", objects=("scene",))
 class HybridController(Feedback):
     """The hybrid controller of the paper (SPEC §3.3) over the locally active obstacle (SPEC §3.6).
 
@@ -57,18 +60,12 @@ class HybridController(Feedback):
     hybrid = True
     logic = ("i", "q")
 
-    def __init__(self, scene: Scene, k: float = 1.0, chi: float = 1.1, lam: float = 0.09,
-                 u_max: float | None = 10.0, push_speed: float | None = None, cell_hysteresis: float = 1.0,
-                 guard: bool = False, guard_gamma: float = 0.5):
+    def __init__(self, scene: Scene, k: Positive = 1.0, chi: Annotated[float, Range(gt=1)] = 1.1, lam: Positive = 0.09,
+                 u_max: Positive | None = 10.0, push_speed: Positive | None = None, cell_hysteresis: Positive = 1.0,
+                 guard: bool = False, guard_gamma: OpenShare = 0.5):
         super().__init__(scene, k=k, u_max=u_max, push_speed=push_speed)
-        if not (math.isfinite(chi) and chi > 1):
-            raise ConfigError("controller.chi", f"must be a finite number > 1 (hysteresis), got {chi!r}")
-        if not 0 < lam < chi - 1:
+        if not lam < chi - 1:
             raise ConfigError("controller.lam", f"must be in (0, chi - 1) = (0, {chi - 1:.6g}), got {lam!r}")
-        if not cell_hysteresis > 0:
-            raise ConfigError("controller.cell_hysteresis", f"must be > 0, got {cell_hysteresis!r}")
-        if not 0 < guard_gamma < 1:
-            raise ConfigError("controller.guard_gamma", f"must be in (0, 1), got {guard_gamma!r}")
         self.chi, self.lam, self.h = float(chi), float(lam), float(cell_hysteresis)
         self.guard, self.gamma = bool(guard), float(guard_gamma)
         self.M = scene.n_obstacles

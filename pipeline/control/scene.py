@@ -13,44 +13,48 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass, field, fields
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
 
 from pipeline.errors import ConfigError
+from pipeline.schema import Interval, NonEmpty, Pair, Positive, checked
 
 BarrierKind = Literal["squared", "authors_code"]
 
 
+@checked("obstacle")
 @dataclass(frozen=True)
 class Obstacle:
     """A disc `N_i` (SPEC §3.6): centre, radius; its covering's apex `c` (null: `2 sqrt(2) r`) and barrier scale
     `ℓ` (null: the scene's `barrier.scale`, else `r`)."""
 
-    center: list[float]
-    radius: float
+    center: Pair
+    radius: Positive
     apex: float | None = None
-    barrier_scale: float | None = None
+    barrier_scale: Positive | None = None
 
 
+@checked("scene.barrier")
 @dataclass(frozen=True)
 class Barrier:
     """`B(s) = (s - rho)^2 log(1/s)` on `d_q / ℓ^2` (`squared`, SPEC §3), or the authors' release
     `(d - rho)^2 log(rho / d)` on the Euclidean distance with `1/2 |p - p_T|^2` (`authors_code`, SPEC §1);
     `gain` multiplies `B` (docs/control.md); `scale` is the default `ℓ` (null: each obstacle's radius)."""
 
-    rho: float = 0.5
-    scale: float | None = None
+    rho: Positive = 0.5
+    scale: Positive | None = None
     kind: BarrierKind = "squared"
-    gain: float = 1.0
+    gain: Positive = 1.0
 
 
+@checked("scene.arena")
 @dataclass(frozen=True)
 class Arena:
     """The rectangle the camera sees, world units."""
 
-    x: list[float] = field(default_factory=lambda: [-50.0, 50.0])
-    y: list[float] = field(default_factory=lambda: [-30.0, 30.0])
+    x: Interval = field(default_factory=lambda: [-50.0, 50.0])
+    y: Interval = field(default_factory=lambda: [-30.0, 30.0])
 
     @property
     def bounds(self) -> tuple[tuple[float, float], tuple[float, float]]:
@@ -121,20 +125,22 @@ class Covering:
         return self.p_0 + np.multiply.outer(a, self.e_a) + np.multiply.outer(b, self.e_b)
 
 
+@checked("scene")
 @dataclass(eq=False)
 class Scene:
     """Target, obstacles and barrier of the paper (Section III; SPEC §3.1, §3.6), and the arena.
 
-    Checked on construction (range and cross-field rules; the keys and types are checked with the config): every
-    radius > 0, every apex `c > sqrt(2) r` (the diamond contains the disc), `rho` in (0, 1] for the squared
+    Checked on construction (the keys, types and ranges are declared on the fields and checked with the config, and
+    by :func:`pipeline.schema.checked` when built from Python; the cross-field rules here): every apex `c > sqrt(2) r` (the diamond contains the disc), `rho` in (0, 1] for the squared
     barrier, the target outside every obstacle's wedges by more than the barrier's reach (`|p_T - c_i| > R_i`,
     SPEC §3.1 and V1 of §3.6) and beyond the smooth baseline's reach of its margin disc, target and obstacles
     inside the arena. The conditions that involve the controller and the camera (V2, V3) are checked where those
     are known (`pipeline.control.hybrid`).
     """
 
-    target: list[float] = field(default_factory=lambda: [40.0, 0.0])
-    obstacles: list[Obstacle] = field(default_factory=lambda: [Obstacle(center=[0.0, 0.0], radius=4.0)])
+    target: Pair = field(default_factory=lambda: [40.0, 0.0])
+    obstacles: Annotated[list[Obstacle], NonEmpty()] = field(
+        default_factory=lambda: [Obstacle(center=[0.0, 0.0], radius=4.0)])
     barrier: Barrier = field(default_factory=Barrier)
     arena: Arena = field(default_factory=Arena)
     name: str = "default"  # conf/scene/default.yaml: the default scene
@@ -144,34 +150,15 @@ class Scene:
         self.obstacles = [_as(Obstacle, o) for o in self.obstacles]
         self.barrier = _as(Barrier, self.barrier)
         self.arena = _as(Arena, self.arena)
-        if len(self.target) != 2 or len(self.arena.x) != 2 or len(self.arena.y) != 2:
-            raise ConfigError("scene.target", "target and arena ranges are pairs [x, y] / [min, max]")
-        if not self.obstacles:
-            raise ConfigError("scene.obstacles", "needs at least one obstacle")
-        (x0, x1), (y0, y1) = self.arena.bounds
-        if not (x0 < x1 and y0 < y1):
-            raise ConfigError("scene.arena", f"needs min < max, got x {self.arena.x}, y {self.arena.y}")
         b = self.barrier
-        if b.kind == "squared" and not 0 < b.rho <= 1:
-            raise ConfigError("scene.barrier.rho", f"must be in (0, 1] (SPEC §3), got {b.rho!r}")
-        if not b.rho > 0:
-            raise ConfigError("scene.barrier.rho", f"must be > 0, got {b.rho!r}")
-        if not b.gain > 0:
-            raise ConfigError("scene.barrier.gain", f"must be > 0, got {b.gain!r}")
-        if b.scale is not None and not b.scale > 0:
-            raise ConfigError("scene.barrier.scale", f"must be > 0 (or null for each obstacle's radius), got {b.scale!r}")
+        if b.kind == "squared" and not b.rho <= 1:
+            raise ConfigError("scene.barrier.rho", f"must be in (0, 1] for the squared barrier (SPEC §3), got {b.rho!r}")
         for i, o in enumerate(self.obstacles):
             self._check_obstacle(i, o)
 
     def _check_obstacle(self, i: int, o: Obstacle) -> None:
         f = f"scene.obstacles[{i}]"
         (x0, x1), (y0, y1) = self.arena.bounds
-        if len(o.center) != 2:
-            raise ConfigError(f"{f}.center", f"must be a pair [x, y], got {o.center!r}")
-        if not o.radius > 0:
-            raise ConfigError(f"{f}.radius", f"must be > 0, got {o.radius!r}")
-        if o.barrier_scale is not None and not o.barrier_scale > 0:
-            raise ConfigError(f"{f}.barrier_scale", f"must be > 0 (or null), got {o.barrier_scale!r}")
         if np.hypot(self.target[0] - o.center[0], self.target[1] - o.center[1]) == 0:
             raise ConfigError("scene.target", f"must differ from the centre of obstacle {i}")
         cov = self.covering(i)

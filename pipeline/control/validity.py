@@ -293,59 +293,69 @@ def field_violations(
     if not (math.isfinite(margin) and margin >= 0):
         raise ConfigError(RANDOM_FIELD + ".margin", f"must be >= 0, got {margin!r}")
     c, r, R, p_T = g.centers, g.radii, g.R, g.target
-    out: list[Violation] = []
+    out: list[Violation] = [] if box is None else _arena_violations(c, r, p_T, P, box, margin)
+    out += _v1_violations(c, R, p_T, margin)
+    out += _pair_violations(c, R, h, step if sampled else None, margin)
+    if len(P):
+        out += _start_violations(P, c, g.apex, p_T, clear, margin)
+    return out
 
-    # arena: discs, target, starts (closed box)
-    if box is not None:
-        lo, hi = box[:, 0], box[:, 1]
-        names = ("x_min", "y_min", "x_max", "y_max")
 
-        def overflow(pts: np.ndarray, rad: np.ndarray) -> np.ndarray:  # (N, 4): how far past each side
-            return np.concatenate([lo - (pts - rad[:, None]), (pts + rad[:, None]) - hi], axis=1) + margin
+def _arena_violations(c, r, p_T, P, box, margin: float) -> list[Violation]:
+    """`arena`: the discs, the target and the starts in the (closed) arena box; the discs by `margin`."""
+    out = []
+    lo, hi = box[:, 0], box[:, 1]
+    names = ("x_min", "y_min", "x_max", "y_max")
 
-        bounds = np.concatenate([lo, hi])
-        over = overflow(c, r)
-        for i in np.flatnonzero(over.max(axis=1) > 0):
-            s = int(np.argmax(over[i]))
-            out.append(Violation(
-                f"{OBSTACLES_FIELD}[{i}]", "arena", float(over[i, s]),
-                f"arena: obstacle {i}'s disc (centre ({_fmt(c[i, 0])}, {_fmt(c[i, 1])}), r = {_fmt(r[i])}) reaches "
-                f"{_fmt(over[i, s])} past the arena's {names[s]} = {_fmt(bounds[s])}"
-                f"{f' (margin {_fmt(margin)})' if margin else ''}; move it inside or shrink it", (int(i),)))
-        over_t = overflow(p_T[None], np.zeros(1))[0] - margin
-        if over_t.max() > 0:
-            s = int(np.argmax(over_t))
-            out.append(Violation(TARGET_FIELD, "arena", float(over_t[s]),
-                                 f"arena: the target lies {_fmt(over_t[s])} past the arena's {names[s]} = {_fmt(bounds[s])}"))
-        if len(P):
-            over_p = overflow(P, np.zeros(len(P))) - margin
-            for k in np.flatnonzero(over_p.max(axis=1) > 0):
-                s = int(np.argmax(over_p[k]))
-                out.append(Violation(f"{STARTS_FIELD}[{k}]", "arena", float(over_p[k, s]),
-                                     f"arena: the start lies {_fmt(over_p[k, s])} past the arena's {names[s]} = {_fmt(bounds[s])}"))
+    def overflow(pts: np.ndarray, rad: np.ndarray) -> np.ndarray:  # (N, 4): how far past each side
+        return np.concatenate([lo - (pts - rad[:, None]), (pts + rad[:, None]) - hi], axis=1) + margin
 
-    # V1: the target outside every influence disc
+    bounds = np.concatenate([lo, hi])
+    over = overflow(c, r)
+    for i in np.flatnonzero(over.max(axis=1) > 0):
+        s = int(np.argmax(over[i]))
+        out.append(Violation(
+            f"{OBSTACLES_FIELD}[{i}]", "arena", float(over[i, s]),
+            f"arena: obstacle {i}'s disc (centre ({_fmt(c[i, 0])}, {_fmt(c[i, 1])}), r = {_fmt(r[i])}) reaches "
+            f"{_fmt(over[i, s])} past the arena's {names[s]} = {_fmt(bounds[s])}"
+            f"{f' (margin {_fmt(margin)})' if margin else ''}; move it inside or shrink it", (int(i),)))
+    over_t = overflow(p_T[None], np.zeros(1))[0] - margin
+    if over_t.max() > 0:
+        s = int(np.argmax(over_t))
+        out.append(Violation(TARGET_FIELD, "arena", float(over_t[s]),
+                             f"arena: the target lies {_fmt(over_t[s])} past the arena's {names[s]} = {_fmt(bounds[s])}"))
+    if len(P):
+        over_p = overflow(P, np.zeros(len(P))) - margin
+        for k in np.flatnonzero(over_p.max(axis=1) > 0):
+            s = int(np.argmax(over_p[k]))
+            out.append(Violation(f"{STARTS_FIELD}[{k}]", "arena", float(over_p[k, s]),
+                                 f"arena: the start lies {_fmt(over_p[k, s])} past the arena's {names[s]} = {_fmt(bounds[s])}"))
+    return out
+
+
+def _v1_violations(c, R, p_T, margin: float) -> list[Violation]:
+    """`V1`: the target outside every influence disc."""
     dT = np.hypot(*(p_T - c).T)
     short1 = R + margin - dT
-    for i in np.flatnonzero(short1 >= 0):
-        out.append(Violation(
-            f"{OBSTACLES_FIELD}[{i}]", "V1", float(short1[i]),
-            f"V1: the target is {_fmt(short1[i])} units too close (|p_T - c_{i}| = {_fmt(dT[i])}, needs > R_{i} = "
-            f"{_fmt(R[i])}{f' + margin {_fmt(margin)}' if margin else ''}); move the target or shrink obstacle "
-            f"{i}'s apex or barrier scale", (int(i),)))
+    return [Violation(
+        f"{OBSTACLES_FIELD}[{i}]", "V1", float(short1[i]),
+        f"V1: the target is {_fmt(short1[i])} units too close (|p_T - c_{i}| = {_fmt(dT[i])}, needs > R_{i} = "
+        f"{_fmt(R[i])}{f' + margin {_fmt(margin)}' if margin else ''}); move the target or shrink obstacle "
+        f"{i}'s apex or barrier scale", (int(i),)) for i in np.flatnonzero(short1 >= 0)]
 
-    # V2, V3: every pair, vectorised
-    ii, jj = np.triu_indices(len(r), 1)
+
+def _pair_violations(c, R, h: float, step: float | None, margin: float) -> list[Violation]:
+    """`V2` for every pair, then `V3` (a sampled loop: `step = u_max T_s`, None for a continuous one), vectorised."""
+    ii, jj = np.triu_indices(len(R), 1)
     dij = np.hypot(*(c[ii] - c[jj]).T)
     need2 = R[ii] + R[jj] + h
     short2 = need2 + margin - dij
-    pair_v2 = [Violation(
+    out = [Violation(
         f"{OBSTACLES_FIELD}[{i},{j}]", "V2", float(s),
         f"V2: centres {_fmt(d)} apart, need > R_{i} + R_{j} + h = {_fmt(n)}{f' + margin {_fmt(margin)}' if margin else ''} "
         f"(short by {_fmt(s)}); move them apart or shrink their apex or barrier scale", (int(i), int(j)))
         for i, j, d, n, s in zip(ii, jj, dij, need2, short2) if s >= 0]
-    out.extend(pair_v2)
-    if sampled:
+    if step is not None:
         side = (dij - need2) / 2.0
         short3 = step + margin - side
         out.extend(Violation(
@@ -354,21 +364,24 @@ def field_violations(
             f"({_fmt(d)} - {_fmt(n)})/2 = {_fmt(sd)} per side, need > u_max T_s = {_fmt(step)}"
             f"{f' + margin {_fmt(margin)}' if margin else ''} (short by {_fmt(s)})", (int(i), int(j)))
             for i, j, d, n, sd, s in zip(ii, jj, dij, need2, side, short3) if s >= 0)
+    return out
 
-    # start: outside every diamond, by more than the clearance
-    if len(P):
-        sd = diamond_signed_distance(P, c, g.apex, p_T)
-        short_s = clear + margin - sd
-        for k, i in zip(*np.nonzero(short_s >= 0)):
-            inside = sd[k, i] <= 0
-            where = (f"lies inside obstacle {i}'s diamond |a| + |b| <= c_{i} = {_fmt(g.apex[i])} ({_fmt(-sd[k, i])} "
-                     f"from its boundary)" if inside else
-                     f"is {_fmt(sd[k, i])} from obstacle {i}'s diamond (c_{i} = {_fmt(g.apex[i])})")
-            need = f"; needs > {_fmt(clear + margin)}" if clear + margin > 0 else ""
-            out.append(Violation(
-                f"{STARTS_FIELD}[{k}]", "start", float(short_s[k, i]),
-                f"start: ({_fmt(P[k, 0])}, {_fmt(P[k, 1])}) {where}{need} (short by {_fmt(short_s[k, i])}); move the "
-                f"start or shrink obstacle {i}'s apex", (int(i),)))
+
+def _start_violations(P, c, apex, p_T, clear: float, margin: float) -> list[Violation]:
+    """`start`: every start outside every diamond, by more than the clearance."""
+    out = []
+    sd = diamond_signed_distance(P, c, apex, p_T)
+    short_s = clear + margin - sd
+    for k, i in zip(*np.nonzero(short_s >= 0)):
+        inside = sd[k, i] <= 0
+        where = (f"lies inside obstacle {i}'s diamond |a| + |b| <= c_{i} = {_fmt(apex[i])} ({_fmt(-sd[k, i])} "
+                 f"from its boundary)" if inside else
+                 f"is {_fmt(sd[k, i])} from obstacle {i}'s diamond (c_{i} = {_fmt(apex[i])})")
+        need = f"; needs > {_fmt(clear + margin)}" if clear + margin > 0 else ""
+        out.append(Violation(
+            f"{STARTS_FIELD}[{k}]", "start", float(short_s[k, i]),
+            f"start: ({_fmt(P[k, 0])}, {_fmt(P[k, 1])}) {where}{need} (short by {_fmt(short_s[k, i])}); move the "
+            f"start or shrink obstacle {i}'s apex", (int(i),)))
     return out
 
 

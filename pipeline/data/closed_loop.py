@@ -21,6 +21,7 @@ import numpy as np
 from pipeline.config import build
 from pipeline.errors import ConfigError
 from pipeline.perception.measure import CameraMeasure
+from pipeline.plants import Plant, SingleIntegrator
 from pipeline.sim import simulate
 from pipeline.sim.starts import Random
 
@@ -59,17 +60,25 @@ class Pool:
         return out
 
 
+def vehicle(recipe) -> Plant:
+    """The recipe's vehicle (`data.vehicle`, a plant node; none: the single integrator)."""
+    return build(recipe.vehicle, "data.vehicle") if recipe.vehicle is not None else SingleIntegrator()
+
+
 def _simulate(recipe, camera, measure=None):
-    """The recipe's closed loop from `starts` random starts (controller, disturbance, timing, seed)."""
+    """The recipe's closed loop from `starts` random starts (controller, disturbance, timing, seed), with the
+    recipe's vehicle (a unicycle: its look-ahead point steered around the inflated discs, SPEC §3.7)."""
     cl = recipe.closed_loop
     scene = camera.scene
-    ctrl = build(cl.controller, f"{_F}.controller", scene=scene)
+    plant = vehicle(recipe)
+    ctrl = build(cl.controller, f"{_F}.controller", scene=plant.steering_scene(scene))
     dist = build(cl.disturbance, f"{_F}.disturbance")
     starts = Random(n=cl.starts, seed=cl.seed, margin=2.0)(scene, _F)
     every = max(1, round((cl.camera_period or cl.dt) / cl.dt))
     return simulate(scene, ctrl, starts, dt=cl.dt, horizon=cl.horizon, camera_period=cl.camera_period,
                     disturbance=dist, seed=cl.seed, record_every=every, record=measure is None,
-                    stop_on_success=cl.stop_at_target, measure=measure)
+                    stop_on_success=cl.stop_at_target, measure=measure, plant=plant,
+                    heading0=plant.initial_heading(starts, scene))
 
 
 def visitation_pool(recipe, camera) -> np.ndarray:
@@ -93,8 +102,8 @@ class _FrameLog:
 
     def __call__(self, p, idx, frame, rng):
         est = self.measure(p, idx, frame, rng)
-        self.p.append(np.array(p, dtype=float))
-        self.err.append(np.hypot(*(np.asarray(est, dtype=float) - p).T))
+        self.p.append(np.array(p[:, :2], dtype=float))
+        self.err.append(np.hypot(*(np.asarray(est, dtype=float)[:, :2] - p[:, :2]).T))  # position error
         return est
 
 
@@ -118,7 +127,8 @@ _POOLS: dict = {}
 def pool(recipe, camera, occlusion=None, perception_map=None) -> Pool:
     """A split's pool, simulated once per (recipe, camera, clouds, map) in a process (the splits share it):
     the map's visits when `perception_map` is given, else the true-state visitation."""
-    key = (json.dumps(dataclasses.asdict(recipe.closed_loop), sort_keys=True, default=str), repr(camera.arena), repr(camera.scene),
+    key = (json.dumps(dataclasses.asdict(recipe.closed_loop), sort_keys=True, default=str),
+           json.dumps(recipe.vehicle, sort_keys=True, default=str), repr(camera.arena), repr(camera.scene),
            json.dumps(occlusion.config() if occlusion is not None and perception_map is not None else None,
                       sort_keys=True, default=str), perception_map is not None)
     if key not in _POOLS:

@@ -132,7 +132,7 @@ class Dataset:
 
 
 def open_dataset(ref, datasets_dir=None, verify: bool = False) -> Dataset:
-    """Open a dataset by name (latest), id, `name-id` or path.
+    """Open a dataset by recipe name (the dataset the current recipe renders), id, `name-id` or path.
 
     Always checks that every file of the manifest is present with its size; `verify=True` re-hashes them.
     Problems raise DatasetError listing them.

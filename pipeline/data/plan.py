@@ -101,6 +101,8 @@ def plan(cfg: DictConfig) -> Plan:
     scene_cfg, render_cfg = tracking.to_plain(cfg.scene), tracking.to_plain(cfg.render)
     camera = build(render_cfg, "render", scene=build(scene_cfg, "scene"))
     recipe.check_arena(camera.arena)
+    if recipe.vehicle is not None:  # the vehicle node (its keys and values) before any work
+        build(recipe.vehicle, "data.vehicle")
     inputs: dict = {"parents": {"dataset": recipe.parent, "map": recipe.closed_loop.map if recipe.closed_loop else None}}
     if recipe.parent is not None:
         inputs.update(_parent(recipe, cfg, render_cfg, scene_cfg, occlusion))

@@ -6,17 +6,16 @@ the bytes depend on the recipe and seed only); the camera renders them in chunks
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from tqdm import tqdm
 
 from pipeline.data.dataset import open_dataset
 from pipeline.data.recipe import SPLITS
 from pipeline.data.sampling import plan_split
 from pipeline.errors import DatasetError
+from pipeline.progress import progress
 from pipeline.render import save_png
 
 LABELS = "labels.csv"
@@ -34,7 +33,7 @@ def shard_name(split: str) -> str:
 
 
 def _progress(total: int, desc: str):
-    return tqdm(total=total, desc=desc, unit="img", unit_scale=True, disable=None, file=sys.stderr, leave=False)
+    return progress(total=total, desc=desc, unit="img", unit_scale=True)  # a bar on a terminal, lines in a log
 
 
 def _parent_train(p):

@@ -5,7 +5,7 @@ test) in a fixed order (leader, follower presence, follower, clouds), before any
 depend on the recipe and seed only (not on the chunk size). With a parent dataset (`sampling.parent`, the
 DAgger aggregation) the new train draws use a stream keyed by the parent too, so they never repeat the
 parent's; val and test are drawn as without parent. Draws that belong to no split (`STREAMS`: "gate", the fresh
-clean positions a map's flag gate is fitted on, `pipeline.train.stage.gate_frames`) take the next children of
+clean positions a map's flag gate is fitted on, `pipeline.train.evaluate.gate_frames`) take the next children of
 the same sequence, so they never repeat a split's draws and never change them.
 """
 

@@ -45,7 +45,7 @@ def analyse_level(E: np.ndarray, points: np.ndarray, shape: tuple[int, int], ope
                   settings: Mapping) -> dict:
     """All numbers of one occlusion level from its error field `E (K, N, 2)` (K draws per point).
 
-    Statistics pool the K draws; the worst draw per point, `e(p) = max_k |F_k(p)|`, is what Assumption 1
+    Statistics pool the K draws; the worst draw per point, `e(p) = max_k |E_k(p)|`, is what Assumption 1
     bounds, so it is the heat map, the Lipschitz bound check and the error-vs-distance quantity.
     """
     k = E.shape[0]
@@ -97,6 +97,30 @@ def analyse_level(E: np.ndarray, points: np.ndarray, shape: tuple[int, int], ope
         "_eps_min": eps_min,
         "_slope": lip_op["slope"],
     }
+
+
+def _heading_stats(deg: np.ndarray) -> dict:
+    deg = np.asarray(deg, dtype=float).ravel()
+    if deg.size == 0:
+        return {"n": 0, "mean_deg": math.nan, "median_deg": math.nan, "p95_deg": math.nan, "max_deg": math.nan}
+    return {"n": int(deg.size), "mean_deg": float(deg.mean()), "median_deg": float(np.median(deg)),
+            "p95_deg": float(np.percentile(deg, 95)), "max_deg": float(deg.max())}
+
+
+def analyse_heading(H: np.ndarray, points: np.ndarray, operational: np.ndarray, scene: Scene,
+                    settings: Mapping) -> dict:
+    """A pose map's heading error beside the position error (SPEC §2): `H (K, N)` the wrapped errors (radians) of
+    the K fields (draws x headings); `|Δθ|` in degrees pooled over them, over the operational set (the headline),
+    the arena, and within `near_target_radius` of the target; `worst_*`: of the worst heading per point."""
+    deg = np.degrees(np.abs(np.asarray(H, dtype=float)))  # (K, N)
+    r_t = float(settings.get("near_target_radius", 5.0))
+    near_t = operational & (np.hypot(*(points - scene.p_T).T) <= r_t)
+    worst = deg.max(axis=0)[operational]
+    return {**_heading_stats(deg[:, operational]), "fields": int(len(deg)),
+            "arena": _heading_stats(deg),
+            "near_target": {**_heading_stats(deg[:, near_t]), "radius": r_t},
+            "worst_mean_deg": float(worst.mean()) if worst.size else math.nan,
+            "worst_p95_deg": float(np.percentile(worst, 95)) if worst.size else math.nan}
 
 
 def _distance_edges(dist: np.ndarray, bins: int) -> np.ndarray:

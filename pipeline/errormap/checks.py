@@ -8,7 +8,7 @@ from pipeline import tracking
 from pipeline.config import settings
 from pipeline.errormap.settings import ErrorMapSettings
 from pipeline.errors import DatasetError, ModelError
-from pipeline.lineage import resolve_map
+from pipeline.lineage import debug_overrides, resolve_map
 from pipeline.render import load_occlusion
 
 
@@ -19,7 +19,7 @@ def check(cfg: DictConfig) -> ErrorMapSettings:
     maps = tracking.to_plain(cfg.get("maps"))
     for ref in maps if isinstance(maps, list) else [maps]:
         try:
-            resolve_map(ref, cfg.paths.models_dir)
+            resolve_map(ref, cfg.paths.models_dir, overrides=debug_overrides(cfg))
         except DatasetError as err:
             raise ModelError(str(err)) from None
     return s

@@ -62,33 +62,38 @@ def error_field(
     progress: bool = False,
     desc: str = "error map",
     overlap: bool = True,
+    heading: float | None = None,
 ) -> np.ndarray:
     """`E(p) = l(h(p)) - p` for `(N, 2)` points, rendered and inferred in chunks of `batch`.
 
     `render(points_chunk, rng) -> images` plays `h` (its random draws, e.g. clouds, come from `rng`, used
     by the chunks in order); `predict(images) -> (n, 2)` plays `l`. With `overlap`, the next chunk is
     rendered on a worker thread while the current one is inferred (numpy and torch release the GIL).
+    A pose map (`heading`: the heading every image shows, radians; `predict -> (n, 3)`): `(N, 3)`, the
+    heading error wrapped to `(-π, π]` last.
     """
     points = np.asarray(points, dtype=float)
     n = len(points)
+    if heading is not None:
+        points = np.column_stack([points, np.full(n, float(heading))])
     batch = max(1, int(batch))
     starts = list(range(0, n, batch))
-    out = np.empty((n, 2), dtype=float)
+    out = np.empty((n, points.shape[1]), dtype=float)
     bar = _progress(n, desc, progress)
     try:
         if overlap and len(starts) > 1:
             with ThreadPoolExecutor(max_workers=1) as pool:
-                future = pool.submit(render, points[0:batch], rng)
+                future = pool.submit(render, points[0:batch, :2], rng)
                 for i, s in enumerate(starts):
                     images = future.result()
                     if i + 1 < len(starts):  # sequential on one worker: the rng is consumed in chunk order
                         nxt = starts[i + 1]
-                        future = pool.submit(render, points[nxt : nxt + batch], rng)
+                        future = pool.submit(render, points[nxt : nxt + batch, :2], rng)
                     out[s : s + batch] = _predict_chunk(predict, images, points[s : s + batch])
                     bar.update(min(batch, n - s))
         else:
             for s in starts:
-                images = render(points[s : s + batch], rng)
+                images = render(points[s : s + batch, :2], rng)
                 out[s : s + batch] = _predict_chunk(predict, images, points[s : s + batch])
                 bar.update(min(batch, n - s))
     finally:
@@ -100,23 +105,17 @@ def _predict_chunk(predict, images, pts: np.ndarray) -> np.ndarray:
     pred = np.asarray(predict(images), dtype=float)
     if pred.shape != pts.shape:
         raise ValueError(f"perception map returned shape {pred.shape} for {len(pts)} images, expected {pts.shape}")
-    return pred - pts
-
-
-class _NoBar:
-    def update(self, n):
-        pass
-
-    def close(self):
-        pass
+    err = pred - pts
+    if pts.shape[1] == 3:  # a pose: the heading error wrapped to (-pi, pi]
+        err[:, 2] = np.angle(np.exp(1j * err[:, 2]))
+    return err
 
 
 def _progress(total: int, desc: str, enabled: bool):
-    if not enabled:
-        return _NoBar()
-    from tqdm.auto import tqdm
+    """A bar on a terminal, one line every few seconds in a log (pipeline.progress); `enabled=False`: silent."""
+    from pipeline.progress import progress
 
-    return tqdm(total=total, desc=desc, unit="pt", leave=False)
+    return progress(total=total, desc=desc, unit="pt", enabled=enabled)
 
 
 # ---------------------------------------------------------------------------------------- summaries

@@ -32,19 +32,28 @@ def _shared_norm(arrays: list[np.ndarray]):
 def figures(folder: Path, fields: dict, results: dict, scene: Scene, arena, settings, levels) -> list[str]:
     fmts = tuple(settings.get("formats", ["png"]))
     (x0, x1), (y0, y1) = arena
-    extent = (x0, x1, y0, y1)
-    n = len(levels)
-    out = []
+    view = dict(scene=scene, arena=arena, extent=(x0, x1, y0, y1), levels=levels)
+    worst = {lv: np.linalg.norm(fields[f"E_{lv}"], axis=-1).max(axis=0) for lv in levels}  # worst |E| per point
+    out = save(_error_map_figure(worst, results, **view), folder / "error_map", fmts)
+    if all(f"H_{lv}" in fields for lv in levels):
+        out += save(_heading_figure(fields, results, **view), folder / "heading_error_map", fmts)
+    out += save(_slope_figure(fields, results, **view), folder / "slope_map", fmts)
+    out += save(_coverage_figure(fields, results, settings, **view), folder / "coverage", fmts)
+    out += save(_distance_figure(fields, worst, results, levels), folder / "error_vs_distance", fmts)
+    return [Path(p).name for p in out]
 
-    def panels(title):
-        fig, axes = plt.subplots(n, 1, figsize=(7.5, 3.6 * n), squeeze=False, layout="constrained")
-        fig.suptitle(title)
-        return fig, axes[:, 0]
 
-    # error map: worst |E| per point, shared colour scale
-    worst = {lv: np.linalg.norm(fields[f"E_{lv}"], axis=-1).max(axis=0) for lv in levels}
+def _panels(n: int, title: str):
+    """One panel per occlusion level, stacked."""
+    fig, axes = plt.subplots(n, 1, figsize=(7.5, 3.6 * n), squeeze=False, layout="constrained")
+    fig.suptitle(title)
+    return fig, axes[:, 0]
+
+
+def _error_map_figure(worst: dict, results: dict, *, scene, arena, extent, levels):
+    """The error map: worst |E| per point, one shared colour scale."""
     norm, floor = _shared_norm(list(worst.values()))
-    fig, axes = panels("ε-error map |E(p)| = |l(h(p)) - p|")
+    fig, axes = _panels(len(levels), "ε-error map |E(p)| = |l(h(p)) - p|")
     for ax, lv in zip(axes, levels):
         im = ax.imshow(np.maximum(worst[lv], floor), origin="lower", extent=extent, cmap="magma_r", norm=norm,
                        interpolation="nearest")
@@ -53,12 +62,31 @@ def figures(folder: Path, fields: dict, results: dict, scene: Scene, arena, sett
         ax.set_title(f"occlusion {lv}: mean {r['mean']:.2f}, p95 {r['p95']:.2f}, max {r['max']:.2f}"
                      f" (operational set)", fontsize=9)
         fig.colorbar(im, ax=ax, label="|E| (world units)", extend="max", shrink=0.85)
-    out += save(fig, folder / "error_map", fmts)
+    return fig
 
-    # local slope map
+
+
+def _heading_figure(fields: dict, results: dict, *, scene, arena, extent, levels):
+    """A pose map: the worst heading error per point over the headings drawn, beside |E|."""
+    worst_h = {lv: np.abs(fields[f"H_{lv}"]).max(axis=0) for lv in levels}
+    norm, floor = _shared_norm(list(worst_h.values()))
+    fig, axes = _panels(len(levels), "heading error |θ̂ - θ| of a pose map (worst over the headings drawn)")
+    for ax, lv in zip(axes, levels):
+        im = ax.imshow(np.maximum(worst_h[lv], floor), origin="lower", extent=extent, cmap="magma_r", norm=norm,
+                       interpolation="nearest")
+        draw_scene(ax, scene, arena)
+        h = results[lv]["heading"]
+        ax.set_title(f"occlusion {lv}: mean {h['mean_deg']:.2f}°, p95 {h['p95_deg']:.2f}°, max "
+                     f"{h['max_deg']:.1f}° (operational set, all headings)", fontsize=9)
+        fig.colorbar(im, ax=ax, label="|Δθ| (degrees)", extend="max", shrink=0.85)
+    return fig
+
+
+def _slope_figure(fields: dict, results: dict, *, scene, arena, extent, levels):
+    """The local slope map (NaN outside the operational set)."""
     slopes = {lv: fields[f"slope_{lv}"] for lv in levels}
     norm, floor = _shared_norm(list(slopes.values()))
-    fig, axes = panels("local slope of E (largest difference quotient to a neighbour)")
+    fig, axes = _panels(len(levels), "local slope of E (largest difference quotient to a neighbour)")
     for ax, lv in zip(axes, levels):
         sl = np.where(np.isfinite(slopes[lv]), np.maximum(slopes[lv], floor), np.nan)  # NaN: not operational
         im = ax.imshow(sl, origin="lower", extent=extent, cmap=plt.get_cmap("viridis").with_extremes(bad="0.92"),
@@ -66,10 +94,13 @@ def figures(folder: Path, fields: dict, results: dict, scene: Scene, arena, sett
         draw_scene(ax, scene, arena)
         ax.set_title(f"occlusion {lv}: L max {results[lv]['L_max']:.3g}, p99 {results[lv]['L_p99']:.3g}",
                      fontsize=9)
-        fig.colorbar(im, ax=ax, label="|ΔF| / |Δp|", extend="max", shrink=0.85)
-    out += save(fig, folder / "slope_map", fmts)
+        fig.colorbar(im, ax=ax, label="|ΔE| / |Δp|", extend="max", shrink=0.85)
+    return fig
 
-    # coverage: curve + eps_min maps with covered-set contours
+
+def _coverage_figure(fields: dict, results: dict, settings, *, scene, arena, extent, levels):
+    """Assumption 1: the coverage curve per level, then its eps_min map with the covered sets of the marks."""
+    n = len(levels)
     marks = sorted(settings["coverage"].get("eps_marks") or [])
     fig, axes = plt.subplots(n + 1, 1, figsize=(7.5, 3.5 * (n + 1)), squeeze=False, layout="constrained")
     axes = axes[:, 0]
@@ -103,9 +134,11 @@ def figures(folder: Path, fields: dict, results: dict, scene: Scene, arena, sett
         cb = fig.colorbar(im, ax=ax, ticks=range(len(bounds) - 1), shrink=0.85)
         cb.ax.set_yticklabels([f"ε ≤ {m:g}" for m in marks] + [f"ε > {marks[-1]:g}" if marks else "covered"],
                               fontsize=7)
-    out += save(fig, folder / "coverage", fmts)
+    return fig
 
-    # error vs distance to the nearest training sample
+
+def _distance_figure(fields: dict, worst: dict, results: dict, levels):
+    """The error against the distance to the nearest training sample (a fixed subsample of 4000 points)."""
     fig, ax = plt.subplots(figsize=(7, 4), layout="constrained")
     op = fields["operational"].ravel()
     near = fields["nearest"].ravel()[op]
@@ -122,5 +155,4 @@ def figures(folder: Path, fields: dict, results: dict, scene: Scene, arena, sett
     ax.set_ylabel("|E(p)|")
     ax.set_title("where the map is trustworthy: error vs distance to the data", fontsize=9)
     ax.legend(fontsize=8)
-    out += save(fig, folder / "error_vs_distance", fmts)
-    return [Path(p).name for p in out]
+    return fig

@@ -19,8 +19,8 @@ def default_errormaps_dir() -> Path:
 
 
 def load_error_map(ref, errormaps_dir=None) -> dict:
-    """A finished error map by model name (latest), id, `name-id` or path: its summary.json plus
-    `"path"` (Path) and `"paths"` (`{file name: Path}`). Unknown or incomplete -> DatasetError."""
+    """A finished error map by id, `name-id`, path, or a model name that one error map alone has: its
+    summary.json plus `"path"` (Path) and `"paths"` (`{file name: Path}`). Unknown or incomplete -> DatasetError."""
     root = Path(errormaps_dir) if errormaps_dir is not None else default_errormaps_dir()
     folder = resolve_errormap(ref, root)
     problems = tracking.verify(folder, full=False)
@@ -45,6 +45,8 @@ def summary_table(refs, errormaps_dir=None) -> pd.DataFrame:
                 "near_target_p95": r.get("near_target", {}).get("p95"), "L": r["L"], "L_p99": r["L_p99"],
                 "eps_cover": r["eps_cover"], "eps_cover_95": r["eps_cover_95"], "bound_holds": r["bound_holds"],
                 "dean_eps_eta_at_0": r["dean"]["eps_eta_at_0"], "dean_eps_C_at_0": r["dean"]["eps_C_at_0"],
+                **({"heading_mean_deg": r["heading"]["mean_deg"], "heading_p95_deg": r["heading"]["p95_deg"]}
+                   if "heading" in r else {}),  # a pose map's heading error
                 "errormap": s["id"],
             })
     return pd.DataFrame(rows)

@@ -13,9 +13,9 @@ code path with a synthetic map.
 from __future__ import annotations
 
 import json
-import sys
 import time
 from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +33,7 @@ from pipeline.errormap.analysis import (
     _dean_center,
     _fmt_eps,
     _jsonable,
+    analyse_heading,
     analyse_level,
     eps_marks,
     operational_margin,
@@ -43,7 +44,7 @@ from pipeline.errormap.read import summary_table
 from pipeline.errormap.settings import ErrorMapSettings
 from pipeline.errormap.writers import write_outputs
 from pipeline.errors import ConfigError, DatasetError, ModelError
-from pipeline.lineage import errormap_settings
+from pipeline.lineage import debug_overrides, errormap_settings, resolve_map
 from pipeline.perception.maps import load_perception_map
 from pipeline.render import load_occlusion
 
@@ -76,17 +77,26 @@ def _images_of(result) -> Any:
     return getattr(result, "images", result)
 
 
-def _render_fn(camera, occlusion, shared=None):
-    """`render(points, rng)` for core.error_field; `shared`: one cloud sample shown in every image."""
+def _render_fn(camera, occlusion, shared=None, heading: float | None = None):
+    """`render(points, rng)` for core.error_field; `shared`: one cloud sample shown in every image; `heading`: the
+    heading every image shows (a pose map's error map)."""
+    def pose(points):
+        return {} if heading is None else {"heading": np.full(len(points), heading)}
+
     if shared is not None:
         def render(points: np.ndarray, rng: np.random.Generator | None):
             clouds = shared[np.zeros(len(points), dtype=np.intp)]
-            return _images_of(camera.render(points, occlusion=occlusion, clouds=clouds))
+            return _images_of(camera.render(points, occlusion=occlusion, clouds=clouds, **pose(points)))
     else:
         def render(points: np.ndarray, rng: np.random.Generator | None):
-            return _images_of(camera.render(points, occlusion=occlusion, rng=rng))
+            return _images_of(camera.render(points, occlusion=occlusion, rng=rng, **pose(points)))
 
     return render
+
+
+def heading_grid(n: int) -> np.ndarray:
+    """`n` headings evenly spaced over the circle from -π (radians)."""
+    return -np.pi + 2.0 * np.pi * np.arange(n) / n
 
 
 def _is_deterministic(name: str, occlusion) -> bool:
@@ -109,10 +119,19 @@ def _train_samples(dataset, predict, n_max, batch, seed, progress):
     bar = core._progress(len(idx), "train samples", progress)
     for s in range(0, len(idx), batch):
         sel = idx[s : s + batch]
-        pred[s : s + batch] = np.asarray(predict(np.asarray(images[sel])), dtype=float)
+        pred[s : s + batch] = np.asarray(predict(np.asarray(images[sel])), dtype=float)[:, :2]  # a pose: its position
         bar.update(len(sel))
     bar.close()
     return positions[idx], pred
+
+
+def _load_map(cfg, ref):
+    """The map `ref` names, resolved with the run's `debug` level (a name means the map of the same debug size)."""
+    try:
+        folder = resolve_map(ref, cfg.paths.models_dir, overrides=debug_overrides(cfg))
+    except DatasetError as err:
+        raise ModelError(str(err)) from None
+    return load_perception_map(folder, models_dir=cfg.paths.models_dir, device=cfg.get("device", "auto"))
 
 
 def run(cfg: DictConfig, *, perception_map=None, camera=None, occlusions: Mapping | None = None,
@@ -125,8 +144,7 @@ def run(cfg: DictConfig, *, perception_map=None, camera=None, occlusions: Mappin
     models = tracking.to_plain(cfg.get("maps"))
     if isinstance(models, list) and perception_map is None:
         check(cfg)
-        loaded = [load_perception_map(ref, models_dir=cfg.paths.models_dir, device=cfg.get("device", "auto"))
-                  for ref in models]
+        loaded = [_load_map(cfg, ref) for ref in models]
         results = [run_one(OmegaConf.merge(cfg, {"maps": ref}), perception_map=pm)
                    for ref, pm in zip(models, loaded)]
         table = summary_table([r["summary"] for r in results])
@@ -144,106 +162,175 @@ def run_one(cfg: DictConfig, *, perception_map=None, camera=None, occlusions: Ma
     `.manifest`, `.camera()`), `camera` (`.render(points, occlusion=, rng=)`), `occlusions`
     (`{level: occlusion object}`), `dataset` (`.positions("train")`, `.images("train")`).
     """
+    plan = _plan(cfg, perception_map, camera, occlusions)
+    pmap, settings, final = plan.pmap, plan.settings, plan.final
+    if tracking.is_complete(final) and not settings.get("force", False):
+        print(f"errormap: {final} is complete (force=true to recompute)")
+        return {"path": final, "summary": json.loads((final / "summary.json").read_text()), "skipped": True,
+                "fields": None}
+    ds = dataset if dataset is not None else _dataset(pmap, plan.manifest, cfg)
+    progress = bool(settings.get("progress", True))  # a bar on a terminal, one line every few seconds in a log
+
+    t0 = time.perf_counter()
+    samples, sample_pred = _train_samples(ds, pmap.predict, settings.get("train_samples"), int(settings["batch"]),
+                                          settings["seed"], progress)
+    t_train = time.perf_counter() - t0
+    sample_err_vec = sample_pred - samples
+    margin = operational_margin(settings.get("operational_margin", "auto"), plan.camera)
+    results, fields, operational = _compute_levels(plan, samples, sample_err_vec, margin, progress)
+    settings = _coverage_marks(settings, plan.levels, results, fields, operational)
+    summary = _summary(cfg, plan, settings, results, samples, sample_err_vec, t_train, margin, operational)
+
+    meta = {"recipe": plan.recipe, "inputs": {"model": str(pmap.id), "dataset": getattr(ds, "id", None)},
+            "model_name": pmap.name, "code_version": tracking.code_version(*identity.ERRORMAP_CODE),
+            "occlusions": {lv: o.config() for lv, o in plan.occ.items() if hasattr(o, "config")}}
+    with tracking.tracked_output(plan.root, pmap.name, plan.id, meta) as tmp:
+        write_outputs(tmp, summary, fields, results, plan.scene, plan.arena, settings, samples, sample_err_vec)
+    print(f"errormap: wrote {final}")
+    return {"path": final, "summary": summary, "skipped": False, "fields": fields}
+
+
+@dataclass(frozen=True, eq=False)
+class _Plan:
+    """What one error map is computed from: its settings (plain), the perception map, camera and cloud levels, the
+    scene and arena of the map's images, the grid `(points, shape, xs, ys)`, and where it goes (id, folder)."""
+
+    settings: dict
+    levels: list
+    pmap: Any
+    camera: Any
+    occ: dict
+    scene: Scene
+    arena: tuple
+    manifest: dict
+    grid: tuple
+    recipe: dict
+    id: str
+    root: Path
+    final: Path
+    pose: bool = False
+    headings: tuple = (None,)
+
+
+def _plan(cfg: DictConfig, perception_map, camera, occlusions) -> _Plan:
+    """Check the settings, load (or take) the objects, lay the grid and name the output: no work yet."""
     settings_(cfg, ErrorMapSettings)
     settings = errormap_settings(cfg)
     levels = settings["occlusion_levels"]
-    pmap = perception_map if perception_map is not None else load_perception_map(
-        cfg.maps, models_dir=cfg.paths.models_dir, device=cfg.get("device", "auto"))
+    pmap = perception_map if perception_map is not None else _load_map(cfg, cfg.maps)
     camera = camera if camera is not None else pmap.camera()
     occ = dict(occlusions) if occlusions is not None else _occlusions(cfg, levels)
-    shared_clouds = settings.get("clouds", "independent") == "shared"
     missing = [lv for lv in levels if lv not in occ]
     if missing:
         raise ConfigError("occlusion_levels", f"no occlusion object for {missing}")
     scene, arena, scene_cfg = _scene_and_arena(pmap, camera)
     manifest = getattr(pmap, "manifest", None) or {}
     try:
-        points, shape, xs, ys = core.arena_grid(arena, settings["grid"]["step"])
+        grid = core.arena_grid(arena, settings["grid"]["step"])
     except ValueError as err:
         raise ConfigError("grid.step", str(err)) from None
 
+    pose = bool(getattr(pmap, "pose", False))  # a pose map: each point at `headings` headings, heading errors too
+    headings = heading_grid(int(settings["headings"])) if pose else [None]
+    if not pose:
+        settings = {k: v for k, v in settings.items() if k != "headings"}
     recipe = tracking.strip_keys(settings, identity.ERRORMAP_VOLATILE)
     id_ = identity.errormap_id(settings, {lv: _occlusion_config(o) for lv, o in occ.items()}, str(pmap.id),
-                               scene_cfg, arena)
+                               scene_cfg, arena, pose)
     root = Path(cfg.paths.errormaps_dir)
-    final = root / f"{pmap.name}-{id_}"
-    if tracking.is_complete(final) and not settings.get("force", False):
-        print(f"errormap: {final} is complete (force=true to recompute)")
-        return {"path": final, "summary": json.loads((final / "summary.json").read_text()), "skipped": True,
-                "fields": None}
+    return _Plan(settings, levels, pmap, camera, occ, scene, arena, manifest, grid, recipe, id_, root,
+                 root / f"{pmap.name}-{id_}", pose, headings)
 
-    ds = dataset
-    if ds is None:
-        ds_ref = manifest.get("dataset_id") or manifest.get("dataset_name")
-        if not ds_ref:
-            raise DatasetError(f"perception map {pmap.name}-{pmap.id}: manifest names no dataset_id")
-        ds = open_dataset(ds_ref, datasets_dir=cfg.paths.get("datasets_dir"))
-    progress = bool(settings.get("progress", True)) and sys.stderr.isatty()
-    batch = int(settings["batch"])
 
-    t0 = time.perf_counter()
-    samples, sample_pred = _train_samples(ds, pmap.predict, settings.get("train_samples"), batch,
-                                          settings["seed"], progress)
-    t_train = time.perf_counter() - t0
-    sample_err_vec = sample_pred - samples
-    sample_err = np.linalg.norm(sample_err_vec, axis=1)
-    margin = operational_margin(settings.get("operational_margin", "auto"), camera)
-    operational = operational_set(points, scene, arena, margin)
+def _dataset(pmap, manifest: dict, cfg: DictConfig):
+    """The dataset the perception map was trained on, by the id (or name) its manifest records."""
+    ds_ref = manifest.get("dataset_id") or manifest.get("dataset_name")
+    if not ds_ref:
+        raise DatasetError(f"perception map {pmap.name}-{pmap.id}: manifest names no dataset_id")
+    return open_dataset(ds_ref, datasets_dir=cfg.paths.get("datasets_dir"))
+
+
+def _compute_levels(plan: _Plan, samples, sample_err_vec, margin, progress: bool):
+    """E over the grid for each occlusion level and its analysis: `(results, fields, operational)`."""
+    settings, (points, shape, xs, ys) = plan.settings, plan.grid
+    operational = operational_set(points, plan.scene, plan.arena, margin)
     near = core.nearest_distance(points, samples)
-
+    sample_err = np.linalg.norm(sample_err_vec, axis=1)
     results, fields = {}, {"x": xs, "y": ys, "operational": operational.reshape(shape), "nearest": near.reshape(shape)}
-    for li, level in enumerate(levels):
-        random = not _is_deterministic(level, occ[level])
-        k = int(settings["draws"]) if random else 1
+    for li, level in enumerate(plan.levels):
         t1 = time.perf_counter()
-        draws = []
-        for d in range(k):
-            rng = np.random.default_rng([int(settings["seed"]), li, d])
-            shared = occ[level].sample(1, rng, tuple(camera.shape)) if random and shared_clouds else None
-            draws.append(core.error_field(pmap.predict, _render_fn(camera, occ[level], shared), points,
-                                          batch=batch, rng=rng, progress=progress,
-                                          desc=f"error map [{level}{f' {d + 1}/{k}' if k > 1 else ''}]"))
-        E = np.stack(draws)  # (K, N, 2)
+        E = _error_draws(plan, li, level, progress)  # (K, N, 2), a pose map's (K * headings, N, 3)
         seconds = time.perf_counter() - t1
-        results[level] = analyse_level(E, points, shape, operational, samples, sample_err, near, scene,
-                                       settings)
-        results[level].update(draws=k, seconds=seconds, points_per_s=k * len(points) / max(seconds, 1e-12))
-        fields[f"E_{level}"] = E.reshape(k, *shape, 2).astype(np.float32)
-        fields[f"eps_min_{level}"] = results[level].pop("_eps_min").reshape(shape)
-        fields[f"slope_{level}"] = results[level].pop("_slope")
-        r = results[level]
-        print(f"errormap: {pmap.name} [{level}]: |E| over the operational set mean {r['mean']:.3g}, "
+        r = results[level] = analyse_level(E[..., :2], points, shape, operational, samples, sample_err, near,
+                                           plan.scene, settings)
+        r.update(draws=len(E) // len(plan.headings), seconds=seconds,
+                 points_per_s=len(E) * len(points) / max(seconds, 1e-12))
+        fields[f"E_{level}"] = E[..., :2].reshape(len(E), *shape, 2).astype(np.float32)
+        if plan.pose:
+            r["heading"] = analyse_heading(E[..., 2], points, operational, plan.scene, settings)
+            fields[f"H_{level}"] = np.degrees(E[..., 2]).reshape(len(E), *shape).astype(np.float32)
+        fields[f"eps_min_{level}"] = r.pop("_eps_min").reshape(shape)
+        fields[f"slope_{level}"] = r.pop("_slope")
+        head = (f"; heading error mean {r['heading']['mean_deg']:.3g}°, p95 {r['heading']['p95_deg']:.3g}°"
+                if plan.pose else "")
+        print(f"errormap: {plan.pmap.name} [{level}]: |E| over the operational set mean {r['mean']:.3g}, "
               f"p95 {r['p95']:.3g}, max {r['max']:.3g}; L {r['L_max']:.3g} (p99 {r['L_p99']:.3g}); "
-              f"covered for eps >= {_fmt_eps(r['eps_cover'])}; {r['points_per_s']:.0f} points/s")
+              f"covered for eps >= {_fmt_eps(r['eps_cover'])}{head}; {r['points_per_s']:.0f} points/s")
+    return results, fields, operational
 
+
+def _error_draws(plan: _Plan, li: int, level: str, progress: bool) -> np.ndarray:
+    """The K rendered draws of E over the grid at one level (one for a deterministic level), `(K, N, 2)` (a pose
+    map's `(K * headings, N, 3)`, the heading error last); draw d
+    uses the stream `(seed, li, d)`, and with `clouds: shared` one cloud sample shown at every point."""
+    settings, occ, camera = plan.settings, plan.occ[level], plan.camera
+    random = not _is_deterministic(level, occ)
+    k = int(settings["draws"]) if random else 1
+    shared_clouds = settings.get("clouds", "independent") == "shared"
+    draws = []
+    for d in range(k):
+        rng = np.random.default_rng([int(settings["seed"]), li, d])
+        shared = occ.sample(1, rng, tuple(camera.shape)) if random and shared_clouds else None
+        for th in plan.headings:  # a pose map: one field per heading (a draw each); else one field
+            draws.append(core.error_field(plan.pmap.predict, _render_fn(camera, occ, shared, th), plan.grid[0],
+                                          batch=int(settings["batch"]), rng=rng, progress=progress, heading=th,
+                                          desc=f"error map [{level}{f' {d + 1}/{k}' if k > 1 else ''}]"))
+    return np.stack(draws)
+
+
+def _coverage_marks(settings: dict, levels, results: dict, fields: dict, operational) -> dict:
+    """The ε marks whose covered sets are drawn (given, or per level's thresholds), each level's covered fraction
+    at them (`coverage_at`, into `results`); returns the settings with the marks."""
     marks = eps_marks(settings, [fields[f"eps_min_{lv}"].ravel()[operational] for lv in levels])
     for lv in levels:
         em = fields[f"eps_min_{lv}"].ravel()[operational]
         results[lv]["coverage_at"] = {f"{m:g}": float(core.coverage_curve(em, [m])[0]) for m in marks}
-    settings = {**settings, "coverage": {**settings["coverage"], "eps_marks": marks}}
-    center = _dean_center(settings["dean"].get("center", "origin"), scene)
+    return {**settings, "coverage": {**settings["coverage"], "eps_marks": marks}}
+
+
+def _summary(cfg, plan: _Plan, settings, results, samples, sample_err_vec, t_train, margin, operational) -> dict:
+    """summary.json: the model, the grid, the coverage settings, the train samples' errors and Dean et al.'s fit,
+    and every level's numbers."""
+    points, shape = plan.grid[0], plan.grid[1]
+    pmap, manifest, marks = plan.pmap, plan.manifest, settings["coverage"]["eps_marks"]
+    center = _dean_center(settings["dean"].get("center", "origin"), plan.scene)
+    sample_err = np.linalg.norm(sample_err_vec, axis=1)
     train_summary = {**core.error_stats(sample_err), "seconds": t_train,
                      "dean": _jsonable(core.dean_fit(sample_err_vec, samples, center, settings["dean"]["eps_C"]))}
-    summary = {
-        "id": id_,
+    return {
+        "id": plan.id,
         "name": pmap.name,
         "model": {"ref": str(cfg.maps), "id": str(pmap.id), "name": pmap.name,
                   "dataset_id": manifest.get("dataset_id"), "dataset_name": manifest.get("dataset_name")},
         "grid": {"step": float(settings["grid"]["step"]), "nx": int(shape[1]), "ny": int(shape[0]),
                  "n_points": int(len(points)), "n_operational": int(operational.sum()),
                  "operational_margin": margin,
-                 "arena": [list(a) for a in arena]},
+                 "arena": [list(a) for a in plan.arena]},
         "r_cov": settings["coverage"]["r_cov"],
         "eps_marks": marks,
         "lipschitz_used": settings["coverage"]["lipschitz"],
+        **({"headings_deg": np.degrees(plan.headings).tolist()} if plan.pose else {}),
         "dean_center": [float(c) for c in center],
         "train_samples": train_summary,
         "levels": _jsonable(results),
     }
-    meta = {"recipe": recipe, "inputs": {"model": str(pmap.id), "dataset": getattr(ds, "id", None)},
-            "model_name": pmap.name, "code_version": tracking.code_version(*identity.ERRORMAP_CODE),
-            "occlusions": {lv: o.config() for lv, o in occ.items() if hasattr(o, "config")}}
-    with tracking.tracked_output(root, pmap.name, id_, meta) as tmp:
-        write_outputs(tmp, summary, fields, results, scene, arena, settings, samples, sample_err_vec)
-    print(f"errormap: wrote {final}")
-    return {"path": final, "summary": summary, "skipped": False, "fields": fields}

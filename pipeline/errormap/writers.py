@@ -44,6 +44,13 @@ def write_outputs(folder: Path, summary: dict, fields: dict, results: dict, scen
                                    ("lo", "hi", "count", "mean", "median", "p95", "max")}}
                   for lv, r in results.items() for b in range(len(r["error_vs_distance"]["lo"]))]).to_csv(
         folder / "error_vs_distance.csv", index=False)
+    heading = [{"level": lv, "region": region, **{k: st[k] for k in ("n", "mean_deg", "median_deg", "p95_deg",
+                                                                   "max_deg")}}
+               for lv, r in results.items() if "heading" in r
+               for region, st in (("operational", r["heading"]), ("arena", r["heading"]["arena"]),
+                                  ("near_target", r["heading"]["near_target"]))]
+    if heading:  # a pose map: the heading error beside the position error
+        pd.DataFrame(heading).to_csv(folder / "heading.csv", index=False)
     np.savez_compressed(folder / "fields.npz", samples=samples.astype(np.float32),
                         sample_err=sample_err_vec.astype(np.float32), **fields)
     figs = figures(folder, fields, results, scene, arena, settings, levels)

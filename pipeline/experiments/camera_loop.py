@@ -12,15 +12,17 @@ import pandas as pd
 from pipeline.control import potential
 from pipeline.experiments.context import Context, Results, summarise
 from pipeline.experiments.scenario import Points, Scenario, _agent_rows, _frame_index
+from pipeline.schema import NonNegative, Positive, PositiveInt
 from pipeline.sim import starts
+from pipeline.sim.settings import FailureRate
 
 
 # ------------------------------------------------------------------------------ noise + failure
 @dataclass(kw_only=True)
 class NoiseFailure(Scenario):
     figures: ClassVar[str] = "pipeline.experiments.figures:draw_noise_failure"
-    sigma: float = 0.5
-    p_fail: float = 0.5
+    sigma: NonNegative = 0.5
+    p_fail: FailureRate = 0.5
     initial_conditions: Points = field(default_factory=lambda: [[-12.0, 2.0], [-37.0, -17.0]])
     maps: ClassVar[tuple[str, ...]] = ("clean",)
 
@@ -46,8 +48,8 @@ class Occlusion(Scenario):
     figures: ClassVar[str] = "pipeline.experiments.figures:draw_occlusion"
     occlusion: str = "heavy"
     initial_conditions: Points = field(default_factory=lambda: [[-12.0, 2.0], [-37.0, -17.0]])
-    n_agents: int = 100   # followers from random initial conditions for the table
-    delta_practical: float = 3.0  # success also within this distance of the target
+    n_agents: PositiveInt = 100   # followers from random initial conditions for the table
+    delta_practical: NonNegative = 3.0  # success also within this distance of the target
     maps: ClassVar[tuple[str, ...]] = ("clean", "occluded")
 
     def uses(self):
@@ -103,8 +105,8 @@ class Occlusion(Scenario):
 class LeaderFollower(Scenario):
     figures: ClassVar[str] = "pipeline.experiments.figures:draw_leader_follower"
     instants: list[int] = field(default_factory=lambda: [1, 90, 180])   # camera frames
-    sigma: float = 0.0
-    grid_step: float = 0.5
+    sigma: NonNegative = 0.0
+    grid_step: Positive = 0.5
     initial_conditions: Points = field(default_factory=lambda: [[-12.0, 2.0], [-37.0, -17.0]])
     maps: ClassVar[tuple[str, ...]] = ("clean",)
 
@@ -159,13 +161,13 @@ class PerceptionCloseness(Scenario):
 class MonteCarlo(Scenario):
     figures: ClassVar[str] = "pipeline.experiments.figures:draw_monte_carlo"
     controllers: list[str] = field(default_factory=lambda: ["hybrid", "smooth", "cbf"])
-    sigma: float = 0.5
-    p_fail: float = 0.5
+    sigma: NonNegative = 0.5
+    p_fail: FailureRate = 0.5
     occlusion: str = "heavy"
     camera: bool = True          # include the camera-in-the-loop occlusion conditions (one per map)
-    n_agents: int = 300          # random initial conditions, true-state conditions
-    n_agents_camera: int = 100   # random initial conditions, camera conditions (each frame renders + infers them all)
-    delta_practical: float = 3.0  # success also within this distance (about the perception error near the target)
+    n_agents: PositiveInt = 300          # random initial conditions, true-state conditions
+    n_agents_camera: PositiveInt = 100   # random initial conditions, camera conditions (each frame renders + infers them all)
+    delta_practical: NonNegative = 3.0  # success also within this distance (about the perception error near the target)
 
     @property
     def maps(self) -> tuple[str, ...]:  # type: ignore[override]
@@ -190,6 +192,7 @@ class MonteCarlo(Scenario):
         x0_all = starts.Random(n=max(n, n_cam), seed=ctx.seed, margin=2.0)(scene)
         frames = []
         for cond, kw in self.conditions(ctx, camera):
+            ctx.label = f"{label} {cond}"
             kw = dict(kw)
             measure, x0 = None, x0_all[:n]
             if "camera" in kw:
@@ -201,6 +204,7 @@ class MonteCarlo(Scenario):
         return pd.concat(frames, ignore_index=True)
 
     def compute(self, ctx: Context) -> Results:
+        ctx.expect(len(self.conditions(ctx, self.camera)) * len(self.controllers))
         metrics = self.metrics(ctx, ctx.scene, "default", camera=self.camera)
         table = summarise(metrics, ["condition", "controller"], seed=ctx.seed, delta_practical=self.delta_practical)
         return Results({"metrics": metrics, "summary": table}, {}, {})

@@ -25,5 +25,7 @@ def check(cfg) -> None:
     ctx = Context(cfg)
     scen.check(ctx)
     ctx.map_ids(scen.maps)
+    for kind in scen.maps:  # a unicycle reading its heading from the camera needs pose maps
+        ctx.check_heading(kind)
     for kind in getattr(scen, "errormaps", ()):
         ctx.error_map(kind)

@@ -22,10 +22,11 @@ from pipeline.errors import ConfigError, DatasetError, ModelError
 from pipeline.experiments.settings import ExperimentSettings
 from pipeline.perception.adversary import is_attack, proposition1_direction
 from pipeline.perception.measure import CameraMeasure, FollowerTarget, LeaderTrack, OracleMap
+from pipeline.plants import SingleIntegrator
 from pipeline.render import load_occlusion
 from pipeline.sim import frame_steps, simulate, true_state
 from pipeline.sim.metrics import summarise_agents, wilson  # noqa: F401 - wilson: for the scenarios
-from pipeline.sim.settings import run_keywords
+from pipeline.sim.settings import check_vehicle, run_keywords
 
 
 # --------------------------------------------------------------------------------------- results
@@ -79,6 +80,9 @@ class Context:
         self.perception = self.settings.perception
         self.camera_settings = build(cfg.camera, "camera")
         self.sim = build(cfg.sim, "sim")
+        # the plant of every run (`vehicle`, SPEC §3.7): controllers steer its steered point in its steering scene
+        self.vehicle = build(cfg.vehicle, "vehicle") if cfg.get("vehicle") is not None else SingleIntegrator()
+        check_vehicle(self.vehicle, self.sim)
         self.dt, self.horizon, self.delta = self.sim.dt, self.sim.horizon, self.sim.delta
         frame_steps(self.dt, self.camera_settings.period)
         self.frame_period = self.camera_settings.period
@@ -86,28 +90,46 @@ class Context:
         self.seed = self.sim.seed
         self.used: dict[str, str] = {}  # inputs used (map/dataset/error-map ids), for the index
         self._maps: dict = {}
+        self.bar = None  # the stage's progress (pipeline.progress): one step per simulation (a batch of agents)
+        self.label = ""  # what the scenario is at (a sweep's cell), shown with each step
 
     # sizes -------------------------------------------------------------------------------------
     def n(self, count: int, minimum: int = 2) -> int:
         return max(minimum, int(round(count * self.scale)))
 
+    def expect(self, runs: int) -> None:
+        """How many simulations the scenario will run (the total of the stage's progress), when it knows it."""
+        if self.bar is not None:
+            self.bar.total = int(runs)
+
+    def advance(self, runs: int = 1, what: str = "") -> None:
+        """`runs` simulations done (or skipped: a bisection that stopped early), `what` the last one."""
+        if self.bar is not None:
+            if what:
+                self.bar.set_postfix_str(what, refresh=False)
+            self.bar.update(runs)
+
     # composed objects --------------------------------------------------------------------------
-    def controller(self, name: str = "hybrid", scene: Scene | None = None, **params):
-        """The controller `controllers.<name>` of the composed config (hybrid: the run's `controller`)."""
-        nodes = self.cfg.controllers
+    def _node(self, group: str, name: str):
+        """The node `<group>.<name>` a scenario names (in `experiment.<group>`)."""
+        nodes = self.cfg[group]
         if name not in nodes:
-            raise ConfigError("experiment.controllers", f"unknown controller {name!r}; known: {', '.join(nodes)}")
-        node = nodes[name] if not params else {**tracking.to_plain(nodes[name]), **params}
-        ctrl = build(node, "controller" if name == "hybrid" else f"controllers.{name}", scene=scene or self.scene)
+            raise ConfigError(f"experiment.{group}", f"unknown {group[:-1]} {name!r}; known: {', '.join(nodes)}")
+        return nodes[name]
+
+    def controller(self, name: str = "hybrid", scene: Scene | None = None, **params):
+        """The controller `controllers.<name>` of the composed config (hybrid: the run's `controller`), on the
+        vehicle's steering scene of `scene` (the unicycle's look-ahead point: every disc inflated, SPEC §3.7)."""
+        node = self._node("controllers", name)
+        node = node if not params else {**tracking.to_plain(node), **params}
+        ctrl = build(node, "controller" if name == "hybrid" else f"controllers.{name}",
+                     scene=self.vehicle.steering_scene(scene or self.scene))
         ctrl.name = name
         return ctrl
 
     def disturbance(self, name: str, **params):
         """The disturbance `disturbances.<name>`; `params` set what the scenario sweeps (eps, sigma)."""
-        nodes = self.cfg.disturbances
-        if name not in nodes:
-            raise ConfigError("experiment.disturbances", f"unknown disturbance {name!r}; known: {', '.join(nodes)}")
-        return build(nodes[name], f"disturbances.{name}", **params)
+        return build(self._node("disturbances", name), f"disturbances.{name}", **params)
 
     def attack(self, name: str, **params):
         """The camera attack `disturbances.<name>` (pixel_attack, worst_cloud; docs/attacks.md); `params` set what
@@ -142,7 +164,8 @@ class Context:
         if ref is None:
             raise ConfigError(f"maps.{kind}", "no perception map configured")
         try:
-            return lineage.resolve_map(ref, self.cfg.paths.models_dir, field=f"maps.{kind}")
+            return lineage.resolve_map(ref, self.cfg.paths.models_dir, field=f"maps.{kind}",
+                                       overrides=lineage.debug_overrides(self.cfg))
         except DatasetError as err:  # unknown name/id: the map's error, as load_perception_map reports it
             raise ModelError(str(err)) from None
 
@@ -177,7 +200,7 @@ class Context:
             return None
         map_id = folder.name.rsplit("-", 1)[1]
         ref = (tracking.to_plain(self.cfg.get("errormaps")) or {}).get(kind)
-        em = lineage.resolve_errormap(ref, self.cfg.paths.errormaps_dir, folder)
+        em = lineage.resolve_errormap(ref, self.cfg.paths.errormaps_dir, folder, lineage.debug_overrides(self.cfg))
         s = load_error_map(em)
         if s.get("model", {}).get("id") != map_id:
             raise ConfigError(f"errormaps.{kind}", f"{em.name} is the error map of map {s['model'].get('id')}, "
@@ -203,6 +226,11 @@ class Context:
         m = tracking.read_manifest(folder)
         return build(m["render"], "render", scene=build(m["scene"], "scene"))
 
+    def map_scene(self, kind: str = "clean") -> Scene | None:
+        """The scene map `kind`'s training images show (from its manifest; None with a perfect map)."""
+        folder = self.map_folder(kind)
+        return None if folder is None else build(tracking.read_manifest(folder)["scene"], "scene")
+
     # simulation ------------------------------------------------------------------------------
     def simulate(self, controller, x0, *, scene: Scene | None = None, disturbance=None, measure=None,
                  target_fn=None, p_fail: float = 0.0, seed: int | None = None, record: bool = True,
@@ -215,8 +243,28 @@ class Context:
                   record_every=record_every or self.sim.record_every, horizon=horizon or self.horizon,
                   model=model or self.sim.model,
                   stop_on_success=self.sim.stop_on_success if stop_on_success is None else bool(stop_on_success))
-        return simulate(scene or self.scene, controller, np.asarray(x0, float), disturbance=disturbance,
-                        measure=measure, target_fn=target_fn, progress=len(x0) >= 2000 and sys.stderr.isatty(), **kw)
+        scene = scene or self.scene
+        x0 = np.asarray(x0, float)
+        res = simulate(scene, controller, x0, disturbance=disturbance, measure=measure, target_fn=target_fn,
+                       progress=len(x0) >= 2000 and sys.stderr.isatty(), plant=self.vehicle,
+                       heading0=self.vehicle.initial_heading(x0, scene), **kw)
+        what = f"{getattr(controller, 'name', 'controller')}, {len(x0)} agents"
+        self.advance(1, f"{self.label}: {what}" if self.label else what)
+        return res
+
+    def check_heading(self, kind: str = "clean") -> None:
+        """A vehicle with a heading read from the camera (`camera.heading: camera`) needs a pose map: one line
+        otherwise (read from the map's manifest: no map loaded)."""
+        if not self.vehicle.heading or self.camera_settings.heading != "camera":
+            return
+        folder = self.map_folder(kind)
+        if folder is None:  # a perfect map returns the true pose
+            return
+        outputs = (tracking.read_manifest(folder).get("model") or {}).get("outputs", "position")
+        if outputs != "pose":
+            raise ConfigError("camera.heading", f"'camera' needs a pose map, and {folder.name} (maps.{kind}) predicts no "
+                                                "heading: train one (python -m pipeline.train data=unicycle model=pose) "
+                                                "or read it from an onboard sensor (camera.heading=imu)")
 
     def map_gate(self, kind: str = "clean") -> float | None:
         """Map `kind`'s own flag threshold in world units: the clean-image gate its training fitted
@@ -236,8 +284,12 @@ class Context:
         pm = self.perception_map(kind)
         gate = self.gate if gate == "camera" else gate
         if attack is None:
-            return true_state if isinstance(pm, OracleMap) else CameraMeasure(self.camera(kind), pm,
-                                                                              self.occlusion(level), gate=gate)
+            if isinstance(pm, OracleMap):
+                return true_state
+            self.check_heading(kind)
+            cs = self.camera_settings
+            return CameraMeasure(self.camera(kind), pm, self.occlusion(level), gate=gate, heading=cs.heading,
+                                 heading_noise=cs.heading_noise)
         occ = self.occlusion(attack.level if attack.kind == "cloud" else level)
         cam = self.camera(kind) if not isinstance(pm, OracleMap) else None
         return attack.measure(cam, pm, proposition1_direction(self.scene), occlusion=occ, gate=gate,

@@ -19,7 +19,7 @@ cloud level of `levels`:
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import ClassVar
+from typing import Annotated, ClassVar
 
 import numpy as np
 import pandas as pd
@@ -34,6 +34,9 @@ from pipeline.experiments.scenario import Points, Scenario
 from pipeline.perception.measure import OracleMap
 from pipeline.perception.metrics import perception_metrics
 from pipeline.render import load_occlusion
+from pipeline.schema import NonEmpty, NonNegative, NonNegativeInt, Positive, PositiveInt, Range, Share
+
+Names = Annotated[list[str], NonEmpty(distinct=True)]
 
 # columns of the follower summary carried into the table (renamed `follower_<column>`)
 FOLLOWER_COLUMNS = ("n", "success_rate", "success_lo", "success_hi", "success_practical", "collision_rate",
@@ -43,38 +46,17 @@ FOLLOWER_COLUMNS = ("n", "success_rate", "success_lo", "success_hi", "success_pr
 @dataclass(kw_only=True)
 class PerceptionGeneralisation(Scenario):
     figures: ClassVar[str] = "pipeline.experiments.figures:draw_perception_generalisation"
-    maps: list[str] = field(default_factory=lambda: ["clean", "authors", "occluded", "clean_paper"])
-    levels: list[str] = field(default_factory=lambda: ["none", "light", "authors", "heavy"])
-    n_positions: int = 4000          # test positions per level (uniform over the arena), the same at every level
-    n_near_target: int = 1000        # positions uniform within near_radius of the target
-    near_radius: float = 5.0         # world units (r_T of the near-target metrics)
-    hidden_alpha: float = 0.8        # cloud opacity over the leader from which a frame counts as hidden
-    follower_probability: float = 0.5  # share of the uniform images that show the follower as a distractor
-    seed: int = 11                   # positions and clouds (not a dataset's seed: fresh test positions)
-    n_agents: int = 100              # followers of the occlusion scenario per map and level
+    maps: Names = field(default_factory=lambda: ["clean", "authors", "occluded", "clean_paper"])
+    levels: Names = field(default_factory=lambda: ["none", "light", "authors", "heavy"])
+    n_positions: PositiveInt = 4000  # test positions per level (uniform over the arena), the same at every level
+    n_near_target: NonNegativeInt = 1000  # positions uniform within near_radius of the target
+    near_radius: Positive = 5.0      # world units (r_T of the near-target metrics)
+    hidden_alpha: Annotated[float, Range(gt=0, le=1)] = 0.8  # cloud opacity over the leader: the frame is hidden
+    follower_probability: Share = 0.5  # share of the uniform images that show the follower as a distractor
+    seed: NonNegativeInt = 11        # positions and clouds (not a dataset's seed: fresh test positions)
+    n_agents: PositiveInt = 100      # followers of the occlusion scenario per map and level
     initial_conditions: Points = field(default_factory=lambda: [[-12.0, 2.0], [-37.0, -17.0]])
-    delta_practical: float = 3.0     # follower success also within this distance of the target
-
-    def validate(self) -> None:
-        super().validate()
-        for name in ("maps", "levels"):
-            v = getattr(self, name)
-            if not v or len(set(v)) != len(v):
-                raise ConfigError(f"experiment.{name}", f"must be a non-empty list without repeats, got {v}")
-        if self.n_positions < 1:
-            raise ConfigError("experiment.n_positions", f"must be >= 1, got {self.n_positions}")
-        if self.n_near_target < 0:
-            raise ConfigError("experiment.n_near_target", f"must be >= 0, got {self.n_near_target}")
-        if not self.near_radius > 0:
-            raise ConfigError("experiment.near_radius", f"must be > 0, got {self.near_radius}")
-        if not 0 < self.hidden_alpha <= 1:
-            raise ConfigError("experiment.hidden_alpha", f"must be in (0, 1], got {self.hidden_alpha}")
-        if not 0 <= self.follower_probability <= 1:
-            raise ConfigError("experiment.follower_probability", f"must be in [0, 1], got {self.follower_probability}")
-        if self.seed < 0:
-            raise ConfigError("experiment.seed", f"must be >= 0, got {self.seed}")
-        if self.delta_practical < 0:
-            raise ConfigError("experiment.delta_practical", f"must be >= 0, got {self.delta_practical}")
+    delta_practical: NonNegative = 3.0  # follower success also within this distance of the target
 
     def uses(self):
         return {"controllers": ["hybrid"], "disturbances": [], "occlusions": list(self.levels)}

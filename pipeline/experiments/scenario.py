@@ -1,6 +1,6 @@
 """The scenarios' base (SPEC §4): a scenario is a dataclass with typed keyword arguments built from its experiment
-bundle (`conf/experiment/<id>.yaml`, `_target_` + parameters; the signature is the schema, checked with the
-config). It computes (`compute(ctx) -> Results`, cached) and names its drawing function (`figures`); `maps` names
+bundle (`conf/experiment/<id>.yaml`, `_target_` + parameters; the signature is the schema: types, choices and
+ranges, checked with the config and when the scenario is built, :func:`pipeline.schema.check_fields`). It computes (`compute(ctx) -> Results`, cached) and names its drawing function (`figures`); `maps` names
 the perception maps its results depend on and `uses()` the composed controllers, disturbances and cloud levels:
 with the scenario's own parameters they make its cache key.
 """
@@ -8,16 +8,16 @@ with the scenario's own parameters they make its cache key.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import Annotated, ClassVar
 
 import numpy as np
 import pandas as pd
 
-from pipeline.errors import ConfigError
 from pipeline.experiments.context import Context, Results
+from pipeline.schema import NonEmpty, Pair, check_fields
 from pipeline.sim import starts
 
-Points = list[list[float]]
+Points = Annotated[list[Pair], NonEmpty()]  # initial conditions [[x, y], ...]
 
 
 def _agent_rows(res, **cols) -> pd.DataFrame:
@@ -51,34 +51,11 @@ class Scenario:
     figures: ClassVar[str] = ""  # its drawing function, "module:function" (drawing code is no part of the cache key)
 
     def __post_init__(self):
+        check_fields(self, "experiment")  # types, choices and ranges of the fields (also when built from Python)
         self.validate()
 
     def validate(self) -> None:
-        """Ranges of the scenario's parameters (ConfigError naming `experiment.<key>`)."""
-        for name in ("n_agents", "n_agents_camera"):
-            v = getattr(self, name, None)
-            if v is not None and v < 1:
-                raise ConfigError(f"experiment.{name}", f"must be >= 1, got {v}")
-        for name in ("sigma", "p_fail", "eps", "min_band"):
-            v = getattr(self, name, None)
-            vals = v if isinstance(v, list) else [v]
-            if v is not None and any(x < 0 for x in vals):
-                raise ConfigError(f"experiment.{name}", f"must be >= 0, got {v}")
-        if getattr(self, "p_fail", 0.0) >= 1:
-            raise ConfigError("experiment.p_fail", f"must be in [0, 1), got {self.p_fail}")
-        for name in ("grid_step", "grid_step_y"):
-            v = getattr(self, name, None)
-            if v is not None and not v > 0:
-                raise ConfigError(f"experiment.{name}", f"must be > 0, got {v}")
-        a_range = getattr(self, "a_range", None)
-        if a_range is not None and not (len(a_range) == 2 and a_range[0] < a_range[1]):
-            raise ConfigError("experiment.a_range", f"must be [min, max] with min < max, got {a_range}")
-        tm = getattr(self, "time_model", "sampled")
-        if tm not in ("sampled", "continuous"):
-            raise ConfigError("experiment.time_model", f"must be sampled or continuous, got {tm!r}")
-        ics = getattr(self, "initial_conditions", None)
-        if ics is not None and not (ics and all(len(p) == 2 for p in ics)):
-            raise ConfigError("experiment.initial_conditions", f"must be a non-empty list of [x, y], got {ics}")
+        """The cross-field rules of a scenario's parameters (ConfigError naming `experiment.<key>`)."""
 
     def uses(self) -> dict[str, list[str]]:
         """Names of the composed controllers, disturbances and cloud levels the computation reads."""

@@ -6,10 +6,10 @@ cached as a tracked output `outputs/experiments/<experiment>-<id>/`; the id hash
 computation reads: the scenario's parameters (not its title), the scene(s), the controllers, disturbances and
 cloud levels it uses, camera, sim and render settings, the ids of its perception and error maps, and the code
 that computes (not the drawing code). Re-running with nothing changed only re-draws; changing a baseline's
-parameter recomputes. Figures (PNG + PDF) and tables (CSV + Markdown + LaTeX) go to `outputs/paper/`, with an
-`index.md` in the paper's figure order, unless the paper there is pinned to another computation of the
-experiment (`view_dir`): a run on the side then writes to `outputs/side/<experiment>-<id>/` instead, so that it
-never replaces a figure of the paper that `make paper` pinned.
+parameter recomputes. Figures (PNG + PDF) and tables (CSV + Markdown + LaTeX) go to
+`outputs/side/<experiment>-<id>/` with an `index.md`; only `publish=true` (what `make paper` passes) writes them
+to `outputs/paper/`, in the paper's figure order (`view_dir`; `publish=auto`: the paper folder unless its lock
+pins another computation of the experiment).
 """
 
 from __future__ import annotations
@@ -30,12 +30,14 @@ from pipeline.experiments.report import FIGURES, Outputs, write_index
 from pipeline.experiments.scenario import Scenario
 from pipeline.lineage import pinned_folders
 from pipeline.perception.maps import load_perception_map, resolve_device
+from pipeline.plants import SingleIntegrator
+from pipeline.progress import progress
 
 # the code whose changes change the numbers (figures.py and report.py only draw)
 COMPUTE_CODE = ("experiments/scenario", "experiments/theory", "experiments/camera_loop", "experiments/generalisation",
-                "experiments/context", "experiments/attacks", "experiments/margin", "perception/measure",
-                "perception/metrics", "perception/attacks", "perception/adversary", "control", "hybrid", "plants", "sim",
-                "render", "data/sampling", "data/recipe")
+                "experiments/multi", "experiments/context", "experiments/attacks", "experiments/margin",
+                "perception/measure", "perception/metrics", "perception/attacks", "perception/adversary", "control",
+                "hybrid", "plants", "sim", "render", "data/sampling", "data/recipe")
 
 
 def _command(cfg, exp_id: str) -> str:
@@ -51,10 +53,10 @@ def _command(cfg, exp_id: str) -> str:
 def view_dir(cfg, exp_id: str, folder: Path) -> tuple[Path, bool]:
     """Where a run's figures and tables go, and whether a lock sent them aside.
 
-    `publish: true` (make paper): `paths.paper_dir`; `false`: `paths.side_dir/<experiment>-<id>/`; `auto` (the
-    default): the paper dir, unless a lock there (`*.lock.yaml`, written by make paper) pins another
-    computation of this experiment; then the side dir, and the pinned paper's figure stays as it is."""
-    publish = cfg.get("publish", "auto")
+    `publish: false` (the default): `paths.side_dir/<experiment>-<id>/`; `true` (make paper passes it):
+    `paths.paper_dir`; `auto`: the paper dir, unless a lock there (`*.lock.yaml`, written by make paper) pins
+    another computation of this experiment; then the side dir, and the pinned paper's figure stays as it is."""
+    publish = cfg.get("publish", False)
     paper_dir, side = Path(cfg.paths.paper_dir), Path(cfg.paths.side_dir) / folder.name
     if publish == "auto":
         pinned = pinned_folders(paper_dir, "experiments")
@@ -79,6 +81,10 @@ def cache_key(cfg, scen: Scenario, ctx: Context) -> dict:
     }
     if "other_scene" in plain:
         key["other_scene"] = plain["other_scene"]
+    if not isinstance(ctx.vehicle, SingleIntegrator):  # the paper's vehicle keeps the key it always had
+        key["vehicle"] = tracking.to_plain(cfg.vehicle)
+    if not ctx.vehicle.heading:  # a vehicle without a heading reads no heading from the camera
+        key["camera"] = {k: v for k, v in key["camera"].items() if k not in ("heading", "heading_noise")}
     errormaps = {k: (s["id"] if (s := ctx.error_map(k)) else "oracle") for k in getattr(scen, "errormaps", ())}
     if errormaps:
         key["errormaps"] = errormaps
@@ -100,7 +106,10 @@ def run(cfg) -> dict:
         res = Results.load(folder)
         print(f"[experiments] {scen.id}: re-using cached results {folder}")
     else:
-        res = scen.compute(ctx)
+        print(f"[experiments] {scen.id}: computing {folder.name} ...", flush=True)
+        with progress(desc=f"[experiments] {scen.id}", unit="runs") as ctx.bar:  # one step per simulation
+            res = scen.compute(ctx)
+        ctx.bar = None
         with tracking.tracked_output(root, scen.id, cid, {"kind": "experiment", "code_version": key_parts["code"],
                                                           **key_parts}) as tmp:
             res.save(tmp)

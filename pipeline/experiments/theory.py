@@ -4,8 +4,9 @@ authors' scene and the scheme of the closed loop."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
-from typing import ClassVar
+from typing import Annotated, ClassVar
 
 import numpy as np
 import pandas as pd
@@ -15,14 +16,16 @@ from pipeline.errors import ConfigError
 from pipeline.experiments.camera_loop import MonteCarlo
 from pipeline.experiments.context import Context, Results, summarise, wilson
 from pipeline.experiments.scenario import Points, Scenario, practical_success
+from pipeline.schema import Interval, NonEmpty, NonNegative, Positive, PositiveInt, Range
 from pipeline.sim import simulate, starts
+from pipeline.sim.settings import FailureRate, TimeModel
 
 
 # --------------------------------------------------------------------------------- coverings
 @dataclass(kw_only=True)
 class Coverings(Scenario):
     figures: ClassVar[str] = "pipeline.experiments.figures:draw_coverings"
-    grid_step: float = 0.25
+    grid_step: Positive = 0.25
 
     def uses(self):
         return {"controllers": [], "disturbances": [], "occlusions": []}
@@ -48,10 +51,10 @@ class Coverings(Scenario):
 @dataclass(kw_only=True)
 class SensitiveSet(Scenario):
     figures: ClassVar[str] = "pipeline.experiments.figures:draw_sensitive_set"
-    grid_step: float = 1.0
-    grid_step_y: float = 0.25   # fine across K to resolve the ε band
-    eps: float = 0.5            # size of the adversarial disturbance in the second column
-    time_model: str = "continuous"  # the paper's hybrid arcs (true state): sim.model for this figure
+    grid_step: Positive = 1.0
+    grid_step_y: Positive = 0.25   # fine across K to resolve the ε band
+    eps: NonNegative = 0.5         # size of the adversarial disturbance in the second column
+    time_model: TimeModel = "continuous"  # the paper's hybrid arcs (true state): sim.model for this figure
 
     def uses(self):
         return {"controllers": ["smooth", "hybrid"], "disturbances": ["adversarial"], "occlusions": []}
@@ -86,13 +89,13 @@ class SensitiveSet(Scenario):
 @dataclass(kw_only=True)
 class RobustnessSweep(Scenario):
     figures: ClassVar[str] = "pipeline.experiments.figures:draw_robustness_sweep"
-    eps: list[float] = field(default_factory=lambda: [0.0, 0.1, 0.25, 0.5, 1.0, 1.5])
+    eps: list[NonNegative] = field(default_factory=lambda: [0.0, 0.1, 0.25, 0.5, 1.0, 1.5])
     disturbances: list[str] = field(default_factory=lambda: ["adversarial", "alternating"])
     controllers: list[str] = field(default_factory=lambda: ["hybrid", "smooth", "cbf"])
-    n_agents: int = 200      # initial conditions within eps of K per cell
-    min_band: float = 0.1    # at eps = 0 the starts are within this band of K
-    a_range: list[float] = field(default_factory=lambda: [-45.0, -15.0])
-    time_model: str = "continuous"  # the paper's hybrid arcs (true state)
+    n_agents: PositiveInt = 200      # initial conditions within eps of K per cell
+    min_band: NonNegative = 0.1      # at eps = 0 the starts are within this band of K
+    a_range: Interval = field(default_factory=lambda: [-45.0, -15.0])
+    time_model: TimeModel = "continuous"  # the paper's hybrid arcs (true state)
 
     def uses(self):
         return {"controllers": list(self.controllers), "disturbances": list(self.disturbances), "occlusions": []}
@@ -102,6 +105,7 @@ class RobustnessSweep(Scenario):
         rows = []
         for dist in self.disturbances:
             for eps in self.eps:
+                ctx.label = f"{label} {dist} eps={eps:g}"
                 band = max(eps, self.min_band)
                 x0 = starts.NearK(n=n, seed=ctx.seed, band=band, a_range=list(self.a_range))(scene)
                 for ctrl in self.controllers:
@@ -120,7 +124,12 @@ class RobustnessSweep(Scenario):
                                  "mean_jumps": float(res.metrics["jumps"].mean())})
         return pd.DataFrame(rows)
 
+    def runs(self) -> int:
+        """Simulations of one sweep (the progress total): disturbance x eps x controller."""
+        return len(self.disturbances) * len(self.eps) * len(self.controllers)
+
     def compute(self, ctx: Context) -> Results:
+        ctx.expect(self.runs())
         return Results({"sweep": self.sweep(ctx, ctx.scene, "default")}, {}, {})
 
 
@@ -132,15 +141,15 @@ class AuthorsCode(Scenario):
 
     figures: ClassVar[str] = "pipeline.experiments.figures:draw_authors_code"
 
-    eps: list[float] = field(default_factory=lambda: [0.0, 0.25, 0.5, 1.0])
+    eps: list[NonNegative] = field(default_factory=lambda: [0.0, 0.25, 0.5, 1.0])
     disturbances: list[str] = field(default_factory=lambda: ["adversarial"])
     controllers: list[str] = field(default_factory=lambda: ["hybrid", "smooth", "cbf"])
-    n_agents: int = 200
-    min_band: float = 0.1
-    a_range: list[float] = field(default_factory=lambda: [-45.0, -15.0])
-    sigma: float = 0.5
-    p_fail: float = 0.5
-    time_model: str = "continuous"  # of the sweep (the Monte Carlo has camera failures: sampled)
+    n_agents: PositiveInt = 200
+    min_band: NonNegative = 0.1
+    a_range: Interval = field(default_factory=lambda: [-45.0, -15.0])
+    sigma: NonNegative = 0.5
+    p_fail: FailureRate = 0.5
+    time_model: TimeModel = "continuous"  # of the sweep (the Monte Carlo has camera failures: sampled)
 
     def uses(self):
         return {"controllers": list(self.controllers), "disturbances": sorted({*self.disturbances, "gaussian"}),
@@ -157,6 +166,7 @@ class AuthorsCode(Scenario):
         mc = MonteCarlo(id=self.id, title=self.title, controllers=self.controllers, sigma=self.sigma,
                         p_fail=self.p_fail, camera=False, n_agents=self.n_agents, n_agents_camera=1)
         sweeps, mcs = [], []
+        ctx.expect(2 * (sweep.runs() + len(mc.conditions(ctx, camera=False)) * len(self.controllers)))
         for label, scene in (("default", ctx.scene), ctx.other_scene()):
             sweeps.append(sweep.sweep(ctx, scene, label))
             mcs.append(mc.metrics(ctx, scene, label, camera=False))
@@ -173,28 +183,21 @@ class HysteresisMargin(Scenario):
 
     figures: ClassVar[str] = "pipeline.experiments.figures:draw_hysteresis_margin"
 
-    chi: list[float] = field(default_factory=lambda: [1.05, 1.1, 1.2, 1.4, 1.8])
-    lam: list[float] = field(default_factory=lambda: [0.01, 0.03, 0.09, 0.2, 0.4])
+    chi: Annotated[list[float], Range(gt=1), NonEmpty()] = field(default_factory=lambda: [1.05, 1.1, 1.2, 1.4, 1.8])
+    lam: Annotated[list[float], Range(gt=0), NonEmpty()] = field(default_factory=lambda: [0.01, 0.03, 0.09, 0.2, 0.4])
     disturbances: list[str] = field(default_factory=lambda: ["adversarial", "alternating"])
-    n_agents: int = 100          # starts near K (a < -c, |b| < band), the same in every cell
-    band: float = 0.5
-    a_range: list[float] = field(default_factory=lambda: [-45.0, -15.0])
-    success: float = 0.99        # a cell is robust at ε when this share of the starts reaches the target
-    eps_max: float = 12.0        # bisection bracket [0, eps_max]
-    tol: float = 0.02            # bisection stops when the bracket is this narrow
+    n_agents: PositiveInt = 100   # starts near K (a < -c, |b| < band), the same in every cell
+    band: Positive = 0.5
+    a_range: Interval = field(default_factory=lambda: [-45.0, -15.0])
+    success: Annotated[float, Range(gt=0, le=1)] = 0.99  # a cell is robust at ε when this share reaches the target
+    eps_max: Positive = 12.0      # bisection bracket [0, eps_max]
+    tol: Positive = 0.02          # bisection stops when the bracket is this narrow
     paper_cell: list[float] = field(default_factory=lambda: [1.1, 0.09])
-    time_model: str = "continuous"  # the paper's hybrid arcs (true state)
+    time_model: TimeModel = "continuous"  # the paper's hybrid arcs (true state)
 
     def validate(self) -> None:
-        super().validate()
-        if not (0 < self.success <= 1):
-            raise ConfigError("experiment.success", f"must be in (0, 1], got {self.success}")
-        if not (self.eps_max > 0 and 0 < self.tol < self.eps_max):
-            raise ConfigError("experiment.tol", f"needs 0 < tol < eps_max, got tol={self.tol}, eps_max={self.eps_max}")
-        if not self.chi or any(c <= 1 for c in self.chi):
-            raise ConfigError("experiment.chi", f"must be a non-empty list of values > 1, got {self.chi}")
-        if not self.lam or any(v <= 0 for v in self.lam):
-            raise ConfigError("experiment.lam", f"must be a non-empty list of values > 0, got {self.lam}")
+        if not self.tol < self.eps_max:
+            raise ConfigError("experiment.tol", f"needs tol < eps_max, got tol={self.tol}, eps_max={self.eps_max}")
         if not self.cells():
             raise ConfigError("experiment.lam", "no (chi, lam) cell with lam < chi - 1")
 
@@ -233,12 +236,19 @@ class HysteresisMargin(Scenario):
                 hi = mid
         return lo, hi, sims
 
+    def steps(self) -> int:
+        """The most simulations one cell's bisection runs: eps = 0, eps_max, then halving down to `tol`."""
+        return 2 + math.ceil(math.log2(self.eps_max / self.tol))
+
     def compute(self, ctx: Context) -> Results:
         x0 = self.starts(ctx)
         rows = []
+        ctx.expect(len(self.disturbances) * len(self.cells()) * self.steps())
         for dist in self.disturbances:
             for chi, lam in self.cells():
+                ctx.label = f"{dist} chi={chi:g} lam={lam:g}"
                 lo, hi, sims = self.margin(ctx, x0, chi, lam, dist)
+                ctx.advance(self.steps() - sims)  # a bisection that stopped early
                 rows.append({"disturbance": dist, "chi": chi, "lam": lam, "eps_margin": lo, "eps_fails": hi,
                              "n_starts": len(x0), "simulations": sims})
         return Results({"margin": pd.DataFrame(rows)}, {"x0": x0}, {"paper_cell": list(self.paper_cell)})
@@ -269,25 +279,25 @@ class SampleAndHold(Scenario):
 
     initial_conditions: Points = field(default_factory=lambda: [[-12.0, 2.0], [-45.0, 0.3], [-37.0, -17.0],
                                                                 [-30.0, 20.0], [10.0, 25.0]])
-    limit_dt: float = 0.0005
-
-    def validate(self) -> None:
-        super().validate()
-        if not self.limit_dt > 0:
-            raise ConfigError("experiment.limit_dt", f"must be > 0, got {self.limit_dt}")
+    limit_dt: Positive = 0.0005
 
     def compute(self, ctx: Context) -> Results:
         x0 = np.asarray(self.initial_conditions, float)
-        runs = {"sampled": ctx.simulate(ctx.controller("hybrid"), x0, model="sampled", record_every=1),
-                "continuous": ctx.simulate(ctx.controller("hybrid"), x0, model="continuous", record_every=1),
-                "limit": simulate(ctx.scene, ctx.controller("hybrid"), x0, dt=self.limit_dt, horizon=ctx.horizon,
+        literal, guarded = ctx.controller("hybrid", guard=False), ctx.controller("hybrid", guard=True)
+        runs = {"sampled": ctx.simulate(literal, x0, model="sampled", record_every=1),  # SPEC §3.3's literal rule
+                "guarded": ctx.simulate(guarded, x0, model="sampled", record_every=1),  # with its sampled-data guard
+                "continuous": ctx.simulate(literal, x0, model="continuous", record_every=1),
+                "limit": simulate(ctx.scene, literal, x0, dt=self.limit_dt, horizon=ctx.horizon,
                                   delta=ctx.delta, camera_period=self.limit_dt, record=False)}
         df = pd.DataFrame({"x0": x0[:, 0], "y0": x0[:, 1]})
         for name, res in runs.items():
             df[f"t_{name}"] = res.metrics["time_to_target"]
             df[f"jumps_{name}"] = res.metrics["jumps"]
             df[f"path_{name}"] = res.metrics["path_length"]
-        for name in ("sampled", "continuous"):
+        for name in ("sampled", "guarded"):
+            df[f"pushouts_{name}"] = runs[name].metrics["pushouts"]
+        df["guard_frames"] = runs["guarded"].metrics["guard_frames"]
+        for name in ("sampled", "guarded", "continuous"):
             df[f"err_{name}_%"] = 100 * (df[f"t_{name}"] - df["t_limit"]) / df["t_limit"]
-        arrays = {"sampled_p": runs["sampled"].p[:, 0], "continuous_p": runs["continuous"].p[:, 0]}
+        arrays = {f"{k}_p": runs[k].p[:, 0] for k in ("sampled", "guarded", "continuous")}
         return Results({"sample_and_hold": df}, arrays, {"period": ctx.frame_period})

@@ -42,18 +42,21 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Annotated
 
 import numpy as np
 import torch
 from torch import nn
 
-from pipeline.errors import ConfigError
 from pipeline.perception.adversary import (  # noqa: F401 - re-exported
     ATTACKS,
     AttackedCamera,
     proposition1_direction,
 )
 from pipeline.render import CloudSample
+from pipeline.schema import NonNegative, NonNegativeInt, PositiveInt, Range, checked
+
+Kappa = Annotated[float, Range(ge=0, le=255)]  # the budget, in intensity levels
 
 
 # -------------------------------------------------------------------------------------------- result
@@ -134,22 +137,10 @@ def _unit_directions(direction, n: int) -> np.ndarray:
     return np.where(nrm[:, None] > 0, d / np.where(nrm > 0, nrm, 1.0)[:, None], 0.0)
 
 
-def _check_kappa(kappa) -> float:
-    if isinstance(kappa, bool) or not isinstance(kappa, int | float | np.integer | np.floating) \
-            or not math.isfinite(kappa) or not 0 <= kappa <= 255:
-        raise ConfigError("attack.kappa", f"must be a number of intensity levels in [0, 255], got {kappa!r}")
-    return float(kappa)
-
-
-def _check_count(value, field_name: str, lo: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < lo:
-        raise ConfigError(field_name, f"must be an integer >= {lo}, got {value!r}")
-    return int(value)
-
-
 # ------------------------------------------------------------------------------------ pixel attack
-def pixel_attack(net: nn.Module, images, direction, *, kappa: float, steps: int = 5,
-                 step_size: float | None = None, device="cpu", batch_size: int = 512,
+@checked("attack")
+def pixel_attack(net: nn.Module, images, direction, *, kappa: Kappa, steps: NonNegativeInt = 5,
+                 step_size: NonNegative | None = None, device="cpu", batch_size: PositiveInt = 512,
                  rng: np.random.Generator | None = None) -> AttackResult:
     """L-infinity PGD on the camera image, pushing the estimate along `direction` (one row per image).
 
@@ -172,12 +163,8 @@ def pixel_attack(net: nn.Module, images, direction, *, kappa: float, steps: int 
     `device`; only the input gets gradients (`torch.autograd.grad`), nothing accumulates in the network's
     parameters. See the module docstring for the network contract.
     """
-    kappa = _check_kappa(kappa)
-    steps = _check_count(steps, "attack.steps", 0)
-    batch_size = _check_count(batch_size, "attack.batch_size", 1)
+    kappa, steps, batch_size = float(kappa), int(steps), int(batch_size)
     alpha = 2.5 * kappa / max(steps, 1) if step_size is None else float(step_size)
-    if not (math.isfinite(alpha) and alpha >= 0):
-        raise ConfigError("attack.step_size", f"must be a number >= 0, got {step_size!r}")
     imgs = images.detach().cpu().numpy() if isinstance(images, torch.Tensor) else np.asarray(images)
     if imgs.ndim != 4 or imgs.shape[-1] != 3 or imgs.dtype != np.uint8:
         raise ValueError(f"images must be uint8 (N, H, W, 3), got {imgs.dtype} {imgs.shape}")
@@ -238,8 +225,9 @@ def pixel_attack(net: nn.Module, images, direction, *, kappa: float, steps: int 
 
 
 # ------------------------------------------------------------------------------------- worst cloud
-def worst_cloud(camera, occlusion, positions, direction, predict: Callable, *, candidates: int = 16,
-                rng: np.random.Generator, follower=None, chunk: int = 4096, always: bool = True,
+@checked("attack")
+def worst_cloud(camera, occlusion, positions, direction, predict: Callable, *, candidates: PositiveInt = 16,
+                rng: np.random.Generator, follower=None, chunk: PositiveInt = 4096, always: bool = True,
                 keep_images: bool = True) -> AttackResult:
     """The worst of `candidates` cloud layouts per agent: a physical adversary searching the level's own clouds.
 
@@ -258,8 +246,7 @@ def worst_cloud(camera, occlusion, positions, direction, predict: Callable, *, c
     the same scene without clouds, `attacked` the chosen candidate's; the chosen images are re-rendered
     (bytes identical) when `keep_images`. Same inputs and rng state -> same result, whatever `chunk`.
     """
-    k = _check_count(candidates, "attack.candidates", 1)
-    chunk = _check_count(chunk, "attack.chunk", 1)
+    k, chunk = int(candidates), int(chunk)
     p = np.asarray(positions, dtype=np.float64).reshape(-1, 2)
     n = len(p)
     d = _unit_directions(direction, n)

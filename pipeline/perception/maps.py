@@ -7,6 +7,7 @@ is on PATH) adds `torch.compile`, falling back to the folded eager network if co
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import shutil
 from pathlib import Path
@@ -20,6 +21,7 @@ from pipeline.errors import ConfigError, DatasetError, ModelError
 from pipeline.lineage import resolve_map
 from pipeline.perception.network import FoldedPerceptionNet, PerceptionMap
 from pipeline.repo import REPO_ROOT
+from pipeline.schema import Device, check_value
 
 DEFAULT_MODELS_DIR = REPO_ROOT / "outputs" / "models"
 log = logging.getLogger(__name__)
@@ -34,16 +36,10 @@ def resolve_device(spec="auto") -> torch.device:
         spec = str(spec)
     if spec is None or spec == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if not isinstance(spec, str):
-        raise ConfigError("device", f"must be auto, cpu, cuda or cuda:N, got {spec!r}")
-    try:
-        dev = torch.device(spec)
-    except (RuntimeError, ValueError):
-        raise ConfigError("device", f"must be auto, cpu, cuda or cuda:N, got {spec!r}") from None
+    check_value(spec, Device, "device")
+    dev = torch.device(spec)
     if dev.type == "cpu":
-        return torch.device("cpu")
-    if dev.type != "cuda":
-        raise ConfigError("device", f"must be auto, cpu, cuda or cuda:N, got {spec!r}")
+        return dev
     if not torch.cuda.is_available():
         raise ConfigError("device", f"{spec!r} requested but no CUDA device is available on this machine "
                                     "(use device=auto or device=cpu)")
@@ -146,7 +142,7 @@ class PerceptionMapPredictor:
             raise ModelError(f"perception map {self.name}: image shape {tuple(shape[1:])} does not "
                              f"match the model's {self.image_shape}")
         out = torch.empty((shape[0], self._n_out), dtype=torch.float64)
-        with torch.inference_mode():
+        with torch.inference_mode(), _one_thread(self.device.type == "cpu" and shape[0] <= SMALL_BATCH):
             for s in range(0, shape[0], self.batch_size):
                 batch = self.to_device(images[s : s + self.batch_size])  # one host->device copy per batch
                 out[s : s + len(batch)] = self.net(batch).to("cpu", torch.float64)
@@ -161,6 +157,25 @@ class PerceptionMapPredictor:
         except KeyError as err:
             raise ModelError(f"perception map {self.name}: manifest has no {err.args[0]!r} config") from None
         return build(render, "render", scene=build(scene, "scene"))
+
+
+# A closed loop infers a few images per camera frame. For so few, intra-op threads gain little on a CPU, and on a
+# busy machine they wait for each other at every layer: one image took 260 ms with 2 threads and 19 ms with one
+# (2 cores, load average 15; scripts of issue 21). Small batches run on one thread.
+SMALL_BATCH = 16
+
+
+@contextlib.contextmanager
+def _one_thread(enabled: bool):
+    n = torch.get_num_threads()
+    if not enabled or n == 1:
+        yield
+        return
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(n)
 
 
 def load_perception_map(ref, models_dir=None, *, verify: bool = False, device="auto",

@@ -11,10 +11,12 @@ map's estimate of the leader, the follower's moving target.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
 from pipeline.errors import ConfigError
+from pipeline.schema import NonNegative, Positive, checked
 
 
 class OracleMap:
@@ -51,6 +53,7 @@ def gated_predict(perception_map, images, gate: float | None, frame: int) -> tup
     return est, int(doubt.sum())
 
 
+@checked("camera")
 @dataclass
 class CameraMeasure:
     """`measure(c (n, 2|3), idx, frame, rng) -> l(h(c))`: render every agent's frame, infer in one batch;
@@ -63,17 +66,15 @@ class CameraMeasure:
     camera: object
     perception_map: object
     occlusion: object | None = None
-    gate: float | None = None
-    heading: str = "camera"
-    heading_noise: float = 0.0
+    gate: Positive | None = None
+    heading: Literal["camera", "imu"] = "camera"
+    heading_noise: NonNegative = 0.0
     frames: int = 0
     images: int = 0
     gated: int = 0
 
     def __post_init__(self):
         check_gate(self.perception_map, self.gate)
-        if self.heading not in ("camera", "imu"):
-                raise ConfigError("camera.heading", f"must be camera or imu, got {self.heading!r}")
 
     def __call__(self, c: np.ndarray, idx: np.ndarray, frame: int, rng: np.random.Generator) -> np.ndarray:
         if isinstance(self.perception_map, OracleMap):

@@ -9,16 +9,28 @@ the network predicts positions normalised to `[-1, 1]` over the arena and the mo
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Sequence
+from typing import Annotated, Literal
 
 import lightning as L
 import torch
 from torch import nn
 
 from pipeline.errors import ConfigError, ModelError
+from pipeline.perception.heading import HeadingHead, heading_deg
+from pipeline.schema import (
+    Interval,
+    Name,
+    NonEmpty,
+    NonNegative,
+    NonNegativeInt,
+    Positive,
+    PositiveInt,
+    Range,
+    checked,
+)
 
-UNCERTAINTY = ("none", "gaussian")
-OUTPUTS = ("position", "pose")
 CHI2_2_95 = 5.991464547107979  # 95% quantile of chi^2 with 2 degrees of freedom: the 95% ellipse of a 2-D Gaussian
 LOGVAR_RANGE = (-14.0, 2.0)  # normalised coordinates: sigma from ~1e-3 (0.05 px) to ~3 half-arenas
 VAR_HIDDEN = 64  # units of the variance head's hidden layer
@@ -38,62 +50,6 @@ def gaussian_nll(logvar: torch.Tensor, sq_residual: torch.Tensor) -> torch.Tenso
     return 0.5 * (logvar + sq_residual * torch.exp(-logvar)).mean()
 
 
-def _is_num(v) -> bool:
-    return isinstance(v, int | float) and not isinstance(v, bool)
-
-
-def _validate(*, image_shape, arena, filters, batch_norm, hidden, dropout, lr, weight_decay, schedule, loss,
-              coord_channels, clamp, name, uncertainty, uncertainty_epochs, uncertainty_lr,
-              uncertainty_batch_size, uncertainty_thumbnail) -> None:
-    """Every constructor argument checked before anything is built: one `ConfigError` naming the field."""
-    def bad(field: str, reason: str, value) -> ConfigError:
-        return ConfigError(f"model.{field}", f"{reason}, got {value!r}")
-
-    if (not isinstance(image_shape, Sequence) or len(image_shape) != 3 or image_shape[2] != 3
-            or not all(isinstance(s, int) and s > 0 for s in image_shape)):
-        raise bad("image_shape", "must be [H, W, 3]", image_shape)
-    try:
-        (x0, x1), (y0, y1) = arena
-        ok = all(_is_num(v) for v in (x0, x1, y0, y1)) and x1 > x0 and y1 > y0
-    except (TypeError, ValueError):
-        ok = False
-    if not ok:
-        raise bad("arena", "must be [[x_min, x_max], [y_min, y_max]] with min < max", arena)
-    if (isinstance(filters, str) or not isinstance(filters, Sequence) or not filters
-            or not all(isinstance(f, int) and not isinstance(f, bool) and f > 0 for f in filters)):
-        raise bad("filters", "must be a non-empty list of positive integers", filters)
-    for field, v in (("batch_norm", batch_norm), ("coord_channels", coord_channels), ("clamp", clamp)):
-        if not isinstance(v, bool):
-            raise bad(field, "must be true or false", v)
-    if isinstance(hidden, bool) or not isinstance(hidden, int) or hidden < 0:
-        raise bad("hidden", "must be an integer >= 0 (0 = no hidden layer)", hidden)
-    if not _is_num(dropout) or not 0.0 <= dropout < 1.0:
-        raise bad("dropout", "must be a number in [0, 1)", dropout)
-    if not _is_num(lr) or not lr > 0:
-        raise bad("lr", "must be a positive number", lr)
-    if not _is_num(weight_decay) or not weight_decay >= 0:
-        raise bad("weight_decay", "must be a number >= 0", weight_decay)
-    if schedule not in ("constant", "cosine", "onecycle"):
-        raise bad("schedule", "must be constant, cosine or onecycle", schedule)
-    if loss not in ("mse", "l1", "smooth_l1"):
-        raise bad("loss", "must be mse, l1 or smooth_l1", loss)
-    if uncertainty not in UNCERTAINTY:
-        raise bad("uncertainty", f"must be one of {', '.join(UNCERTAINTY)}", uncertainty)
-    if isinstance(uncertainty_epochs, bool) or not isinstance(uncertainty_epochs, int) or uncertainty_epochs < 1:
-        raise bad("uncertainty_epochs", "must be an integer >= 1", uncertainty_epochs)
-    if not _is_num(uncertainty_lr) or not uncertainty_lr > 0:
-        raise bad("uncertainty_lr", "must be a positive number", uncertainty_lr)
-    if (isinstance(uncertainty_batch_size, bool) or not isinstance(uncertainty_batch_size, int)
-            or uncertainty_batch_size < 1):
-        raise bad("uncertainty_batch_size", "must be an integer >= 1", uncertainty_batch_size)
-    if (isinstance(uncertainty_thumbnail, bool) or not isinstance(uncertainty_thumbnail, int)
-            or not 1 <= uncertainty_thumbnail <= min(image_shape[:2])):
-        raise bad("uncertainty_thumbnail", f"must be an integer in [1, {min(image_shape[:2])}] (pixels per side of "
-                  "a thumbnail cell)", uncertainty_thumbnail)
-    if not isinstance(name, str) or not name or "/" in name or "\\" in name or name.startswith("."):
-        raise bad("name", "must be a non-empty name without '/', '\\' or a leading '.'", name)
-
-
 def conv_blocks(in_ch: int, filters: Sequence[int], batch_norm: bool) -> nn.Sequential:
     layers: list[nn.Module] = []
     for out_ch in filters:
@@ -105,39 +61,44 @@ def conv_blocks(in_ch: int, filters: Sequence[int], batch_norm: bool) -> nn.Sequ
     return nn.Sequential(*layers)
 
 
+@checked("model")
 class PerceptionMap(L.LightningModule):
-    """CNN perception map; `forward(uint8 or float images NHWC) -> (N, 2)` world coordinates."""
+    """CNN perception map; `forward(uint8 or float images NHWC) -> (N, 2)` world coordinates.
+
+    The defaults are conf/model/default.yaml's (the project's map); conf/model/paper.yaml is the paper's. The
+    annotations are the node's schema (read from this source at composition: keep them to builtins, `Literal`
+    and the aliases of :mod:`pipeline.schema`); a thumbnail cell that does not fit the image and filters that
+    pool it away are the cross-field rules here."""
 
     def __init__(
         self,
-        image_shape: Sequence[int] = (60, 100, 3),
-        arena: Sequence[Sequence[float]] = ((-50.0, 50.0), (-30.0, 30.0)),
-        filters: Sequence[int] = (32, 64, 128),
-        batch_norm: bool = False,
-        hidden: int = 0,
-        dropout: float = 0.5,
-        lr: float = 1e-3,
-        weight_decay: float = 0.0,
-        schedule: str = "constant",
-        loss: str = "mse",
-        coord_channels: bool = False,
+        image_shape: tuple[PositiveInt, PositiveInt, Literal[3]] = (60, 100, 3),
+        arena: tuple[Interval, Interval] = ((-50.0, 50.0), (-30.0, 30.0)),
+        filters: Annotated[Sequence[int], Range(ge=1), NonEmpty()] = (16, 32, 64),
+        batch_norm: bool = True,
+        hidden: NonNegativeInt = 0,
+        dropout: Annotated[float, Range(ge=0, lt=1)] = 0.1,
+        lr: Positive = 2e-3,
+        weight_decay: NonNegative = 0.0,
+        schedule: Literal["constant", "cosine", "onecycle"] = "onecycle",
+        loss: Literal["mse", "l1", "smooth_l1"] = "mse",
+        coord_channels: bool = True,
         clamp: bool = True,
-        name: str = "perception_map",
-        uncertainty: str = "none",
-        uncertainty_epochs: int = 10,
-        uncertainty_lr: float = 2e-3,
-        uncertainty_batch_size: int = 128,
-        uncertainty_thumbnail: int = 4,
-        outputs: str = "position",
+        name: Name = "default",
+        uncertainty: Literal["none", "gaussian"] = "gaussian",
+        uncertainty_epochs: PositiveInt = 10,
+        uncertainty_lr: Positive = 2e-3,
+        uncertainty_batch_size: PositiveInt = 128,
+        uncertainty_thumbnail: PositiveInt = 4,
+        outputs: Literal["position", "pose"] = "position",
+        heading_head: Literal["pooled", "flat"] = "pooled",
+        heading_hidden: PositiveInt = 64,
+        heading_weight: Positive = 1.0,
     ):
         super().__init__()
-        if outputs not in OUTPUTS:
-            raise ConfigError("model.outputs", f"must be one of {', '.join(OUTPUTS)}, got {outputs!r}")
-        _validate(image_shape=image_shape, arena=arena, filters=filters, batch_norm=batch_norm, hidden=hidden,
-                  dropout=dropout, lr=lr, weight_decay=weight_decay, schedule=schedule, loss=loss,
-                  coord_channels=coord_channels, clamp=clamp, name=name, uncertainty=uncertainty,
-                  uncertainty_epochs=uncertainty_epochs, uncertainty_lr=uncertainty_lr,
-                  uncertainty_batch_size=uncertainty_batch_size, uncertainty_thumbnail=uncertainty_thumbnail)
+        if uncertainty_thumbnail > min(image_shape[:2]):
+            raise ConfigError("model.uncertainty_thumbnail", f"must be <= {min(image_shape[:2])} (pixels per side of "
+                                                             f"a thumbnail cell), got {uncertainty_thumbnail!r}")
         self.save_hyperparameters()
         h, w, _ = (int(s) for s in image_shape)
         self.image_shape = (h, w, 3)
@@ -162,7 +123,12 @@ class PerceptionMap(L.LightningModule):
         flat = int(filters[-1]) * fh * fw
         self.uncertainty = uncertainty
         self.pose = outputs == "pose"  # a pose map: (x, y, cos θ, sin θ) from the head, θ = atan2 (SPEC §2)
-        n_head = 4 if self.pose else 2
+        # its (cos θ, sin θ): from the pooled features (`heading_head: pooled`, pipeline.perception.heading) or two
+        # more outputs of the position's head (`flat`)
+        self.heading_head = HeadingHead(int(filters[-1]), int(heading_hidden)) \
+            if self.pose and heading_head == "pooled" else None
+        self.heading_weight = float(heading_weight)
+        n_head = 4 if self.pose and self.heading_head is None else 2
         head: list[nn.Module] = [nn.Flatten(), nn.Dropout(dropout)]
         if hidden:
             head += [nn.Linear(flat, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, n_head)]
@@ -216,8 +182,13 @@ class PerceptionMap(L.LightningModule):
         """Raw head outputs: normalised position (and log variances with `uncertainty: gaussian`)."""
         x = self.prepare(images)
         f = self.features(x)
-        z = self.head(f)
+        z = self.head_outputs(f)
         return z if self.var_head is None else torch.cat([z, self.var_head(self.variance_inputs(x, f))], 1)
+
+    def head_outputs(self, f: torch.Tensor) -> torch.Tensor:
+        """The normalised position (a pose map: and `(cos θ, sin θ)`) from the features `f`."""
+        z = self.head(f)
+        return z if self.heading_head is None else torch.cat([z, self.heading_head(f)], 1)
 
     def variance_inputs(self, x: torch.Tensor, f: torch.Tensor) -> torch.Tensor:
         """What the variance head reads: the (detached) features and the thumbnail of the prepared images `x`."""
@@ -235,8 +206,14 @@ class PerceptionMap(L.LightningModule):
     def _step(self, batch, stage: str):
         images, labels = batch
         target = self.targets(labels)
-        pred_n = self.head(self.features(self.prepare(images)))  # the variance head is fitted afterwards
-        loss = self._loss(pred_n, target)
+        pred_n = self.head_outputs(self.features(self.prepare(images)))  # the variance head is fitted afterwards
+        if self.pose:  # position and heading, the heading's loss weighted (pipeline.perception.heading)
+            loss = self._loss(pred_n[:, :2], target[:, :2]) + self.heading_weight * self._loss(pred_n[:, 2:4],
+                                                                                               target[:, 2:])
+            self.log(f"{stage}_heading_deg", heading_deg(pred_n.detach()[:, 2:4], target[:, 2:]), prog_bar=True,
+                     on_epoch=True, on_step=False, batch_size=len(labels), sync_dist=stage != "train")
+        else:
+            loss = self._loss(pred_n, target)
         err_px = (pred_n.detach()[:, :2] - target[:, :2]) * self.half_range * self.px_per_unit
         sync = stage != "train"  # epoch metrics over every rank's share of the split (a no-op on one device)
         self.log(f"{stage}_loss", loss, prog_bar=stage != "train", on_epoch=True, on_step=stage == "train",
@@ -273,7 +250,7 @@ class PerceptionMap(L.LightningModule):
                 flops += 2 * h * w * m.in_channels * m.out_channels * 9
             elif isinstance(m, nn.MaxPool2d):
                 h, w = h // 2, w // 2
-        for m in [*self.head, *(self.var_head or [])]:
+        for m in [*self.head, *(self.var_head or []), *(self.heading_head.mlp if self.heading_head else [])]:
             if isinstance(m, nn.Linear):
                 flops += 2 * m.in_features * m.out_features
         return flops
@@ -325,6 +302,7 @@ class FoldedPerceptionNet(nn.Module):
                 conv.bias.copy_(bk)
             self.convs.append(conv)
         self.head = nn.Sequential(*[m for m in model.head if not isinstance(m, nn.Flatten | nn.Dropout)])
+        self.heading_head = copy.deepcopy(model.heading_head)
         self.var_head = None if model.var_head is None else nn.Sequential(*model.var_head)
         self.thumb_size = model.thumb_size
         self.register_buffer("center", model.center.detach().clone())
@@ -342,12 +320,13 @@ class FoldedPerceptionNet(nn.Module):
         for conv in self.convs:
             x = nn.functional.max_pool2d(nn.functional.relu_(conv(x)), 2)
         f = x.flatten(1)
-        if self.var_head is None:
-            z = self.head(f)
-        else:
+        z = self.head(f)
+        if self.heading_head is not None:
+            z = torch.cat([z, self.heading_head(x)], 1)
+        if self.var_head is not None:
             thumb = nn.functional.adaptive_avg_pool2d(img, self.thumb_size).flatten(1)  # `thumbnail` of [0, 255]
             thumb = (thumb * (1.0 / 255.0) - 0.5) * THUMB_SCALE
-            z = torch.cat([self.head(f), self.var_head(torch.cat([f, thumb], 1))], 1)
+            z = torch.cat([z, self.var_head(torch.cat([f, thumb], 1))], 1)
         return _to_world(z, self.center, self.half_range, self.sigma_scale, self.clamp, self.pose)
 
 

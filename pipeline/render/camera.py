@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 import cv2
 import numpy as np
@@ -32,16 +32,25 @@ import numpy as np
 from pipeline.errors import ConfigError
 from pipeline.render.marker import _MARKER_REACH, heading_marker, polygon_coverage
 from pipeline.render.occlusion import CloudSample, Occlusion
+from pipeline.schema import RGB, NonNegative, Positive, checked
 
 Arena = tuple[tuple[float, float], tuple[float, float]]
 DEFAULT_ARENA: Arena = ((-50.0, 50.0), (-30.0, 30.0))
-DEFAULT_COLORS = {
-    "background": (22, 26, 34),
-    "obstacle": (200, 64, 52),
-    "target": (255, 186, 0),
-    "leader": (255, 255, 255),
-    "follower": (40, 220, 80),
-}
+
+
+@checked("render.colors")
+@dataclass(frozen=True)
+class Colors:
+    """The colours of the image, RGB (`render.colors`: any of them)."""
+
+    background: RGB = (22, 26, 34)
+    obstacle: RGB = (200, 64, 52)
+    target: RGB = (255, 186, 0)
+    leader: RGB = (255, 255, 255)
+    follower: RGB = (40, 220, 80)
+
+
+DEFAULT_COLORS = asdict(Colors())
 _SUPERSAMPLE = 8  # sub-samples per pixel side for the static background
 _CHUNK = 512  # images per internal block: keeps the full-image passes in cache
 
@@ -92,16 +101,6 @@ class RenderResult:
     leader_alpha: np.ndarray
 
 
-def _color(value, field: str) -> np.ndarray:
-    try:
-        arr = np.asarray(value, dtype=float).reshape(-1)
-    except (TypeError, ValueError):
-        arr = np.zeros(0)
-    if arr.shape != (3,) or not np.all((arr >= 0) & (arr <= 255)):
-        raise ConfigError(field, f"must be an RGB triple of numbers in [0, 255], got {value!r}")
-    return arr
-
-
 def _field(obj, name: str):
     """`obj.name`, or `obj[name]` for a mapping (obstacle items may be either)."""
     if isinstance(obj, Mapping):
@@ -113,6 +112,7 @@ def _field(obj, name: str):
 # The unicycle's marker, in units of L = robot_size px, in the vehicle frame (x ahead, y to the left):
 # apex (4/3, 0), base corners (-2/3, +-1/2). Area L^2 (the square's); area centroid at the origin.
 # ------------------------------------------------------------------------------------------ camera
+@checked("render")
 class Camera:
     """Batched renderer of the arena of a :class:`pipeline.control.Scene`.
 
@@ -120,36 +120,29 @@ class Camera:
     target ring in pixels (ring width 1 px). Colours are RGB triples (see ``DEFAULT_COLORS``).
     """
 
-    def __init__(self, scene=None, px_per_unit: float = 1.0, robot_size: float = 3.0, target_radius: float = 2.5,
-                 colors: dict[str, list[int]] | None = None, target_ring_width: float | None = 1.0):
+    def __init__(self, scene=None, px_per_unit: Positive = 1.0, robot_size: Positive = 3.0,
+                 target_radius: NonNegative = 2.5, colors: Colors | None = None,
+                 target_ring_width: Positive | None = 1.0):
         arena = scene.bounds if hasattr(scene, "bounds") else DEFAULT_ARENA
         (x0, x1), (y0, y1) = _arena(arena)
-        if not px_per_unit > 0:
-            raise ConfigError("render.px_per_unit", f"must be > 0, got {px_per_unit!r}")
         h, w = (y1 - y0) * px_per_unit, (x1 - x0) * px_per_unit
         if not (float(h).is_integer() and float(w).is_integer() and 8 <= h <= 4096 and 8 <= w <= 4096):
             raise ConfigError("render.px_per_unit", f"{px_per_unit:g} px per unit makes a {h:g} x {w:g} px image of "
                                                     f"the {y1 - y0:g} x {x1 - x0:g} arena: it needs whole numbers "
                                                     "of pixels in [8, 4096] (square pixels)")
         height, width = int(h), int(w)
-        if not 0 < robot_size <= min(height, width) / 4:
-            raise ConfigError("render.robot_size", f"must be in (0, {min(height, width) / 4:g}] px, got {robot_size!r}")
-        if not 0 <= target_radius <= min(height, width) / 4:
-            raise ConfigError("render.target_radius", f"must be in [0, {min(height, width) / 4:g}] px, got {target_radius!r}")
-        cols = dict(DEFAULT_COLORS)
-        unknown = set(colors or {}) - set(cols)
-        if unknown:
-            raise ConfigError("render.colors", f"unknown key(s) {sorted(unknown)}; known: {sorted(cols)}")
-        cols.update(dict(colors or {}))
-        self.colors = {k: _color(v, f"render.colors.{k}") for k, v in cols.items()}
+        for key, size in (("robot_size", robot_size), ("target_radius", target_radius)):  # a marker fits the image
+            if size > min(height, width) / 4:
+                raise ConfigError(f"render.{key}", f"must be <= {min(height, width) / 4:g} px (a quarter of the "
+                                                   f"{height} x {width} image), got {size!r}")
+        given = asdict(colors) if isinstance(colors, Colors) else dict(colors or {})
+        self.colors = {k: np.asarray(v, dtype=float) for k, v in {**DEFAULT_COLORS, **given}.items()}
         self.scene = scene
         self.arena: Arena = ((x0, x1), (y0, y1))
         self.height, self.width = height, width
         self.scale = width / (x1 - x0)  # pixels per world unit
         self.robot_size = float(robot_size)
         self.target_radius = float(target_radius)
-        if target_ring_width is not None and not target_ring_width > 0:
-            raise ConfigError("render.target_ring_width", f"must be > 0 px (or null: a filled disc), got {target_ring_width!r}")
         self.target_ring_width = None if target_ring_width is None else float(target_ring_width)
         self.background = self._render_background()
         self._bg_flat = self.background.reshape(-1, 3)

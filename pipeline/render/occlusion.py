@@ -20,6 +20,7 @@ import functools
 import math
 import threading
 from dataclasses import asdict, dataclass
+from typing import Annotated
 
 import cv2
 import numpy as np
@@ -27,6 +28,7 @@ from omegaconf import OmegaConf
 
 from pipeline.config import build, compose
 from pipeline.errors import ConfigError
+from pipeline.schema import Ascending, NonNegativeInt, Positive, Range, Share, checked
 
 
 @dataclass(frozen=True)
@@ -45,14 +47,15 @@ class CloudSample:
         return CloudSample(self.mask[key], self.field[key], self.dy[key], self.dx[key])
 
 
-def _pair(value, field: str, lo: float, hi: float) -> tuple:
-    """A `[min, max]` range with `lo <= min <= max <= hi` (the types were checked with the config)."""
-    a, b = value
-    if not (lo <= a <= b <= hi):
-        raise ConfigError(f"occlusion.{field}", f"needs {lo:g} <= min <= max <= {hi:g}, got {list(value)!r}")
-    return a, b
+def _span(tp, lo: float, hi: float):
+    """A `[min, max]` range with `lo <= min <= max <= hi`."""
+    return Annotated[tuple[tp, tp], Range(ge=lo, le=hi), Ascending(strict=False)]
 
 
+Blobs, Radius, Opacity, Aspect = _span(int, 0, 64), _span(float, 0.5, 1e6), _span(float, 0, 1), _span(float, 0.05, 1)
+
+
+@checked("occlusion")
 @dataclass(frozen=True)
 class Occlusion:
     """A cloud level (`conf/occlusion/*.yaml`, its `_target_`). `Occlusion()` (or level `none`) draws nothing.
@@ -64,35 +67,22 @@ class Occlusion:
     """
 
     name: str = "none"
-    probability: float = 0.0
-    blobs: tuple[int, int] = (0, 0)
-    radius: tuple[float, float] = (4.0, 8.0)
-    opacity: tuple[float, float] = (0.5, 0.5)
-    aspect: tuple[float, float] = (0.6, 1.0)
-    softness: float = 0.5
-    color: tuple[int, int, int] = (185, 205, 255)
-    bank: int = 256
-    seed: int = 0
-    cluster: float | None = None
+    probability: Share = 0.0
+    blobs: Blobs = (0, 0)
+    radius: Radius = (4.0, 8.0)
+    opacity: Opacity = (0.5, 0.5)
+    aspect: Aspect = (0.6, 1.0)
+    softness: Annotated[float, Range(gt=0, le=1)] = 0.5  # fraction of the radius
+    color: Annotated[tuple[int, int, int], Range(ge=0, le=255)] = (185, 205, 255)
+    bank: Annotated[int, Range(ge=1, le=4096)] = 256
+    seed: NonNegativeInt = 0
+    cluster: Positive | None = None  # px; null: blobs anywhere
 
     def __post_init__(self):
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 (frozen dataclass)
-        if not 0 <= self.probability <= 1:
-            raise ConfigError("occlusion.probability", f"must be in [0, 1], got {self.probability!r}")
-        if not 0 < self.softness <= 1:
-            raise ConfigError("occlusion.softness", f"must be in (0, 1] (fraction of the radius), got {self.softness!r}")
-        if not 1 <= self.bank <= 4096:
-            raise ConfigError("occlusion.bank", f"must be an integer in [1, 4096], got {self.bank!r}")
-        if self.seed < 0:
-            raise ConfigError("occlusion.seed", f"must be an integer >= 0, got {self.seed!r}")
-        if self.cluster is not None and not self.cluster > 0:
-            raise ConfigError("occlusion.cluster", f"must be > 0 px (or null: blobs anywhere), got {self.cluster!r}")
-        if len(self.color) != 3 or not all(0 <= c <= 255 for c in self.color):
-            raise ConfigError("occlusion.color", f"must be an RGB triple of integers in [0, 255], got {self.color!r}")
-        set_("blobs", tuple(int(v) for v in _pair(self.blobs, "blobs", 0, 64)))
-        set_("radius", tuple(float(v) for v in _pair(self.radius, "radius", 0.5, 1e6)))
-        set_("opacity", tuple(float(v) for v in _pair(self.opacity, "opacity", 0.0, 1.0)))
-        set_("aspect", tuple(float(v) for v in _pair(self.aspect, "aspect", 0.05, 1.0)))
+        set_("blobs", tuple(int(v) for v in self.blobs))
+        for k in ("radius", "opacity", "aspect"):
+            set_(k, tuple(float(v) for v in getattr(self, k)))
         set_("color", tuple(int(c) for c in self.color))
         set_("probability", float(self.probability))
         set_("softness", float(self.softness))

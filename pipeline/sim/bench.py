@@ -9,12 +9,14 @@ import time
 import numpy as np
 
 from pipeline.control import HybridController, Scene, in_diamond
+from pipeline.control.fields import random_scene
 from pipeline.sim import simulate
 
 
 def _agents(scene: Scene, n: int, seed: int = 0) -> np.ndarray:
     rng = np.random.default_rng(seed)
-    pts = rng.uniform([-48, -28], [48, 28], size=(2 * n, 2))
+    (x0, x1), (y0, y1) = scene.bounds
+    pts = rng.uniform([x0 + 2, y0 + 2], [x1 - 2, y1 - 2], size=(2 * n, 2))
     return pts[~in_diamond(scene, pts)][:n]
 
 
@@ -56,6 +58,30 @@ def bench_models(quick: bool = False) -> list[dict]:
     ]
 
 
+def _field(M: int) -> Scene:
+    """The default scene (M = 1) or a seeded random valid field of M discs (SPEC §3.6) in a 200 x 120 arena."""
+    if M == 1:
+        return Scene(target=[40.0, 0.0])
+    return random_scene(n_obstacles=M, seed=M, radius_range=[2.0, 3.0], target=[80.0, 0.0], keep_free=[],
+                        arena={"x": [-100.0, 100.0], "y": [-60.0, 60.0]})
+
+
+def bench_obstacles(quick: bool = False) -> list[dict]:
+    """The hybrid controller's cost per agent-step against the number of discs M (issue 19: at most linear in M):
+    the controller evaluated every step (camera period = dt), the same random starts, no early stop."""
+    n, steps = (500, 20) if quick else (5000, 100)
+    rows, base = [], None
+    for M in (1, 3, 5, 10):
+        scene = _field(M)
+        x0 = _agents(scene, n)
+        rate = _rate(scene, x0, steps, 0.01)
+        base = base or rate
+        rows.append({"section": "simulator", "case": f"hybrid, M={M} discs, N={len(x0)}, controller every step",
+                     "value": base / rate, "unit": "x (cost / M=1)",
+                     "note": f"{rate / 1e6:.2f} M agent-steps/s; linear in M: <= {M}x"})
+    return rows
+
+
 def bench(quick: bool = False) -> list[dict]:
     scene = Scene(target=[40.0, 0.0])
     n, steps, n_loop, loop_steps = (1000, 20, 5, 20) if quick else (10_000, 200, 20, 200)
@@ -76,4 +102,4 @@ def bench(quick: bool = False) -> list[dict]:
             {"section": "simulator", "case": f"batched / loop, {label}", "value": batched / loop, "unit": "x",
              "note": "target >= 100x"},
         ]
-    return rows + bench_models(quick)
+    return rows + bench_models(quick) + bench_obstacles(quick)

@@ -51,7 +51,7 @@ def _counters(n: int) -> dict[str, np.ndarray]:
 class _Loop(HybridSystem):
     """What both time models share: the four maps of the feedback law at the measured point."""
 
-    recorded = ("m", "q", "target")
+    recorded = ("m", "q", "i", "target")
 
     def __init__(self, scene, controller, plant, disturbance):
         self.scene, self.controller, self.plant, self.disturbance = scene, controller, plant, disturbance
@@ -104,7 +104,8 @@ class _Loop(HybridSystem):
         point, xd, target, ev = self._law(x)
         new = self.controller.jump_map(point, xd, target, ev=ev)
         cell = new["i"] != xd["i"] if "i" in new else np.zeros(len(x), dtype=bool)
-        return x.replace(**new, cell_jumps=x.cell_jumps + cell, mode_jumps=x.mode_jumps + ~cell)
+        counts = {k: x.d.get(k, np.zeros(len(x), dtype=np.int64)) for k in ("cell_jumps", "mode_jumps")}
+        return x.replace(**new, cell_jumps=counts["cell_jumps"] + cell, mode_jumps=counts["mode_jumps"] + ~cell)
 
     def flow_set(self, x):
         point, xd, target, ev = self._law(x)
@@ -185,7 +186,7 @@ class SampledLoop(_Loop):
 class ContinuousLoop(_Loop):
     """The paper's continuous-time closed loop: `m = c + e(t_k)` along the flow (true state, held disturbance)."""
 
-    recorded = ("e", "q")
+    recorded = ("e", "q", "i")
 
     def measured(self, x):
         return x.c + x.e

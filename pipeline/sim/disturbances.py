@@ -4,13 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.errors import ConfigError
-
-
-def _nonneg(value: float, field: str) -> float:
-    if not value >= 0:
-        raise ConfigError(field, f"must be >= 0, got {value!r}")
-    return float(value)
+from pipeline.schema import NonNegative, checked
 
 
 def _frame_b(p: np.ndarray, scene) -> tuple[np.ndarray, np.ndarray]:
@@ -42,25 +36,27 @@ class NoDisturbance(Disturbance):
     """`e = 0`."""
 
 
+@checked("disturbance")
 class Gaussian(Disturbance):
     """`n ~ N(0, sigma^2 I)` (the paper's N(0, 0.5) read as std 0.5)."""
 
     name = "gaussian"
 
-    def __init__(self, sigma: float = 0.5):
-        self.sigma = _nonneg(sigma, "disturbance.sigma")
+    def __init__(self, sigma: NonNegative = 0.5):
+        self.sigma = float(sigma)
 
     def __call__(self, p, frame, rng, scene):
         return rng.normal(0.0, self.sigma, size=p.shape) if self.sigma > 0 else np.zeros_like(p)
 
 
+@checked("disturbance")
 class Alternating(Disturbance):
     """`e = ±eps e_b`, the sign flipping every frame (`(0, ±eps)` in the paper's axis-aligned frame)."""
 
     name = "alternating"
 
-    def __init__(self, eps: float = 0.5):
-        self.eps = _nonneg(eps, "disturbance.eps")
+    def __init__(self, eps: NonNegative = 0.5):
+        self.eps = float(eps)
 
     def __call__(self, p, frame, rng, scene):
         sign = 1.0 if frame % 2 == 0 else -1.0
@@ -69,13 +65,14 @@ class Alternating(Disturbance):
         return sign * self.eps * _frame_b(p, scene)[1]
 
 
+@checked("disturbance")
 class Adversarial(Disturbance):
     """Proposition 1's attack: `e = -eps sign(b(p)) e_b`, pushing the perceived position across `b = 0`."""
 
     name = "adversarial"
 
-    def __init__(self, eps: float = 0.5):
-        self.eps = _nonneg(eps, "disturbance.eps")
+    def __init__(self, eps: NonNegative = 0.5):
+        self.eps = float(eps)
 
     def __call__(self, p, frame, rng, scene):
         b, e_b = _frame_b(p, scene)

@@ -21,7 +21,7 @@ from pipeline.plants import Plant, SingleIntegrator
 from pipeline.sim.closed_loop import ContinuousLoop, Measure, SampledLoop, TargetFn, true_state
 from pipeline.sim.metrics import StallMonitor, outcome
 from pipeline.sim.monitor import COLLISION, TARGET, ArrivalCollision
-from pipeline.sim.settings import CameraSettings, SimSettings, frame_steps
+from pipeline.sim.settings import CameraSettings, SimSettings, check_vehicle, frame_steps
 
 MODELS = ("sampled", "continuous")
 TERMINATIONS = ("horizon", "target", "collision", "non_finite")
@@ -44,6 +44,7 @@ class SimResult:
     metrics: dict = field(default_factory=dict)  # name -> (N,) arrays
     heading: np.ndarray | None = None  # (T, N) true headings (a vehicle with one)
     heading_measured: np.ndarray | None = None  # (T, N) measured headings
+    i: np.ndarray | None = None  # (T, N) active obstacles (SPEC §3.6; a law with cells)
 
     def metrics_frame(self) -> pd.DataFrame:
         """One row per agent: the columns of `metrics.csv`."""
@@ -60,15 +61,19 @@ class SimResult:
         np.savez_compressed(path, **arrays, termination=np.asarray(self.metrics["termination"]))
 
 
-def simulate(scene, controller, x0: np.ndarray, *, dt: float = 0.01, horizon: float = 30.0, delta: float = 1.0,
-             camera_period: float | None = None, p_fail: float = 0.0, disturbance=None,
-             measure: Measure | None = None, target_fn: TargetFn | None = None,
-             seed: int | np.random.Generator = 0, record_every: int = 10, record: bool = True,
-             stop_on_success: bool = True, progress: bool = False, model: str = "sampled", rtol: float = 1e-6,
-             atol: float = 1e-4, h_max: float = 0.25, method: str = "rosenbrock23", stall_speed: float = 0.25,
-             stall_time: float = 5.0, plant: Plant | None = None, heading0: np.ndarray | None = None) -> SimResult:
+_SIM, _CAMERA = SimSettings(), CameraSettings()  # the defaults: conf/sim/default.yaml, conf/camera/default.yaml
+
+
+def simulate(scene, controller, x0: np.ndarray, *, dt: float = _SIM.dt, horizon: float = _SIM.horizon,
+             delta: float = _SIM.delta, camera_period: float | None = _CAMERA.period, p_fail: float = _CAMERA.p_fail,
+             disturbance=None, measure: Measure | None = None, target_fn: TargetFn | None = None,
+             seed: int | np.random.Generator = _SIM.seed, record_every: int = _SIM.record_every, record: bool = True,
+             stop_on_success: bool = _SIM.stop_on_success, progress: bool = False, model: str = _SIM.model,
+             rtol: float = _SIM.rtol, atol: float = _SIM.atol, h_max: float = _SIM.h_max, method: str = _SIM.method,
+             stall_speed: float = _SIM.stall_speed, stall_time: float = _SIM.stall_time, plant: Plant | None = None,
+             heading0: np.ndarray | None = None) -> SimResult:
     """Simulate all agents of `x0` `(N, 2)` at once (see the module docstring); the settings are checked by
-    :class:`SimSettings` and :class:`CameraSettings`.
+    :class:`SimSettings` and :class:`CameraSettings`, whose defaults (the YAML's) are these keywords'.
 
     The first frame is always delivered (a vehicle starts with an estimate). Success: `|p - p_T| <= delta` within
     the horizon without ever entering an obstacle; collision: `|p - c_i| < r_i` at any step. `model='continuous'`
@@ -86,20 +91,16 @@ def simulate(scene, controller, x0: np.ndarray, *, dt: float = 0.01, horizon: fl
     x0 = np.asarray(x0, dtype=float)
     if x0.ndim != 2 or x0.shape[1] != 2 or len(x0) == 0:
         raise ConfigError("init.points", f"initial conditions must be a non-empty (N, 2) array, got shape {x0.shape}")
-    if getattr(plant, "lookahead", 0.0) >= delta:
-        raise ConfigError("vehicle.lookahead", f"must be < sim.delta = {delta:g} (the axle settles `lookahead` from "
-                                               f"the target, SPEC §3.7), got {plant.lookahead:g}")
+    check_vehicle(plant, sim)
     c0 = plant.lift(x0, heading0)
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
     stall = StallMonitor(len(x0), sim.stall_speed, sim.stall_time, dt)
     monitor = ArrivalCollision(scene, plant, len(x0), delta=delta, stop_on_success=stop_on_success, stall=stall)
     if model == "continuous":
-        if (measure is not None and measure is not true_state) or target_fn is not None:
+        if (measure is not None and measure is not true_state) or target_fn is not None or p_fail > 0:
             raise ConfigError("sim.model", "continuous takes the true state only: a camera/perception-map "
-                              "measurement or a moving target is sampled per frame (use sim.model=sampled)")
-        if p_fail > 0:
-            raise ConfigError("sim.model", f"camera failures (camera.p_fail = {p_fail}) hold a frame's "
-                              "estimate: sampled-only (use sim.model=sampled)")
+                              "measurement, a moving target and camera failures (camera.p_fail = "
+                              f"{p_fail}) are sampled per frame (use sim.model=sampled)")
         loop = ContinuousLoop(scene, controller, plant, disturbance)
         arc = solve_continuous(loop, loop.initial(c0, rng), dt=dt, n_steps=sim.n_steps, rng=rng, monitor=monitor,
                                frame_steps=None if loop.exact else every, record_every=record_every,
@@ -148,5 +149,5 @@ def _result(scene, controller, plant, x0, arc, m, monitor: ArrivalCollision, del
         controller=controller.name, x0=x0, t=arc.t, p=arc.c[..., :2], m=m[..., :2], u=arc.w,
         q=(np.ones(arc.j.shape, dtype=np.int8) if q is None else q.astype(np.int8)), j=arc.j,
         target=arc.d.get("target"), metrics=metrics, heading=heading,
-        heading_measured=m[..., 2] if plant.heading else None,
+        heading_measured=m[..., 2] if plant.heading else None, i=arc.d.get("i"),
     )

@@ -8,11 +8,22 @@ disc); `NearK` draws within a band of the ray behind an obstacle (the set K of P
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Annotated
 
 import numpy as np
 
 from pipeline.control import Scene, in_diamond
 from pipeline.errors import ConfigError
+from pipeline.schema import (
+    Interval,
+    NonEmpty,
+    NonNegative,
+    NonNegativeInt,
+    Pair,
+    Positive,
+    PositiveInt,
+    checked,
+)
 
 
 def _in_obstacle(scene: Scene, pts: np.ndarray) -> np.ndarray:
@@ -41,15 +52,12 @@ def _nonempty(pts: np.ndarray, field_: str) -> np.ndarray:
     return pts
 
 
+@checked("init")
 @dataclass(frozen=True)
 class Points:
     """Explicit initial conditions (the paper's two by default)."""
 
-    points: list[list[float]] = field(default_factory=lambda: [[-12.0, 2.0], [-37.0, -17.0]])
-
-    def __post_init__(self):
-        if not self.points or any(len(p) != 2 for p in self.points):
-            raise ConfigError("init.points", f"must be a non-empty list of [x, y] pairs, got {self.points!r}")
+    points: Annotated[list[Pair], NonEmpty()] = field(default_factory=lambda: [[-12.0, 2.0], [-37.0, -17.0]])
 
     def __call__(self, scene: Scene, field_: str = "init") -> np.ndarray:
         pts = np.asarray(self.points, dtype=float)
@@ -60,21 +68,15 @@ class Points:
         return pts
 
 
+@checked("init")
 @dataclass(frozen=True)
 class Grid:
     """A regular grid over the arena minus a margin (and the diamonds)."""
 
-    nx: int = 21
-    ny: int = 13
-    margin: float = 2.0
+    nx: PositiveInt = 21
+    ny: PositiveInt = 13
+    margin: NonNegative = 2.0
     exclude_diamond: bool = True
-
-    def __post_init__(self):
-        for k in ("nx", "ny"):
-            if getattr(self, k) < 1:
-                raise ConfigError(f"init.{k}", f"must be >= 1, got {getattr(self, k)}")
-        if self.margin < 0:
-            raise ConfigError("init.margin", f"must be >= 0, got {self.margin}")
 
     def __call__(self, scene: Scene, field_: str = "init") -> np.ndarray:
         (x0, x1), (y0, y1) = _box(scene, self.margin, field_)
@@ -82,22 +84,15 @@ class Grid:
         return _nonempty(pts[_outside(scene, pts)] if self.exclude_diamond else pts, field_)
 
 
+@checked("init")
 @dataclass(frozen=True)
 class Random:
     """Uniform over the arena minus a margin (and the diamonds), seeded."""
 
-    n: int = 1000
-    seed: int = 0
-    margin: float = 2.0
+    n: PositiveInt = 1000
+    seed: NonNegativeInt = 0
+    margin: NonNegative = 2.0
     exclude_diamond: bool = True
-
-    def __post_init__(self):
-        if self.n < 1:
-            raise ConfigError("init.n", f"must be >= 1, got {self.n}")
-        if self.seed < 0:
-            raise ConfigError("init.seed", f"must be >= 0, got {self.seed}")
-        if self.margin < 0:
-            raise ConfigError("init.margin", f"must be >= 0, got {self.margin}")
 
     def __call__(self, scene: Scene, field_: str = "init") -> np.ndarray:
         (x0, x1), (y0, y1) = _box(scene, self.margin, field_)
@@ -108,26 +103,17 @@ class Random:
         return _nonempty(pts[: self.n], field_)
 
 
+@checked("init")
 @dataclass(frozen=True)
 class NearK:
     """Within `band` of the set K of Proposition 1 behind obstacle `obstacle` (`a` in `a_range` of its frame,
     `|b| < band`); with several obstacles and `obstacle: null`, the starts are dealt out over every obstacle."""
 
-    n: int = 200
-    seed: int = 0
-    band: float = 0.5
-    a_range: list[float] = field(default_factory=lambda: [-45.0, -15.0])
+    n: PositiveInt = 200
+    seed: NonNegativeInt = 0
+    band: Positive = 0.5
+    a_range: Interval = field(default_factory=lambda: [-45.0, -15.0])
     obstacle: int | None = None
-
-    def __post_init__(self):
-        if self.n < 1:
-            raise ConfigError("init.n", f"must be >= 1, got {self.n}")
-        if self.seed < 0:
-            raise ConfigError("init.seed", f"must be >= 0, got {self.seed}")
-        if not self.band > 0:
-            raise ConfigError("init.band", f"must be > 0, got {self.band}")
-        if not (len(self.a_range) == 2 and self.a_range[0] < self.a_range[1]):
-            raise ConfigError("init.a_range", f"must be [min, max] with min < max, got {self.a_range!r}")
 
     def __call__(self, scene: Scene, field_: str = "init") -> np.ndarray:
         rng = np.random.default_rng(self.seed)
@@ -141,3 +127,52 @@ class NearK:
             rows = which == i
             out[rows] = scene.covering(i).from_frame(a[rows], b[rows])
         return out
+
+
+@dataclass(frozen=True)
+class BehindObstacles:
+    """Near the set `K_i` behind the obstacles of a field (SPEC §3.6: Proposition 1 once per obstacle): `n` starts
+    on obstacle i's ray away from the target, at `a` in `-(c_i + gap + depth) .. -(c_i + gap)` of its frame (`c_i`
+    its apex: just behind its diamond) and `|b| < band`, kept where obstacle i's cell is the nearest
+    (`dist_j = |p - c_j| - R_j`), inside the arena by `margin` and outside every disc and diamond (rejection,
+    seeded). The starts are dealt out over the obstacles whose K lies in the arena (`obstacles(scene)`: an
+    obstacle near the arena's edge with its back to it has none there)."""
+
+    n: int = 200
+    seed: int = 0
+    band: float = 0.5
+    gap: float = 1.0
+    depth: float = 10.0
+    margin: float = 1.0
+
+    def _candidates(self, scene: Scene, i: int, k: int, rng) -> np.ndarray:
+        arr = scene.arrays
+        (x0, x1), (y0, y1) = _box(scene, self.margin, "init")
+        c = float(arr["c"][i])
+        a = -rng.uniform(c + self.gap, c + self.gap + self.depth, k)
+        p = scene.covering(i).from_frame(a, rng.uniform(-self.band, self.band, k))
+        rel = p[:, None, :] - arr["center"][None]
+        dist = np.hypot(rel[..., 0], rel[..., 1]) - arr["R"][None]
+        ok = ((dist.argmin(axis=1) == i) & _outside(scene, p) & (p[:, 0] > x0) & (p[:, 0] < x1)
+              & (p[:, 1] > y0) & (p[:, 1] < y1))
+        return p[ok]
+
+    def obstacles(self, scene: Scene) -> list[int]:
+        """The obstacles with room behind them (at least a tenth of a probe batch lands in the allowed region)."""
+        rng = np.random.default_rng(self.seed)
+        return [i for i in range(scene.n_obstacles) if len(self._candidates(scene, i, 200, rng)) >= 20]
+
+    def __call__(self, scene: Scene, field_: str = "init") -> np.ndarray:
+        _box(scene, self.margin, field_)
+        which = self.obstacles(scene)
+        if not which:
+            raise ConfigError(f"{field_}.depth", "no obstacle has room behind it in the arena: lower depth or gap")
+        rng = np.random.default_rng(self.seed)
+        out = []
+        for j, i in enumerate(which):
+            want = self.n // len(which) + (j < self.n % len(which))
+            got = np.zeros((0, 2))
+            while len(got) < want:
+                got = np.concatenate([got, self._candidates(scene, i, 8 * want + 16, rng)])
+            out.append(got[:want])
+        return np.concatenate(out)

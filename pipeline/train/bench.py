@@ -73,8 +73,9 @@ def _maps():
     plain CNNs (no BatchNorm, no CoordConv) of 16/32/64 and 32/64/128 filters."""
     node = compose("train").model
     yield "default map 16/32/64 BN+CoordConv", lambda: build(node, "model")
-    yield "plain 16/32/64", lambda: PerceptionMap(filters=(16, 32, 64), lr=1e-3)  # no BN, no CoordConv
-    yield "plain 32/64/128", lambda: PerceptionMap(filters=(32, 64, 128), lr=1e-3)
+    plain = dict(lr=1e-3, batch_norm=False, coord_channels=False, dropout=0.5, schedule="constant", uncertainty="none")
+    yield "plain 16/32/64", lambda: PerceptionMap(filters=(16, 32, 64), **plain)  # no BN, no CoordConv
+    yield "plain 32/64/128", lambda: PerceptionMap(filters=(32, 64, 128), **plain)
 
 
 def bench(quick: bool = False) -> list[dict]:

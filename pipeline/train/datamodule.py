@@ -18,6 +18,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
 from pipeline.errors import ConfigError
+from pipeline.schema import NonNegativeInt, PositiveInt, checked
 
 _RAM_LIMIT_BYTES = 4 << 30  # splits smaller than this are copied to RAM (faster random access)
 
@@ -80,6 +81,7 @@ class ShardedBatchSampler(Sampler):
         return self.n // self.batch_size if self.shuffle else -(-self.n // self.batch_size)
 
 
+@checked("datamodule")
 class PerceptionDataModule(L.LightningDataModule):
     """Train/val/test splits of a tracked dataset (`pipeline.data.Dataset`).
 
@@ -87,25 +89,10 @@ class PerceptionDataModule(L.LightningDataModule):
     `attach(dataset)` once the dataset is open.
     """
 
-    def __init__(self, dataset=None, batch_size: int = 32, limit_train_samples: int | None = None,
-                 limit_val_samples: int | None = None, eval_batch_size: int = 512, num_workers: int = 0,
-                 pin_memory: bool = False, seed: int = 0):
+    def __init__(self, dataset=None, batch_size: PositiveInt = 32, limit_train_samples: PositiveInt | None = None,
+                 limit_val_samples: PositiveInt | None = 2048, eval_batch_size: PositiveInt = 512,
+                 num_workers: NonNegativeInt = 0, pin_memory: bool = False, seed: int = 0):
         super().__init__()
-        for field, value, lo in (("batch_size", batch_size, 1), ("eval_batch_size", eval_batch_size, 1),
-                                 ("num_workers", num_workers, 0)):
-            if isinstance(value, bool) or not isinstance(value, int) or value < lo:
-                raise ConfigError(f"datamodule.{field}", f"must be an integer >= {lo}, got {value!r}")
-        if limit_train_samples is not None and (isinstance(limit_train_samples, bool)
-                                                or not isinstance(limit_train_samples, int)
-                                                or limit_train_samples <= 0):
-            raise ConfigError("datamodule.limit_train_samples",
-                              f"must be a positive integer or null (all), got {limit_train_samples!r}")
-        if limit_val_samples is not None and (isinstance(limit_val_samples, bool)
-                                              or not isinstance(limit_val_samples, int) or limit_val_samples <= 0):
-            raise ConfigError("datamodule.limit_val_samples",
-                              f"must be a positive integer or null (all), got {limit_val_samples!r}")
-        if not isinstance(pin_memory, bool):
-            raise ConfigError("datamodule.pin_memory", f"must be true or false, got {pin_memory!r}")
         self.batch_size = batch_size
         self.limit_train = limit_train_samples
         self.limit_val = limit_val_samples

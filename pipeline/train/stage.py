@@ -113,17 +113,7 @@ def run(cfg) -> dict:
     t_start = time.perf_counter()
     s = check(cfg)  # one ConfigError before any work
     check_devices(cfg)
-    seed, levels = s.seed, list(s.eval_levels)
-    model_cfg = tracking.to_plain_lenient(cfg.model)
-    ds_name, ds_id = train_dataset_id(cfg)  # the dataset this config's recipe renders (or `dataset`, pinned)
-    ds = open_dataset(f"{ds_name}-{ds_id}", datasets_dir=cfg.paths.datasets_dir,
-                      verify=bool(cfg.get("verify_dataset", True)))
-    shape = tuple(int(s) for s in ds.images("train").shape[1:])
-    want = model_cfg.get("image_shape")
-    if want is not None and tuple(want) != shape:
-        raise ModelError(f"model.image_shape {list(want)} does not match dataset {ds.name}-{ds.id} images {list(shape)}")
-    arena = [list(a) for a in ds.camera().arena]
-
+    ds, shape, arena = _dataset(cfg)
     name, id_ = identity.map_identity(tracking.to_plain_lenient(cfg), ds.name, ds.id)
     root = Path(cfg.paths.models_dir)
     final = root / f"{name}-{id_}"
@@ -132,9 +122,59 @@ def run(cfg) -> dict:
         return {"id": id_, "name": name, "path": str(final), "skipped": True,
                 "metrics": json.loads((final / "metrics.json").read_text())}
 
-    dm = _build(cfg.datamodule, "datamodule", dataset=None, seed=seed).attach(ds)  # batch vs split size
+    dm = _build(cfg.datamodule, "datamodule", dataset=None, seed=s.seed).attach(ds)  # batch vs split size
     work = root / f".work-{name}-{id_}"
     cfg = _run_dir(cfg, work)
+    model = _model(cfg, s.seed, shape, arena, name, ds)
+    dm.pose = model.pose
+    trainer, ckpt_cb = _trainer(cfg, work)
+    fit_s = _fit(cfg, trainer, model, dm, work, f"{name}-{id_}")
+    if not trainer.is_global_zero:  # DDP: rank 0 evaluates the test split once and writes the map
+        return {"id": id_, "name": name, "path": str(final), "skipped": False, "rank": trainer.global_rank}
+
+    best_path = ckpt_cb.best_model_path
+    model, predictor, variance_fit = _best_map(cfg, s.seed, model, best_path, ds)
+    hparams = {k: v for k, v in tracking.to_plain_lenient(model.hparams).items() if k not in ("image_shape", "arena")}
+    calibration, test_metrics, test_pred = _evaluate(cfg, s, model, predictor, ds, variance_fit)
+    metrics = _metrics(cfg, trainer, ckpt_cb, ds, fit_s, calibration, test_metrics)
+    meta = {"kind": "perception_map", "dataset_id": ds.id, "dataset_name": ds.name, "seed": s.seed,
+            "model": hparams, "trainer": tracking.to_plain(cfg.trainer),
+            "datamodule": tracking.to_plain(cfg.datamodule), "eval_levels": list(s.eval_levels),
+            "scene": ds.manifest["scene"], "render": ds.manifest["render"],
+            "image_shape": list(shape), "arena": arena,
+            "code_version": tracking.code_version("train"), "metrics": metrics}
+    csv_dir = next((Path(lg.log_dir) for lg in trainer.loggers if isinstance(lg, CSVLogger)), None)
+    with tracking.tracked_output(root, name, id_, meta) as out:
+        curves = _write_map(out, cfg, model, {**hparams, "image_shape": list(shape), "arena": arena}, best_path,
+                            metrics, csv_dir)
+        scatter(test_pred, ds.positions("test"), out / "scatter.png",
+                f"{name}-{id_} on {ds.name}-{ds.id} test: MAE {metrics['test_split']['mae_px']:.3f} px")
+    shutil.rmtree(work, ignore_errors=True)
+    line = ", ".join(f"{k} {v['mae_px']:.3f}" for k, v in metrics.items() if isinstance(v, dict) and "mae_px" in v)
+    if "heading" in metrics["test_split"]:  # a pose map: the heading error beside the position error
+        line += f"; heading error mean {metrics['test_split']['heading']['mean_deg']:.2f} deg"
+    print(f"[train] {name}-{id_}: test MAE px ({line}); {metrics['epochs']} epochs in {fit_s:.0f} s "
+          f"-> {final} ({time.perf_counter() - t_start:.0f} s total)")
+    return {"id": id_, "name": name, "path": str(final), "skipped": False, "metrics": metrics,
+            "epochs": len(curves)}
+
+
+def _dataset(cfg):
+    """The dataset this config's recipe renders (or `dataset`, pinned), its image shape and arena; the model's
+    `image_shape`, where given, must match."""
+    model_cfg = tracking.to_plain_lenient(cfg.model)
+    ds_name, ds_id = train_dataset_id(cfg)
+    ds = open_dataset(f"{ds_name}-{ds_id}", datasets_dir=cfg.paths.datasets_dir,
+                      verify=bool(cfg.get("verify_dataset", True)))
+    shape = tuple(int(s) for s in ds.images("train").shape[1:])
+    want = model_cfg.get("image_shape")
+    if want is not None and tuple(want) != shape:
+        raise ModelError(f"model.image_shape {list(want)} does not match dataset {ds.name}-{ds.id} images {list(shape)}")
+    return ds, shape, [list(a) for a in ds.camera().arena]
+
+
+def _model(cfg, seed: int, shape, arena, name: str, ds):
+    """Threads, quiet Lightning, the seed, then the network (a pose model needs a dataset with headings)."""
     torch.set_num_threads(_threads(cfg))
     _quiet_lightning()
     L.seed_everything(seed, workers=True, verbose=False)
@@ -142,7 +182,12 @@ def run(cfg) -> dict:
     if model.pose and not ds.has_headings:
         raise ConfigError("model.outputs", f"pose: dataset {ds.name}-{ds.id} shows no heading (a recipe with "
                                            "data.vehicle: a unicycle)")
-    dm.pose = model.pose
+    return model
+
+
+def _trainer(cfg, work: Path):
+    """Lightning's Trainer with the config's loggers and callbacks, and the checkpoint callback the stage needs
+    (best and last, in `work/ckpt`): `(trainer, checkpoint callback)`."""
     loggers = [_build(node, f"logger.{key}") for key, node in (cfg.get("logger") or {}).items()]
     callbacks = []
     for key, node in (cfg.get("callbacks") or {}).items():
@@ -162,11 +207,16 @@ def run(cfg) -> dict:
     work.mkdir(parents=True, exist_ok=True)
     trainer = _build(cfg.trainer, "trainer", logger=loggers or False, callbacks=callbacks,
                      enable_progress_bar=show_bar)
+    return trainer, ckpt_cb
 
+
+def _fit(cfg, trainer, model, dm, work: Path, label: str) -> float:
+    """`trainer.fit`, resumed from `work/ckpt/last.ckpt` when there is one; Lightning's late config errors as one
+    ConfigError. Returns the seconds it took."""
     last = work / "ckpt" / "last.ckpt"
     resume = last if last.is_file() and not cfg.trainer.get("fast_dev_run") else None
     if resume and trainer.is_global_zero:
-        print(f"[train] resuming {name}-{id_} from {resume}")
+        print(f"[train] resuming {label} from {resume}")
     t_fit = time.perf_counter()
     try:
         trainer.fit(model, datamodule=dm, ckpt_path=str(resume) if resume else None)
@@ -176,10 +226,12 @@ def run(cfg) -> dict:
         if type(err).__module__.startswith(("lightning", "pytorch_lightning")):
             raise ConfigError("trainer", _first_line(err)) from None
         raise
-    fit_s = time.perf_counter() - t_fit
-    if not trainer.is_global_zero:  # DDP: rank 0 evaluates the test split once and writes the map
-        return {"id": id_, "name": name, "path": str(final), "skipped": False, "rank": trainer.global_rank}
-    best_path = ckpt_cb.best_model_path
+    return time.perf_counter() - t_fit
+
+
+def _best_map(cfg, seed: int, model, best_path, ds):
+    """The best validation epoch's weights, the uncertainty head fitted on the trained network's own errors, and
+    the map on the CPU with its predictor: `(model, predictor, variance head fit or None)`."""
     if best_path and Path(best_path).is_file():
         state = torch.load(best_path, map_location="cpu", weights_only=False)["state_dict"]
         model.load_state_dict(state)
@@ -188,10 +240,15 @@ def run(cfg) -> dict:
     if model.var_head is not None:  # the uncertainty head learns the trained network's own errors
         variance_fit = fit_variance_head(model, ds.images("train"), ds.positions("train"), seed=seed, device=device)
     model = model.to("cpu").eval()
-    hparams = {k: v for k, v in tracking.to_plain_lenient(model.hparams).items() if k not in ("image_shape", "arena")}
     predictor = PerceptionMapPredictor(model, manifest={"dataset_id": ds.id, "scene": ds.manifest["scene"],
                                                         "render": ds.manifest["render"]},
                                        device=device)
+    return model, predictor, variance_fit
+
+
+def _evaluate(cfg, s, model, predictor, ds, variance_fit):
+    """With an uncertainty head, the sigma scale and the clean-image gate fitted on the validation split; then
+    the test split and every evaluation level: `(calibration or None, test metrics, test predictions)`."""
     calibration = None
     ue = build(cfg.uncertainty_eval, "uncertainty_eval") if cfg.get("uncertainty_eval") is not None else UncertaintyEval()
     flags = {"error_px": ue.error_px, "gate_px": ue.gate_px}
@@ -204,39 +261,31 @@ def run(cfg) -> dict:
                                                    per_val=gate_per_val, confidence=confidence,
                                                    seed=s.eval_seed)
         calibration["clean_gate_px"] = flags["clean_gate_px"] = calibration["clean_gate"]["gate_px"]
-    test_metrics, test_pred = evaluate(predictor, ds, levels, s.eval_seed, cfg.occlusions,
+    test_metrics, test_pred = evaluate(predictor, ds, list(s.eval_levels), s.eval_seed, cfg.occlusions,
                                        uncertainty=flags)
+    return calibration, test_metrics, test_pred
+
+
+def _metrics(cfg, trainer, ckpt_cb, ds, fit_s: float, calibration, test_metrics) -> dict:
+    """metrics.json: the run (epochs, speed, best validation MAE, device), the calibration, the test numbers."""
     best = ckpt_cb.best_model_score
     batch = int(cfg.datamodule.batch_size)
-    metrics = {"dataset": f"{ds.name}-{ds.id}", "epochs": int(trainer.current_epoch),
-               "fit_seconds": round(fit_s, 1),
-               "train_images_per_s": round(trainer.global_step * batch / max(fit_s, 1e-9), 1),
-               "val_mae_px": float(best) if best is not None else None,
-               "device": str(trainer.strategy.root_device), "world_size": int(trainer.world_size),
-               **({"calibration": calibration} if calibration else {}), **test_metrics}
-    meta = {"kind": "perception_map", "dataset_id": ds.id, "dataset_name": ds.name, "seed": seed,
-            "model": hparams, "trainer": tracking.to_plain(cfg.trainer),
-            "datamodule": tracking.to_plain(cfg.datamodule), "eval_levels": levels,
-            "scene": ds.manifest["scene"], "render": ds.manifest["render"],
-            "image_shape": list(shape), "arena": arena,
-            "code_version": tracking.code_version("train"), "metrics": metrics}
-    csv_dir = next((Path(lg.log_dir) for lg in trainer.loggers if isinstance(lg, CSVLogger)), None)
-    with tracking.tracked_output(root, name, id_, meta) as out:
-        torch.save({"hparams": {**hparams, "image_shape": list(shape), "arena": arena},
-                    "state_dict": model.state_dict()}, out / "model.pt")
-        if best_path and Path(best_path).is_file():
-            shutil.copy2(best_path, out / "best.ckpt")
-        (out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
-        (out / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=False))
-        curves = plot_curves(csv_dir / "metrics.csv" if csv_dir else None, out)
-        scatter(test_pred, ds.positions("test"), out / "scatter.png",
-                 f"{name}-{id_} on {ds.name}-{ds.id} test: MAE {metrics['test_split']['mae_px']:.3f} px")
-    shutil.rmtree(work, ignore_errors=True)
-    line = ", ".join(f"{k} {v['mae_px']:.3f}" for k, v in metrics.items() if isinstance(v, dict) and "mae_px" in v)
-    print(f"[train] {name}-{id_}: test MAE px ({line}); {metrics['epochs']} epochs in {fit_s:.0f} s "
-          f"-> {final} ({time.perf_counter() - t_start:.0f} s total)")
-    return {"id": id_, "name": name, "path": str(final), "skipped": False, "metrics": metrics,
-            "epochs": len(curves)}
+    return {"dataset": f"{ds.name}-{ds.id}", "epochs": int(trainer.current_epoch),
+            "fit_seconds": round(fit_s, 1),
+            "train_images_per_s": round(trainer.global_step * batch / max(fit_s, 1e-9), 1),
+            "val_mae_px": float(best) if best is not None else None,
+            "device": str(trainer.strategy.root_device), "world_size": int(trainer.world_size),
+            **({"calibration": calibration} if calibration else {}), **test_metrics}
+
+
+def _write_map(out: Path, cfg, model, hparams: dict, best_path, metrics: dict, csv_dir) -> list:
+    """model.pt, best.ckpt, metrics.json, config.yaml and the training curves into `out`; returns the curves."""
+    torch.save({"hparams": hparams, "state_dict": model.state_dict()}, out / "model.pt")
+    if best_path and Path(best_path).is_file():
+        shutil.copy2(best_path, out / "best.ckpt")
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
+    (out / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=False))
+    return plot_curves(csv_dir / "metrics.csv" if csv_dir else None, out)
 
 
 def objective(out: dict, metric: str | None):

@@ -21,7 +21,7 @@ A map trained with `model.uncertainty: gaussian` predicts, per image, a standard
   rate on new frames misses the share by the sampling error; with `confidence` it flags the largest share
   whose one-sided upper bound (Wilson) is within the target, so that the rate on new frames is within it with
   that confidence. The train stage fits it on the validation positions and fresh positions from the recipe's
-  own distribution, all rendered without clouds (`pipeline.train.stage.fit_clean_gate`); the test levels then
+  own distribution, all rendered without clouds (`pipeline.train.evaluate.fit_clean_gate`); the test levels then
   report their detection at that gate (`at_clean_gate`), i.e. the ROC point "detect the bad frames at <= x%
   false alarms on clean images" measured without looking at the test split.
 """

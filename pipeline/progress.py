@@ -1,0 +1,66 @@
+"""Progress of long work, one helper for every stage: tqdm's bar on a terminal, and the same status as one plain
+line every `LINE_INTERVAL` seconds otherwise (a log file, CI, a pipe), where a bar's carriage returns would
+flood the file.
+
+    with progress(total=len(cells), desc="robustness_sweep", unit="run") as bar:
+        for cell in cells:
+            ...
+            bar.update()
+
+Both are tqdm objects (`update`, `set_postfix_str`, `total`, iteration over `progress(iterable)`); only where
+and how often they write differs.
+"""
+
+from __future__ import annotations
+
+import sys
+
+from tqdm import tqdm
+
+LINE_INTERVAL = 15.0  # seconds between progress lines when stderr is not a terminal
+DELAY = 2.0           # seconds before anything is shown: quick work stays quiet
+LINE_FORMAT = "{desc}: {n_fmt}/{total_fmt} {unit} [{elapsed} elapsed, {remaining} left{postfix}]"
+
+
+class _Lines:
+    """A file for tqdm that turns each status it draws (`\\r<status>`) into one line; blanks are dropped."""
+
+    def __init__(self, file):
+        self.file = file
+
+    def write(self, s: str) -> None:
+        s = s.replace("\r", "").strip()
+        if s:
+            self.file.write(s + "\n")
+
+    def flush(self) -> None:
+        self.file.flush()
+
+
+class _LineBar(tqdm):
+    """tqdm drawing one line per `mininterval`: a new postfix waits for the next line instead of drawing one."""
+
+    def set_postfix_str(self, s: str = "", refresh: bool = False) -> None:
+        super().set_postfix_str(s, refresh=False)
+
+
+def is_terminal(file=None) -> bool:
+    file = sys.stderr if file is None else file
+    try:
+        return bool(file.isatty())
+    except (AttributeError, ValueError):  # a closed or odd stream
+        return False
+
+
+def progress(iterable=None, *, total: float | None = None, desc: str = "", unit: str = "it",
+             enabled: bool = True, file=None, interval: float | None = None, unit_scale: bool = False) -> tqdm:
+    """A progress bar on a terminal, periodic one-line progress otherwise (`interval` seconds, default
+    `LINE_INTERVAL`); `enabled=False`: silent (tqdm's `disable`)."""
+    file = sys.stderr if file is None else file
+    if is_terminal(file):
+        return tqdm(iterable, total=total, desc=desc, unit=unit, unit_scale=unit_scale, leave=False, file=file,
+                    dynamic_ncols=True, delay=DELAY, disable=not enabled)
+    every = LINE_INTERVAL if interval is None else interval
+    return _LineBar(iterable, total=total, desc=desc, unit=unit, unit_scale=unit_scale, leave=False,
+                    file=_Lines(file), bar_format=LINE_FORMAT, mininterval=every, maxinterval=max(every, 1.0),
+                    miniters=1, delay=DELAY if interval is None else 0.0, disable=not enabled)

@@ -1,0 +1,384 @@
+"""A new user's first hour (issue 21): every bad input is one line (exit 2) before torch is imported, Ctrl-C is
+one line (exit 130), run folders are named by stage, `outputs/paper/` is written only on purpose, `debug=tiny`
+shrinks every stage consistently, long work shows its progress, a multirun ends with one table, the optional
+loggers work out of the box."""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import re
+import subprocess
+import sys
+import types
+
+import pytest
+
+from pipeline.cli import CONF_DIR, REPO_ROOT, compose
+from pipeline.errors import ConfigError
+
+STAGES = ["pipeline.data", "pipeline.train", "pipeline.errormap", "pipeline.experiments", "pipeline.simulate",
+          "pipeline.paper"]
+
+
+def _env():
+    env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
+    env["MPLBACKEND"] = "Agg"
+    return env
+
+
+def _cli(module, *args, timeout=300):
+    return subprocess.run([sys.executable, "-m", module, *args], cwd=REPO_ROOT, env=_env(), capture_output=True,
+                          text=True, timeout=timeout)
+
+
+def _one_line_exit_2(proc, field: str):
+    msg = f"rc {proc.returncode}\n{proc.stderr[-2000:]}"
+    assert proc.returncode == 2, msg
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"error: {field}"), msg
+    assert "Traceback" not in proc.stderr + proc.stdout, msg
+
+
+# ------------------------------------------------------------------------------ output paths (item 3)
+@pytest.mark.parametrize("module", STAGES)
+def test_output_paths_that_cannot_be_created_are_one_line_in_every_stage(tmp_path, module):
+    """`/proc` takes no new folder (even for root, whom `os.access` lets through), a file in the way neither:
+    the preflight tries a real mkdir before Hydra creates its run folder."""
+    afile = tmp_path / "a_file"
+    afile.write_text("x")
+    extra = {"pipeline.experiments": ["perception=oracle"], "pipeline.simulate": ["plot=false"]}.get(module, [])
+    for override, field in ((f"paths.root_dir=/proc/x{os.getpid()}", "paths.root_dir"),
+                            (f"paths.datasets_dir=/proc/x{os.getpid()}", "paths.datasets_dir"),
+                            (f"paths.outputs_dir={afile}/sub", "paths.outputs_dir")):
+        root = [] if "root_dir" in override else [f"paths.root_dir={tmp_path / 'root'}"]
+        _one_line_exit_2(_cli(module, override, *root, *extra), field)
+    assert not (tmp_path / "root").exists() or not any((tmp_path / "root").rglob("*.yaml"))  # nothing started
+
+
+def test_an_explicit_run_dir_that_cannot_be_created_is_one_line(tmp_path):
+    _one_line_exit_2(_cli("pipeline.simulate", f"paths.root_dir={tmp_path}", "hydra.run.dir=/proc/run_here"),
+                     "hydra.run.dir")
+
+
+def test_the_path_check_leaves_nothing_behind(tmp_path):
+    from pipeline.config import check_folder
+
+    check_folder(tmp_path / "a" / "b" / "c", "paths.x")
+    assert list(tmp_path.iterdir()) == []  # the folders it made to try are removed
+    with pytest.raises(ConfigError, match="paths.x: cannot create"):
+        check_folder("/proc/not_here/sub", "paths.x")
+
+
+# -------------------------------------------------------------------- already fixed on main: their tests
+def test_bench_trains_the_default_map_with_its_uncertainty_head():
+    """`make bench` crashed: the default map has four outputs (position + variance), the loss took them all."""
+    from pipeline.config import build
+    from pipeline.train.bench import _data, raw_loop
+
+    images, pos = _data(16)
+    assert raw_loop(build(compose("train").model, "model"), images, pos, batch=8, steps=1) > 0
+
+
+@pytest.mark.parametrize("module,args,field", [
+    ("pipeline.train", ["trainer.max_epochs=0"], "trainer.max_epochs"),
+    ("pipeline.errormap", ["grid.step=-1"], "grid.step"),
+    ("pipeline.experiments", ["experiment=robustness_sweep", "scale=-1"], "scale"),
+    ("pipeline.data", ["data.seed=-1"], "data.seed"),
+    ("pipeline.train", ["data=clean"], "dataset clean-"),  # a missing input, too
+])
+def test_config_errors_answer_before_torch_is_imported(tmp_path, module, args, field):
+    code = ("import atexit, runpy, sys; atexit.register(lambda: print('torch imported' if 'torch' in sys.modules "
+            f"else 'no torch', file=sys.stderr)); sys.argv = ['{module}', *{args!r}, 'paths.root_dir={tmp_path}']; "
+            f"runpy.run_module('{module}', run_name='__main__')")
+    proc = subprocess.run([sys.executable, "-c", code], cwd=REPO_ROOT, env=_env(), capture_output=True, text=True,
+                          timeout=300)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and lines[-1] == "no torch", proc.stderr[-2000:]
+    assert len(lines) == 2 and lines[0].startswith(f"error: {field}"), proc.stderr
+
+
+def test_ctrl_c_is_one_line_and_exit_130(tmp_path, monkeypatch, capsys):
+    from pipeline.cli import stage_main
+
+    fake = types.ModuleType("fake_interrupted_stage")
+
+    def run(cfg):
+        raise KeyboardInterrupt
+
+    fake.run = run
+    monkeypatch.setitem(sys.modules, "fake_interrupted_stage", fake)
+    monkeypatch.setattr(sys, "argv", ["simulate", f"paths.root_dir={tmp_path}", f"hydra.run.dir={tmp_path / 'run'}"])
+    with pytest.raises(SystemExit) as exit_:
+        stage_main("simulate", run="fake_interrupted_stage:run")()
+    assert exit_.value.code == 130
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "interrupted" in err[0], err
+
+
+@pytest.mark.parametrize("stage", ["data", "train", "errormap", "experiments", "simulate", "paper", "dagger"])
+def test_run_folders_are_named_by_stage(stage):
+    """Not `outputs/runs/__main__/` for every stage; an experiment's runs by experiment id."""
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+
+    with initialize_config_dir(version_base="1.3", config_dir=str(CONF_DIR)):
+        cfg = hydra_compose(stage, ["experiment=coverings"] if stage == "experiments" else [],
+                            return_hydra_config=True)
+    assert cfg.hydra.job.name == stage
+    run_dir = cfg.hydra.run.dir
+    assert f"/runs/{stage}/" in run_dir and f"/multirun/{stage}/" in cfg.hydra.sweep.dir
+    if stage == "experiments":
+        assert "/runs/experiments/coverings/" in run_dir
+
+
+def test_a_follower_farther_than_the_arena_diagonal_is_rejected(tmp_path):
+    from pipeline.data.plan import check
+
+    with pytest.raises(ConfigError, match="data.follower.min_distance"):
+        check(compose("data", ["data=leader_follower", "data.follower.min_distance=500", f"paths.root_dir={tmp_path}"]))
+    check(compose("data", ["data=leader_follower", "data.follower.min_distance=100", f"paths.root_dir={tmp_path}"]))
+
+
+def test_the_missing_map_hint_of_the_experiments_stage_is_a_valid_override(tmp_path):
+    """The experiments stage's `maps` is a mapping: the hint must say `maps.clean=<name-id>` (`maps=<...>` crashed)."""
+    side = tmp_path / "outputs" / "models" / "clean-aaaaaaaaaa"
+    side.mkdir(parents=True)
+    (side / "manifest.json").write_text('{"id": "aaaaaaaaaa", "created": "1"}')
+    proc = _cli("pipeline.experiments", "experiment=noise_failure", f"paths.root_dir={tmp_path}")
+    assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+    assert "maps.clean=<name-id>" in proc.stderr and "maps=<" not in proc.stderr, proc.stderr
+
+
+# --------------------------------------------------------------------------------- publishing (item 2)
+def test_a_debug_run_before_any_paper_lock_writes_nothing_into_the_paper_folder(tmp_path):
+    from pipeline.experiments.stage import run
+
+    out = run(compose("experiments", ["experiment=coverings", "debug=tiny", f"paths.root_dir={tmp_path}"]))
+    paper = tmp_path / "outputs" / "paper"
+    assert not paper.exists() or not any(paper.iterdir())
+    side = tmp_path / "outputs" / "side" / out["cache"].name
+    assert {f.parent for f in out["files"]} == {side} and (side / "index.md").is_file()
+    again = run(compose("experiments", ["experiment=coverings", "debug=tiny", f"paths.root_dir={tmp_path}",
+                                        "publish=true"]))
+    assert {f.parent for f in again["files"]} == {paper}  # on purpose only
+
+
+# ------------------------------------------------------------------------------- scenario keys (item 8)
+def test_every_scenario_key_the_docs_override_is_declared_in_its_bundle():
+    """`experiment.<key>=...` next to `experiment=<id>` in README/docs needs no `+`: the bundle declares the key."""
+    import yaml
+
+    texts = [(REPO_ROOT / "README.md").read_text(), *(p.read_text() for p in sorted((REPO_ROOT / "docs").glob("*.md")))]
+    found = set()
+    for text in texts:
+        for line in text.splitlines():
+            exp = re.search(r"experiment=(\w+)", line)
+            if not exp or not (CONF_DIR / "experiment" / f"{exp.group(1)}.yaml").is_file():
+                continue
+            for key in re.findall(r"(?<![+\w.])experiment\.(\w+)=", line):
+                found.add((exp.group(1), key))
+    found.add(("robustness_sweep", "time_model"))  # issue 21: `experiment.time_model=sampled` needed a `+`
+    for exp, key in sorted(found):
+        bundle = yaml.safe_load((CONF_DIR / "experiment" / f"{exp}.yaml").read_text())["experiment"]
+        assert key in bundle, f"{exp}: experiment.{key} is documented but not declared in conf/experiment/{exp}.yaml"
+        compose("experiments", [f"experiment={exp}", f"experiment.{key}={_yaml_value(bundle[key])}"])
+
+
+def _yaml_value(v) -> str:
+    from pipeline.config import override_value
+
+    return override_value(v)
+
+
+# ------------------------------------------------------------------------------- make experiments (item 7)
+def test_make_experiments_runs_the_experiments_make_paper_builds_inputs_for():
+    """Right after `make paper`: no experiment whose map `make paper` does not build (perception_generalisation)."""
+    import yaml
+
+    from pipeline.config import _expand
+
+    line = next(ln for ln in (REPO_ROOT / "Makefile").read_text().splitlines()
+                if ln.strip().startswith("$(PY) -m pipeline.experiments"))
+    override = re.search(r"'(experiment=[^']+)'", line).group(1)
+    jobs = {job[0].split("=", 1)[1] for job in _expand([override])}
+    paper = yaml.safe_load((CONF_DIR / "paper.yaml").read_text())
+    assert jobs == set(paper["experiments"]), sorted(jobs ^ set(paper["experiments"]))
+
+
+# ----------------------------------------------------------------------------------- debug=tiny (item 1)
+def test_debug_tiny_shrinks_every_stage_and_each_finds_the_tiny_upstream_by_id():
+    from pipeline.lineage import dataset_identity, expected_dataset_id, expected_map_id, map_identity
+
+    data = compose("data", ["data=occluded", "debug=tiny"])
+    train = compose("train", ["data=occluded", "debug=tiny"])
+    assert dict(data.data.splits) == dict(train.data.splits) and data.data.splits.train < 1000
+    assert dataset_identity(data)[1] == dataset_identity(train)[1] == expected_dataset_id("occluded", ["debug=tiny"])
+    assert dataset_identity(data)[1] != expected_dataset_id("occluded")
+    assert train.trainer.max_epochs == 1 and compose("train").trainer.max_epochs > 1
+    assert map_identity(train)[1] == expected_map_id("occluded", ["debug=tiny"]) != expected_map_id("occluded")
+    em = compose("errormap", ["debug=tiny"])
+    assert em.grid.step > compose("errormap").grid.step and em.train_samples < 1000
+    exp = compose("experiments", ["experiment=hysteresis_margin", "debug=tiny"])
+    assert exp.scale < 1 and exp.debug == "tiny" and len(exp.experiment.chi) < 5
+    assert compose("paper", ["debug=tiny"]).debug == "tiny"
+
+
+def test_a_name_resolves_to_the_map_of_the_same_debug_size(tmp_path):
+    """In a `debug=tiny` run, `maps.clean=clean` means the tiny map (and the hint says so)."""
+    from pipeline.experiments.context import Context
+    from pipeline.lineage import expected_map_id
+
+    tiny = expected_map_id("clean", ["debug=tiny"])
+    folder = tmp_path / "outputs" / "models" / f"clean-{tiny}"
+    folder.mkdir(parents=True)
+    (folder / "manifest.json").write_text(json.dumps({"id": tiny, "created": "1"}))
+    ctx = Context(compose("experiments", ["experiment=noise_failure", "debug=tiny", f"paths.root_dir={tmp_path}"]))
+    assert ctx.map_folder("clean") == folder
+    big = Context(compose("experiments", ["experiment=noise_failure", f"paths.root_dir={tmp_path}"]))
+    from pipeline.errors import ModelError
+
+    with pytest.raises(ModelError, match="python -m pipeline.train data=clean"):
+        big.map_folder("clean")
+    with pytest.raises(ModelError, match="python -m pipeline.train data=occluded debug=tiny"):
+        ctx.map_folder("occluded")
+
+
+@pytest.mark.slow
+def test_make_paper_debug_tiny_runs_every_stage_end_to_end(tmp_path):
+    """`make paper ARGS=debug=tiny`: every stage, each finding the tiny upstream outputs by id, in minutes."""
+    import yaml
+
+    root = tmp_path / "root"
+    proc = _cli("pipeline.paper", "debug=tiny", f"paths.root_dir={root}", timeout=1800)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    lock = yaml.safe_load((root / "outputs" / "paper" / "paper.lock.yaml").read_text())
+    paper = yaml.safe_load((CONF_DIR / "paper.yaml").read_text())
+    assert set(lock["datasets"]) == set(paper["datasets"]) and set(lock["maps"]) == set(paper["maps"])
+    assert set(lock["experiments"]) == set(paper["experiments"])
+    for name, entry in lock["datasets"].items():
+        manifest = json.loads((root / "data" / "datasets" / entry["folder"] / "manifest.json").read_text())
+        assert manifest["counts"]["train"] < 1000, name
+
+
+# ------------------------------------------------------------------------------------ progress (item 4)
+def test_progress_is_a_bar_on_a_terminal_and_lines_in_a_log(monkeypatch):
+    from pipeline import progress as pr
+
+    log = io.StringIO()
+    with pr.progress(total=4, desc="sweep", unit="runs", file=log, interval=0) as bar:
+        for i in range(4):
+            bar.set_postfix_str(f"eps {i}")
+            bar.update()
+    lines = log.getvalue().splitlines()
+    assert "\r" not in log.getvalue() and lines[0].startswith("sweep: 0/4 runs")
+    assert lines[-1].startswith("sweep: 4/4 runs") and "eps 3" in lines[-1]
+    quiet = io.StringIO()
+    with pr.progress(total=4, desc="sweep", file=quiet) as bar:  # the default: a line every LINE_INTERVAL s
+        bar.update(4)
+    assert quiet.getvalue() == ""
+
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+
+    tty = Tty()
+    bar = pr.progress(total=4, desc="sweep", file=tty)
+    assert not isinstance(bar, pr._LineBar) and bar.fp is not None
+    bar.close()
+
+
+def test_the_experiments_stage_reports_each_bisection_step(tmp_path, monkeypatch, capsys):
+    from pipeline import progress as pr
+    from pipeline.experiments.stage import run
+
+    monkeypatch.setattr(pr, "LINE_INTERVAL", 0.0)
+    monkeypatch.setattr(pr, "DELAY", 0.0)
+    run(compose("experiments", ["experiment=hysteresis_margin", "debug=tiny", "perception=oracle",
+                                f"paths.root_dir={tmp_path}"]))
+    err = capsys.readouterr().err
+    steps = re.findall(r"hysteresis_margin: (\d+)/(\d+) runs", err)
+    assert steps and all(t == steps[-1][1] for _, t in steps[1:]), err[-2000:]
+    assert int(steps[-1][0]) >= int(steps[-1][1]) - 1 and "chi=" in err
+
+
+# -------------------------------------------------------------------------------- sweep summary (item 5)
+def test_a_multirun_ends_with_one_table_of_overrides_and_headline_metrics(tmp_path):
+    sweep = tmp_path / "sweep"
+    proc = _cli("pipeline.simulate", "-m", "controller=hybrid,smooth", "plot=false", "init=near_k", "init.n=4",
+                f"paths.root_dir={tmp_path}", f"hydra.sweep.dir={sweep}")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    import pandas as pd
+
+    table = pd.read_csv(sweep / "summary.csv")
+    assert list(table["job"]) == [0, 1] and list(table["status"]) == ["ok", "ok"]
+    assert ["controller=hybrid" in o for o in table["overrides"]] == [True, False]
+    assert {"success_rate", "collision_rate", "agents"} <= set(table.columns) and list(table["agents"]) == [4, 4]
+    for job in (0, 1):
+        entry = json.loads((sweep / str(job) / "summary.json").read_text())
+        assert entry["metrics"]["success_rate"] == table["success_rate"][job]
+    assert "| job | overrides |" in proc.stdout and (sweep / "summary.md").read_text() in proc.stdout
+
+
+def test_each_stage_names_its_headline_metrics():
+    import pandas as pd
+
+    from pipeline import sweep
+
+    assert sweep.data_headline({"name": "clean", "id": "x", "counts": {"train": 3, "val": 1, "test": 1},
+                                "skipped": True}) == {"dataset": "clean-x", "n_train": 3, "n_val": 1, "n_test": 1,
+                                                      "reused": True}
+    assert sweep.train_headline({"name": "clean", "id": "x", "metrics": {
+        "val_mae_px": 0.5, "test_split": {"mae_px": 0.6}, "heavy": {"mae_px": 2.0}, "epochs": 3}}) == \
+        {"map": "clean-x", "val_mae_px": 0.5, "test_mae_px": 0.6, "mae_px[heavy]": 2.0}
+    assert sweep.headline_of("pipeline.sweep:train_headline", 0.25) == {"objective": 0.25}  # an Optuna job
+    summary = {"name": "clean", "levels": {"none": {"p95": 0.3}, "heavy": {"p95": 4.0}}}
+    assert sweep.errormap_headline({"path": "/x/clean-1", "summary": summary}) == \
+        {"errormap": "clean-1", "p95[none]": 0.3, "p95[heavy]": 4.0}
+    res = types.SimpleNamespace(tables={"sweep": pd.DataFrame({"controller": ["hybrid", "smooth", "hybrid"],
+                                                               "success_rate": [1.0, 0.0, 0.5]})})
+    assert sweep.experiments_headline({"id": "robustness_sweep", "results": res, "cached": False}) == \
+        {"experiment": "robustness_sweep", "cached": False, "success[hybrid]": 0.75, "success[smooth]": 0.0}
+    for stage in ("data", "train", "errormap", "experiments", "simulate"):
+        from hydra import compose as hydra_compose
+        from hydra import initialize_config_dir
+        from hydra.core.global_hydra import GlobalHydra
+
+        GlobalHydra.instance().clear()
+        with initialize_config_dir(version_base="1.3", config_dir=str(CONF_DIR)):
+            cfg = hydra_compose(stage, return_hydra_config=True)
+        assert cfg.hydra.callbacks.summary.headline == f"pipeline.sweep:{stage}_headline"
+
+
+# ------------------------------------------------------------------------------------- loggers (item 6)
+def test_mlflow_logs_into_a_local_store_without_setup(tmp_path):
+    pytest.importorskip("mlflow")
+    from pipeline.config import build
+
+    cfg = compose("train", ["logger=mlflow", f"paths.root_dir={tmp_path}", f"paths.output_dir={tmp_path / 'run'}"])
+    (tmp_path / "outputs").mkdir()
+    logger = build(cfg.logger.mlflow, "logger.mlflow")
+    logger.log_metrics({"val_mae": 1.5}, step=0)
+    logger.finalize("success")
+    import mlflow
+
+    client = mlflow.MlflowClient(cfg.logger.mlflow.tracking_uri)
+    runs = client.search_runs([client.get_experiment_by_name("perception_map").experiment_id])
+    assert [r.data.metrics for r in runs] == [{"val_mae": 1.5}]
+    assert (tmp_path / "outputs" / "mlflow.db").is_file() and not (REPO_ROOT / "mlruns").exists()
+
+
+def test_tensorboard_writes_event_files_into_the_run_folder(tmp_path):
+    pytest.importorskip("tensorboard")
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from pipeline.config import build
+
+    cfg = compose("train", ["logger=tensorboard", f"paths.root_dir={tmp_path}", f"paths.output_dir={tmp_path / 'run'}"])
+    logger = build(cfg.logger.tensorboard, "logger.tensorboard")
+    logger.log_metrics({"val_mae": 1.5}, step=0)
+    logger.finalize("success")
+    acc = EventAccumulator(str(tmp_path / "run" / "tensorboard" / "version_0"))
+    acc.Reload()
+    assert [e.value for e in acc.Scalars("val_mae")] == [1.5]
