@@ -148,7 +148,7 @@ SCHEMA_CASES = [
     ("data", ["occlusions.heavy.blobs=many"], "occlusions.heavy.blobs", "must be a list"),
     ("data", ["+occlusions.heavy.density=2"], "occlusions.heavy.density", "unknown key"),
     ("train", ["data=clean", "model.lr=fast"], "model.lr", "must be a number"),  # a target read from its source
-    ("train", ["data=clean", "model.filters=wide"], "model.filters", "must be a list"),
+    ("train", ["data=clean", "model.filters=wide"], "model.filters", "non-empty list of integers"),
     ("train", ["data=clean", "+model.nll_weight=1"], "model.nll_weight", "unknown key"),
     ("train", ["data=clean", "datamodule.batch_size=1.5"], "datamodule.batch_size", "must be an integer"),
     ("train", ["data=clean", "+trainer.max_epoch=3"], "trainer.max_epoch", "unknown key"),

@@ -94,7 +94,7 @@ def draw_worst_cloud(scen, ctx, res, out) -> None:
            "Worst cloud vs level from starts near K: success, stall and collision rates with 95% Wilson CIs; the "
            "induced estimate error (clouded - clear) along -sign(b) e_b and in norm near K, first frame and run; "
            f"flag rate of the uncertainty head at gate {_gate(res)} and the share the gated loop held.")
-    if scen.record is not None and "rec_smooth_p" in res.arrays and "rec_hybrid_p" in res.arrays:
+    if res.info.get("record") is not None and "rec_smooth_p" in res.arrays and "rec_hybrid_p" in res.arrays:
         _worst_cloud_gif(scen, ctx, res, out)
 
 
@@ -116,7 +116,7 @@ def _camera_frames(ctx, res, scen, ctrl: str, agent: int):
     rows, clouds = res.arrays[f"rec_{ctrl}_rows"], res.arrays[f"rec_{ctrl}_clouds"]
     mine = rows[:, 1] == agent
     by_frame = {int(f): c for f, c in zip(rows[mine, 0], clouds[mine])} if len(clouds) == len(rows) else {}
-    cam, occ = ctx.camera(scen.map), ctx.occlusion(scen.record)
+    cam, occ = ctx.camera(scen.map), ctx.occlusion(res.info["record"])
     p = res.arrays[f"rec_{ctrl}_p"][:, agent]
 
     def image(k: int):
@@ -130,7 +130,8 @@ def _camera_frames(ctx, res, scen, ctrl: str, agent: int):
 
 
 def _worst_cloud_gif(scen, ctx, res, out, max_frames: int = 40, fps: int = 6) -> None:
-    agent, what = pick_agent(res.tables["metrics"], scen.record)
+    level = res.info["record"]
+    agent, what = pick_agent(res.tables["metrics"], level)
     t = res.arrays["rec_hybrid_t"]
     n = min(len(t), len(res.arrays["rec_smooth_t"]))
     idx = frame_indices(n, max_frames)
@@ -150,7 +151,7 @@ def _worst_cloud_gif(scen, ctx, res, out, max_frames: int = 40, fps: int = 6) ->
     ims = {}
     for ax, c in zip(axes[1:], ("smooth", "hybrid")):
         ims[c] = ax.imshow(runs[c][2](0), extent=(x0, x1, y0, y1), origin="upper", interpolation="nearest")
-        ax.set_title(f"{c}'s camera (worst {scen.record} cloud)", fontsize=9)
+        ax.set_title(f"{c}'s camera (worst {level} cloud)", fontsize=9)
         ax.set_xticks([])
         ax.set_yticks([])
     head = fig.suptitle("", fontsize=10)
@@ -163,7 +164,7 @@ def _worst_cloud_gif(scen, ctx, res, out, max_frames: int = 40, fps: int = 6) ->
             dot.set_data([p[k, 0]], [p[k, 1]])
             seen.set_data([m[k, 0]], [m[k, 1]])
             ims[c].set_data(image(k))
-        head.set_text(f"worst {scen.record} cloud, start {agent} ({what}); x: perceived  t = {t[k]:.2f} s")
+        head.set_text(f"worst {level} cloud, start {agent} ({what}); x: perceived  t = {t[k]:.2f} s")
         return [a for v in artists.values() for a in v] + list(ims.values()) + [head]
 
     anim = FuncAnimation(fig, update, frames=len(idx), blit=False)
@@ -172,7 +173,7 @@ def _worst_cloud_gif(scen, ctx, res, out, max_frames: int = 40, fps: int = 6) ->
     plt.close(fig)
     out.items.append({"kind": "animation", "files": [path.name],
                       "caption": f"A smooth controller and the hybrid one from the same start near K under the worst "
-                                 f"{scen.record} cloud ({what}); right: what each camera delivered."})
+                                 f"{level} cloud ({what}); right: what each camera delivered."})
 
 
 def draw_geometry_margin(scen, ctx, res, out) -> None:

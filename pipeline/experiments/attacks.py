@@ -17,16 +17,18 @@ clean-image gate), and the gated loop (`camera.gate`: flagged frames held) under
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import ClassVar
+from typing import Annotated, ClassVar, Literal
 
 import numpy as np
 import pandas as pd
 
-from pipeline.errors import ConfigError
 from pipeline.experiments.context import Context, Results, wilson
 from pipeline.experiments.scenario import Scenario, _agent_rows
 from pipeline.render import load_occlusion
+from pipeline.schema import Interval, NonEmpty, Option, Positive, PositiveInt, Range
 from pipeline.sim import starts
+
+Controller = Annotated[str, Option("controller")]  # hybrid, smooth, cbf
 
 
 def near_k(scene, p: np.ndarray, band: float) -> np.ndarray:
@@ -51,17 +53,15 @@ def _mean(x) -> float:
 class _AttackSweep(Scenario):
     """What both attack scenarios share: the starts, the sweep, the rows of the table."""
 
-    attack: str = "pixel_attack"
     map: str = "clean"
-    occlusion: str | None = None   # the scene's clouds under a pixel attack (null: clean images)
     controllers: list[str] = field(default_factory=lambda: ["hybrid", "smooth", "cbf"])
-    gated: list[str] = field(default_factory=lambda: ["hybrid"])  # also run with the gated loop
-    gate: float | None = None      # world units; null: the map's own clean-image gate (docs/train.md)
-    n_agents: int = 100
-    band: float = 0.5              # starts (and "near K" frames) within this distance of the line behind the obstacle
-    a_range: list[float] = field(default_factory=lambda: [-35.0, -15.0])
-    horizon: float | None = None   # seconds; null: sim.horizon
-    record: str | None = None      # the budget whose runs are recorded (trajectories, chosen clouds): the animation
+    gated: list[Controller] = field(default_factory=lambda: ["hybrid"])  # also run with the gated loop
+    gate: Positive | None = None   # world units; null: the map's own clean-image gate (docs/train.md)
+    n_agents: PositiveInt = 100
+    band: Positive = 0.5           # starts (and "near K" frames) within this distance of the line behind the obstacle
+    a_range: Interval = field(default_factory=lambda: [-35.0, -15.0])
+    horizon: Positive | None = None  # seconds; null: sim.horizon
+    record: bool = False           # record the runs at the last budget (trajectories, chosen clouds): the animation
 
     budget_key: ClassVar[str] = "kappa"
 
@@ -72,25 +72,15 @@ class _AttackSweep(Scenario):
     def budgets(self) -> list:  # pragma: no cover - interface
         raise NotImplementedError
 
-    def validate(self) -> None:
-        super().validate()
-        if not self.band > 0:
-            raise ConfigError("experiment.band", f"must be > 0, got {self.band}")
-        if self.horizon is not None and not self.horizon > 0:
-            raise ConfigError("experiment.horizon", f"must be > 0 (or null: sim.horizon), got {self.horizon}")
-        if self.gate is not None and not self.gate > 0:
-            raise ConfigError("experiment.gate", f"must be > 0 (world units) or null, got {self.gate}")
-        if not self.budgets():
-            raise ConfigError(f"experiment.{self.budget_key}s", "needs at least one budget")
-        unknown = sorted(set(self.gated) - set(self.controllers))
-        if unknown:
-            raise ConfigError("experiment.gated", f"{unknown} are not among the controllers {self.controllers}")
+    def scene_clouds(self) -> str | None:
+        """The cloud level of the scene itself under the attack (None: clean images)."""
+        return None
 
     def uses(self):
-        levels = [self.occlusion] if self.occlusion else []
+        levels = [self.scene_clouds()] if self.scene_clouds() else []
         if self.budget_key == "level":
             levels += list(self.budgets())
-        return {"controllers": list(self.controllers), "disturbances": [self.attack],
+        return {"controllers": sorted(set(self.controllers) | set(self.gated)), "disturbances": [self.attack],
                 "occlusions": sorted(set(levels))}
 
     def check(self, ctx: Context) -> None:
@@ -99,10 +89,7 @@ class _AttackSweep(Scenario):
                 load_occlusion(level, ctx.cfg.occlusions, field="experiment.levels")
         super().check(ctx)
         for b in self.budgets():
-            att = ctx.attack(self.attack, **{self.budget_key: b})
-            if att.budget_key != self.budget_key:
-                raise ConfigError("experiment.attack", f"{self.attack!r} is swept by {att.budget_key}, this "
-                                                       f"experiment sweeps {self.budget_key}")
+            ctx.attack(self.attack, **{self.budget_key: b})
 
     def starts(self, ctx: Context) -> np.ndarray:
         return starts.NearK(n=ctx.n(self.n_agents), seed=ctx.seed, band=self.band, a_range=list(self.a_range))(ctx.scene)
@@ -133,11 +120,12 @@ class _AttackSweep(Scenario):
             runs += [(c, True) for c in self.gated]
         every = max(1, round((ctx.frame_period or ctx.dt) / ctx.dt))
         rows, agents, arrays = [], [], {"x0": x0}
-        for budget in self.budgets():
+        budgets = self.budgets()
+        for budget in budgets:
             att = ctx.attack(self.attack, **{self.budget_key: budget})
-            rec = self.record is not None and str(budget) == str(self.record)
+            rec = self.record and budget == budgets[-1]
             for ctrl, gated in runs:
-                measure = ctx.camera_measure(self.map, self.occlusion, attack=att, gate=gate if gated else None,
+                measure = ctx.camera_measure(self.map, self.scene_clouds(), attack=att, gate=gate if gated else None,
                                              flag_gate=gate, keep_clouds=rec)
                 res = ctx.simulate(ctx.controller(ctrl), x0, measure=measure, record=rec, record_every=every,
                                    horizon=self.horizon)
@@ -150,7 +138,8 @@ class _AttackSweep(Scenario):
                                f"rec_{ctrl}_rows": frames[["frame", "agent"]].to_numpy(),
                                f"rec_{ctrl}_clouds": (np.concatenate(measure.clouds) if measure.clouds
                                                       else np.zeros((0, 4), np.int64))}
-        info = {"gate": gate, "notes": notes, "budget_key": self.budget_key, "record": self.record,
+        info = {"gate": gate, "notes": notes, "budget_key": self.budget_key,
+                "record": budgets[-1] if self.record else None,
                 "horizon": self.horizon or ctx.horizon, "map": self.map, "attack": self.attack}
         return Results({"summary": pd.DataFrame(rows), "metrics": pd.concat(agents, ignore_index=True)}, arrays, info)
 
@@ -160,35 +149,29 @@ class CameraAttack(_AttackSweep):
     """The pixel attack (`disturbances.pixel_attack`) on the clean map, its budget `kappa` (intensity levels) swept."""
 
     figures: ClassVar[str] = "pipeline.experiments.attack_figures:draw_camera_attack"
-    kappas: list[float] = field(default_factory=lambda: [0.0, 2.0, 4.0, 8.0])
+    attack: Literal["pixel_attack"] = "pixel_attack"  # the camera attack of `disturbances` whose kappa is swept
+    occlusion: str | None = None   # the scene's clouds under the attack (null: clean images)
+    kappas: Annotated[list[float], Range(ge=0, le=255), NonEmpty()] = field(default_factory=lambda: [0.0, 2.0, 4.0, 8.0])
 
     def budgets(self) -> list:
         return list(self.kappas)
 
-    def validate(self) -> None:
-        if any(not 0 <= k <= 255 for k in self.kappas):
-            raise ConfigError("experiment.kappas", f"must be intensity levels in [0, 255], got {self.kappas}")
-        super().validate()
+    def scene_clouds(self) -> str | None:
+        return self.occlusion
 
 
 @dataclass(kw_only=True)
 class WorstCloudAttack(_AttackSweep):
-    """The worst cloud (`disturbances.worst_cloud`) on the occluded map, its budget (the cloud level) swept; the
-    runs at `record` are kept for the animation (a smooth controller stalled beside the hybrid passing)."""
+    """The worst cloud (`disturbances.worst_cloud`) on the occluded map, its budget (the cloud level) swept; with
+    `record`, the runs at the last level are kept for the animation (a smooth controller stalled beside the hybrid
+    passing). The worst cloud draws its own clouds: the scene has none besides."""
 
     figures: ClassVar[str] = "pipeline.experiments.attack_figures:draw_worst_cloud"
     budget_key: ClassVar[str] = "level"
-    attack: str = "worst_cloud"
+    attack: Literal["worst_cloud"] = "worst_cloud"
     map: str = "occluded"
-    levels: list[str] = field(default_factory=lambda: ["light", "medium", "heavy"])
-    record: str | None = "heavy"
+    levels: Annotated[list[str], NonEmpty(distinct=True)] = field(default_factory=lambda: ["light", "medium", "heavy"])
+    record: bool = True
 
     def budgets(self) -> list:
         return list(self.levels)
-
-    def validate(self) -> None:
-        super().validate()
-        if self.record is not None and self.record not in self.levels:
-            raise ConfigError("experiment.record", f"must be one of the levels {self.levels} (or null), got {self.record!r}")
-        if self.occlusion is not None:
-            raise ConfigError("experiment.occlusion", "the worst cloud draws its own clouds: leave it null")

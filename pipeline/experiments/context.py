@@ -138,9 +138,11 @@ class Context:
         if not is_attack(att):
             raise ConfigError("experiment.attack", f"{name!r} is a state disturbance, not an attack through the camera "
                                                    "(pixel_attack, worst_cloud)")
+        if att.kind == "cloud":  # the node's own level too (a sweep sets another): every key's bad value is caught
+            load_occlusion(att.level, self.cfg.occlusions, field=f"disturbances.{name}.level")
         att = self.disturbance(name, **params) if params else att
         if att.kind == "cloud":
-            load_occlusion(att.level, self.cfg.occlusions, field=f"disturbances.{name}.level")
+            load_occlusion(att.level, self.cfg.occlusions, field="experiment.levels")
         return att
 
     def occlusion(self, level: str | None):

@@ -8,9 +8,8 @@ barrier's reach; the starts outside the diamond) is skipped with a note naming t
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
-from typing import ClassVar
+from typing import Annotated, ClassVar
 
 import numpy as np
 import pandas as pd
@@ -21,6 +20,9 @@ from pipeline.errors import ConfigError
 from pipeline.experiments.context import Context, Results
 from pipeline.experiments.scenario import practical_success
 from pipeline.experiments.theory import HysteresisMargin
+from pipeline.schema import NonEmpty, Range
+
+SQRT2 = 1.4142135623730951
 
 
 def cell_scene(scene_cfg: dict, *, apex_ratio: float, rho: float, scale: float):
@@ -42,23 +44,12 @@ class GeometryMargin(HysteresisMargin):
     chi: list[float] = field(default_factory=lambda: [1.1])
     lam: list[float] = field(default_factory=lambda: [0.09])
     disturbances: list[str] = field(default_factory=lambda: ["adversarial"])
-    apex_ratio: list[float] = field(default_factory=lambda: [2.0, 2.5, 2.83, 3.5])   # c / r (paper: 2 sqrt 2)
-    rho: list[float] = field(default_factory=lambda: [0.1, 0.5, 1.0])                # ρ_b (default 0.5)
-    barrier_scale: list[float] = field(default_factory=lambda: [2.0, 4.0, 8.0])      # ℓ_B, world units (default r = 4)
+    # c / r (paper: 2 sqrt 2); the diamond must contain the disc: c / r > sqrt 2
+    apex_ratio: Annotated[list[float], Range(gt=SQRT2), NonEmpty()] = field(default_factory=lambda: [2.0, 2.5, 2.83, 3.5])
+    rho: Annotated[list[float], Range(gt=0, le=1), NonEmpty()] = field(default_factory=lambda: [0.1, 0.5, 1.0])  # ρ_b
+    barrier_scale: Annotated[list[float], Range(gt=0), NonEmpty()] = field(default_factory=lambda: [2.0, 4.0, 8.0])  # ℓ_B
     a_range: list[float] = field(default_factory=lambda: [-45.0, -20.0])
     time_model: str = "sampled"
-
-    def validate(self) -> None:
-        super().validate()
-        for key in ("apex_ratio", "rho", "barrier_scale"):
-            vals = getattr(self, key)
-            if not vals or any(not v > 0 for v in vals):
-                raise ConfigError(f"experiment.{key}", f"must be a non-empty list of values > 0, got {vals}")
-        if any(r <= math.sqrt(2) for r in self.apex_ratio):
-            raise ConfigError("experiment.apex_ratio", f"the diamond must contain the disc: c / r > sqrt(2), got "
-                                                       f"{self.apex_ratio}")
-        if any(r > 1 for r in self.rho):
-            raise ConfigError("experiment.rho", f"must be in (0, 1] (SPEC §3), got {self.rho}")
 
     def geometry(self) -> list[tuple[float, float, float]]:
         return [(c, r, s) for c in self.apex_ratio for r in self.rho for s in self.barrier_scale]

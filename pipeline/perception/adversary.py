@@ -22,23 +22,17 @@ This module imports no torch (the attacks' functions are imported when a frame i
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import ClassVar
+from typing import Annotated, ClassVar, Literal
 
 import numpy as np
 
-from pipeline.errors import ConfigError
 from pipeline.perception.measure import OracleMap, check_gate
+from pipeline.schema import Name, NonNegativeInt, Positive, PositiveInt, Range, check_fields
 
 ATTACKS = ("pixel", "cloud")
-
-
-def _count(value, name: str, lo: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < lo:
-        raise ConfigError(name, f"must be an integer >= {lo}, got {value!r}")
-    return int(value)
+Kappa = Annotated[float, Range(ge=0, le=255)]  # the pixel attack's budget, in intensity levels (of 255)
 
 
 def proposition1_direction(scene) -> Callable[[np.ndarray], np.ndarray]:
@@ -68,23 +62,18 @@ class PixelAttack:
     (null: `2.5 kappa / steps`) through the perception map's inference network; `random_start`: PGD from a
     uniform point of the ball (else from the clean image); `batch_size`: images per gradient batch."""
 
-    kappa: float = 4.0
-    steps: int = 2
-    step_size: float | None = None
+    kappa: Kappa = 4.0
+    steps: NonNegativeInt = 2
+    step_size: Positive | None = None
     random_start: bool = False
-    batch_size: int = 512
+    batch_size: PositiveInt = 512
 
     kind: ClassVar[str] = "pixel"
     name: ClassVar[str] = "pixel_attack"
     budget_key: ClassVar[str] = "kappa"
 
     def __post_init__(self):
-        if isinstance(self.kappa, bool) or not math.isfinite(self.kappa) or not 0 <= self.kappa <= 255:
-            raise ConfigError("disturbance.kappa", f"must be a number of intensity levels in [0, 255], got {self.kappa!r}")
-        _count(self.steps, "disturbance.steps", 0)
-        _count(self.batch_size, "disturbance.batch_size", 1)
-        if self.step_size is not None and not (math.isfinite(self.step_size) and self.step_size > 0):
-            raise ConfigError("disturbance.step_size", f"must be > 0 (or null: 2.5 kappa / steps), got {self.step_size!r}")
+        check_fields(self, "disturbance")  # the declared ranges, also when built from Python
 
     def label(self) -> str:
         return f"pixel κ={self.kappa:g}"
@@ -104,20 +93,17 @@ class WorstCloud:
     candidate has clouds (else the level's own probability draws which do); `chunk`: images rendered and
     inferred per batch."""
 
-    level: str = "heavy"
-    candidates: int = 8
+    level: Name = "heavy"  # checked against `occlusions` where the attack is built (`Context.attack`)
+    candidates: PositiveInt = 8
     always: bool = True
-    chunk: int = 4096
+    chunk: PositiveInt = 4096
 
     kind: ClassVar[str] = "cloud"
     name: ClassVar[str] = "worst_cloud"
     budget_key: ClassVar[str] = "level"
 
     def __post_init__(self):
-        if not isinstance(self.level, str) or not self.level:
-            raise ConfigError("disturbance.level", f"must name a cloud level of `occlusions`, got {self.level!r}")
-        _count(self.candidates, "disturbance.candidates", 1)
-        _count(self.chunk, "disturbance.chunk", 1)
+        check_fields(self, "disturbance")
 
     def label(self) -> str:
         return f"worst of {self.candidates} {self.level} clouds"
@@ -164,13 +150,13 @@ class AttackedCamera:
     camera: object
     perception_map: object
     direction_fn: Callable[[np.ndarray], np.ndarray]
-    attack: str = "pixel"
+    attack: Literal["pixel", "cloud"] = "pixel"
     occlusion: object | None = None
-    kappa: float = 4.0
-    steps: int = 2
-    step_size: float | None = None
+    kappa: Kappa = 4.0
+    steps: NonNegativeInt = 2
+    step_size: Positive | None = None
     random_start: bool = False
-    batch_size: int = 512
+    batch_size: PositiveInt = 512
     candidates: int = 8
     always: bool = True
     chunk: int = 4096
@@ -186,8 +172,7 @@ class AttackedCamera:
     clouds: list = field(default_factory=list)
 
     def __post_init__(self):
-        if self.attack not in ATTACKS:
-            raise ConfigError("attack.kind", f"must be one of {', '.join(ATTACKS)}, got {self.attack!r}")
+        check_fields(self, "attack")  # built from Python (by the config nodes above): its fields as declared
         check_gate(self.perception_map, self.gate)
         if self.flag_gate is None:
             self.flag_gate = self.gate

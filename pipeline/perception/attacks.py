@@ -42,8 +42,6 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Annotated
-
 import numpy as np
 import torch
 from torch import nn
@@ -51,12 +49,11 @@ from torch import nn
 from pipeline.perception.adversary import (  # noqa: F401 - re-exported
     ATTACKS,
     AttackedCamera,
+    Kappa,
     proposition1_direction,
 )
 from pipeline.render import CloudSample
-from pipeline.schema import NonNegative, NonNegativeInt, PositiveInt, Range, checked
-
-Kappa = Annotated[float, Range(ge=0, le=255)]  # the budget, in intensity levels
+from pipeline.schema import NonNegative, NonNegativeInt, PositiveInt, checked
 
 
 # -------------------------------------------------------------------------------------------- result
