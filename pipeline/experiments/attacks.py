@@ -121,10 +121,12 @@ class _AttackSweep(Scenario):
         every = max(1, round((ctx.frame_period or ctx.dt) / ctx.dt))
         rows, agents, arrays = [], [], {"x0": x0}
         budgets = self.budgets()
+        ctx.expect(len(budgets) * len(runs))
         for budget in budgets:
             att = ctx.attack(self.attack, **{self.budget_key: budget})
             rec = self.record and budget == budgets[-1]
             for ctrl, gated in runs:
+                ctx.label = f"{att.label()} {ctrl}{' gated' if gated else ''}"
                 measure = ctx.camera_measure(self.map, self.scene_clouds(), attack=att, gate=gate if gated else None,
                                              flag_gate=gate, keep_clouds=rec)
                 res = ctx.simulate(ctx.controller(ctrl), x0, measure=measure, record=rec, record_every=every,

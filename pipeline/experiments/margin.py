@@ -78,6 +78,7 @@ class GeometryMargin(HysteresisMargin):
     def compute(self, ctx: Context) -> Results:
         x0 = self.starts(ctx)
         rows = []
+        ctx.expect(len(self.geometry()) * len(self.disturbances) * len(self.cells()) * self.steps())
         for apex_ratio, rho, scale in self.geometry():
             scene, note = self.cell(ctx, x0, apex_ratio, rho, scale)
             base = {"apex_ratio": apex_ratio, "rho": rho, "barrier_scale": scale, "valid": scene is not None,
@@ -90,9 +91,12 @@ class GeometryMargin(HysteresisMargin):
                     row = {"disturbance": dist, "chi": chi, "lam": lam, **base}
                     if scene is None:
                         rows.append(row | {"eps_margin": np.nan, "eps_fails": np.nan, "simulations": 0})
+                        ctx.advance(self.steps())
                         continue
                     self._scene = scene
+                    ctx.label = f"c/r={apex_ratio:g} rho_b={rho:g} l_B={scale:g}"
                     lo, hi, sims = self.margin(ctx, x0, chi, lam, dist)
+                    ctx.advance(self.steps() - sims)  # a bisection that stopped early
                     rows.append(row | {"eps_margin": lo, "eps_fails": hi, "n_starts": len(x0), "simulations": sims})
         default = ctx.scene.covering(0)
         info = {"default": {"apex_ratio": default.c / default.obstacle_radius, "rho": default.barrier_rho,
