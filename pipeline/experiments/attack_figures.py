@@ -65,12 +65,12 @@ def _table(scen, res, out, stem: str, caption: str) -> None:
 
 def draw_camera_attack(scen, ctx, res, out) -> None:
     fig = _sweep_figure(res, "κ (intensity levels)", "pixel attack, starts near K")
-    out.figure(fig, "fig14_camera_attack",
+    out.figure(fig, f"fig14_{scen.id}",
                "Proposition 1 through the camera: starts near K, the clean map in the loop, each frame perturbed by "
                "PGD within |δ|∞ <= κ to push the estimate along -sign(b(p)) e_b; success and stall rates (95% "
                "Wilson CIs) per controller (dashed: the loop gated by the map's uncertainty head) and the estimate "
                "error the attack induces near K.")
-    _table(scen, res, out, "tab_camera_attack",
+    _table(scen, res, out, f"tab_{scen.id}",
            f"Pixel attack (PGD) vs κ from {int(res.tables['summary']['n'].iloc[0])} starts near K: success, stall and "
            "collision rates with 95% Wilson CIs; the induced estimate error (attacked - clean) along -sign(b) e_b and "
            "in norm near K (a < -c, |b| < band), on the first frame (the starts) and over the run; the uncertainty "
@@ -86,11 +86,11 @@ def _gate(res) -> str:
 
 def draw_worst_cloud(scen, ctx, res, out) -> None:
     fig = _sweep_figure(res, "cloud level (the adversary's ranges)", "worst cloud, starts near K")
-    out.figure(fig, "fig15_worst_cloud",
+    out.figure(fig, f"fig15_{scen.id}",
                f"The worst cloud: each frame the worst of {ctx.cfg.disturbances[scen.attack].candidates} cloud layouts "
                f"of the level per agent, the {scen.map} map in the loop, starts near K; success and stall rates "
                "(95% CIs) and the estimate error the clouds induce near K.")
-    _table(scen, res, out, "tab_worst_cloud",
+    _table(scen, res, out, f"tab_{scen.id}",
            "Worst cloud vs level from starts near K: success, stall and collision rates with 95% Wilson CIs; the "
            "induced estimate error (clouded - clear) along -sign(b) e_b and in norm near K, first frame and run; "
            f"flag rate of the uncertainty head at gate {_gate(res)} and the share the gated loop held.")
@@ -168,7 +168,7 @@ def _worst_cloud_gif(scen, ctx, res, out, max_frames: int = 40, fps: int = 6) ->
         return [a for v in artists.values() for a in v] + list(ims.values()) + [head]
 
     anim = FuncAnimation(fig, update, frames=len(idx), blit=False)
-    path = out.dir / "anim15_worst_cloud.gif"
+    path = out.dir / f"anim15_{scen.id}.gif"
     anim.save(path, writer=PillowWriter(fps=fps), dpi=70)
     plt.close(fig)
     out.items.append({"kind": "animation", "files": [path.name],
@@ -201,9 +201,9 @@ def draw_geometry_margin(scen, ctx, res, out) -> None:
             is_default = np.isclose(ell, d["barrier_scale"])
             ax.set(xlabel="apex c / r", ylabel="ρ_b", title=f"{dist}, ℓ_B = {ell:g}{' (default)' if is_default else ''}")
             fig.colorbar(im, ax=ax, label="ε margin")
-    out.figure(fig, "fig16_geometry_margin",
+    out.figure(fig, f"fig16_{scen.id}",
                f"Theorem 1's margin over the geometry (beside Fig. 11's flat (χ, λ) map): the largest ε with >= "
                f"{scen.success:.0%} of the starts near K reaching the target, per apex c / r, barrier ρ_b and ℓ_B, at "
                f"(χ, λ) = ({scen.chi[0]:g}, {scen.lam[0]:g}); 'skip': the cell's scene is not valid (docs/attacks.md).")
-    out.table(df, "tab_geometry_margin", "Largest robust ε per (c / r, ρ_b, ℓ_B) (eps_fails: the smallest failing ε "
+    out.table(df, f"tab_{scen.id}", "Largest robust ε per (c / r, ρ_b, ℓ_B) (eps_fails: the smallest failing ε "
                                          "found; c, the barrier's reach ℓ_B sqrt(ρ_b); notes on skipped cells).")
