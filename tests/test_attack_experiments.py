@@ -33,21 +33,14 @@ def one_thread():
 BAD = [
     (["experiment=camera_attack", "disturbances.pixel_attack.kappa=300"], "disturbances.pixel_attack.kappa"),
     (["experiment=camera_attack", "disturbances.pixel_attack.kappa=-1"], "disturbances.pixel_attack.kappa"),
-    (["experiment=camera_attack", "disturbances.pixel_attack.kappa=abc"], "disturbances.pixel_attack.kappa"),
     (["experiment=camera_attack", "+disturbances.pixel_attack.kapa=3"], "disturbances.pixel_attack.kapa"),
-    (["experiment=camera_attack", "disturbances.pixel_attack.steps=-1"], "disturbances.pixel_attack.steps"),
     (["experiment=camera_attack", "disturbances.pixel_attack.step_size=0"], "disturbances.pixel_attack.step_size"),
-    (["experiment=camera_attack", "disturbances.pixel_attack.batch_size=0"], "disturbances.pixel_attack.batch_size"),
     (["experiment=camera_attack", "experiment.kappas=[-1.0]"], "experiment.kappas"),
     (["experiment=camera_attack", "experiment.kappas=[]"], "experiment.kappas"),
     (["experiment=camera_attack", "experiment.attack=adversarial"], "experiment.attack"),
     (["experiment=camera_attack", "experiment.gated=[cbf2]"], "experiment.gated[0]"),
     (["experiment=camera_attack", "experiment.band=0"], "experiment.band"),
-    (["experiment=camera_attack", "experiment.horizon=-1"], "experiment.horizon"),
-    (["experiment=camera_attack", "experiment.gate=0"], "experiment.gate"),
-    (["experiment=camera_attack", "experiment.a_range=[-15.0,-35.0]"], "experiment.a_range"),
     (["experiment=worst_cloud", "disturbances.worst_cloud.candidates=0"], "disturbances.worst_cloud.candidates"),
-    (["experiment=worst_cloud", "disturbances.worst_cloud.chunk=0"], "disturbances.worst_cloud.chunk"),
     (["experiment=worst_cloud", "experiment.levels=[fog]"], "experiment.levels"),
     (["experiment=worst_cloud", "experiment.levels=[heavy,heavy]"], "experiment.levels"),
     (["experiment=worst_cloud", "disturbances.worst_cloud.level=fog"], "disturbances.worst_cloud.level"),
@@ -55,7 +48,6 @@ BAD = [
     (["experiment=worst_cloud", "+experiment.occlusion=heavy"], "experiment.occlusion"),
     (["experiment=geometry_margin", "experiment.rho=[0.5,2.0]"], "experiment.rho"),
     (["experiment=geometry_margin", "experiment.apex_ratio=[1.2]"], "experiment.apex_ratio"),
-    (["experiment=geometry_margin", "experiment.barrier_scale=[]"], "experiment.barrier_scale"),
 ]
 
 
