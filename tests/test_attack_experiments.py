@@ -160,7 +160,7 @@ def _written(out, name: str):
 def test_camera_attack_at_debug_tiny(tmp_path, tiny_maps):
     from pipeline.experiments.stage import run
 
-    out = run(_tiny(tmp_path, tiny_maps, "camera_attack", "experiment.kappas=[0.0,8.0]"))
+    out = run(_tiny(tmp_path, tiny_maps, "camera_attack", "experiment.kappas=[0.0,8.0]", "experiment.gated=[hybrid]"))
     s = out["results"].tables["summary"]
     gate = out["results"].info["gate"]
     runs = 3 + (1 if gate is not None else 0)  # hybrid, smooth, cbf (+ the gated hybrid with an uncertainty head)
