@@ -13,6 +13,8 @@ from omegaconf import DictConfig
 
 from pipeline.cli import stage_main
 from pipeline.config import build
+from pipeline.errors import ConfigError
+from pipeline.perception.adversary import is_attack
 from pipeline.plants import SingleIntegrator
 from pipeline.sim import frame_steps, simulate
 from pipeline.sim.settings import check_vehicle, run_keywords
@@ -27,6 +29,9 @@ def objects(cfg: DictConfig):
     plant = build(cfg.vehicle, "vehicle") if cfg.get("vehicle") is not None else SingleIntegrator()
     controller = build(cfg.controller, "controller", scene=plant.steering_scene(scene))
     disturbance = build(cfg.disturbance, "disturbance")
+    if is_attack(disturbance):
+        raise ConfigError("disturbance", f"{disturbance.name} acts through the camera, and this stage simulates the "
+                                         "true state: run it in a camera experiment (experiment=camera_attack)")
     x0 = build(cfg.init, "init")(scene)
     sim, camera = build(cfg.sim, "sim"), build(cfg.camera, "camera")
     frame_steps(sim.dt, camera.period)

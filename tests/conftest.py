@@ -26,3 +26,23 @@ def _clear_hydra():
     GlobalHydra.instance().clear()
     yield
     GlobalHydra.instance().clear()
+
+
+@pytest.fixture(scope="session")
+def tiny_maps(tmp_path_factory):
+    """Tiny clean/occluded datasets and fast_dev_run perception maps (the camera path, not accuracy), trained once
+    per session for every test module that needs a map in the loop: `(root, {"clean": id, "occluded": id})`."""
+    from pipeline.cli import compose
+    from pipeline.data.stage import run as data_run
+    from pipeline.train.stage import run as train_run
+
+    root = tmp_path_factory.mktemp("exp_maps")
+    ids = {}
+    for recipe in ("clean", "occluded"):
+        small = [f"data={recipe}", "data.splits.train=128", "data.splits.val=32", "data.splits.test=32",
+                 f"paths.datasets_dir={root / 'datasets'}"]
+        data_run(compose("data", small))
+        out = train_run(compose("train", [*small, "trainer=debug", f"name={recipe}", "eval_levels=[none]",
+                                          f"paths.models_dir={root / 'models'}"]))
+        ids[recipe] = f"{out['name']}-{out['id']}"
+    return root, ids

@@ -238,22 +238,26 @@ def stub_map(net):
 @pytest.mark.parametrize("attack", ["pixel", "cloud"])
 def test_hook_statistics_add_up(camera, clouds, positions, attack):
     hook = AttackedCamera(camera, stub_map(Centroid()), directions, attack=attack, occlusion=clouds, kappa=6,
-                          candidates=4)
+                          candidates=4, keep_clouds=True)
     rng = np.random.default_rng(0)
     sizes = (5, 12, 3)
-    along_true = 0.0
+    along_true = []
     for frame, n in enumerate(sizes):
         p = positions[:n]
         est = hook(p, np.arange(n), frame, rng)
         assert est.shape == (n, 2)
-        along_true += float(np.einsum("ij,ij->", est - p, directions(p)))
+        along_true.append(np.einsum("ij,ij->i", est - p, directions(p)))
     assert hook.frames == 3 and hook.images == sum(sizes)
-    assert [f["n"] for f in hook.per_frame] == list(sizes)
-    weighted = sum(f["n"] * f["along"] for f in hook.per_frame) / sum(sizes)
-    assert hook.mean_along == pytest.approx(weighted)
-    assert hook.mean_norm == pytest.approx(sum(f["n"] * f["norm"] for f in hook.per_frame) / sum(sizes))
+    rows = hook.table()
+    assert list(rows.groupby("frame").size()) == list(sizes)
+    np.testing.assert_allclose(rows["error_along"], np.concatenate(along_true))  # |d| = 1 here
+    np.testing.assert_allclose(rows[["x", "y"]].to_numpy(), np.concatenate([positions[:n] for n in sizes]))
+    assert hook.mean_along == pytest.approx(rows["along"].mean())
+    assert hook.mean_norm == pytest.approx(rows["norm"].mean())
     assert hook.mean_norm >= abs(hook.mean_along) and hook.mean_along > 0
-    assert hook.error_along == pytest.approx(along_true)
+    assert hook.flagged == hook.gated == 0 and not rows["flagged"].any()  # no uncertainty head, no gate
+    if attack == "cloud":
+        assert sum(len(c) for c in hook.clouds) == sum(sizes)
 
 
 def test_hook_without_budget_is_the_camera_measurement(camera, clouds, positions):

@@ -165,7 +165,7 @@ SCHEMA_CASES = [
     ("data", ["occlusions.heavy.blobs=many"], "occlusions.heavy.blobs", "must be a list"),
     ("data", ["+occlusions.heavy.density=2"], "occlusions.heavy.density", "unknown key"),
     ("train", ["data=clean", "model.lr=fast"], "model.lr", "must be a number"),  # a target read from its source
-    ("train", ["data=clean", "model.filters=wide"], "model.filters", "list of integers"),
+    ("train", ["data=clean", "model.filters=wide"], "model.filters", "non-empty list of integers"),
     ("train", ["data=clean", "+model.nll_weight=1"], "model.nll_weight", "unknown key"),
     ("train", ["data=clean", "datamodule.batch_size=1.5"], "datamodule.batch_size", "must be an integer"),
     ("train", ["data=clean", "+trainer.max_epoch=3"], "trainer.max_epoch", "unknown key"),
@@ -356,7 +356,8 @@ def _target(node: dict):
 
 DEFAULT_NODES = ["sim/default.yaml", "camera/default.yaml", "controller/hybrid.yaml", "controller/smooth.yaml",
                  "controller/cbf.yaml", "disturbance/none.yaml", "disturbance/gaussian.yaml",
-                 "disturbance/alternating.yaml", "disturbance/adversarial.yaml", "init/points.yaml", "init/grid.yaml",
+                 "disturbance/alternating.yaml", "disturbance/adversarial.yaml", "disturbance/pixel_attack.yaml",
+                 "disturbance/worst_cloud.yaml", "init/points.yaml", "init/grid.yaml",
                  "init/random.yaml", "init/near_k.yaml", "scene/default.yaml", "render/default.yaml",
                  "occlusion/none.yaml", "model/default.yaml", "datamodule/default.yaml"]
 

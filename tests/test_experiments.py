@@ -130,24 +130,6 @@ def test_bad_input(tmp_path):
     assert "controller.chi" in proc.stderr
 
 
-@pytest.fixture(scope="module")
-def tiny_maps(tmp_path_factory):
-    """Tiny clean/occluded datasets and fast_dev_run perception maps (the camera path, not accuracy)."""
-    from pipeline.data.stage import run as data_run
-    from pipeline.train.stage import run as train_run
-
-    root = tmp_path_factory.mktemp("exp_maps")
-    ids = {}
-    for recipe in ("clean", "occluded"):
-        small = [f"data={recipe}", "data.splits.train=128", "data.splits.val=32", "data.splits.test=32",
-                 f"paths.datasets_dir={root / 'datasets'}"]
-        data_run(compose("data", small))
-        out = train_run(compose("train", [*small, "trainer=debug", f"name={recipe}", "eval_levels=[none]",
-                                          f"paths.models_dir={root / 'models'}"]))
-        ids[recipe] = f"{out['name']}-{out['id']}"
-    return root, ids
-
-
 def test_camera_in_the_loop_renders_all_agents_per_frame(tiny_maps):
     root, ids = tiny_maps
     from pipeline.control import HybridController, Scene

@@ -190,6 +190,14 @@ def test_wilson_interval():
     assert lo == pytest.approx(0.4038, abs=1e-3) and hi == pytest.approx(0.5962, abs=1e-3)
 
 
+@given(n=st.integers(1, 2000), share=st.floats(0, 1))
+def test_wilson_interval_stays_in_the_unit_interval_around_the_rate(n, share):
+    """A table's CI columns are probabilities: never -3e-17 at 0 successes (rounding), never above 1."""
+    k = round(share * n)
+    lo, hi = wilson(k, n)
+    assert 0.0 <= lo <= k / n <= hi <= 1.0
+
+
 def test_summarise_on_a_simulation(scene):
     x0 = np.array([[-20.0, 0.0], [-12.0, 2.0], [-30.0, 20.0]])
     frames = [simulate(scene, cls(scene), x0, horizon=15.0, camera_period=0.05).metrics_frame()

@@ -20,6 +20,7 @@ from pipeline.control import Scene
 from pipeline.errormap.read import load_error_map
 from pipeline.errors import ConfigError, DatasetError, ModelError
 from pipeline.experiments.settings import ExperimentSettings
+from pipeline.perception.adversary import is_attack, proposition1_direction
 from pipeline.perception.measure import CameraMeasure, FollowerTarget, LeaderTrack, OracleMap
 from pipeline.plants import SingleIntegrator
 from pipeline.render import load_occlusion
@@ -129,6 +130,20 @@ class Context:
     def disturbance(self, name: str, **params):
         """The disturbance `disturbances.<name>`; `params` set what the scenario sweeps (eps, sigma)."""
         return build(self._node("disturbances", name), f"disturbances.{name}", **params)
+
+    def attack(self, name: str, **params):
+        """The camera attack `disturbances.<name>` (pixel_attack, worst_cloud; docs/attacks.md); `params` set what
+        the scenario sweeps (kappa, level). The worst cloud's level is checked here (a name of `occlusions`)."""
+        att = self.disturbance(name)
+        if not is_attack(att):
+            raise ConfigError("experiment.attack", f"{name!r} is a state disturbance, not an attack through the camera "
+                                                   "(pixel_attack, worst_cloud)")
+        if att.kind == "cloud":  # the node's own level too (a sweep sets another): every key's bad value is caught
+            load_occlusion(att.level, self.cfg.occlusions, field=f"disturbances.{name}.level")
+        att = self.disturbance(name, **params) if params else att
+        if att.kind == "cloud":
+            load_occlusion(att.level, self.cfg.occlusions, field="experiment.levels")
+        return att
 
     def occlusion(self, level: str | None):
         if level is None:
@@ -253,14 +268,34 @@ class Context:
                                                 "heading: train one (python -m pipeline.train data=unicycle model=pose) "
                                                 "or read it from an onboard sensor (camera.heading=imu)")
 
-    def camera_measure(self, kind: str = "clean", level: str | None = None):
+    def map_gate(self, kind: str = "clean") -> float | None:
+        """Map `kind`'s own flag threshold in world units: the clean-image gate its training fitted
+        (`calibration.clean_gate_px`, docs/train.md) over its pixels per unit; None without an uncertainty head."""
         pm = self.perception_map(kind)
-        if isinstance(pm, OracleMap):
-            return true_state
-        self.check_heading(kind)
-        cs = self.camera_settings
-        return CameraMeasure(self.camera(kind), pm, self.occlusion(level), gate=self.gate, heading=cs.heading,
-                             heading_noise=cs.heading_noise)
+        px = (getattr(pm, "manifest", {}).get("metrics", {}).get("calibration") or {}).get("clean_gate_px")
+        if px is None or not getattr(pm, "has_uncertainty", False):
+            return None
+        return float(px) / float(pm.px_per_unit)
+
+    def camera_measure(self, kind: str = "clean", level: str | None = None, attack=None, *, gate="camera",
+                       flag_gate: float | None = None, keep_clouds: bool = False):
+        """The camera in the loop with map `kind` on `level` clouds; `gate`: "camera" (`camera.gate`), a number or
+        None. With `attack` (`ctx.attack(...)`): the attacked camera (`pipeline.perception.adversary`), pushing
+        the estimate along `-sign(b(p)) e_b` (SPEC §3.5) with the map and camera the loop uses; a worst cloud
+        draws its candidates from its own level (`level` is then unused); `flag_gate` counts flagged frames."""
+        pm = self.perception_map(kind)
+        gate = self.gate if gate == "camera" else gate
+        if attack is None:
+            if isinstance(pm, OracleMap):
+                return true_state
+            self.check_heading(kind)
+            cs = self.camera_settings
+            return CameraMeasure(self.camera(kind), pm, self.occlusion(level), gate=gate, heading=cs.heading,
+                                 heading_noise=cs.heading_noise)
+        occ = self.occlusion(attack.level if attack.kind == "cloud" else level)
+        cam = self.camera(kind) if not isinstance(pm, OracleMap) else None
+        return attack.measure(cam, pm, proposition1_direction(self.scene), occlusion=occ, gate=gate,
+                              flag_gate=flag_gate, keep_clouds=keep_clouds)
 
     def leader_follower(self, leader_x0, follower_x0, *, kind: str = "clean", level: str | None = None,
                         sigma: float = 0.0, p_fail: float = 0.0, seed: int | None = None,

@@ -11,9 +11,10 @@ i.e. across the line `b = 0` behind the obstacle, where the smooth controllers s
 - :func:`worst_cloud`: a physical adversary: among `K` cloud layouts drawn from an occlusion level's own ranges
   it picks the one that moves the estimate furthest along the direction (batched rendering and inference, a
   search: no gradients, any `predict` works);
-- :class:`AttackedCamera`: the measurement hook of the closed loop (`measure(p, idx, frame, rng)`, the
-  signature of `pipeline.perception.measure.CameraMeasure`) that renders, attacks, infers and keeps per-frame
-  statistics of the error the attack induces.
+- :class:`AttackedCamera` (in :mod:`pipeline.perception.adversary`, with the attacks' config nodes): the
+  measurement hook of the closed loop (`measure(p, idx, frame, rng)`, the signature of
+  `pipeline.perception.measure.CameraMeasure`) that renders, attacks, infers and keeps per-image statistics of
+  the error the attack induces.
 
 **The network contract** (for :func:`pixel_attack`): any `torch.nn.Module` mapping float NHWC images with
 intensities in `[0, 255]` (shape `(N, H, W, 3)`) to world coordinates `(N, >= 2)`; columns 0-1 are the
@@ -32,25 +33,28 @@ differentiable w.r.t. the input.
   once the estimate sits on the arena's edge (the attack cannot push it further there anyway).
 
 This module takes the network, predictor and camera as arguments; it imports only `pipeline.render`,
-`pipeline.errors` and third-party libraries.
+`pipeline.errors`, `pipeline.perception.adversary` (re-exported: `AttackedCamera`,
+`proposition1_direction`) and third-party libraries.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from typing import Annotated, Literal
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 from torch import nn
 
+from pipeline.perception.adversary import (  # noqa: F401 - re-exported
+    ATTACKS,
+    AttackedCamera,
+    Kappa,
+    proposition1_direction,
+)
 from pipeline.render import CloudSample
-from pipeline.schema import NonNegative, NonNegativeInt, PositiveInt, Range, checked
-
-ATTACKS = ("pixel", "cloud")
-Kappa = Annotated[float, Range(ge=0, le=255)]  # the budget, in intensity levels
+from pipeline.schema import NonNegative, NonNegativeInt, PositiveInt, checked
 
 
 # -------------------------------------------------------------------------------------------- result
@@ -65,7 +69,9 @@ class AttackResult:
     - `direction`: the unit attack direction `(N, 2)` (zero rows where the caller's direction was zero);
     - worst cloud only: `scores (N, K)` (the candidates' error along the direction, `d . (est_k - p)`),
       `chosen (N,)` (the argmax, the first on ties), `clouds` (the chosen `CloudSample`, length N) and
-      `candidates` (all `N * K` layouts, agent-major: row `i * K + k`).
+      `candidates` (all `N * K` layouts, agent-major: row `i * K + k`);
+    - `extra`: the network's further output columns on the attacked image `(N, C)` (e.g. an uncertainty head's
+      sigmas), `(N, 0)` when it has none.
 
     `induced = attacked - clean` is the estimate error the attack induces; `along` its component along the
     direction, `norm` its length; `error(p)` is the attacked estimate's error w.r.t. the true positions.
@@ -79,6 +85,7 @@ class AttackResult:
     chosen: np.ndarray | None = None
     clouds: CloudSample | None = None
     candidates: CloudSample | None = None
+    extra: np.ndarray | None = None
 
     @property
     def induced(self) -> np.ndarray:
@@ -114,19 +121,6 @@ class ScaledInput(nn.Module):
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         return self.module(images * self.scale)
-
-
-def proposition1_direction(scene) -> Callable[[np.ndarray], np.ndarray]:
-    """`direction_fn(p) -> (N, 2)`: `-sign(b(p)) e_b` of SPEC §3.5 for a `pipeline.control.Scene` (duck-typed:
-    `scene.to_frame(p) -> (a, b)` and `scene.e_b`), with `sign(0) = +1` as in `sim.disturbances.Adversarial`."""
-
-    def direction(p: np.ndarray) -> np.ndarray:
-        p = np.asarray(p, dtype=np.float64).reshape(-1, 2)
-        _, b = scene.to_frame(p)
-        sign = np.where(np.asarray(b) >= 0, 1.0, -1.0)
-        return -sign[:, None] * np.asarray(scene.e_b, dtype=np.float64)[None, :]
-
-    return direction
 
 
 def _unit_directions(direction, n: int) -> np.ndarray:
@@ -179,6 +173,8 @@ def pixel_attack(net: nn.Module, images, direction, *, kappa: Kappa, steps: NonN
     out = np.empty_like(imgs)
     clean = np.empty((n, 2))
     attacked = np.empty((n, 2))
+    extra = None
+    idle = budget == 0 or (steps == 0 and rng is None)  # nothing can move: the clean image, no gradient
     was_training = net.training
     net.eval()
     try:
@@ -187,33 +183,43 @@ def pixel_attack(net: nn.Module, images, direction, *, kappa: Kappa, steps: NonN
                 e = min(s + batch_size, n)
                 x0 = torch.from_numpy(np.ascontiguousarray(imgs[s:e])).to(dev).to(torch.float32)
                 db = torch.from_numpy(d[s:e]).to(dev, torch.float32)
+                out_clean = None
                 if rng is not None and kappa > 0:
                     u = rng.random(tuple(x0.shape))  # float64: one 64-bit draw each, batch-invariant
                     delta = torch.from_numpy(u).to(dev, torch.float32).mul_(2 * kappa).sub_(kappa)
                     delta = (x0 + delta).clamp_(0.0, 255.0).sub_(x0)
                 else:
                     delta = torch.zeros_like(x0)
-                for _ in range(steps):
+                for _ in range(0 if idle else steps):
                     delta.requires_grad_(True)
-                    est = net(x0 + delta)[:, :2]
-                    (grad,) = torch.autograd.grad((est * db).sum(), delta)
+                    full = net(x0 + delta)
+                    if out_clean is None and rng is None:  # the first step starts at the clean image
+                        out_clean = full.detach()
+                    (grad,) = torch.autograd.grad((full[:, :2] * db).sum(), delta)
                     with torch.no_grad():
                         delta = delta.detach().add_(grad.sign(), alpha=alpha).clamp_(-kappa, kappa)
                         delta = (x0 + delta).clamp_(0.0, 255.0).sub_(x0)
                 with torch.no_grad():
-                    adv = torch.round(x0 + delta)
-                    adv = torch.minimum(torch.maximum(adv, x0 - budget), x0 + budget).clamp_(0.0, 255.0)
-                    est_clean = net(x0)[:, :2]
-                    est_adv = net(adv)[:, :2]
-                    worse = ((est_adv - est_clean) * db).sum(1) < 0
+                    if out_clean is None:
+                        out_clean = net(x0)
+                    if idle:
+                        adv, out_adv = x0, out_clean.clone()
+                    else:
+                        adv = torch.round(x0 + delta)
+                        adv = torch.minimum(torch.maximum(adv, x0 - budget), x0 + budget).clamp_(0.0, 255.0)
+                        out_adv = net(adv)
+                    worse = ((out_adv[:, :2] - out_clean[:, :2]) * db).sum(1) < 0
                     adv[worse] = x0[worse]
-                    est_adv[worse] = est_clean[worse]
+                    out_adv[worse] = out_clean[worse]
                 out[s:e] = adv.to(torch.uint8).cpu().numpy()
-                clean[s:e] = est_clean.double().cpu().numpy()
-                attacked[s:e] = est_adv.double().cpu().numpy()
+                clean[s:e] = out_clean[:, :2].double().cpu().numpy()
+                attacked[s:e] = out_adv[:, :2].double().cpu().numpy()
+                if extra is None:
+                    extra = np.empty((n, out_adv.shape[1] - 2))
+                extra[s:e] = out_adv[:, 2:].double().cpu().numpy()
     finally:
         net.train(was_training)
-    return AttackResult(out, clean, attacked, d)
+    return AttackResult(out, clean, attacked, d, extra=np.empty((0, 0)) if extra is None else extra)
 
 
 # ------------------------------------------------------------------------------------- worst cloud
@@ -253,14 +259,17 @@ def worst_cloud(camera, occlusion, positions, direction, predict: Callable, *, c
     else:
         z = np.zeros(n * k, dtype=np.int64)
         cand = CloudSample(np.zeros(n * k, dtype=bool), z, z, z)
-    est = np.empty((n * k, 2))
+    est, extra = np.empty((n * k, 2)), None
     agent = np.repeat(np.arange(n), k)
     for s in range(0, n * k, chunk):
         e = min(s + chunk, n * k)
         rows = agent[s:e]
         imgs = camera.render(p[rows], None if fol is None else fol[rows], occlusion=occlusion if active else None,
                              clouds=cand[s:e] if active else None)
-        est[s:e] = np.asarray(predict(imgs), dtype=np.float64)[:, :2]
+        rows = np.asarray(predict(imgs), dtype=np.float64)
+        if extra is None:
+            extra = np.empty((n * k, rows.shape[1] - 2))
+        est[s:e], extra[s:e] = rows[:, :2], rows[:, 2:]
     scores = np.einsum("ikj,ij->ik", est.reshape(n, k, 2) - p[:, None, :], d)
     chosen = np.argmax(scores, axis=1)
     pick = np.arange(n) * k + chosen
@@ -275,76 +284,4 @@ def worst_cloud(camera, occlusion, positions, direction, predict: Callable, *, c
             camera.render(p[s:e], f, occlusion=occlusion if active else None,
                           clouds=clouds[s:e] if active else None, out=images[s:e])
     return AttackResult(images, clean, est[pick], d, scores=scores, chosen=chosen, clouds=clouds,
-                        candidates=cand)
-
-
-# --------------------------------------------------------------------------------- closed-loop hook
-@checked("attack")
-@dataclass
-class AttackedCamera:
-    """`measure(p (n, 2), idx, frame, rng) -> estimates (n, 2)`: the camera in the loop, under attack.
-
-    Each frame: `direction_fn(p)` gives the attack direction per agent from the true positions (e.g.
-    :func:`proposition1_direction`); then
-    - `attack="pixel"`: render with the scenario's `occlusion` (clouds drawn from `rng`, as `CameraMeasure`
-      does), run :func:`pixel_attack` through `net` (default `perception_map.net`, the predictor's eager
-      folded network) on `perception_map.device`, and measure the attacked images with `perception_map.predict`;
-    - `attack="cloud"`: :func:`worst_cloud` over `candidates` layouts of `occlusion` (the adversary's level;
-      drawn from `rng`), measured with `perception_map.predict`.
-    The estimate returned is the perception map's on the attacked image. Statistics: `frames`, `images`, and
-    per frame the mean of the induced error (`attacked - clean`) along the direction and in norm
-    (`per_frame`), with running sums for the means (`mean_along`, `mean_norm`); `error_along` sums
-    `d . (estimate - p)`, the measured error w.r.t. the truth along the direction.
-    """
-
-    camera: object
-    perception_map: object
-    direction_fn: Callable[[np.ndarray], np.ndarray]
-    attack: Literal["pixel", "cloud"] = "pixel"
-    occlusion: object | None = None
-    kappa: Kappa = 4.0
-    steps: NonNegativeInt = 5
-    step_size: NonNegative | None = None
-    random_start: bool = False
-    candidates: PositiveInt = 16
-    net: nn.Module | None = None
-    frames: int = 0
-    images: int = 0
-    sum_along: float = 0.0
-    sum_norm: float = 0.0
-    error_along: float = 0.0
-    per_frame: list = field(default_factory=list)
-
-    def __call__(self, p: np.ndarray, idx: np.ndarray, frame: int, rng: np.random.Generator) -> np.ndarray:
-        p = np.asarray(p, dtype=np.float64).reshape(-1, 2)
-        direction = self.direction_fn(p)
-        pm = self.perception_map
-        if self.attack == "pixel":
-            imgs = self.camera.render(p, None, occlusion=self.occlusion, rng=rng)
-            net = self.net if self.net is not None else pm.net
-            res = pixel_attack(net, imgs, direction, kappa=self.kappa, steps=self.steps, step_size=self.step_size,
-                               device=getattr(pm, "device", "cpu"), rng=rng if self.random_start else None)
-            est = np.asarray(pm.predict(res.images), dtype=np.float64)[:, :2]
-        else:
-            res = worst_cloud(self.camera, self.occlusion, p, direction, pm.predict, candidates=self.candidates,
-                              rng=rng, keep_images=False)
-            est = res.attacked  # already the perception map's estimate of the chosen image
-        along, norm = res.along, res.norm
-        self.frames += 1
-        self.images += len(p)
-        self.sum_along += float(along.sum())
-        self.sum_norm += float(norm.sum())
-        self.error_along += float(np.einsum("ij,ij->", est - p, res.direction))
-        self.per_frame.append({"frame": int(frame), "n": len(p), "along": float(along.mean()) if len(p) else 0.0,
-                               "norm": float(norm.mean()) if len(p) else 0.0})
-        return est
-
-    @property
-    def mean_along(self) -> float:
-        """Mean induced error along the direction over all attacked images (world units)."""
-        return self.sum_along / self.images if self.images else 0.0
-
-    @property
-    def mean_norm(self) -> float:
-        """Mean norm of the induced error over all attacked images (world units)."""
-        return self.sum_norm / self.images if self.images else 0.0
+                        candidates=cand, extra=np.empty((n, 0)) if extra is None else extra[pick])

@@ -65,7 +65,8 @@ def wilson(successes, n, z: float = 1.96):
         denom = 1 + z**2 / n
         centre = (p + z**2 / (2 * n)) / denom
         half = z * np.sqrt(p * (1 - p) / n + z**2 / (4 * n**2)) / denom
-    return centre - half, centre + half
+    # rounding: no -3e-17 at k = 0, no 1 - 1e-16 at k = n; the interval holds the rate
+    return np.clip(np.minimum(centre - half, p), 0.0, 1.0), np.clip(np.maximum(centre + half, p), 0.0, 1.0)
 
 
 def _q(x: pd.Series, q: float) -> float:
