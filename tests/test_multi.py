@@ -118,3 +118,21 @@ def test_camera_on_a_field_needs_the_map_of_that_field(tmp_path, monkeypatch):
         MultiCamera(id="multi_camera", title="t").check(ctx)
     monkeypatch.setattr(Context, "map_scene", lambda self, kind: self.scene)
     MultiCamera(id="multi_camera", title="t").check(ctx)
+
+
+def test_monte_carlo_figure_takes_a_wilson_bound_an_ulp_below_a_rate_of_one(tmp_path):
+    """Bug (make multi, 20 fields x 200 starts): every agent reached the target, the Wilson upper bound came out an
+    ulp below 1.0 and matplotlib rejected the negative error bar after an hour of simulation."""
+    import pandas as pd
+
+    from pipeline.experiments.context import Results
+    from pipeline.experiments.multi_figures import draw_multi_monte_carlo
+    from pipeline.experiments.report import Outputs
+
+    t = pd.DataFrame({"condition": ["none", "none"], "controller": ["hybrid", "smooth"], "n": [400, 400],
+                      "success_rate": [1.0, 0.5], "success_lo": [0.99, 0.45], "success_hi": [1.0 - 1e-16, 0.55]})
+    res = Results({"summary": t, "per_scene": t.assign(scene="field00")}, {}, {"scenes": ["field00", "field01"]})
+    out = Outputs(tmp_path, "multi_monte_carlo")
+    draw_multi_monte_carlo(None, None, res, out)
+    assert (tmp_path / "fig16_multi_monte_carlo.png").stat().st_size > 1000
+    assert pd.read_csv(tmp_path / "tab_multi_monte_carlo.csv")["success_rate"].tolist() == [1.0, 0.5]

@@ -32,6 +32,7 @@ from pipeline.control.validity import (
     to_frames,
 )
 from pipeline.errors import ConfigError
+from pipeline.schema import NonNegative
 
 
 def random_field(
@@ -370,17 +371,17 @@ def random_scene(n_obstacles: int = 5, seed: int = 0, radius_range: list[float] 
                  target: list[float] = (40.0, 0.0), keep_free: list[list[float]] | None = None,
                  arena: Arena | None = None, barrier: Barrier | None = None, apex_factor: float = DEFAULT_APEX_FACTOR,
                  barrier_scale_factor: float = 1.0, h: float = 1.0, u_max: float | None = 10.0,
-                 T_s: float | None = 0.05, margin: float = 1.0, name: str = "field") -> Scene:
+                 T_s: float | None = 0.05, margin: float = 1.0, inflation: NonNegative = 0.0, name: str = "field") -> Scene:
     """A seeded random valid scene of `n_obstacles` discs (the `field` preset, conf/scene/field.yaml): drawn by
     rejection against V1–V3 of SPEC §3.6 for the cell hysteresis `h`, `u_max` and the frame period `T_s` it will
     run with, inside the arena by `margin`, every point of `keep_free` (e.g. a start) outside every diamond;
-    apex `apex_factor r_i`, barrier scale `barrier_scale_factor r_i`."""
+    apex `apex_factor r_i`, barrier scale `barrier_scale_factor r_i`; valid also with every disc grown by `inflation` (Scene.inflated, the unicycle's steering scene, SPEC §3.7)."""
     arena = arena if isinstance(arena, Arena) else Arena(**(arena or {}))
     barrier = barrier if isinstance(barrier, Barrier) else Barrier(**(barrier or {}))
     centers, radii = random_field(int(n_obstacles), seed=int(seed), arena=arena.bounds, radius_range=tuple(radius_range),
                                   target=tuple(target), starts=keep_free, h=h, u_max=u_max, T_s=T_s,
                                   apex_factor=apex_factor, barrier_rho=barrier.rho,
-                                  barrier_scale_factor=barrier_scale_factor, margin=margin)
+                                  barrier_scale_factor=barrier_scale_factor, margin=margin, inflation=inflation)
     obstacles = [Obstacle(center=[float(x), float(y)], radius=float(r), apex=float(apex_factor * r),
                           barrier_scale=float(barrier_scale_factor * r)) for (x, y), r in zip(centers, radii)]
     return Scene(target=list(target), obstacles=obstacles, barrier=barrier, arena=arena, name=name)

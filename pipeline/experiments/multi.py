@@ -44,6 +44,16 @@ def field_scenes(ctx: Context, n_scenes: int, obstacles: list[int], seed: int) -
     return out
 
 
+def check_map_scene(ctx: Context, kind: str) -> None:
+    """The scene map `kind` was trained on (its manifest) must be the composed one: the camera draws the obstacles
+    the vehicle avoids (a perfect map passes)."""
+    map_scene = ctx.map_scene(kind)
+    if map_scene is not None and map_scene.config() != ctx.scene.config():
+        raise ConfigError(f"maps.{kind}", f"the map was trained on scene {map_scene.name!r}, not the composed one "
+                                          f"({ctx.scene.name!r}): its camera would draw other obstacles than those "
+                                          "simulated")
+
+
 def summarise_field(metrics: pd.DataFrame, by: list[str], seed: int) -> pd.DataFrame:
     """The Monte Carlo table (:func:`pipeline.experiments.context.summarise`) plus the mean of each counter per
     agent (cell jumps, mode jumps, push-outs, guard-active frames) with its 95% interval."""
@@ -218,11 +228,7 @@ class MultiCamera(Scenario):
     def check(self, ctx: Context) -> None:
         super().check(ctx)
         ctx.occlusion(self.occlusion)
-        map_scene = ctx.map_scene(self.map_kind)
-        if map_scene is not None and map_scene.config() != ctx.scene.config():
-            raise ConfigError(f"maps.{self.map_kind}", f"the map was trained on scene {map_scene.name!r}, not the "
-                                                       f"composed one ({ctx.scene.name!r}): its camera would draw "
-                                                       "other obstacles than those simulated")
+        check_map_scene(ctx, self.map_kind)
 
     def compute(self, ctx: Context) -> Results:
         self.check(ctx)
@@ -243,5 +249,5 @@ class MultiCamera(Scenario):
         return Results({"metrics": metrics, "summary": table}, arrays, {"occlusion": self.occlusion})
 
 
-__all__ = ["MultiAdversarial", "MultiCamera", "MultiCells", "MultiMonteCarlo", "field_scenes", "summarise_field",
+__all__ = ["MultiAdversarial", "MultiCamera", "MultiCells", "MultiMonteCarlo", "check_map_scene", "field_scenes", "summarise_field",
            "wilson"]

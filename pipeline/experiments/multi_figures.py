@@ -95,7 +95,8 @@ def draw_multi_monte_carlo(scen, ctx, res, out) -> None:
         g = t[t["controller"] == ctrl].set_index("condition").loc[conds]
         x = np.arange(len(conds)) + k * width
         axes[0].bar(x, g["success_rate"], width, color=COLORS.get(ctrl), label=ctrl,
-                    yerr=[g["success_rate"] - g["success_lo"], g["success_hi"] - g["success_rate"]], capsize=3)
+                    yerr=np.clip([g["success_rate"] - g["success_lo"], g["success_hi"] - g["success_rate"]], 0, None),
+                    capsize=3)  # a Wilson bound at a rate of 1 can sit an ulp below it
     axes[0].set_xticks(np.arange(len(conds)) + 0.4 - width / 2, conds)
     axes[0].set_ylabel("success rate (95% Wilson CI)")
     axes[0].set_ylim(0, 1.05)
