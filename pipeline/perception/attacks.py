@@ -183,34 +183,8 @@ def pixel_attack(net: nn.Module, images, direction, *, kappa: Kappa, steps: NonN
                 e = min(s + batch_size, n)
                 x0 = torch.from_numpy(np.ascontiguousarray(imgs[s:e])).to(dev).to(torch.float32)
                 db = torch.from_numpy(d[s:e]).to(dev, torch.float32)
-                out_clean = None
-                if rng is not None and kappa > 0:
-                    u = rng.random(tuple(x0.shape))  # float64: one 64-bit draw each, batch-invariant
-                    delta = torch.from_numpy(u).to(dev, torch.float32).mul_(2 * kappa).sub_(kappa)
-                    delta = (x0 + delta).clamp_(0.0, 255.0).sub_(x0)
-                else:
-                    delta = torch.zeros_like(x0)
-                for _ in range(0 if idle else steps):
-                    delta.requires_grad_(True)
-                    full = net(x0 + delta)
-                    if out_clean is None and rng is None:  # the first step starts at the clean image
-                        out_clean = full.detach()
-                    (grad,) = torch.autograd.grad((full[:, :2] * db).sum(), delta)
-                    with torch.no_grad():
-                        delta = delta.detach().add_(grad.sign(), alpha=alpha).clamp_(-kappa, kappa)
-                        delta = (x0 + delta).clamp_(0.0, 255.0).sub_(x0)
-                with torch.no_grad():
-                    if out_clean is None:
-                        out_clean = net(x0)
-                    if idle:
-                        adv, out_adv = x0, out_clean.clone()
-                    else:
-                        adv = torch.round(x0 + delta)
-                        adv = torch.minimum(torch.maximum(adv, x0 - budget), x0 + budget).clamp_(0.0, 255.0)
-                        out_adv = net(adv)
-                    worse = ((out_adv[:, :2] - out_clean[:, :2]) * db).sum(1) < 0
-                    adv[worse] = x0[worse]
-                    out_adv[worse] = out_clean[worse]
+                adv, out_clean, out_adv = _pgd_batch(net, x0, db, kappa=kappa, alpha=alpha, budget=budget,
+                                                     steps=0 if idle else steps, idle=idle, rng=rng)
                 out[s:e] = adv.to(torch.uint8).cpu().numpy()
                 clean[s:e] = out_clean[:, :2].double().cpu().numpy()
                 attacked[s:e] = out_adv[:, :2].double().cpu().numpy()
@@ -220,6 +194,41 @@ def pixel_attack(net: nn.Module, images, direction, *, kappa: Kappa, steps: NonN
     finally:
         net.train(was_training)
     return AttackResult(out, clean, attacked, d, extra=np.empty((0, 0)) if extra is None else extra)
+
+
+def _pgd_batch(net: nn.Module, x0, db, *, kappa: float, alpha: float, budget: int, steps: int, idle: bool, rng):
+    """One batch of :func:`pixel_attack` (gradients enabled by the caller): the projected sign-gradient steps
+    from the clean or a random start, then the camera's rounding and the keep-the-clean-image rule. Returns
+    `(attacked images, clean outputs, attacked outputs)` as tensors."""
+    out_clean = None
+    if rng is not None and kappa > 0:
+        u = rng.random(tuple(x0.shape))  # float64: one 64-bit draw each, batch-invariant
+        delta = torch.from_numpy(u).to(x0.device, torch.float32).mul_(2 * kappa).sub_(kappa)
+        delta = (x0 + delta).clamp_(0.0, 255.0).sub_(x0)
+    else:
+        delta = torch.zeros_like(x0)
+    for _ in range(steps):
+        delta.requires_grad_(True)
+        full = net(x0 + delta)
+        if out_clean is None and rng is None:  # the first step starts at the clean image
+            out_clean = full.detach()
+        (grad,) = torch.autograd.grad((full[:, :2] * db).sum(), delta)
+        with torch.no_grad():
+            delta = delta.detach().add_(grad.sign(), alpha=alpha).clamp_(-kappa, kappa)
+            delta = (x0 + delta).clamp_(0.0, 255.0).sub_(x0)
+    with torch.no_grad():
+        if out_clean is None:
+            out_clean = net(x0)
+        if idle:
+            adv, out_adv = x0, out_clean.clone()
+        else:
+            adv = torch.round(x0 + delta)
+            adv = torch.minimum(torch.maximum(adv, x0 - budget), x0 + budget).clamp_(0.0, 255.0)
+            out_adv = net(adv)
+        worse = ((out_adv[:, :2] - out_clean[:, :2]) * db).sum(1) < 0
+        adv[worse] = x0[worse]
+        out_adv[worse] = out_clean[worse]
+    return adv, out_clean, out_adv
 
 
 # ------------------------------------------------------------------------------------- worst cloud
