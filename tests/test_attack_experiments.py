@@ -53,7 +53,7 @@ BAD = [
 
 @pytest.mark.parametrize("overrides,field", BAD, ids=[" ".join(o) for o, _ in BAD])
 def test_bad_attack_keys_are_one_config_error(tmp_path, overrides, field):
-    from pipeline.config import preflight
+    from pipeline.preflight import preflight
     from pipeline.experiments.checks import check
 
     with pytest.raises(ConfigError) as err:
