@@ -381,7 +381,9 @@ def test_nested_and_stage_defaults_are_the_yaml():
     assert _differences(scene["obstacles"][0], Obstacle, skip=("center", "radius")) == []  # those two: required
     assert _plain(Scene().arena) == scene["arena"] and _plain(Scene().barrier) == scene["barrier"]
     sampling = _yaml("sampling/closed_loop.yaml")
-    assert _differences(sampling["closed_loop"], ClosedLoopSampling) == []
+    # controller: the composed controller node, its guard set off (the datasets sample the literal rule)
+    assert _differences(sampling["closed_loop"], ClosedLoopSampling, skip=("controller",)) == []
+    assert sampling["closed_loop"]["controller"] == {"guard": False}
     assert _differences(sampling, Sampling, skip=("mode", "closed_loop")) == []  # mode: what this option picks
     uncertainty = _yaml("train.yaml")["uncertainty_eval"]
     assert _target(uncertainty) is UncertaintyEval and _differences(uncertainty, UncertaintyEval) == []

@@ -150,7 +150,7 @@ def test_unicycle_initial_headings():
 def test_simulate_stage_drives_the_unicycle_and_keeps_the_integrator(tmp_path):
     from pipeline.simulate import run
 
-    common = ["plot=false", "init=random", "init.n=12", "+controller.guard=true", "sim.horizon=15"]
+    common = ["plot=false", "init=random", "init.n=12", "controller.guard=true", "sim.horizon=15"]
     uni = run(compose("simulate", ["vehicle=unicycle", *common, f"paths.output_dir={tmp_path / 'u'}"]))
     res = uni["result"]
     assert res.heading is not None and res.u.shape[-1] == 2  # (v, ω)
@@ -320,7 +320,7 @@ def _uni_context(tmp_path, folder, *extra):
 
     cfg = compose("experiments", [f"paths.outputs_dir={tmp_path}", f"paths.models_dir={folder.parent}",
                                   "experiment=noise_failure", "vehicle=unicycle", f"maps.clean={folder.name}",
-                                  "+controller.guard=true", "sim.horizon=15", *extra])
+                                  "controller.guard=true", "sim.horizon=15", *extra])
     maps = {}
 
     def load_map(f, models_dir=None, device=None):

@@ -36,7 +36,7 @@ def test_the_plain_field_fails_v3_once_inflated_and_field_unicycle_passes(tmp_pa
 
     for scene, ok in (("field", False), ("field_unicycle", True)):
         cfg = compose("experiments", [f"paths.outputs_dir={tmp_path}", "perception=oracle", "vehicle=unicycle",
-                                      f"scene={scene}", "+controller.guard=true"])
+                                      f"scene={scene}", "controller.guard=true"])
         ctx = Context(cfg)
         ctrl = ctx.controller("hybrid")
         if ok:
