@@ -176,47 +176,52 @@ def test_ctrl_c_sent_to_a_stage_process_is_one_line_exit_130_and_leaves_no_folde
     assert list(datasets.iterdir()) == [], list(datasets.iterdir())
 
 
-def test_ctrl_c_during_lightning_training_is_one_line_and_exit_130(tmp_path, monkeypatch, capsys):
+_LIGHTNING_CTRL_C = """
+import os, signal, sys, types
+import lightning as L
+import torch
+from pipeline.cli import stage_main
+from pipeline.train.stage import _quiet_lightning
+
+class Net(L.LightningModule):
+    def __init__(self):
+        super().__init__()
+        self.w = torch.nn.Linear(1, 1)
+
+    def training_step(self, batch, _):
+        os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C in the middle of an epoch
+        return self.w(batch[0]).sum()
+
+    def configure_optimizers(self):
+        return torch.optim.SGD(self.parameters(), lr=0.1)
+
+def run(cfg):
+    _quiet_lightning()  # as the train stage does
+    data = torch.utils.data.DataLoader(torch.utils.data.TensorDataset(torch.ones(4, 1)), batch_size=2)
+    L.Trainer(max_epochs=3, accelerator="cpu", logger=False, enable_checkpointing=False,
+              enable_progress_bar=False, enable_model_summary=False).fit(Net(), data)
+    raise AssertionError("training went on after Ctrl-C")
+
+fake = types.ModuleType("fake_lightning_stage")
+fake.run = run
+sys.modules["fake_lightning_stage"] = fake
+before = signal.getsignal(signal.SIGINT)
+try:
+    stage_main("simulate", run="fake_lightning_stage:run")()
+finally:
+    assert signal.getsignal(signal.SIGINT) is before, "the stage's handler outlived it"
+"""
+
+
+def test_ctrl_c_during_lightning_training_is_one_line_and_exit_130(tmp_path):
     """Lightning catches Ctrl-C in `fit` and calls `sys.exit(1)` (its graceful shutdown): the stage exited 1,
-    silently; it must be the same one line and exit 130 as anywhere else."""
-    import signal
-
-    import lightning as L
-    import torch
-
-    from pipeline.cli import stage_main
-    from pipeline.train.stage import _quiet_lightning
-
-    class Net(L.LightningModule):
-        def __init__(self):
-            super().__init__()
-            self.w = torch.nn.Linear(1, 1)
-
-        def training_step(self, batch, _):
-            os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C in the middle of an epoch
-            return self.w(batch[0]).sum()
-
-        def configure_optimizers(self):
-            return torch.optim.SGD(self.parameters(), lr=0.1)
-
-    def run(cfg):
-        _quiet_lightning()  # as the train stage does
-        data = torch.utils.data.DataLoader(torch.utils.data.TensorDataset(torch.ones(4, 1)), batch_size=2)
-        L.Trainer(max_epochs=3, accelerator="cpu", logger=False, enable_checkpointing=False,
-                  enable_progress_bar=False, enable_model_summary=False).fit(Net(), data)
-        raise AssertionError("training went on after Ctrl-C")
-
-    fake = types.ModuleType("fake_lightning_stage")
-    fake.run = run
-    monkeypatch.setitem(sys.modules, "fake_lightning_stage", fake)
-    monkeypatch.setattr(sys, "argv", ["simulate", f"paths.root_dir={tmp_path}", f"hydra.run.dir={tmp_path / 'run'}"])
-    before = signal.getsignal(signal.SIGINT)
-    with pytest.raises(SystemExit) as exit_:
-        stage_main("simulate", run="fake_lightning_stage:run")()
-    assert exit_.value.code == 130
-    err = capsys.readouterr().err
-    assert err.strip().splitlines() == ["interrupted (Ctrl-C): nothing half-written was kept"], err
-    assert signal.getsignal(signal.SIGINT) is before  # the stage's handler is gone after it returns
+    silently; it must be the same one line and exit 130 as anywhere else. In a fresh interpreter: the suite's
+    own signal handlers (earlier tests) must not decide what a user's Ctrl-C does."""
+    proc = subprocess.run([sys.executable, "-c", _LIGHTNING_CTRL_C, f"paths.root_dir={tmp_path}",
+                           f"hydra.run.dir={tmp_path / 'run'}"], cwd=REPO_ROOT, capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 130, proc.stderr[-3000:]
+    assert proc.stderr.strip().splitlines() == ["interrupted (Ctrl-C): nothing half-written was kept"], proc.stderr
 
 
 def test_ctrl_c_during_make_paper_is_the_stage_s_one_line_only(monkeypatch, capsys):
