@@ -135,6 +135,7 @@ NonNegativeInt = Annotated[int, Range(ge=0)]
 Pair = tuple[float, float]  # a point [x, y]
 Interval = Annotated[tuple[float, float], Ascending()]  # [min, max], min < max
 RGB = Annotated[tuple[float, float, float], Range(ge=0, le=255)]  # a colour, intensity levels
+Kappa = Annotated[float, Range(ge=0, le=255)]  # a pixel attack's budget, in intensity levels (of 255)
 Name = Annotated[str, Pattern(r"[^./\\\s](?:[^/\\]*[^/\\\s])?",
                               "a non-empty folder-safe name (no '/', '\\', leading '.' or surrounding spaces)")]
 Device = Annotated[str, Pattern(r"auto|cpu|cuda(?::\d+)?", "auto, cpu, cuda or cuda:N")]

@@ -53,8 +53,8 @@ BAD = [
 
 @pytest.mark.parametrize("overrides,field", BAD, ids=[" ".join(o) for o, _ in BAD])
 def test_bad_attack_keys_are_one_config_error(tmp_path, overrides, field):
-    from pipeline.preflight import preflight
     from pipeline.experiments.checks import check
+    from pipeline.preflight import preflight
 
     with pytest.raises(ConfigError) as err:
         preflight("experiments", [*overrides, "perception=oracle", f"paths.outputs_dir={tmp_path}"], check)

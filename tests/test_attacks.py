@@ -13,13 +13,8 @@ import torch
 from torch import nn
 
 from pipeline.errors import ConfigError
-from pipeline.perception.attacks import (
-    AttackedCamera,
-    ScaledInput,
-    pixel_attack,
-    proposition1_direction,
-    worst_cloud,
-)
+from pipeline.perception.adversary import AttackedCamera, proposition1_direction
+from pipeline.perception.attacks import ScaledInput, pixel_attack, worst_cloud
 from pipeline.render import Camera, CloudSample, Occlusion
 
 SCENE = SimpleNamespace(obstacle_center=(0.0, 0.0), obstacle_radius=4.0, target=(40.0, 0.0))

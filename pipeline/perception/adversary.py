@@ -24,15 +24,14 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Annotated, ClassVar, Literal
+from typing import ClassVar, Literal
 
 import numpy as np
 
 from pipeline.perception.measure import OracleMap, check_gate
-from pipeline.schema import Name, NonNegativeInt, Positive, PositiveInt, Range, check_fields
+from pipeline.schema import Kappa, Name, NonNegativeInt, Positive, PositiveInt, check_fields
 
 ATTACKS = ("pixel", "cloud")
-Kappa = Annotated[float, Range(ge=0, le=255)]  # the pixel attack's budget, in intensity levels (of 255)
 
 
 def proposition1_direction(scene) -> Callable[[np.ndarray], np.ndarray]:

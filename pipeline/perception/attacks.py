@@ -33,8 +33,8 @@ differentiable w.r.t. the input.
   once the estimate sits on the arena's edge (the attack cannot push it further there anyway).
 
 This module takes the network, predictor and camera as arguments; it imports only `pipeline.render`,
-`pipeline.errors`, `pipeline.perception.adversary` (re-exported: `AttackedCamera`,
-`proposition1_direction`) and third-party libraries.
+`pipeline.errors`, `pipeline.schema` and third-party libraries (the closed-loop hook, `AttackedCamera`, and
+`proposition1_direction` live in :mod:`pipeline.perception.adversary`, which imports this module).
 """
 
 from __future__ import annotations
@@ -47,14 +47,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from pipeline.perception.adversary import (  # noqa: F401 - re-exported
-    ATTACKS,
-    AttackedCamera,
-    Kappa,
-    proposition1_direction,
-)
 from pipeline.render import CloudSample
-from pipeline.schema import NonNegative, NonNegativeInt, PositiveInt, checked
+from pipeline.schema import Kappa, NonNegative, NonNegativeInt, PositiveInt, checked
 
 
 # -------------------------------------------------------------------------------------------- result
