@@ -162,9 +162,14 @@ def test_ctrl_c_sent_to_a_stage_process_is_one_line_exit_130_and_leaves_no_folde
         [sys.executable, "-m", "pipeline.data", "data=clean", "debug=tiny", "data.sampling.mode=uniform",
          "data.splits.train=12000", f"paths.root_dir={tmp_path}"], cwd=REPO_ROOT, env=_env(), text=True,
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    def tmp_seen() -> bool:  # the preflight's mkdir probe may create and remove the folder meanwhile
+        try:
+            return any(d.name.startswith(".tmp-") for d in datasets.iterdir())
+        except FileNotFoundError:
+            return False
+
     deadline = time.monotonic() + 300
-    while proc.poll() is None and time.monotonic() < deadline and not (
-            datasets.is_dir() and any(d.name.startswith(".tmp-") for d in datasets.iterdir())):
+    while proc.poll() is None and time.monotonic() < deadline and not tmp_seen():
         time.sleep(0.005)
     assert proc.poll() is None, "the stage ended before its temporary folder was seen"
     proc.send_signal(signal.SIGINT)
@@ -178,6 +183,7 @@ def test_ctrl_c_sent_to_a_stage_process_is_one_line_exit_130_and_leaves_no_folde
 
 _LIGHTNING_CTRL_C = """
 import os, signal, sys, types
+signal.signal(signal.SIGINT, signal.default_int_handler)  # a terminal's interpreter (a background job inherits SIG_IGN)
 import lightning as L
 import torch
 from pipeline.cli import stage_main
