@@ -39,10 +39,15 @@ class _Lines:
 
 class _Bar(tqdm):
     """tqdm that a Ctrl-C in the middle of its `__init__` leaves quiet: its `__del__` would read attributes never
-    set (`'_LineBar' object has no attribute 'disable'`, a traceback after the one-line interruption)."""
+    set (`'_LineBar' object has no attribute 'disable'` or `... 'last_print_t'`, a traceback after the one-line
+    interruption), so it closes only a bar whose `__init__` ran to its end."""
+
+    def __init__(self, *args, **kwargs) -> None:  # noqa: D107 - tqdm's own keywords, passed through unchanged
+        super().__init__(*args, **kwargs)
+        self._initialised = True
 
     def __del__(self) -> None:
-        if hasattr(self, "disable"):
+        if getattr(self, "_initialised", False):
             super().__del__()
 
 

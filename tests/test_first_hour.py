@@ -247,7 +247,10 @@ def test_ctrl_c_during_make_paper_is_the_stage_s_one_line_only(monkeypatch, caps
     assert "interrupted" not in capsys.readouterr().err
 
 
-def test_a_progress_bar_cut_in_its_init_by_ctrl_c_leaves_no_traceback(monkeypatch):
+@pytest.mark.parametrize("where", ["_supports_unicode", "status_printer", "_get_free_pos"])
+def test_a_progress_bar_cut_in_its_init_by_ctrl_c_leaves_no_traceback(monkeypatch, where):
+    """Wherever the Ctrl-C lands in tqdm's `__init__` (before `disable` is set, after it but before
+    `last_print_t`: seen under a loaded machine), the bar's `__del__` prints nothing."""
     import gc
 
     import tqdm.std
@@ -259,7 +262,10 @@ def test_a_progress_bar_cut_in_its_init_by_ctrl_c_leaves_no_traceback(monkeypatc
 
     caught = []
     monkeypatch.setattr(sys, "unraisablehook", caught.append)
-    monkeypatch.setattr(tqdm.std, "_supports_unicode", interrupted)  # called half-way through tqdm.__init__
+    if where == "_supports_unicode":
+        monkeypatch.setattr(tqdm.std, where, interrupted)  # called before `self.disable` is set
+    else:
+        monkeypatch.setattr(tqdm.std.tqdm, where, staticmethod(interrupted))  # after it, before `last_print_t`
     for file in (io.StringIO(), type("Tty", (io.StringIO,), {"isatty": lambda self: True})()):
         with pytest.raises(KeyboardInterrupt):
             pr.progress(total=3, desc="render", file=file)
