@@ -418,9 +418,11 @@ def test_experiment_settings_and_simulate_defaults_are_the_yaml():
 
 
 # ------------------------------------------------------------------------------- bad input, every stage
-def _bad_cases(tmp_path):
-    afile = tmp_path / "a_file"
-    afile.write_text("x")
+AFILE = "<a_file>"  # replaced by a path to a plain file of the test's own tmp_path
+
+
+def _bad_cases():
+    afile = AFILE
     return [
         ("pipeline.simulate", ["camera.p_fail=abc"], "camera.p_fail"),
         ("pipeline.simulate", ["init=grid", "init.nx=abc"], "init.nx"),
@@ -455,18 +457,22 @@ def _bad_cases(tmp_path):
     ]
 
 
-def test_bad_input_is_one_line_and_exit_2_before_any_work(tmp_path):
+@pytest.mark.parametrize("module,args,field", _bad_cases(), ids=[f"{m.split('.')[1]} {' '.join(a)}"
+                                                                  for m, a, _ in _bad_cases()])
+def test_bad_input_is_one_line_and_exit_2_before_any_work(tmp_path, module, args, field):
     out = tmp_path / "out"
-    for module, args, field in _bad_cases(tmp_path):
-        extra = [] if any(a.startswith("paths.") for a in args) else [f"paths.root_dir={out}"]
-        extra += {"pipeline.experiments": ["perception=oracle"], "pipeline.simulate": ["plot=false"]}.get(module, [])
-        proc = _cli(module, *args, *extra, f"hydra.run.dir={tmp_path / 'run'}", f"hydra.sweep.dir={tmp_path / 'sweep'}")
-        msg = f"{module} {args}: rc {proc.returncode}\n{proc.stderr[-2000:]}"
-        assert proc.returncode == 2, msg
-        lines = proc.stderr.strip().splitlines()
-        assert len(lines) == 1 and lines[0].startswith(f"error: {field}"), msg
-        assert "Traceback" not in proc.stderr + proc.stdout, msg
-        assert not out.exists() or not any(out.rglob("*.npy")), msg  # no work was done
+    afile = tmp_path / "a_file"
+    afile.write_text("x")
+    args = [a.replace(AFILE, str(afile)) for a in args]
+    extra = [] if any(a.startswith("paths.") for a in args) else [f"paths.root_dir={out}"]
+    extra += {"pipeline.experiments": ["perception=oracle"], "pipeline.simulate": ["plot=false"]}.get(module, [])
+    proc = _cli(module, *args, *extra, f"hydra.run.dir={tmp_path / 'run'}", f"hydra.sweep.dir={tmp_path / 'sweep'}")
+    msg = f"{module} {args}: rc {proc.returncode}\n{proc.stderr[-2000:]}"
+    assert proc.returncode == 2, msg
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"error: {field}"), msg
+    assert "Traceback" not in proc.stderr + proc.stdout, msg
+    assert not out.exists() or not any(out.rglob("*.npy")), msg  # no work was done
 
 
 def test_missing_input_names_the_command_that_makes_it(tmp_path):
@@ -533,8 +539,8 @@ def test_paper_keeps_its_maps_when_a_quick_experiment_trains_another(tmp_path):
     root = tmp_path / "root"
     data = ["data.splits.train=256", "data.splits.val=32", "data.splits.test=32"]
     q = lambda xs: "[" + ",".join(f"'{x}'" for x in xs) + "]"  # noqa: E731 - quoted override list
-    args = [f"paths.root_dir={root}", "datasets=[clean,leader_follower]", "maps=[clean]", "errormaps=[clean]",
-            "experiments=[perception_closeness,noise_failure]", f"args.data={q(data)}",
+    args = [f"paths.root_dir={root}", "datasets=[clean]", "maps=[clean]", "errormaps=[clean]",
+            "experiments=[perception_closeness]", f"args.data={q(data)}",
             f"args.train={q(['trainer=debug', 'eval_levels=[none]', *data])}",
             f"args.errormap={q(['grid.step=4.0', 'occlusion_levels=[none]', 'train_samples=64'])}",
             f"args.experiments={q(['debug=tiny'])}", f"hydra.run.dir={tmp_path / 'run1'}"]
