@@ -53,14 +53,14 @@ errormap: $(STAMP) ## epsilon-error maps, Lipschitz estimate and Assumption-1 co
 experiments: $(STAMP) ## every scenario of make paper (figures under outputs/side/<experiment>-<id>/; ARGS=publish=true: outputs/paper/)
 	$(PY) -m pipeline.experiments -m 'experiment=glob(*,exclude=[perception_generalisation,multi_*,unicycle*,camera_attack_sweep,worst_cloud_sweep,geometry_margin_grid])' $(ARGS)
 
-test: $(STAMP) ## fast test suite (< 10 min on 2 cores)
-	$(PY) -m pytest -q $(ARGS)
+test: $(STAMP) ## fast test suite (< 10 min on 2 cores: one pytest-xdist worker per core)
+	$(PY) -m pytest -q -n auto --dist worksteal $(ARGS)
 
 test-explore: $(STAMP) ## property tests with fresh random examples each run (finds new counter-examples)
 	HYPOTHESIS_PROFILE=explore $(PY) -m pytest -q -m '' -k 'not slow' $(ARGS) $$(grep -l hypothesis tests/*.py)
 
 test-all: $(STAMP) ## every test, slow ones included
-	$(PY) -m pytest -q -m '' $(ARGS)
+	$(PY) -m pytest -q -n auto --dist worksteal -m '' $(ARGS)
 
 bench: $(STAMP) ## speed benchmarks, printed as a table
 	$(PY) -m pipeline.bench $(ARGS)

@@ -7,6 +7,10 @@ os.environ.setdefault("HYDRA_FULL_ERROR", "0")
 # torch's OpenMP threads sleep instead of spinning while they wait: the numbers are the same, and on a busy
 # machine (CI beside other jobs) a spinning thread steals the core its partner needs (5-8x slower steps)
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+# under pytest-xdist (`make test` runs one worker per core) each worker and its subprocesses use one thread:
+# two workers of two threads each on two cores would only take turns
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import pytest  # noqa: E402
 from hypothesis import settings  # noqa: E402
