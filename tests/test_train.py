@@ -96,21 +96,21 @@ def test_fast_dev_run_reload_and_noop(tiny):
     assert run(_train_cfg(tiny, "trainer=debug", "eval_levels=[none]", "seed=1"))["id"] != out["id"]
 
 
-def test_overfits_256_images(tiny):
-    """The map can memorise 256 images: train MAE below 1 px (the model is able to localise sub-pixel)."""
+def test_overfits_128_images(tiny):
+    """The map can memorise 128 images: train MAE below 1 px (the model is able to localise sub-pixel)."""
     from pipeline.data import open_dataset
     from pipeline.perception.maps import load_perception_map
     from pipeline.perception.metrics import error_metrics
     from pipeline.train.stage import run
 
     # a narrow variant of the default architecture (CoordConv, one-cycle), without dropout and BatchNorm
-    cfg = _train_cfg(tiny, "datamodule.limit_train_samples=256", "datamodule.batch_size=16", "trainer.max_epochs=40",
+    cfg = _train_cfg(tiny, "datamodule.limit_train_samples=128", "datamodule.batch_size=16", "trainer.max_epochs=40",
                      "trainer.max_time=null", "~callbacks.early_stopping", "model.lr=2e-3", "model.dropout=0.0", "model.filters=[8,16,32]",
                      "model.batch_norm=false", "eval_levels=[]", "name=overfit")
     out = run(cfg)
     pm = load_perception_map("overfit", models_dir=tiny["models"])
     ds = open_dataset(tiny["id"], datasets_dir=tiny["datasets"])
-    m = error_metrics(pm.predict(ds.images("train")[:256]), ds.positions("train")[:256], pm.px_per_unit)
+    m = error_metrics(pm.predict(ds.images("train")[:128]), ds.positions("train")[:128], pm.px_per_unit)
     assert m["mae_px"] < 1.0, m
     assert out["epochs"] >= 1
 
