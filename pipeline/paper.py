@@ -145,8 +145,11 @@ def run(cfg) -> dict:
             lock["errormaps"][name] = Path(cfg.paths.errormaps_dir) / em_refs[name]
     if experiments:
         base = compose("experiments", paths)
-        pins = [f"maps.{k}={v}" for k, v in map_refs.items() if k in base.maps]
-        pins += [f"errormaps.{k}={v}" for k, v in em_refs.items() if k in base.errormaps]
+        # the experiments read maps by kind (`maps.<kind>: <map name>`, conf/experiments.yaml): pin every kind whose
+        # map this run built, and its error map where the experiments read one
+        kinds = {str(kind): str(ref) for kind, ref in base.maps.items()}
+        pins = [f"maps.{k}={map_refs[n]}" for k, n in kinds.items() if n in map_refs]
+        pins += [f"errormaps.{k}={em_refs[n]}" for k, n in kinds.items() if n in em_refs and k in base.errormaps]
         run_stage("experiments", ["-m", f"experiment={','.join(experiments)}", *pins, *paths, "publish=true",
                                   *args["experiments"]],
                timings, stop)

@@ -118,3 +118,30 @@ def test_unicycle_bad_input_one_line_exit_2(args, field, tmp_path):
     assert r.returncode == 2, r.stderr
     assert len(lines) == 1 and field in lines[0], r.stderr
     assert not (tmp_path / "outputs").exists()  # before any work
+
+
+def test_the_bundles_push_out_speed_keeps_the_unicycle_off_a_period_2_orbit_at_a_face():
+    """docs/multi.md "push-out speed": a frame-flipping error of 0.5 (the alternating disturbance) puts the perceived
+    look-ahead point inside a diamond every other frame. Pushed out at the full u_max = 10 the unicycle turns at
+    20 rad/s (past omega_max = 4 pi): it reverses and turns 0.63 rad, the next frame's flow turns it back, and it
+    stays at the face (0 of the starts arrive); at the bundles' push speed (below omega_max d / 2) every start
+    arrives. The bundles must keep that value."""
+    from pipeline.control import HybridController, Scene
+    from pipeline.plants import Unicycle
+    from pipeline.sim.disturbances import Alternating
+    from pipeline.sim.simulator import simulate
+
+    cfg = compose("experiments", ["experiment=unicycle", "perception=oracle"])
+    push = float(cfg.controller.push_speed)
+    uni = Unicycle(heading0="random")
+    assert push <= uni.omega_max * uni.lookahead / 2
+    scene = Scene()
+    rng = np.random.default_rng(0)
+    x0 = np.column_stack([rng.uniform(-25, -8, 12), rng.uniform(-12, 12, 12)])
+    arrived = {}
+    for speed in (10.0, push):
+        ctrl = HybridController(uni.steering_scene(scene), push_speed=speed, guard=True)
+        res = simulate(scene, ctrl, x0, plant=uni, heading0=uni.initial_heading(x0, scene),
+                       disturbance=Alternating(eps=0.5), record=False, horizon=20.0)
+        arrived[speed] = res.metrics["success"].mean()
+    assert arrived[10.0] <= 0.25 and arrived[push] == 1.0, arrived

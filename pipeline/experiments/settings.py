@@ -19,7 +19,7 @@ class ExperimentSettings:
     perception: Literal["cnn", "oracle"] = "cnn"
     maps: dict[str, str] = field(default_factory=lambda: {"clean": "clean", "occluded": "occluded",
                                                           "authors": "authors", "clean_paper": "clean_paper",
-                                                          "field_heavy": "field_heavy",
+                                                          "field_heavy": "field_heavy_keypoint",
                                                           "unicycle_pose": "unicycle_pose",
                                                           "unicycle_field_pose": "unicycle_field_pose"})
     errormaps: dict[str, str | None] = field(default_factory=lambda: {"clean": None, "unicycle_pose": None,

@@ -2,7 +2,8 @@
 
 Three Conv(3x3)-ReLU-MaxPool(2x2) blocks, flatten, Dropout(0.5), Linear -> 2 (the paper's block
 structure). Filter counts, an optional BatchNorm, an optional hidden layer and the input/target
-normalisation are config values (`conf/model/`). Inputs are uint8 images `(N, H, W, 3)` as stored in the
+normalisation are config values (`conf/model/`); `position_head: keypoint` replaces the flattened linear head
+by a soft-argmax over the last block's cells (:mod:`pipeline.perception.keypoint`, `conf/model/keypoint.yaml`). Inputs are uint8 images `(N, H, W, 3)` as stored in the
 datasets; the module converts them to float channels_last tensors itself. Outputs are world coordinates:
 the network predicts positions normalised to `[-1, 1]` over the arena and the module scales them back.
 """
@@ -18,7 +19,8 @@ import torch
 from torch import nn
 
 from pipeline.errors import ConfigError, ModelError
-from pipeline.perception.heading import HeadingHead, heading_deg
+from pipeline.perception.heading import AttentionHeadingHead, HeadingHead, heading_deg
+from pipeline.perception.keypoint import KeypointHead
 from pipeline.schema import (
     Interval,
     Name,
@@ -61,7 +63,7 @@ def conv_blocks(in_ch: int, filters: Sequence[int], batch_norm: bool) -> nn.Sequ
     return nn.Sequential(*layers)
 
 
-def position_head(flat: int, hidden: int, dropout: float, n_out: int) -> nn.Sequential:
+def position_head_layers(flat: int, hidden: int, dropout: float, n_out: int) -> nn.Sequential:
     """Flatten, Dropout, (Linear-ReLU,) Linear -> `n_out` normalised outputs from `flat` features."""
     head: list[nn.Module] = [nn.Flatten(), nn.Dropout(dropout)]
     if hidden:
@@ -109,7 +111,8 @@ class PerceptionMap(L.LightningModule):
         uncertainty_batch_size: PositiveInt = 128,
         uncertainty_thumbnail: PositiveInt = 4,
         outputs: Literal["position", "pose"] = "position",
-        heading_head: Literal["pooled", "flat"] = "pooled",
+        position_head: Literal["flat", "keypoint"] = "flat",
+        heading_head: Literal["pooled", "flat", "attention"] = "pooled",
         heading_hidden: PositiveInt = 64,
         heading_weight: Positive = 1.0,
     ):
@@ -117,6 +120,10 @@ class PerceptionMap(L.LightningModule):
         if uncertainty_thumbnail > min(image_shape[:2]):
             raise ConfigError("model.uncertainty_thumbnail", f"must be <= {min(image_shape[:2])} (pixels per side of "
                                                              f"a thumbnail cell), got {uncertainty_thumbnail!r}")
+        if outputs == "pose" and (heading_head == "attention") != (position_head == "keypoint"):
+            raise ConfigError("model.heading_head", f"{heading_head!r} with position_head={position_head!r}: the "
+                                                    "attention head reads the keypoint's weights (attention with "
+                                                    "keypoint; pooled or flat with flat)")
         self.save_hyperparameters()
         h, w, _ = (int(s) for s in image_shape)
         self.image_shape = (h, w, 3)
@@ -135,18 +142,22 @@ class PerceptionMap(L.LightningModule):
         self.features = conv_blocks(3 + 2 * self.coord_channels, [int(f) for f in filters], batch_norm)
         fh, fw = h, w
         for _ in filters:
+            gh, gw = fh, fw  # the last block's grid before its pooling (the keypoint head's cells)
             fh, fw = fh // 2, fw // 2
         if fh < 1 or fw < 1:
             raise ConfigError("model.filters", f"{len(filters)} pooling blocks shrink a {h}x{w} image to nothing")
         flat = int(filters[-1]) * fh * fw
         self.uncertainty = uncertainty
         self.pose = outputs == "pose"  # a pose map: (x, y, cos θ, sin θ) from the head, θ = atan2 (SPEC §2)
-        # its (cos θ, sin θ): from the pooled features (`heading_head: pooled`, pipeline.perception.heading) or two
-        # more outputs of the position's head (`flat`)
-        self.heading_head = HeadingHead(int(filters[-1]), int(heading_hidden)) \
-            if self.pose and heading_head == "pooled" else None
+        self.keypoint = position_head == "keypoint"
+        # its (cos θ, sin θ): from the pooled features (`heading_head: pooled`, pipeline.perception.heading), the
+        # keypoint's attention-weighted features (`attention`) or two more outputs of the position's head (`flat`)
+        heading_cls = {"pooled": HeadingHead, "attention": AttentionHeadingHead}.get(heading_head)
+        self.heading_head = heading_cls(int(filters[-1]), int(heading_hidden)) \
+            if self.pose and heading_cls is not None else None
         self.heading_weight = float(heading_weight)
-        head = position_head(flat, hidden, dropout, 4 if self.pose and self.heading_head is None else 2)
+        head = KeypointHead(int(filters[-1]), (gh, gw)) if self.keypoint else \
+            position_head_layers(flat, hidden, dropout, 4 if self.pose and self.heading_head is None else 2)
         # `uncertainty: gaussian`: a second head on the features predicts the log variance of each normalised
         # coordinate. It is fitted AFTER the position network (`pipeline.train.uncertainty.fit_variance_head`, on
         # the trained network's eval-mode features and errors), so it is frozen during training and never changes
@@ -190,14 +201,22 @@ class PerceptionMap(L.LightningModule):
     def normalised(self, images: torch.Tensor) -> torch.Tensor:
         """Raw head outputs: normalised position (and log variances with `uncertainty: gaussian`)."""
         x = self.prepare(images)
-        f = self.features(x)
-        z = self.head_outputs(f)
+        g, f = self.encode(x)
+        z = self.head_outputs(g, f)
         return z if self.var_head is None else torch.cat([z, self.var_head(self.variance_inputs(x, f))], 1)
 
-    def head_outputs(self, f: torch.Tensor) -> torch.Tensor:
-        """The normalised position (a pose map: and `(cos θ, sin θ)`) from the features `f`."""
-        z = self.head(f)
-        return z if self.heading_head is None else torch.cat([z, self.heading_head(f)], 1)
+    def encode(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The prepared images' last-block activations before (`g`) and after (`f`, the features) its pooling."""
+        g = self.features[:-1](x)
+        return g, self.features[-1](g)
+
+    def head_outputs(self, g: torch.Tensor, f: torch.Tensor) -> torch.Tensor:
+        """The normalised position (a pose map: and `(cos θ, sin θ)`) from the activations `g, f` of `encode`."""
+        return head_outputs(self.head, self.heading_head, self.keypoint, g, f)
+
+    def position_outputs(self, x: torch.Tensor) -> torch.Tensor:
+        """The normalised position `(N, 2)` of the prepared images `x` (what the position loss reads)."""
+        return self.head_outputs(*self.encode(x))[:, :2]
 
     def variance_inputs(self, x: torch.Tensor, f: torch.Tensor) -> torch.Tensor:
         """What the variance head reads: the (detached) features and the thumbnail of the prepared images `x`."""
@@ -215,7 +234,7 @@ class PerceptionMap(L.LightningModule):
     def _step(self, batch, stage: str):
         images, labels = batch
         target = self.targets(labels)
-        pred_n = self.head_outputs(self.features(self.prepare(images)))  # the variance head is fitted afterwards
+        pred_n = self.head_outputs(*self.encode(self.prepare(images)))  # the variance head is fitted afterwards
         if self.pose:  # position and heading, the heading's loss weighted (pipeline.perception.heading)
             loss = self._loss(pred_n[:, :2], target[:, :2]) + self.heading_weight * self._loss(pred_n[:, 2:4],
                                                                                                target[:, 2:])
@@ -259,10 +278,24 @@ class PerceptionMap(L.LightningModule):
                 flops += 2 * h * w * m.in_channels * m.out_channels * 9
             elif isinstance(m, nn.MaxPool2d):
                 h, w = h // 2, w // 2
-        for m in [*self.head, *(self.var_head or []), *(self.heading_head.mlp if self.heading_head else [])]:
+        head = [] if self.keypoint else [*self.head]
+        for m in [*head, *(self.var_head or []), *(self.heading_head.mlp if self.heading_head else [])]:
             if isinstance(m, nn.Linear):
                 flops += 2 * m.in_features * m.out_features
-        return flops
+        return flops + (self.head.flops() if self.keypoint else 0.0)
+
+
+def head_outputs(head: nn.Module, heading_head: nn.Module | None, keypoint: bool, g: torch.Tensor,
+                 f: torch.Tensor) -> torch.Tensor:
+    """The position head (flat: on the pooled features `f`; keypoint: on the pre-pool activations `g`) and a pose
+    map's heading head (pooled: on `f`; attention: on `g` with the keypoint's weights), normalised outputs."""
+    if keypoint:
+        z, attention = head(g)
+    else:
+        z, attention = head(f), None
+    if heading_head is None:
+        return z
+    return torch.cat([z, heading_head(g, attention) if attention is not None else heading_head(f)], 1)
 
 
 def _to_world(z: torch.Tensor, center, half_range, sigma_scale, clamp: bool, pose: bool = False) -> torch.Tensor:
@@ -310,7 +343,9 @@ class FoldedPerceptionNet(nn.Module):
                 conv.weight.copy_(wk)
                 conv.bias.copy_(bk)
             self.convs.append(conv)
-        self.head = nn.Sequential(*[m for m in model.head if not isinstance(m, nn.Flatten | nn.Dropout)])
+        self.keypoint = model.keypoint
+        self.head = copy.deepcopy(model.head) if self.keypoint else \
+            nn.Sequential(*[m for m in model.head if not isinstance(m, nn.Dropout)])
         self.heading_head = copy.deepcopy(model.heading_head)
         self.var_head = None if model.var_head is None else nn.Sequential(*model.var_head)
         self.thumb_size = model.thumb_size
@@ -324,14 +359,12 @@ class FoldedPerceptionNet(nn.Module):
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         img = images.permute(0, 3, 1, 2).to(torch.float32)  # NHWC uint8 -> NCHW float in channels_last memory
-        x = nn.functional.conv2d(img, self.w0, None, padding=1).add_(self.bias_map)
-        x = nn.functional.max_pool2d(nn.functional.relu_(x), 2)
+        g = nn.functional.relu_(nn.functional.conv2d(img, self.w0, None, padding=1).add_(self.bias_map))
         for conv in self.convs:
-            x = nn.functional.max_pool2d(nn.functional.relu_(conv(x)), 2)
+            g = nn.functional.relu_(conv(nn.functional.max_pool2d(g, 2)))
+        x = nn.functional.max_pool2d(g, 2)  # g: the last block before its pooling; x: the features
         f = x.flatten(1)
-        z = self.head(f)
-        if self.heading_head is not None:
-            z = torch.cat([z, self.heading_head(x)], 1)
+        z = head_outputs(self.head, self.heading_head, self.keypoint, g, x)
         if self.var_head is not None:
             thumb = nn.functional.adaptive_avg_pool2d(img, self.thumb_size).flatten(1)  # `thumbnail` of [0, 255]
             thumb = (thumb * (1.0 / 255.0) - 0.5) * THUMB_SCALE

@@ -39,7 +39,7 @@ def raw_loop(model: PerceptionMap, images, pos, batch: int, steps: int) -> float
         idx = torch.randint(0, n, (batch,))
         target = (pos[idx] - model.center) / model.half_range
         # the position head, as the training step (a map's uncertainty head is fitted after the position network)
-        loss = torch.nn.functional.mse_loss(model.head(model.features(model.prepare(images[idx]))), target)
+        loss = torch.nn.functional.mse_loss(model.position_outputs(model.prepare(images[idx])), target)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()

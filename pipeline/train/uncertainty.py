@@ -48,14 +48,14 @@ def _features_and_errors(model, images, positions, device) -> tuple[torch.Tensor
     for i in range(0, n, _FEATURE_BATCH):
         x = torch.from_numpy(np.array(images[i:i + _FEATURE_BATCH])).to(device)  # a copy: memmaps are read-only
         xp = model.prepare(x)
-        f = model.features(xp)
+        g, f = model.encode(xp)
         target = (torch.as_tensor(np.asarray(positions[i:i + _FEATURE_BATCH]), dtype=torch.float32, device=device)
                   - model.center) / model.half_range
         inputs = model.variance_inputs(xp, f)
         if feats is None:  # preallocated: the inputs of a large split are held once, not twice
             feats, sq = torch.empty(n, inputs.shape[1]), torch.empty(n, 2)
         feats[i:i + len(f)] = inputs.cpu()
-        sq[i:i + len(f)] = ((model.head(f)[:, :2] - target) ** 2).cpu()  # a pose map's head: position first
+        sq[i:i + len(f)] = ((model.head_outputs(g, f)[:, :2] - target) ** 2).cpu()  # a pose map's: position first
     return feats, sq
 
 
