@@ -85,6 +85,16 @@ def check(cfg: DictConfig) -> None:
         raise ConfigError("errormaps", f"{sorted(set(s.errormaps) - set(maps))} are not among the maps {maps}")
 
 
+def experiment_pins(experiments_cfg, map_refs: dict[str, str], em_refs: dict[str, str]) -> list[str]:
+    """The experiments read maps by kind (`maps.<kind>: <map name>`, conf/experiments.yaml, e.g. `field_heavy:
+    field_heavy_keypoint`): pin every kind whose map this run built (`map_refs`: map name -> `name-id`), and its
+    error map (`em_refs`, by map name) where the experiments read one."""
+    kinds = {str(kind): str(ref) for kind, ref in experiments_cfg.maps.items()}
+    pins = [f"maps.{k}={map_refs[n]}" for k, n in kinds.items() if n in map_refs]
+    return pins + [f"errormaps.{k}={em_refs[n]}" for k, n in kinds.items()
+                   if n in em_refs and k in experiments_cfg.errormaps]
+
+
 def run_stage(stage: str, argv: list[str], timings: dict, stop: bool, *, tag: str = "paper",
               label: str | None = None) -> bool:
     """Run `python -m pipeline.<stage> <argv>` as its own Hydra job; its time goes to `timings[label or stage]`.
@@ -144,12 +154,7 @@ def run(cfg) -> dict:
             em_refs[name] = f"{ename}-{eid}"
             lock["errormaps"][name] = Path(cfg.paths.errormaps_dir) / em_refs[name]
     if experiments:
-        base = compose("experiments", paths)
-        # the experiments read maps by kind (`maps.<kind>: <map name>`, conf/experiments.yaml): pin every kind whose
-        # map this run built, and its error map where the experiments read one
-        kinds = {str(kind): str(ref) for kind, ref in base.maps.items()}
-        pins = [f"maps.{k}={map_refs[n]}" for k, n in kinds.items() if n in map_refs]
-        pins += [f"errormaps.{k}={em_refs[n]}" for k, n in kinds.items() if n in em_refs and k in base.errormaps]
+        pins = experiment_pins(compose("experiments", paths), map_refs, em_refs)
         run_stage("experiments", ["-m", f"experiment={','.join(experiments)}", *pins, *paths, "publish=true",
                                   *args["experiments"]],
                timings, stop)

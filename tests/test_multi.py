@@ -136,3 +136,29 @@ def test_monte_carlo_figure_takes_a_wilson_bound_an_ulp_below_a_rate_of_one(tmp_
     draw_multi_monte_carlo(None, None, res, out)
     assert (tmp_path / "fig16_multi_monte_carlo.png").stat().st_size > 1000
     assert pd.read_csv(tmp_path / "tab_multi_monte_carlo.csv")["success_rate"].tolist() == [1.0, 0.5]
+
+
+def test_make_multi_pins_every_map_its_experiments_read_by_kind():
+    """`make multi` trains `field_heavy_keypoint` (data=field_heavy model=keypoint) and its experiments read it as the
+    kind `maps.field_heavy`: the orchestrator pins every kind whose map it built, by the map's name (before: only the
+    kinds named like a map were pinned, so multi_camera would have resolved the name again instead of the pinned id)."""
+    from pipeline.paper import experiment_pins
+
+    multi = compose("multi", [])
+    refs = {name: f"{name}-0123456789" for name in multi.maps}
+    ems = {name: f"{name}-9876543210" for name in multi.errormaps}
+    exp = compose("experiments", [])
+    pins = experiment_pins(exp, refs, ems)
+    kinds = {p.split("=")[0] for p in pins}
+    used = {f"maps.{m}" for e in multi.experiments for m in _bundle_maps(e)}
+    assert used and used <= kinds, (used, pins)
+    assert "maps.field_heavy=field_heavy_keypoint-0123456789" in pins
+    assert "errormaps.unicycle_pose=unicycle_pose-9876543210" in pins
+    assert not any(p.startswith("errormaps.field_heavy") for p in pins)  # the experiments read no error map of it
+
+
+def _bundle_maps(experiment: str) -> tuple[str, ...]:
+    from pipeline.config import build
+
+    cfg = compose("experiments", [f"experiment={experiment}"])
+    return tuple(build(cfg.experiment, "experiment").maps)

@@ -80,7 +80,7 @@ def _field_runs(ax, scene: Scene, arena, runs: dict, title: str) -> None:
     for ctrl, p in runs.items():
         for n in range(p.shape[1]):
             ax.plot(p[:, n, 0], p[:, n, 1], color=COLORS.get(ctrl), lw=1.0, label=ctrl if n == 0 else None)
-    ax.legend(fontsize=7, loc="lower right")
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=4)  # below: the field fills the arena
     ax.set_title(title, fontsize=9)
 
 

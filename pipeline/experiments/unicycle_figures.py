@@ -37,7 +37,7 @@ def draw_unicycle(scen, ctx, res, out) -> None:
         color, ls = STYLE.get(key, ("k", "-"))
         for n in range(p.shape[1]):
             ax.plot(p[:, n, 0], p[:, n, 1], ls, color=color, lw=1.0, label=key if n == 0 else None)
-    ax.legend(fontsize=7, loc="lower right")
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=4)  # below: the field fills the arena
     ax.set_title(f"axle point of the unicycle (look-ahead d = {res.info['lookahead']:g}) and the single integrator",
                  fontsize=9)
     for c in conds:
