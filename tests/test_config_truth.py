@@ -575,3 +575,29 @@ def test_schema_rejects_wrong_types_in_instantiated_scenarios():
         build({**node, "epsilon": [0.1]}, "experiment")
     with pytest.raises(TypeError):
         RobustnessSweep(id="x", title="x", epsilon=[0.1])  # no **kwargs: a typo is not a default
+
+
+def test_the_code_hashed_into_each_id_covers_the_modules_that_compute_it():
+    """Lineage: an output's id hashes the code that computes its bytes. Every experiment bundle's scenario module is
+    in the experiments' code (`experiments/unicycle` was missing: a change to the unicycle runs kept their cached
+    results), and every `pipeline.perception` module the network imports is in the maps' code (the keypoint head)."""
+    import ast
+
+    from pipeline import identity
+    from pipeline.experiments.stage import COMPUTE_CODE
+
+    def covered(module: str, code) -> bool:
+        path = module.removeprefix("pipeline.").replace(".", "/")
+        return any(path == c or path.startswith(c + "/") for c in code)
+
+    for f in sorted((CONF_DIR / "experiment").glob("*.yaml")):
+        target = yaml.safe_load(f.read_text())["experiment"].get("_target_")
+        if target is None:  # a bundle that extends another (its defaults): the other's target
+            continue
+        assert covered(target.rsplit(".", 1)[0], COMPUTE_CODE), (f.name, target)
+    tree = ast.parse((REPO_ROOT / "pipeline" / "perception" / "network.py").read_text())
+    imported = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module
+                and n.module.startswith("pipeline.perception")}
+    assert imported and all(covered(m, identity.MAP_CODE) for m in imported), imported
+    assert all(covered(m, identity.dataset_code({"sampling": {"mode": "closed_loop", "closed_loop": {"map": "x"}}}))
+               for m in imported), imported

@@ -35,7 +35,8 @@ from pipeline.progress import progress
 
 # the code whose changes change the numbers (figures.py and report.py only draw)
 COMPUTE_CODE = ("experiments/scenario", "experiments/theory", "experiments/camera_loop", "experiments/generalisation",
-                "experiments/multi", "experiments/context", "experiments/attacks", "experiments/margin",
+                "experiments/multi", "experiments/unicycle", "experiments/context", "experiments/attacks",
+                "experiments/margin",
                 "perception/measure", "perception/metrics", "perception/attacks", "perception/adversary", "control",
                 "hybrid", "plants", "sim", "render", "data/sampling", "data/recipe")
 
