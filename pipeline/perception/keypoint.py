@@ -12,10 +12,10 @@ attention-weighted mean of the cells' centres plus their offsets:
     p = sum_cells a_c (centre_c + offset_c),
 
 in the arena's normalised coordinates (x right, y up, each in [-1, 1] over the image). The same weights read every
-cell (translation-equivariant), so each image teaches the offset wherever the vehicle lies. Measured on the
-`unicycle` recipe (8000 images, 10 epochs, 2-core CPU, the same trunk and optimiser): test MAE 0.16 px against
-2.4 px for the flat head after 4 epochs (0.28 px for the `clean` map's flat head after 24k images x 10 epochs);
-on `field_heavy` (heavy clouds on 90% of the images) 0.44 px after 5 epochs against 4.8 px (docs/train.md).
+cell (translation-equivariant), so each image teaches the offset wherever the vehicle lies. Measured on this
+2-core CPU with the same trunk and optimiser (docs/train.md): the `unicycle` pose map 0.17 px after 8000 images x
+10 epochs (the flat head: 1.4 px after 6; the `clean` map's flat head needs 24k images x 10 epochs for 0.28 px);
+`field_heavy` (heavy clouds on 90% of the images) 0.34 px after 12k x 10 (flat: 4.8 px after 6, 1.27 px with 48k).
 
 The attention weights are returned too: a pose map's `heading_head: attention` averages the same feature map with
 them (the features at the marker).

@@ -3,9 +3,10 @@
 Three Conv(3x3)-ReLU-MaxPool(2x2) blocks, flatten, Dropout(0.5), Linear -> 2 (the paper's block
 structure). Filter counts, an optional BatchNorm, an optional hidden layer and the input/target
 normalisation are config values (`conf/model/`); `position_head: keypoint` replaces the flattened linear head
-by a soft-argmax over the last block's cells (:mod:`pipeline.perception.keypoint`, `conf/model/keypoint.yaml`). Inputs are uint8 images `(N, H, W, 3)` as stored in the
-datasets; the module converts them to float channels_last tensors itself. Outputs are world coordinates:
-the network predicts positions normalised to `[-1, 1]` over the arena and the module scales them back.
+by a soft-argmax over the last block's cells (:mod:`pipeline.perception.keypoint`, `conf/model/keypoint.yaml`).
+Inputs are uint8 images `(N, H, W, 3)` as stored in the datasets; the module converts them to float channels_last
+tensors itself. Outputs are world coordinates: the network predicts positions normalised to `[-1, 1]` over the
+arena and the module scales them back.
 """
 
 from __future__ import annotations
