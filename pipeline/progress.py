@@ -40,7 +40,15 @@ class _Lines:
 class _Bar(tqdm):
     """tqdm that a Ctrl-C in the middle of its `__init__` leaves quiet: its `__del__` would read attributes never
     set (`'_LineBar' object has no attribute 'disable'` or `... 'last_print_t'`, a traceback after the one-line
-    interruption), so it closes only a bar whose `__init__` ran to its end."""
+    interruption), so it closes only a bar whose `__init__` ran to its end.
+
+    No monitor thread (`monitor_interval = 0`): tqdm's first bar starts one, registering its `exit` with atexit
+    *before* starting it, so a Ctrl-C between the two left a callback that joins a thread never started
+    (`Exception ignored in atexit callback ... cannot join thread before it is started` after the one-line
+    interruption; seen in CI). The monitor only lowers `miniters` of bars that draw too rarely; these bars draw on
+    time (`mininterval`, `delay`)."""
+
+    monitor_interval = 0
 
     def __init__(self, *args, **kwargs) -> None:  # noqa: D107 - tqdm's own keywords, passed through unchanged
         super().__init__(*args, **kwargs)
