@@ -1,0 +1,260 @@
+"""The falsifier of SPEC §5.5: the upper end `ε_hi` of the bracket, per controller and start.
+
+For a start `p0` and a bound `ε`, a search over error signals `|e(t)| <= ε` for one that makes the sampled loop
+fail (:mod:`pipeline.bracket.loop`: collision, leaving the camera's view, stall, timeout):
+
+- ``fixed``: §3.5's direction `e = -ε sign(b(p)) e_b` (Proposition 1's adversary);
+- ``mode_aware``: every frame, among `ε` times `n_dirs` directions (and 0), the error whose frame decision jumps
+  the mode (it sees `q`), else puts the perceived point in the active wedge (a push-out), else makes the least
+  progress towards the target;
+- ``receding``: a receding-horizon search: per run `n_candidates` error sequences over `lookahead` frames (each
+  fixed direction held, the two adversaries above, random directions per frame), all simulated at once; the
+  worst (a failure, else the farthest from the target, the closest to the obstacle) is played for `commit` frames,
+  and the search repeats from there. Each candidate is scored after `tail` more frames of the fixed adversary
+  (a rollout of the base policy), so that the search keeps what the fixed adversary achieves and improves on it.
+
+`ε_hi` is the smallest `ε` found failing by bisection on `[0, eps_max]` (`inf`: no failure up to `eps_max`).
+Failing is monotone in `ε` for the true worst case (a signal within `ε` is within every larger bound), so every
+`ε >= ε_hi` fails too; the search is a heuristic, so `ε_hi` is an upper bound of the robustness margin. Each
+failure comes with its trajectory (a counterexample).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from pipeline.bracket.loop import COLLIDED, LEFT, REACHED, RUNNING, FrameLoop
+
+ADVERSARIES = ("fixed", "mode_aware", "receding")
+
+
+def directions(n: int) -> np.ndarray:
+    """`n` unit vectors evenly spaced from angle 0 `(n, 2)`."""
+    ang = 2.0 * np.pi * np.arange(n) / n
+    return np.stack([np.cos(ang), np.sin(ang)], axis=1)
+
+
+def fixed_error(loop: FrameLoop, st: dict, eps: np.ndarray) -> np.ndarray:
+    """§3.5's adversary: `-ε sign(b(p)) e_b` (ties `b = 0`: `-ε e_b`, as :class:`pipeline.sim.Adversarial`)."""
+    _, b = loop.scene.to_frame(st["p"])
+    sign = np.where(b >= 0, 1.0, -1.0)
+    return -(eps * sign)[:, None] * loop.scene.e_b[None]
+
+
+def mode_aware_error(loop: FrameLoop, st: dict, eps: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """The mode-aware adversary (module docstring): all `(run, candidate)` pairs evaluated in one batch."""
+    n, k = len(st["p"]), len(dirs) + 1
+    cand = np.concatenate([np.zeros((1, 2)), dirs], axis=0)  # (k, 2), 0 first
+    E = (eps[:, None, None] * cand[None]).reshape(-1, 2)
+    P = np.repeat(st["p"], k, axis=0)
+    xd = {name: np.repeat(a, k) for name, a in st["xd"].items()}
+    m = P + E
+    xd1, jumped = loop.decide(m, xd)
+    u = loop.held(m, xd1)
+    ev = loop.controller.evaluate(m, xd1)
+    pushed = ~loop.controller.flow_set(m, xd1, ev=ev) & ~loop.controller.jump_set(m, xd1, ev=ev)
+    pT = loop.scene.p_T
+    before = np.hypot(*(P - pT).T)
+    after = np.hypot(*(P + loop.period * u - pT).T)
+    scale = loop.period * max(getattr(loop.controller, "u_max", None) or 10.0, 1e-9)
+    score = 4.0 * jumped + 2.0 * pushed + np.clip((after - before) / scale, -1.0, 1.0)
+    best = score.reshape(n, k).argmax(axis=1)
+    return E.reshape(n, k, 2)[np.arange(n), best]
+
+
+@dataclass
+class Search:
+    """Settings of the receding-horizon search and of the mode-aware adversary."""
+
+    n_dirs: int = 16
+    lookahead: int = 8
+    commit: int = 8
+    tail: int = 40
+    n_random: int = 4
+    seed: int = 0
+
+
+def _badness(loop: FrameLoop, st: dict) -> np.ndarray:
+    """How close a rollout came to failing: a failure first, then distance to the target minus clearance."""
+    out = st["outcome"]
+    fail = (out == COLLIDED) | (out == LEFT)
+    dist = np.hypot(*(st["p"] - loop.scene.p_T).T)
+    score = dist - 0.5 * np.minimum(st["clearance"], 5.0)
+    score = np.where(out == REACHED, -1e6, score)
+    return np.where(fail, 1e6, score)
+
+
+def run_adversary(loop: FrameLoop, p0: np.ndarray, eps: np.ndarray, kind: str, search: Search,
+                  record: bool = True) -> dict:
+    """Runs from `p0` `(N, 2)` under adversary `kind` with bounds `eps` `(N,)`; the final batch (and the positions
+    per frame `path` `(F + 1, N, 2)` with `record`)."""
+    dirs = directions(search.n_dirs)
+    rng = np.random.default_rng(search.seed)
+    eps = np.asarray(eps, float)
+    probe = {"p": np.asarray(p0, float), "xd": loop.controller.initial_state(np.asarray(p0, float))}
+    policy = _policy(loop, kind, dirs)
+    if kind == "receding":
+        e0 = fixed_error(loop, probe, eps)
+    else:
+        e0 = policy(probe, eps)
+    st = loop.start(p0, e0)
+    path = [st["p"].copy()] if record else None
+    if kind != "receding":
+        first = True
+        while st["frame"] < loop.n_frames and (st["outcome"] == RUNNING).any():
+            e = e0 if first else policy(st, eps)
+            first = False
+            st = loop.step(st, e)
+            if record:
+                path.append(st["p"].copy())
+    else:
+        locked = np.zeros(len(p0), bool)  # runs the fixed adversary alone already breaks from here
+        while st["frame"] < loop.n_frames and (st["outcome"] == RUNNING).any():
+            free = np.flatnonzero(~locked & (st["outcome"] == RUNNING))
+            locked[free] |= _base_fails(loop, FrameLoop.take(st, free), eps[free])
+            free = np.flatnonzero(~locked & (st["outcome"] == RUNNING))
+            plan = np.zeros((len(p0), search.lookahead, 2))
+            if free.size:
+                plan[free] = _plan(loop, FrameLoop.take(st, free), eps[free], dirs, search, rng)
+            for j in range(min(search.commit, loop.n_frames - st["frame"])):
+                e = plan[:, j]
+                e[locked] = fixed_error(loop, st, eps)[locked]
+                st = loop.step(st, e)
+                if record:
+                    path.append(st["p"].copy())
+    if record:
+        st["path"] = np.stack(path)
+    return st
+
+
+def _base_fails(loop: FrameLoop, st: dict, eps: np.ndarray) -> np.ndarray:
+    """Runs that the fixed adversary, played from `st` to the horizon, keeps from arriving."""
+    sub = FrameLoop.take(st, np.arange(len(st["p"])))
+    while sub["frame"] < loop.n_frames and (sub["outcome"] == RUNNING).any():
+        sub = loop.step(sub, fixed_error(loop, sub, eps))
+    return (sub["outcome"] != REACHED) & (st["outcome"] == RUNNING)
+
+
+def _policy(loop, kind, dirs):
+    if kind == "fixed":
+        return lambda st, eps: fixed_error(loop, st, eps)
+    if kind in ("mode_aware", "receding"):
+        return lambda st, eps: mode_aware_error(loop, st, eps, dirs)
+    raise ValueError(f"unknown adversary {kind!r}: one of {ADVERSARIES}")
+
+
+def _plan(loop: FrameLoop, st: dict, eps: np.ndarray, dirs: np.ndarray, search: Search, rng) -> np.ndarray:
+    """The worst of the candidate error sequences over `lookahead` frames per run `(N, lookahead, 2)`."""
+    n, nd, H = len(st["p"]), len(dirs), search.lookahead
+    c = nd + 2 + search.n_random  # held directions, fixed, mode-aware, random
+    idx = np.repeat(np.arange(n), c)
+    sub = FrameLoop.take(st, idx)
+    E_eps = eps[idx]
+    kind = np.tile(np.arange(c), n)
+    plan = np.zeros((n * c, H, 2))
+    for j in range(H):
+        e = np.zeros((n * c, 2))
+        held = kind < nd
+        e[held] = E_eps[held, None] * dirs[kind[held]]
+        fx = kind == nd
+        e[fx] = fixed_error(loop, FrameLoop.take(sub, fx), E_eps[fx])
+        ma = kind == nd + 1
+        e[ma] = mode_aware_error(loop, FrameLoop.take(sub, ma), E_eps[ma], dirs)
+        rnd = kind > nd + 1
+        e[rnd] = E_eps[rnd, None] * dirs[rng.integers(0, nd, int(rnd.sum()))]
+        plan[:, j] = e
+        sub = loop.step(sub, e)
+    for _ in range(min(search.tail, loop.n_frames - sub["frame"])):
+        sub = loop.step(sub, fixed_error(loop, sub, E_eps))
+    best = _badness(loop, sub).reshape(n, c).argmax(axis=1)
+    return plan.reshape(n, c, H, 2)[np.arange(n), best]
+
+
+@dataclass
+class Bracket:
+    """Per start: `eps_hi` (inf: none found up to `eps_max`), the adversary and outcome of the counterexample at
+    `eps_hi`, its path `(F + 1, N, 2)` (NaN rows for starts without one)."""
+
+    eps_hi: np.ndarray
+    adversary: np.ndarray
+    outcome: np.ndarray
+    path: np.ndarray | None = None
+    tried: list = field(default_factory=list)
+
+
+def attack(loop: FrameLoop, p0: np.ndarray, eps: np.ndarray, search: Search,
+           adversaries=ADVERSARIES) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Every adversary in turn on the runs not yet failed: `(failed, adversary index, outcome, path)`."""
+    n = len(p0)
+    failed = np.zeros(n, bool)
+    which = np.full(n, -1)
+    outcome = np.zeros(n, np.int8)
+    path = np.full((loop.n_frames + 1, n, 2), np.nan)
+    for a, kind in enumerate(adversaries):
+        rows = np.flatnonzero(~failed)
+        if rows.size == 0:
+            break
+        st = run_adversary(loop, p0[rows], eps[rows], kind, search)
+        bad = st["outcome"] != REACHED
+        r = rows[bad]
+        failed[r], which[r], outcome[r] = True, a, st["outcome"][bad]
+        pth = st["path"]
+        if len(pth) < loop.n_frames + 1:  # runs that all ended early: hold the last position
+            pth = np.concatenate([pth, np.repeat(pth[-1:], loop.n_frames + 1 - len(pth), axis=0)])
+        path[:, r] = pth[:, bad]
+    return failed, which, outcome, path
+
+
+def falsify(loop: FrameLoop, p0: np.ndarray, eps_max: float, n_bisect: int, search: Search,
+            adversaries=ADVERSARIES) -> Bracket:
+    """`ε_hi` per start by bisection on `[0, eps_max]` (module docstring), with the counterexamples."""
+    p0 = np.asarray(p0, float)
+    n = len(p0)
+    eps_hi = np.full(n, np.inf)
+    adv = np.full(n, -1)
+    outc = np.zeros(n, np.int8)
+    path = np.full((loop.n_frames + 1, n, 2), np.nan)
+    tried = []
+
+    def keep(eps, failed, which, outcome, pth):
+        better = failed & (eps < eps_hi)
+        eps_hi[better], adv[better], outc[better] = eps[better], which[better], outcome[better]
+        path[:, better] = pth[:, better]
+
+    zero = np.zeros(n)
+    f0 = attack(loop, p0, zero, search, adversaries=("fixed",))  # ε = 0: every adversary is the nominal run
+    keep(zero, *f0)
+    tried.append((0.0, int(f0[0].sum())))
+    lo, hi = np.zeros(n), np.full(n, float(eps_max))
+    rows = np.flatnonzero(~f0[0])
+    if rows.size:
+        res = attack(loop, p0[rows], hi[rows], search, adversaries)
+        full = _scatter(n, rows, res, loop)
+        keep(np.where(np.isin(np.arange(n), rows), hi, np.inf), *full)
+        tried.append((float(eps_max), int(res[0].sum())))
+    live = np.isfinite(eps_hi) & (eps_hi > 0)
+    for _ in range(n_bisect):
+        rows = np.flatnonzero(live)
+        if rows.size == 0:
+            break
+        mid = 0.5 * (lo[rows] + np.minimum(hi[rows], eps_hi[rows]))
+        res = attack(loop, p0[rows], mid, search, adversaries)
+        eps_full = np.full(n, np.inf)
+        eps_full[rows] = mid
+        keep(eps_full, *_scatter(n, rows, res, loop))
+        lo[rows] = np.where(res[0], lo[rows], mid)
+    return Bracket(eps_hi=eps_hi, adversary=np.array([adversaries[a] if a >= 0 else ("fixed" if np.isfinite(e) else "")
+                                                     for a, e in zip(adv, eps_hi)]),
+                   outcome=outc, path=path, tried=tried)
+
+
+def _scatter(n, rows, res, loop):
+    failed, which, outcome, pth = res
+    F = np.zeros(n, bool)
+    W = np.full(n, -1)
+    O = np.zeros(n, np.int8)
+    P = np.full((loop.n_frames + 1, n, 2), np.nan)
+    F[rows], W[rows], O[rows], P[:, rows] = failed, which, outcome, pth
+    return F, W, O, P

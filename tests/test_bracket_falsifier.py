@@ -1,0 +1,73 @@
+"""The falsifier (SPEC §5.5): its frame loop is the simulator's sampled loop, and it breaks the smooth baselines on
+`K` for every ε tried (Proposition 1), with the trajectory."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.bracket.falsifier import Search, falsify, fixed_error, run_adversary
+from pipeline.bracket.loop import OUTCOMES, REACHED, STALLED, FrameLoop
+from pipeline.control import CBFController, HybridController, Scene, SmoothController
+from pipeline.sim import simulate
+from pipeline.sim.disturbances import Adversarial
+
+SCENE = Scene(target=[40.0, 0.0], obstacles=[{"center": [0.0, 0.0], "radius": 4.0}])
+FAST = Search(n_dirs=8, lookahead=4, commit=4, tail=8, n_random=1)
+
+
+@pytest.mark.parametrize("law", [HybridController, SmoothController, CBFController])
+def test_frame_loop_is_the_simulators_sampled_loop(law):
+    """Frame by frame the same positions as `simulate` under §3.5's adversary (the frames of the dt grid)."""
+    ctl = law(SCENE)
+    p0 = np.array([[-12.0, 2.0], [-30.0, -5.0], [-20.0, 0.3]])
+    eps = 0.3
+    sim = simulate(SCENE, ctl, p0, disturbance=Adversarial(eps=eps), horizon=3.0, dt=0.01, camera_period=0.05,
+                   record_every=5, stop_on_success=False)
+    loop = FrameLoop(SCENE, ctl, period=0.05, horizon=3.0)
+    st = run_adversary(loop, p0, np.full(3, eps), "fixed", FAST)
+    assert st["path"].shape == sim.p.shape
+    np.testing.assert_allclose(st["path"], sim.p, atol=1e-9)
+
+
+@pytest.mark.parametrize("law", [SmoothController, CBFController])
+@pytest.mark.parametrize("eps", [0.05, 0.2])
+def test_smooth_laws_are_falsified_on_K_for_every_eps(law, eps):
+    """Proposition 1: a start on `K` (the axis behind the obstacle) stalls under some `|e| <= ε`, every ε > 0."""
+    loop = FrameLoop(SCENE, law(SCENE), horizon=30.0, delta=5.0)
+    p0 = np.array([[-20.0, 0.01], [-30.0, -0.02]])  # beside K: on K itself the nominal run stalls
+    nominal = run_adversary(loop, p0, np.zeros(2), "fixed", FAST)
+    assert (nominal["outcome"] == REACHED).all()
+    br = falsify(loop, p0, eps_max=eps, n_bisect=0, search=FAST)
+    assert (br.eps_hi <= eps).all()
+    assert (br.outcome == STALLED).all(), [OUTCOMES[o] for o in br.outcome]
+    end = br.path[-1]
+    assert (np.hypot(*(end - SCENE.p_T).T) > 5.0).all()  # the counterexample never arrives
+    assert (np.hypot(*(br.path - SCENE.p_0).reshape(-1, 2).T) >= 4.0).all()
+
+
+def test_receding_search_is_never_weaker_than_the_fixed_adversary():
+    loop = FrameLoop(SCENE, SmoothController(SCENE), horizon=10.0, stall_time=4.0, delta=5.0)
+    p0 = np.array([[-20.0, 0.0]])
+    eps = np.array([0.1])
+    assert run_adversary(loop, p0, eps, "fixed", FAST)["outcome"][0] != REACHED
+    assert run_adversary(loop, p0, eps, "receding", FAST)["outcome"][0] != REACHED
+
+
+def test_errors_stay_within_the_bound():
+    loop = FrameLoop(SCENE, HybridController(SCENE))
+    st = loop.start(np.array([[-12.0, 2.0], [5.0, -9.0]]), np.zeros((2, 2)))
+    eps = np.array([0.7, 1.3])
+    e = fixed_error(loop, st, eps)
+    np.testing.assert_allclose(np.hypot(*e.T), eps)
+
+
+def test_bisection_finds_the_smallest_failing_eps_within_its_resolution():
+    """The smooth law from slightly off `K`: the nominal run arrives, ε_hi is positive and small, and a run at
+    ε_hi with the recorded adversary fails (the counterexample is real)."""
+    loop = FrameLoop(SCENE, SmoothController(SCENE), horizon=30.0, delta=5.0)
+    p0 = np.array([[-20.0, 0.4]])
+    br = falsify(loop, p0, eps_max=2.0, n_bisect=4, search=FAST)
+    assert 0 < br.eps_hi[0] <= 2.0
+    st = run_adversary(loop, p0, br.eps_hi, str(br.adversary[0]), FAST)
+    assert st["outcome"][0] != REACHED
