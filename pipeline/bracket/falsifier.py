@@ -252,9 +252,7 @@ def falsify(loop: FrameLoop, p0: np.ndarray, eps_max: float, n_bisect: int, sear
 
 def _scatter(n, rows, res, loop):
     failed, which, outcome, pth = res
-    F = np.zeros(n, bool)
-    W = np.full(n, -1)
-    O = np.zeros(n, np.int8)
-    P = np.full((loop.n_frames + 1, n, 2), np.nan)
-    F[rows], W[rows], O[rows], P[:, rows] = failed, which, outcome, pth
-    return F, W, O, P
+    fail_all, which_all = np.zeros(n, bool), np.full(n, -1)
+    out_all, path_all = np.zeros(n, np.int8), np.full((loop.n_frames + 1, n, 2), np.nan)
+    fail_all[rows], which_all[rows], out_all[rows], path_all[:, rows] = failed, which, outcome, pth
+    return fail_all, which_all, out_all, path_all
