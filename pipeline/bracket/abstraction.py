@@ -1,0 +1,182 @@
+"""The finite abstraction of the sampled loop and its reach-avoid certificate (SPEC §5.4).
+
+Nodes `(P, q)`: at a frame instant (after the frame's jump decision) the true position is in the cell `P` and the
+mode is `q` (one mode for the smooth laws). The held input is `hold(F_q(m))` for a perceived `m` in `P ⊕ ε̄(P)`
+(a box: `ε̄(P)` the largest error bound on `P`), so it lies in the polytope `U(P, q)` of
+:mod:`pipeline.bracket.inputs`. One frame later the position is in `E = P ⊕ T_s U` (the endpoint set) and the
+segment in between in `S = P ⊕ conv(0, T_s U)` (the swept set). Edges over frames, not faces: `(P, q) -> (P', q')`
+for every cell `P'` meeting `E` and every mode `q'` the next frame's decision allows on `P' ⊕ ε̄(P')` (interval
+bounds of `V_1, V_2` against the hysteresis `χ - λ`).
+
+Goal: cells inside `B(p_T, δ_c)`. A node is unsafe when a cell meeting `S` meets the obstacle disc or lies outside
+the arena (the camera's view), or `E` spans more than `window` cells per axis. `Win` is the least fixed point
+`goal ∪ {n safe: every successor in Win}`, with the transience rule: a strongly connected set of nodes outside the
+goal counts as transient when along every input of every node in it a fixed direction `d_j·p` or `|p - p_T|²`
+strictly decreases over a frame (`Tarjan` emits the sets sinks first, so one pass in that order is the fixed
+point). A start cell is certified when every initial node it can have (the initial mode and frame 0's decision
+over `P ⊕ ε̄`) is in `Win`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.bracket.enclosures import DIRS, barrier_range, dist_range
+from pipeline.bracket.inputs import law_kind, support
+
+
+@dataclass(frozen=True)
+class Grid:
+    """Square cells of side `h` from `(x0, y0)`: `nx x ny` cells, cell `i = ix * ny + iy`."""
+
+    x0: float
+    y0: float
+    h: float
+    nx: int
+    ny: int
+
+    @classmethod
+    def over(cls, bounds, h: float) -> Grid:
+        (x0, x1), (y0, y1) = bounds
+        return cls(x0, y0, h, int(round((x1 - x0) / h)), int(round((y1 - y0) / h)))
+
+    @property
+    def n(self) -> int:
+        return self.nx * self.ny
+
+    def boxes(self) -> np.ndarray:
+        ix, iy = np.divmod(np.arange(self.n), self.ny)
+        x, y = self.x0 + ix * self.h, self.y0 + iy * self.h
+        return np.stack([x, x + self.h, y, y + self.h], axis=1)
+
+    def centres(self) -> np.ndarray:
+        b = self.boxes()
+        return np.stack([(b[:, 0] + b[:, 1]) / 2, (b[:, 2] + b[:, 3]) / 2], axis=1)
+
+
+def dilate(boxes: np.ndarray, eps: np.ndarray) -> np.ndarray:
+    e = np.asarray(eps, float)[:, None] * np.array([-1.0, 1.0, -1.0, 1.0])
+    return boxes + e
+
+
+def decisions(law, boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`(stay, jump)` `(N, 2)`: on perceived boxes, whether a frame in mode `q` (column `q - 1`) can stay / jump.
+
+    SPEC §3.3: jump iff `V_q >= f V_o` (`f = χ - λ`), `V_q > 0`, `V_o` finite. With `V = B + φ` (`φ = |m - p_T|²`
+    the same in both modes) that is `B_q - f B_o >= (f - 1) φ`: bounded with `B_q, B_o, φ` intervals separately,
+    so that far from both wedges (`B = 0`) no jump is possible, as for the law itself.
+    """
+    cov = law.scene.covering(0)
+    Bq = [barrier_range(boxes, cov, q) for q in (1, 2)]
+    phi_lo, phi_hi = (d**2 for d in dist_range(boxes, cov.p_T))
+    f = law.chi - law.lam
+    stay, jump = np.zeros((len(boxes), 2), bool), np.zeros((len(boxes), 2), bool)
+    for q in (1, 2):
+        (q_lo, q_hi), (o_lo, o_hi) = Bq[q - 1], Bq[2 - q]
+        with np.errstate(invalid="ignore"):
+            can = np.isinf(q_hi) | (q_hi - f * o_lo >= (f - 1) * phi_lo)
+            jump[:, q - 1] = can & np.isfinite(o_lo) & ((q_hi > 0) | (phi_hi > 0))
+            surely = np.isfinite(o_hi) & (np.isinf(q_lo) | (q_lo - f * o_hi >= (f - 1) * phi_hi)) & (phi_lo > 0)
+        stay[:, q - 1] = ~surely
+    return stay, jump
+
+
+def initial_modes(law, boxes: np.ndarray) -> np.ndarray:
+    """`(N, 2)`: modes a run can hold after frame 0 from a perceived box (the smaller `V_q`, i.e. the smaller
+    barrier, then frame 0's jump)."""
+    cov = law.scene.covering(0)
+    (l1, h1), (l2, h2) = barrier_range(boxes, cov, 1), barrier_range(boxes, cov, 2)
+    q0 = np.stack([l1 <= h2, l2 <= h1], axis=1)
+    stay, jump = decisions(law, boxes)
+    out = q0 & stay
+    out[:, 0] |= q0[:, 1] & jump[:, 1]
+    out[:, 1] |= q0[:, 0] & jump[:, 0]
+    return out
+
+
+@dataclass
+class Abstraction:
+    grid: Grid
+    modes: int
+    U: np.ndarray          # (cells, modes, J) support of the held input
+    safe: np.ndarray       # (nodes,) node safe for one frame
+    goal: np.ndarray       # (cells,)
+    indptr: np.ndarray     # CSR successors of node n = cell * modes + (q - 1)
+    succ: np.ndarray
+    initial: np.ndarray    # (cells, modes) possible initial nodes
+
+
+def _cell_hits(grid: Grid, H: np.ndarray, window: int):
+    """Cells meeting the polygons `{d_j·x <= H_j}` `(N, J)`: `(rows, cells, overflow)` (overflow: a polygon
+    reaching outside the grid or wider than `window` cells)."""
+    xl, xh, yl, yh = -H[:, 8], H[:, 0], -H[:, 12], H[:, 4]
+    ixl = np.floor((xl - grid.x0) / grid.h).astype(np.int64)
+    ixh = np.floor((xh - grid.x0) / grid.h).astype(np.int64)
+    iyl = np.floor((yl - grid.y0) / grid.h).astype(np.int64)
+    iyh = np.floor((yh - grid.y0) / grid.h).astype(np.int64)
+    overflow = (ixl < 0) | (iyl < 0) | (ixh >= grid.nx) | (iyh >= grid.ny)
+    overflow |= (ixh - ixl >= window) | (iyh - iyl >= window) | ~np.isfinite(H).all(axis=1)
+    ok = np.flatnonzero(~overflow)
+    ox, oy = np.meshgrid(np.arange(window), np.arange(window), indexing="ij")
+    ix = ixl[ok, None] + ox.ravel()[None]
+    iy = iyl[ok, None] + oy.ravel()[None]
+    inside = (ix <= ixh[ok, None]) & (iy <= iyh[ok, None])
+    cx, cy = grid.x0 + (ix + 0.5) * grid.h, grid.y0 + (iy + 0.5) * grid.h
+    rad = 0.5 * grid.h * (np.abs(DIRS[:, 0]) + np.abs(DIRS[:, 1]))
+    lo = cx[..., None] * DIRS[:, 0] + cy[..., None] * DIRS[:, 1] - rad  # min over the cell of d_j·x
+    meets = inside & (lo <= H[ok, None, :] + 1e-12).all(axis=-1)
+    r, w = np.nonzero(meets)
+    return ok[r], ix[r, w] * grid.ny + iy[r, w], overflow
+
+
+def build(law, grid: Grid, eps_cells: np.ndarray, period: float, goal_radius: float, n_split: int = 4,
+          window: int = 8) -> Abstraction:
+    """The abstraction of `law`'s sampled loop on `grid` with the error bound `eps_cells` `(cells,)` (module doc)."""
+    kind = law_kind(law)
+    modes = 2 if kind == "hybrid" else 1
+    boxes = grid.boxes()
+    scene = law.scene
+    M = dilate(boxes, eps_cells)
+    U = np.stack([support(law, M, q, period, n_split) for q in range(1, modes + 1)], axis=1)
+    cen = grid.centres()
+    hP = cen @ DIRS.T + 0.5 * grid.h * (np.abs(DIRS[:, 0]) + np.abs(DIRS[:, 1]))
+    d_lo, _ = dist_range(boxes, scene.p_0)
+    bad_cell = d_lo <= scene.obstacle_radius
+    _, far = dist_range(boxes, scene.p_T)
+    goal = (far <= goal_radius) & ~bad_cell
+    n_nodes = grid.n * modes
+    safe = np.ones(n_nodes, bool)
+    rows_all, cols_all = [], []
+    if modes == 2:
+        stay, jump = decisions(law, M)
+        initial = initial_modes(law, M)
+    else:
+        initial = np.ones((grid.n, 1), bool)
+    for q in range(modes):
+        Uq = U[:, q]
+        S = hP + period * np.maximum(Uq, 0.0)
+        r, c, over = _cell_hits(grid, S, window)
+        unsafe = over.copy()
+        np.logical_or.at(unsafe, r, bad_cell[c])
+        safe[np.arange(grid.n) * modes + q] = ~unsafe & ~bad_cell
+        E = hP + period * Uq
+        r, c, _ = _cell_hits(grid, E, window)
+        if modes == 1:
+            rows_all.append(r), cols_all.append(c)
+        else:
+            s, j = stay[c, q], jump[c, q]
+            rows_all += [r[s] * 2 + q, r[j] * 2 + q]
+            cols_all += [c[s] * 2 + q, c[j] * 2 + (1 - q)]
+    if modes == 1:
+        rows, cols = rows_all[0], cols_all[0]
+    else:
+        rows, cols = np.concatenate(rows_all), np.concatenate(cols_all)
+    order = np.lexsort((cols, rows))
+    rows, cols = rows[order], cols[order]
+    keep = np.ones(len(rows), bool)
+    keep[1:] = (rows[1:] != rows[:-1]) | (cols[1:] != cols[:-1])
+    rows, cols = rows[keep], cols[keep]
+    indptr = np.searchsorted(rows, np.arange(n_nodes + 1))
+    return Abstraction(grid, modes, U, safe, goal, indptr, cols, initial)

@@ -1,0 +1,150 @@
+"""Sound input enclosures `U(M, q)` (SPEC §5.4): every velocity a law can hold for one frame when it perceives a
+point of the box `M`, as support values `h_j = max_{u in U} d_j·u` in `J` directions `d_j` (a polytope).
+
+Interval arithmetic on each law's closed form over sub-boxes of `M` (no sampling, no Lipschitz constant):
+
+- the attraction `-2k (m - p_T)` is a box;
+- the hybrid law's barrier term is `g(D) (μ d_u + ν d_v)` (`μ = min(u, 0)`, `ν = min(v, 0)` the wedge coordinates
+  of SPEC §3.1, `D = μ² + ν²`, `g = -2k B'(D/ℓ²)/ℓ² >= 0` decreasing in `D` since `B'` increases): a box in the
+  wedge's axes; unbounded where `M` touches the wedge (`g(0) = ∞`);
+- the smooth law's barrier term and the CBF filter's correction are `ρ e(α)` with `ρ` in an interval and `α` in
+  the arc `M` spans seen from the obstacle's centre: a sector, enclosed in a pentagon;
+- saturation at `u_max` is a radial projection: `sat(U) ⊂ (U ∩ B) ∪ u_max·arc(cone U)`;
+- the guard (SPEC §3.3) adds `β n` with `0 <= β <= u_max - (1 - γ) s/T_s` and `n` the wedge's outward normals;
+- the push-out (perceived point in the active wedge, SPEC §3.3) is one of the two face normals at `push_speed`.
+
+The pre-saturation set of a sub-box is the hull of a point set `X` (unbounded directions carried by points at
+distance `BIG` together with the pure recession directions, so that their cone is exact). Laws: the single
+obstacle of the default scene, barrier kind `squared`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+BIG = 1e9
+J = 16  # directions of the support function (multiples of 22.5°: the world axes and the diagonals among them)
+
+
+def directions(n: int = J) -> np.ndarray:
+    ang = 2.0 * np.pi * np.arange(n) / n
+    return np.stack([np.cos(ang), np.sin(ang)], axis=1)
+
+
+DIRS = directions()
+
+
+def split(box: np.ndarray, k: int) -> np.ndarray:
+    """Boxes `(N, 4)` as `x0, x1, y0, y1`, each cut into `k x k` sub-boxes: `(N, k*k, 4)`."""
+    t = np.linspace(0.0, 1.0, k + 1)
+    x = box[:, 0:1] + (box[:, 1:2] - box[:, 0:1]) * t[None]
+    y = box[:, 2:3] + (box[:, 3:4] - box[:, 2:3]) * t[None]
+    ix, iy = np.meshgrid(np.arange(k), np.arange(k), indexing="ij")
+    ix, iy = ix.ravel(), iy.ravel()
+    return np.stack([x[:, ix], x[:, ix + 1], y[:, iy], y[:, iy + 1]], axis=-1)
+
+
+def corners(box: np.ndarray) -> np.ndarray:
+    """`(..., 4, 2)` corners of boxes `(..., 4)`."""
+    x0, x1, y0, y1 = (box[..., i] for i in range(4))
+    return np.stack([np.stack([x0, y0], -1), np.stack([x1, y0], -1), np.stack([x1, y1], -1),
+                     np.stack([x0, y1], -1)], axis=-2)
+
+
+def affine_range(box: np.ndarray, w: np.ndarray, c: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Exact range of `w·m + c` over boxes."""
+    v = corners(box) @ w + c
+    return v.min(axis=-1), v.max(axis=-1)
+
+
+def _bp_barrier_g(D: np.ndarray, k: float, gain: float, rho: float, ell: float) -> np.ndarray:
+    """`g(D) = -2 k gain B'(D/ℓ²)/ℓ² >= 0` (∞ at `D = 0`, 0 beyond the reach), decreasing in `D`."""
+    s = D / ell**2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        bp = -2.0 * (s - rho) * np.log(s) - (s - rho) ** 2 / s
+    g = np.where(s >= rho, 0.0, -2.0 * k * gain * bp / ell**2)
+    return np.where(s <= 0, np.inf, np.maximum(g, 0.0))
+
+
+def barrier_value(D: np.ndarray, gain: float, rho: float, ell: float) -> np.ndarray:
+    """`gain B(D/ℓ²)`, decreasing in `D` (∞ at 0)."""
+    s = D / ell**2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        v = (s - rho) ** 2 * -np.log(s)
+    return gain * np.where(s >= rho, 0.0, np.where(s > 0, v, np.inf))
+
+
+def attraction_corners(box: np.ndarray, k: float, p_T: np.ndarray) -> np.ndarray:
+    """Corners `(..., 4, 2)` of the box `-2k (M - p_T)`."""
+    return -2.0 * k * (corners(box) - p_T)
+
+
+def minkowski(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """All sums of the point sets `(..., a, 2)` and `(..., b, 2)`: `(..., a*b, 2)`."""
+    S = A[..., :, None, :] + B[..., None, :, :]
+    return S.reshape(*S.shape[:-3], -1, 2)
+
+
+def wedge_ranges(box: np.ndarray, cov, q: int):
+    """Intervals of the wedge coordinates `u, v` of `W_q` over boxes, and the unit axes `d_u, d_v` (world)."""
+    sigma = 1.0 if q == 1 else -1.0
+    du = (sigma * cov.e_b + cov.e_a) * math.sqrt(0.5)
+    dv = (sigma * cov.e_b - cov.e_a) * math.sqrt(0.5)
+    c0 = cov.c * math.sqrt(0.5)
+    u_lo, u_hi = affine_range(box, du, c0 - du @ cov.p_0)
+    v_lo, v_hi = affine_range(box, dv, c0 - dv @ cov.p_0)
+    return (u_lo, u_hi), (v_lo, v_hi), du, dv
+
+
+def sq_dist_range(u, v):
+    """Interval of `D = min(u,0)² + min(v,0)²`, and of `μ = min(u,0)`, `ν = min(v,0)`."""
+    mu = (np.minimum(u[0], 0.0), np.minimum(u[1], 0.0))
+    nu = (np.minimum(v[0], 0.0), np.minimum(v[1], 0.0))
+    return (mu[1] ** 2 + nu[1] ** 2, mu[0] ** 2 + nu[0] ** 2), mu, nu
+
+
+def barrier_range(box: np.ndarray, cov, q: int) -> tuple[np.ndarray, np.ndarray]:
+    """Interval of `gain B(d_q/ℓ²)` over boxes (SPEC §3.2; ∞ where a box touches `W_q`). `V_q` is this plus
+    `|m - p_T|²`, the same in both modes: comparisons of `V_1, V_2` cancel it (see `decisions`)."""
+    u, v, _, _ = wedge_ranges(box, cov, q)
+    (D_lo, D_hi), _, _ = sq_dist_range(u, v)
+    return (barrier_value(D_hi, cov.barrier_gain, cov.barrier_rho, cov.ell),
+            barrier_value(D_lo, cov.barrier_gain, cov.barrier_rho, cov.ell))
+
+
+def dist_range(box: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Exact range of `|m - c|` over boxes."""
+    dx = np.maximum.reduce([box[..., 0] - c[0], c[0] - box[..., 1], np.zeros(box.shape[:-1])])
+    dy = np.maximum.reduce([box[..., 2] - c[1], c[1] - box[..., 3], np.zeros(box.shape[:-1])])
+    fx = np.maximum(np.abs(box[..., 0] - c[0]), np.abs(box[..., 1] - c[0]))
+    fy = np.maximum(np.abs(box[..., 2] - c[1]), np.abs(box[..., 3] - c[1]))
+    return np.hypot(dx, dy), np.hypot(fx, fy)
+
+
+def arc_range(box: np.ndarray, c: np.ndarray):
+    """The directions `e(α)` of `m - c` over boxes: `(α_mid, half-width)`; half-width π where `c` is in a box."""
+    C = corners(box) - c
+    mid = np.arctan2(C[..., 1].mean(-1), C[..., 0].mean(-1))
+    rel = np.angle(np.exp(1j * (np.arctan2(C[..., 1], C[..., 0]) - mid[..., None])))
+    lo, hi = rel.min(-1), rel.max(-1)
+    centre = mid + 0.5 * (lo + hi)
+    half = 0.5 * (hi - lo)
+    inside = (box[..., 0] <= c[0]) & (c[0] <= box[..., 1]) & (box[..., 2] <= c[1]) & (c[1] <= box[..., 3])
+    return centre, np.where(inside | (half > 0.49 * np.pi), np.pi, half)
+
+
+def sector_points(r_lo, r_hi, centre, half) -> np.ndarray:
+    """Points `(..., 5, 2)` whose hull contains `{ρ e(α): ρ in [r_lo, r_hi], |α - centre| <= half}`; a half-width
+    of π (or near it) gives the square `[-r_hi, r_hi]²` (plus a repeated corner)."""
+    a1, a2 = centre - half, centre + half
+    e = lambda a: np.stack([np.cos(a), np.sin(a)], -1)  # noqa: E731
+    with np.errstate(over="ignore", invalid="ignore"):
+        far = (r_hi / np.cos(np.minimum(half, 1.2)))[..., None] * e(centre)
+    P = np.stack([r_lo[..., None] * e(a1), r_lo[..., None] * e(a2), r_hi[..., None] * e(a1),
+                  r_hi[..., None] * e(a2), far], axis=-2)
+    wide = half >= 1.2
+    sq = np.stack([np.stack([-r_hi, -r_hi], -1), np.stack([r_hi, -r_hi], -1), np.stack([r_hi, r_hi], -1),
+                   np.stack([-r_hi, r_hi], -1), np.stack([r_hi, r_hi], -1)], axis=-2)
+    return np.where(wide[..., None, None], sq, P)

@@ -1,0 +1,247 @@
+"""The held input's enclosure per law (SPEC §5.4): `support(law, boxes, q)` -> `(N, J)` support values of a polytope
+that contains `hold(F_q(m))` for every perceived `m` in each box (saturation, push-out and guard included).
+
+Built from :mod:`pipeline.bracket.enclosures`: per sub-box a point set `X` whose hull contains the law's
+pre-saturation velocity, then saturation, the guard and the push-outs; the box's polytope is the hull over its
+sub-boxes (the largest support value per direction).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.bracket.enclosures import (
+    BIG,
+    DIRS,
+    _bp_barrier_g,
+    arc_range,
+    attraction_corners,
+    dist_range,
+    minkowski,
+    sector_points,
+    split,
+    sq_dist_range,
+    wedge_ranges,
+)
+from pipeline.control import CBFController, HybridController, SmoothController
+
+
+def law_kind(law) -> str:
+    for cls, name in ((HybridController, "hybrid"), (SmoothController, "smooth"), (CBFController, "cbf")):
+        if isinstance(law, cls):
+            return name
+    raise ValueError(f"no enclosure for {type(law).__name__}")
+
+
+def saturated_support(X: np.ndarray, u_max: float | None, rays: np.ndarray | None = None) -> np.ndarray:
+    """Support values `(..., J)` of a polytope containing `sat(hull X)` (`X` `(..., P, 2)`): the hull's own part
+    inside the ball and the arc of the ball the hull's cone spans (`rays`: rows with an unbounded direction)."""
+    hX = X @ DIRS.T  # (..., P, J)
+    hX = hX.max(axis=-2)
+    if u_max is None:
+        return hX
+    norm = np.hypot(X[..., 0], X[..., 1])
+    mean = X.mean(axis=-2)
+    mdir = np.arctan2(mean[..., 1], mean[..., 0])
+    rel = np.angle(np.exp(1j * (np.arctan2(X[..., 1], X[..., 0]) - mdir[..., None])))
+    lo, hi = rel.min(-1), rel.max(-1)
+    pointed = (hi - lo < np.pi - 1e-6) & (norm.min(-1) > 1e-12) & (np.hypot(mean[..., 0], mean[..., 1]) > 1e-12)
+    bis = mdir + 0.5 * (lo + hi)
+    w = np.stack([np.cos(bis), np.sin(bis)], -1)
+    gap = np.einsum("...pk,...k->...p", X, w).min(-1)  # a lower bound of dist(0, hull X) when pointed
+    meets_ball = ~pointed | (gap <= u_max)
+    leaves_ball = norm.max(-1) > u_max
+    theta_d = np.arctan2(DIRS[:, 1], DIRS[:, 0])
+    a1, a2 = (mdir + lo)[..., None], (mdir + hi)[..., None]
+    rel_d = np.angle(np.exp(1j * (theta_d - (mdir + 0.5 * (lo + hi))[..., None])))
+    within = np.abs(rel_d) <= 0.5 * (hi - lo)[..., None]
+    arc = np.where(within, 1.0, np.maximum(np.cos(theta_d - a1), np.cos(theta_d - a2))) * u_max
+    inner = np.minimum(hX, u_max)
+    if rays is not None:  # an unbounded direction: the hull's support is unbounded where the cone faces d
+        inner = np.where(rays[..., None] & within, u_max, inner)
+    h = np.maximum(np.where(meets_ball[..., None], inner, -np.inf), np.where(leaves_ball[..., None], arc, -np.inf))
+    loose = np.minimum(u_max, np.maximum(0.0, hX))  # not pointed: sat(U) ⊂ conv(U ∪ {0}) ∩ ball
+    return np.where(pointed[..., None], h, loose)
+
+
+def _arc_support(centre, half, radius) -> np.ndarray:
+    """Support `(..., J)` of the arc `radius e(α)`, `|α - centre| <= half`."""
+    theta_d = np.arctan2(DIRS[:, 1], DIRS[:, 0])
+    rel = np.angle(np.exp(1j * (theta_d - centre[..., None])))
+    inside = np.abs(rel) <= half[..., None]
+    best = np.where(inside, 1.0, np.maximum(np.cos(np.abs(rel) - half[..., None]), -1.0))
+    return radius * best
+
+
+def hybrid_support(law: HybridController, sub: np.ndarray, q: int, period: float) -> np.ndarray:
+    """`(N, S, J)` support of the hybrid law's held input in mode `q` per sub-box (module docstring)."""
+    cov = law.scene.covering(0)
+    k, u_max = law.k, law.u_max
+    (u, v, du, dv) = wedge_ranges(sub, cov, q)
+    (D_lo, D_hi), mu, nu = sq_dist_range(u, v)
+    g_lo = _bp_barrier_g(D_hi, k, cov.barrier_gain, cov.barrier_rho, cov.ell)
+    g_hi = _bp_barrier_g(D_lo, k, cov.barrier_gain, cov.barrier_rho, cov.ell)
+    flow = D_hi > 0  # some perceived point outside W_q: the flow map's formula
+    with np.errstate(invalid="ignore", over="ignore"):
+        c1 = (np.where(mu[0] < 0, np.maximum(-BIG, g_hi * mu[0]), 0.0), np.where(mu[1] < 0, g_lo * mu[1], 0.0))
+        c2 = (np.where(nu[0] < 0, np.maximum(-BIG, g_hi * nu[0]), 0.0), np.where(nu[1] < 0, g_lo * nu[1], 0.0))
+    c1 = tuple(np.nan_to_num(c, nan=0.0) for c in c1)
+    c2 = tuple(np.nan_to_num(c, nan=0.0) for c in c2)
+    rays = (c1[0] <= -BIG) | (c2[0] <= -BIG)
+    Bpts = np.stack([a[..., None] * du + b[..., None] * dv for a, b in ((c1[0], c2[0]), (c1[1], c2[0]),
+                                                                         (c1[1], c2[1]), (c1[0], c2[1]))], axis=-2)
+    A = attraction_corners(sub, k, cov.p_T)
+    X = minkowski(A, Bpts)
+    extra = []
+    if rays.any():  # the recession directions themselves, so that the hull's cone is exact
+        for a, b in ((c1[0] <= -BIG, False), (False, c2[0] <= -BIG), (c1[0] <= -BIG, c2[0] <= -BIG)):
+            a, b = np.broadcast_to(a, rays.shape), np.broadcast_to(b, rays.shape)
+            ray = (-BIG * a)[..., None] * du + (-BIG * b)[..., None] * dv
+            extra.append(np.where((a | b)[..., None], ray, X[..., 0, :]))  # rows without this ray: a repeat
+        X = np.concatenate([X, np.stack(extra, axis=-2)], axis=-2)
+    h = saturated_support(X, u_max, rays)
+    if law.guard and u_max is not None:
+        h = _guarded(h, law, D_lo, D_hi, mu, nu, du, dv, period)
+    h = np.where(flow[..., None], h, -np.inf)
+    # push-out (SPEC §3.3): perceived point in W_q: -d_u (crossing the u = 0 face) or -d_v, at push_speed
+    inside = (u[1] >= 0) & (v[1] >= 0)
+    if inside.any():
+        speed = law.push_speed if u_max is None else min(law.push_speed, u_max)
+        a_lo, a_hi = _a_range(sub, cov)
+        pu = np.where(inside & (a_lo <= 0), 1.0, 0.0)[..., None] * (speed * (DIRS @ -du))
+        pv = np.where(inside & (a_hi >= 0), 1.0, 0.0)[..., None] * (speed * (DIRS @ -dv))
+        h = np.maximum(h, np.where((inside & (a_lo <= 0))[..., None], pu, -np.inf))
+        h = np.maximum(h, np.where((inside & (a_hi >= 0))[..., None], pv, -np.inf))
+    return h
+
+
+def _guarded(h, law, D_lo, D_hi, mu, nu, du, dv, period):
+    """The guard (SPEC §3.3) on the support `h`: `u' = u + max(0, -c s - n·u) n`, `c = (1 - γ)/T_s`.
+
+    For one normal `n` (a face: `ν = 0` gives `n = -d_u`, `μ = 0` gives `n = -d_v`) the tangential part is kept
+    and `n·u' = max(n·u, -c s)`: `d·u' <= d·u` where `d·n < 0`, else `<= max(h(d), |d_t| h(±t) - (d·n) c s)`.
+    Near the apex (`n` in the quarter arc between `-d_u` and `-d_v`) the looser `u + β n`, `0 <= β <= u_max - c s`.
+    """
+    u_max, c = law.u_max, (1.0 - law.gamma) / period
+    s_lo, s_hi = np.sqrt(D_lo), np.sqrt(D_hi)
+    acts = (s_hi > 0) & (s_lo < u_max / c)
+    out = h.copy()
+    only_u, only_v = (nu[0] >= 0) & acts, (mu[0] >= 0) & acts
+    for rows, n, t in ((only_u, -du, dv), (only_v, -dv, du)):
+        if not rows.any():
+            continue
+        dn, dt = DIRS @ n, DIRS @ t
+        h_t = np.where(dt >= 0, support_at(h, t)[..., None], support_at(h, -t)[..., None])  # h(sign(d_t) t)
+        alt = np.abs(dt) * h_t - dn * c * s_lo[..., None]
+        new = np.where(dn > 0, np.maximum(h, alt), h)
+        out = np.where(rows[..., None], new, out)
+    apex = acts & ~((nu[0] >= 0) | (mu[0] >= 0))
+    if apex.any():
+        beta = np.maximum(0.0, u_max - c * s_lo)
+        n_u, n_v = -(DIRS @ du), -(DIRS @ dv)
+        theta = np.degrees(np.arctan2(*(-(du + dv))[::-1]))
+        in_q = np.abs(((np.degrees(np.arctan2(DIRS[:, 1], DIRS[:, 0])) - theta + 180) % 360) - 180) <= 45 + 1e-9
+        dn = np.where(in_q, 1.0, np.maximum(n_u, n_v))
+        out = np.where(apex[..., None], h + beta[..., None] * np.maximum(dn, 0.0), out)
+    return np.minimum(out, u_max)
+
+
+def support_at(h: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """An upper bound `(...)` of the support of the polytope `h` `(..., J)` at one vector `x` `(2,)`:
+    `x = α d_j + β d_{j+1}` (`α, β >= 0`, `h` sublinear)."""
+    J = len(DIRS)
+    ang = np.mod(np.arctan2(x[1], x[0]), 2 * np.pi)
+    j = min(int(ang / (2 * np.pi / J)), J - 1)
+    j1 = (j + 1) % J
+    d0, d1 = DIRS[j], DIRS[j1]
+    det = d0[0] * d1[1] - d0[1] * d1[0]
+    a = (x[0] * d1[1] - x[1] * d1[0]) / det
+    b = (d0[0] * x[1] - d0[1] * x[0]) / det
+    a, b = max(a, 0.0), max(b, 0.0)
+    with np.errstate(invalid="ignore"):
+        return np.where(a > 1e-12, a * h[..., j], 0.0) + np.where(b > 1e-12, b * h[..., j1], 0.0)
+
+
+def _a_range(sub, cov):
+    from pipeline.bracket.enclosures import affine_range
+
+    return affine_range(sub, cov.e_a, -cov.e_a @ cov.p_0)
+
+
+def radial_support(law, sub: np.ndarray) -> np.ndarray:
+    """`(N, S, J)` support of the smooth law's or the CBF filter's held input per sub-box: the attraction (box)
+    plus a radial term `ρ e(α)` (a sector), saturated; inside the margin disc (or at the centre) the radial
+    push-out."""
+    cov = law.scene.covering(0)
+    k, u_max, R = law.k, law.u_max, 2.0 * cov.obstacle_radius
+    d_lo, d_hi = dist_range(sub, cov.p_0)
+    centre, half = arc_range(sub, cov.p_0)
+    A = attraction_corners(sub, k, cov.p_T)
+    if isinstance(law, SmoothController):
+        gap_lo, gap_hi = np.maximum(d_lo - R, 0.0), np.maximum(d_hi - R, 0.0)
+        g_lo = _bp_barrier_g(gap_hi**2, k, cov.barrier_gain, cov.barrier_rho, cov.ell)
+        g_hi = _bp_barrier_g(gap_lo**2, k, cov.barrier_gain, cov.barrier_rho, cov.ell)
+        with np.errstate(invalid="ignore"):
+            r_lo = np.nan_to_num(g_lo * gap_lo, nan=0.0)
+            r_hi = np.where(gap_lo > 0, g_hi * gap_hi, BIG)
+        flow = gap_hi > 0
+        push = d_lo <= R
+    else:
+        alpha = law.alpha
+        # u = u_nom + κ e, κ = max(0, -(e·u_nom) - α (ρ² - R²) / (2ρ)) (SPEC §3.4's closed form, one disc)
+        rho_lo, rho_hi = np.maximum(d_lo, 1e-12), d_hi
+        f_lo, f_hi = (rho_lo**2 - R**2) / (2 * rho_lo), (rho_hi**2 - R**2) / (2 * rho_hi)
+        cos_r, sin_r = _trig_ranges(centre, half)
+        ux = (-2.0 * 0 + -k * (sub[..., 1] - cov.p_T[0]), -k * (sub[..., 0] - cov.p_T[0]))
+        uy = (-k * (sub[..., 3] - cov.p_T[1]), -k * (sub[..., 2] - cov.p_T[1]))
+        eu_lo = _mul_lo(cos_r, ux) + _mul_lo(sin_r, uy)
+        eu_hi = _mul_hi(cos_r, ux) + _mul_hi(sin_r, uy)
+        r_lo = np.maximum(0.0, -eu_hi - alpha * f_hi)
+        r_hi = np.maximum(0.0, -eu_lo - alpha * f_lo)
+        A = -k * (np.stack([np.stack([sub[..., i], sub[..., j]], -1) for i, j in ((0, 2), (1, 2), (1, 3), (0, 3))],
+                           axis=-2) - cov.p_T)
+        flow = d_hi > 0
+        push = d_lo <= 0
+    X = minkowski(A, sector_points(r_lo, np.minimum(r_hi, BIG), centre, half))
+    rays = r_hi >= BIG
+    h = saturated_support(X, u_max, rays)
+    h = np.where(flow[..., None], h, -np.inf)
+    if push.any():
+        speed = law.push_speed if u_max is None else min(law.push_speed, u_max)
+        h = np.maximum(h, np.where(push[..., None], _arc_support(centre, half, speed), -np.inf))
+    return h
+
+
+def _trig_ranges(centre, half):
+    """Intervals of `cos α`, `sin α` over `|α - centre| <= half`."""
+    out = []
+    for f, peaks in ((np.cos, (0.0, np.pi)), (np.sin, (np.pi / 2, -np.pi / 2))):
+        a1, a2 = centre - half, centre + half
+        lo, hi = np.minimum(f(a1), f(a2)), np.maximum(f(a1), f(a2))
+        for peak, val in zip(peaks, (1.0, -1.0)):
+            rel = np.angle(np.exp(1j * (peak - centre)))
+            hit = np.abs(rel) <= half
+            lo = np.where(hit & (val < 0), -1.0, lo)
+            hi = np.where(hit & (val > 0), 1.0, hi)
+        out.append((lo, hi))
+    return out
+
+
+def _mul_lo(a, b):
+    return np.minimum.reduce([a[0] * b[0], a[0] * b[1], a[1] * b[0], a[1] * b[1]])
+
+
+def _mul_hi(a, b):
+    return np.maximum.reduce([a[0] * b[0], a[0] * b[1], a[1] * b[0], a[1] * b[1]])
+
+
+def support(law, boxes: np.ndarray, q: int, period: float, n_split: int = 4, chunk: int = 4096) -> np.ndarray:
+    """`(N, J)` support values of `U(M, q)` for perceived boxes `M` `(N, 4)` (`x0, x1, y0, y1`): the hull over
+    `n_split x n_split` sub-boxes. `-inf` rows: no velocity (mode `q` cannot flow there: never for these laws)."""
+    kind = law_kind(law)
+    out = np.empty((len(boxes), len(DIRS)))
+    for s in range(0, len(boxes), chunk):
+        sub = split(boxes[s:s + chunk], n_split)
+        h = hybrid_support(law, sub, q, period) if kind == "hybrid" else radial_support(law, sub)
+        out[s:s + chunk] = h.max(axis=1)
+    return out

@@ -1,0 +1,106 @@
+"""The certificate (SPEC §5.4): input enclosures contain every sampled held input, the jump decisions cover the
+law's, and the falsifier breaks no certified start (a break would be a soundness bug)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from pipeline.bracket.abstraction import Grid, build, decisions, dilate
+from pipeline.bracket.enclosures import DIRS
+from pipeline.bracket.falsifier import Search, attack
+from pipeline.bracket.inputs import support, support_at
+from pipeline.bracket.loop import FrameLoop
+from pipeline.bracket.winning import certified_cells, win
+from pipeline.control import CBFController, HybridController, Scene, SmoothController
+
+SCENE = Scene(target=[40.0, 0.0], obstacles=[{"center": [0.0, 0.0], "radius": 4.0}])
+LAWS = [HybridController, SmoothController, CBFController]
+
+
+def _boxes(rng, n, near=16.0):
+    cen = np.concatenate([rng.uniform([-50, -30], [50, 30], (n // 2, 2)), rng.uniform(-near, near, (n - n // 2, 2))])
+    side = rng.uniform(0.05, 2.5, n)
+    return np.stack([cen[:, 0] - side / 2, cen[:, 0] + side / 2, cen[:, 1] - side / 2, cen[:, 1] + side / 2], 1)
+
+
+def _modes(law):
+    return (1, 2) if isinstance(law, HybridController) else (1,)
+
+
+@pytest.mark.parametrize("law_cls", LAWS)
+def test_enclosure_contains_every_sampled_held_input(law_cls):
+    """Boxes all over the arena and around the diamond (faces, apexes, inside the wedges: push-outs, the guard)."""
+    rng = np.random.default_rng(1)
+    law = law_cls(SCENE)
+    loop = FrameLoop(SCENE, law)
+    boxes = _boxes(rng, 1200)
+    for q in _modes(law):
+        h = support(law, boxes, q, loop.period)
+        for _ in range(8):
+            m = boxes[:, [0, 2]] + rng.uniform(0, 1, (len(boxes), 2)) * (boxes[:, [1, 3]] - boxes[:, [0, 2]])
+            xd = {"q": np.full(len(m), q, np.int8), "i": np.zeros(len(m), np.int64)}
+            u = loop.held(m, {k: xd[k] for k in law.logic})
+            assert (u @ DIRS.T <= h + 1e-9).all()
+
+
+def test_enclosure_is_not_the_whole_ball_far_from_the_obstacle():
+    """Tightness: far from the diamond the polytope is a thin wedge around the attraction (not `|u| <= u_max`)."""
+    law = HybridController(SCENE)
+    box = np.array([[-30.0, -29.5, 10.0, 10.5]])
+    h = support(law, box, 2, 0.05)[0]
+    assert h[8] < -9.0  # -x: the vehicle heads right at nearly full speed
+    assert h[4] < 0.5 and h[12] < 3.0
+
+
+@pytest.mark.parametrize("law_cls", [HybridController])
+def test_decisions_cover_the_laws_jump_set(law_cls):
+    rng = np.random.default_rng(2)
+    law = law_cls(SCENE)
+    boxes = _boxes(rng, 1500, near=14.0)
+    stay, jump = decisions(law, boxes)
+    for _ in range(8):
+        m = boxes[:, [0, 2]] + rng.uniform(0, 1, (len(boxes), 2)) * (boxes[:, [1, 3]] - boxes[:, [0, 2]])
+        for q in (1, 2):
+            xd = {"q": np.full(len(m), q, np.int8), "i": np.zeros(len(m), np.int64)}
+            j = law.jump_set(m, xd)
+            assert jump[j, q - 1].all() and stay[~j, q - 1].all()
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.floats(-5, 5), min_size=16, max_size=16), st.floats(0, 2 * np.pi))
+def test_support_at_bounds_the_polytope(vals, ang):
+    """`support_at` is an upper bound of `max x·u` over points `u` inside the polytope `{d_j·u <= h_j}`."""
+    h = np.array(vals) + 6.0  # contains the origin's neighbourhood
+    x = np.array([np.cos(ang), np.sin(ang)]) * 1.7
+    rng = np.random.default_rng(0)
+    U = rng.uniform(-12, 12, (4000, 2))
+    U = U[(U @ DIRS.T <= h).all(axis=1)]
+    assert (U @ x <= support_at(h, x) + 1e-9).all()
+
+
+@pytest.mark.parametrize("law_cls", LAWS)
+def test_no_certified_start_is_falsified(law_cls):
+    """Soundness: on a coarse grid at ε = 0.25 some starts are certified, and from points of certified cells the
+    fixed and mode-aware adversaries at ε never make a run fail."""
+    law = law_cls(SCENE)
+    grid = Grid.over(SCENE.bounds, 2.0)
+    eps = 0.25
+    ab = build(law, grid, np.full(grid.n, eps), 0.05, 5.0)
+    W, _ = win(ab, 0.05, SCENE.p_T)
+    cert = certified_cells(ab, W)
+    assert 0.2 < cert.mean() < 0.9
+    rng = np.random.default_rng(3)
+    cells = rng.choice(np.flatnonzero(cert), 40, replace=False)
+    boxes = grid.boxes()[cells]
+    p0 = boxes[:, [0, 2]] + rng.uniform(0, 1, (len(cells), 2)) * 2.0
+    loop = FrameLoop(SCENE, law, delta=5.0, horizon=20.0)
+    failed = attack(loop, p0, np.full(len(p0), eps), Search(n_dirs=8), adversaries=("fixed", "mode_aware"))[0]
+    assert not failed.any(), p0[failed]
+
+
+def test_dilate_grows_each_side_by_eps():
+    b = np.array([[0.0, 1.0, 2.0, 3.0]])
+    np.testing.assert_allclose(dilate(b, np.array([0.5])), [[-0.5, 1.5, 1.5, 3.5]])
