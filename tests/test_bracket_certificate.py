@@ -104,3 +104,41 @@ def test_no_certified_start_is_falsified(law_cls):
 def test_dilate_grows_each_side_by_eps():
     b = np.array([[0.0, 1.0, 2.0, 3.0]])
     np.testing.assert_allclose(dilate(b, np.array([0.5])), [[-0.5, 1.5, 1.5, 3.5]])
+
+
+def test_face_aligned_certificate_is_sound_and_reads_a_cell_table(tmp_path):
+    """The 45° frame on a coarse grid with ε̄ from a cell table (the certified error map's format): certified
+    starts exist, and the adversaries at the table's largest bound break none of them."""
+    import pandas as pd
+
+    from pipeline.bracket.certify_loop import certified_starts, certify
+    from pipeline.bracket.errors import CellTable
+
+    xs, ys = np.arange(-50, 50, 5.0), np.arange(-30, 30, 5.0)
+    X, Y = np.meshgrid(xs, ys, indexing="ij")
+    eps = np.where(np.hypot(X + 2.5, Y + 2.5) < 20, 0.3, 0.1)
+    pd.DataFrame({"x0": X.ravel(), "x1": X.ravel() + 5, "y0": Y.ravel(), "y1": Y.ravel() + 5,
+                  "eps_bar": eps.ravel()}).to_csv(tmp_path / "map.csv", index=False)
+    law = SmoothController(SCENE)
+    cert = certify(law, CellTable(tmp_path / "map.csv"), h=2.0, angle=45.0, period=0.05, goal_radius=5.0)
+    starts = np.array([[x, x + 4, y, y + 4] for x in range(-48, 44, 4) for y in range(-28, 28, 4)], float)
+    ok = certified_starts(cert, starts)
+    assert 0.1 < ok.mean() < 0.9
+    rng = np.random.default_rng(4)
+    p0 = starts[ok][:, [0, 2]] + rng.uniform(0, 4, (int(ok.sum()), 2))
+    loop = FrameLoop(SCENE, law, delta=5.0, horizon=20.0)
+    failed = attack(loop, p0, np.full(len(p0), 0.3), Search(n_dirs=8), adversaries=("fixed", "mode_aware"))[0]
+    assert not failed.any(), p0[failed]
+
+
+def test_cell_table_bad_input_names_the_field(tmp_path):
+    import pandas as pd
+
+    from pipeline.bracket.errors import CellTable
+    from pipeline.errors import ConfigError
+
+    pd.DataFrame({"x0": [0.0], "x1": [1.0], "y0": [0.0]}).to_csv(tmp_path / "t.csv", index=False)
+    with pytest.raises(ConfigError, match="bracket.error_map"):
+        CellTable(tmp_path / "t.csv")
+    with pytest.raises(ConfigError, match="bracket.error_map"):
+        CellTable(tmp_path / "missing.csv")

@@ -19,12 +19,15 @@ over `P ⊕ ε̄`) is in `Win`.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.bracket.enclosures import DIRS, barrier_range, dist_range
+from pipeline.bracket.enclosures import DIRS, affine_range, barrier_range, dist_range
 from pipeline.bracket.inputs import law_kind, support
+
+TOUCH = 1e-9  # world units: a set reaching a cell by less than this does not meet it (rounding of exact zeros)
 
 
 @dataclass(frozen=True)
@@ -38,9 +41,13 @@ class Grid:
     ny: int
 
     @classmethod
-    def over(cls, bounds, h: float) -> Grid:
+    def over(cls, bounds, h: float, anchor=None) -> Grid:
+        """Cells covering `bounds`; with `anchor` (a point) its coordinates are grid lines."""
         (x0, x1), (y0, y1) = bounds
-        return cls(x0, y0, h, int(round((x1 - x0) / h)), int(round((y1 - y0) / h)))
+        if anchor is not None:
+            x0 = anchor[0] - h * math.ceil((anchor[0] - x0) / h - 1e-9)
+            y0 = anchor[1] - h * math.ceil((anchor[1] - y0) / h - 1e-9)
+        return cls(x0, y0, h, int(math.ceil((x1 - x0) / h - 1e-9)), int(math.ceil((y1 - y0) / h - 1e-9)))
 
     @property
     def n(self) -> int:
@@ -84,11 +91,14 @@ def decisions(law, boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def initial_modes(law, boxes: np.ndarray) -> np.ndarray:
-    """`(N, 2)`: modes a run can hold after frame 0 from a perceived box (the smaller `V_q`, i.e. the smaller
-    barrier, then frame 0's jump)."""
+    """`(N, 2)`: modes a run can hold after frame 0 from a perceived box: the smaller `V_q` (the smaller barrier:
+    `φ` is common), ties to `q = 1` below `b = 0` (SPEC §3.3, :meth:`HybridController.initial_state`), then frame
+    0's jump."""
     cov = law.scene.covering(0)
     (l1, h1), (l2, h2) = barrier_range(boxes, cov, 1), barrier_range(boxes, cov, 2)
-    q0 = np.stack([l1 <= h2, l2 <= h1], axis=1)
+    b_lo, b_hi = affine_range(boxes, cov.e_b, -cov.e_b @ cov.p_0)
+    tie = (l1 <= h2) & (l2 <= h1)
+    q0 = np.stack([(l1 < h2) | (tie & (b_lo < 0)), (l2 < h1) | (tie & (b_hi >= 0))], axis=1)
     stay, jump = decisions(law, boxes)
     out = q0 & stay
     out[:, 0] |= q0[:, 1] & jump[:, 1]
@@ -125,27 +135,34 @@ def _cell_hits(grid: Grid, H: np.ndarray, window: int):
     inside = (ix <= ixh[ok, None]) & (iy <= iyh[ok, None])
     cx, cy = grid.x0 + (ix + 0.5) * grid.h, grid.y0 + (iy + 0.5) * grid.h
     rad = 0.5 * grid.h * (np.abs(DIRS[:, 0]) + np.abs(DIRS[:, 1]))
-    lo = cx[..., None] * DIRS[:, 0] + cy[..., None] * DIRS[:, 1] - rad  # min over the cell of d_j·x
-    meets = inside & (lo <= H[ok, None, :] + 1e-12).all(axis=-1)
+    lo = cx[..., None] * DIRS[:, 0] + cy[..., None] * DIRS[:, 1] - rad  # min over the closed cell of d_j·x
+    # half-open cells [x0, x1) x [y0, y1) and sets P + T_s U of half-open P: in every direction either the
+    # cell's minimum or the set's maximum lies on an open side (see docs/bracket.md), so they meet only if
+    # lo < H strictly (to TOUCH in floating point)
+    meets = inside & (lo < H[ok, None, :] - TOUCH).all(axis=-1)
     r, w = np.nonzero(meets)
     return ok[r], ix[r, w] * grid.ny + iy[r, w], overflow
 
 
 def build(law, grid: Grid, eps_cells: np.ndarray, period: float, goal_radius: float, n_split: int = 4,
-          window: int = 8) -> Abstraction:
+          window: int = 8, in_view: np.ndarray | None = None) -> Abstraction:
     """The abstraction of `law`'s sampled loop on `grid` with the error bound `eps_cells` `(cells,)` (module doc)."""
     kind = law_kind(law)
     modes = 2 if kind == "hybrid" else 1
     boxes = grid.boxes()
     scene = law.scene
-    M = dilate(boxes, eps_cells)
+    eps_cells = np.asarray(eps_cells, float)
+    known = np.isfinite(eps_cells)  # a cell without a bound: its nodes are unsafe (nothing is known there)
+    M = dilate(boxes, np.where(known, eps_cells, 0.0))
     U = np.stack([support(law, M, q, period, n_split) for q in range(1, modes + 1)], axis=1)
     cen = grid.centres()
     hP = cen @ DIRS.T + 0.5 * grid.h * (np.abs(DIRS[:, 0]) + np.abs(DIRS[:, 1]))
     d_lo, _ = dist_range(boxes, scene.p_0)
     bad_cell = d_lo <= scene.obstacle_radius
-    _, far = dist_range(boxes, scene.p_T)
-    goal = (far <= goal_radius) & ~bad_cell
+    if in_view is not None:
+        bad_cell |= ~in_view
+    goal = (dist_range(boxes, scene.p_T)[1] <= goal_radius) & ~bad_cell
+    bad_cell |= ~known & ~goal
     n_nodes = grid.n * modes
     safe = np.ones(n_nodes, bool)
     rows_all, cols_all = [], []
