@@ -1,0 +1,52 @@
+"""The bracket over the arena (docs/bracket.md): per controller, the start cells coloured by `ε_lo` (certified)
+and by `ε_hi` (falsified), with the obstacle, the diamond, `K` and the counterexamples of smallest `ε_hi`."""
+
+from __future__ import annotations
+
+import numpy as np
+from matplotlib import pyplot as plt
+from matplotlib.patches import Circle, Polygon, Rectangle
+
+from pipeline.control import diamond_vertices
+
+
+def _scene(ax, scene):
+    ax.add_patch(Polygon(diamond_vertices(scene.covering(0)), closed=True, fill=False, ec="k", lw=0.8))
+    ax.add_patch(Circle(scene.p_0, scene.obstacle_radius, color="0.3"))
+    (x0, _), _ = scene.bounds
+    ax.plot([x0, scene.p_0[0] - 2 * scene.obstacle_radius], [scene.p_0[1]] * 2, "m--", lw=1.0, label="K")
+    ax.plot(*scene.p_T, "k*", ms=9)
+    (x0, x1), (y0, y1) = scene.bounds
+    ax.set_xlim(x0, x1), ax.set_ylim(y0, y1), ax.set_aspect("equal")
+
+
+def _cells(ax, g, values, vmax, cmap):
+    cm = plt.get_cmap(cmap)
+    for (_, r), v in zip(g.iterrows(), values):
+        if np.isfinite(v):
+            ax.add_patch(Rectangle((r.x0, r.y0), r.x1 - r.x0, r.y1 - r.y0, color=cm(min(v, vmax) / vmax), lw=0))
+
+
+def bracket_figure(scene, df, paths, bs, stem, formats):
+    names = list(df.controller.unique())
+    fig, axes = plt.subplots(2, len(names), figsize=(5.2 * len(names), 6.6), squeeze=False)
+    for j, name in enumerate(names):
+        g = df[df.controller == name]
+        top, bottom = axes[0, j], axes[1, j]
+        _cells(top, g, g.eps_lo.to_numpy(float), max(bs.eps), "Greens")
+        _scene(top, scene)
+        top.set_title(f"{name}: ε_lo (certified; white: none)")
+        eh = g.eps_hi.to_numpy(float)
+        _cells(bottom, g, np.where(np.isfinite(eh), eh, np.nan), bs.eps_max, "Reds_r")
+        _scene(bottom, scene)
+        bottom.set_title(f"{name}: ε_hi (falsified; white: none ≤ {bs.eps_max:g})")
+        order = np.argsort(np.where(np.isfinite(eh), eh, np.inf))[:4]
+        for k in order:
+            if np.isfinite(eh[k]):
+                p = paths[name][:, g.index[k] - g.index[0]]
+                bottom.plot(p[:, 0], p[:, 1], "b-", lw=0.8)
+    axes[0, 0].legend(loc="lower left", fontsize=7)
+    fig.tight_layout()
+    for fmt in formats:
+        fig.savefig(f"{stem}.{fmt}", dpi=110)
+    plt.close(fig)

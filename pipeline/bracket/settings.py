@@ -1,0 +1,47 @@
+"""`bracket`: the settings of the bracket stage (conf/bracket.yaml), typed and checked with the config."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Annotated, Literal
+
+from pipeline.errors import ConfigError
+from pipeline.schema import NonEmpty, NonNegative, NonNegativeInt, Positive, PositiveInt, checked
+
+Law = Literal["hybrid", "smooth", "cbf"]
+
+
+@checked("bracket")
+@dataclass(frozen=True)
+class BracketSettings:
+    """What the bracket computes (docs/bracket.md): the certificate at each uniform `eps` (and at the certified
+    error map's `ε̄` when `error_map` names its cell table) on cells of side `cell` in a frame rotated by
+    `angle`, and the falsifier from the centre of every start cell of side `start_cell`, bisecting `ε_hi` on
+    `[0, eps_max]` in `n_bisect` steps; success is reaching `B(p_T, goal_radius)` within `sim.horizon` seconds."""
+
+    controllers: Annotated[list[Law], NonEmpty()] = field(default_factory=lambda: ["hybrid", "smooth", "cbf"])
+    eps: Annotated[list[NonNegative], NonEmpty()] = field(default_factory=lambda: [0.1, 0.25, 0.5])
+    error_map: str | None = None
+    cell: Positive = 1.0
+    angle: float = 45.0
+    n_split: PositiveInt = 4
+    window: PositiveInt = 8
+    goal_radius: Positive = 5.0
+    start_cell: Positive = 5.0
+    eps_max: Positive = 4.0
+    n_bisect: NonNegativeInt = 4
+    n_dirs: PositiveInt = 16
+    lookahead: PositiveInt = 8
+    commit: PositiveInt = 8
+    tail: NonNegativeInt = 40
+    n_random: NonNegativeInt = 4
+    seed: NonNegativeInt = 0
+    formats: Annotated[list[str], NonEmpty()] = field(default_factory=lambda: ["png"])
+
+    def __post_init__(self):
+        if self.commit > self.lookahead:
+            raise ConfigError("bracket.commit", f"must be <= bracket.lookahead = {self.lookahead}, got {self.commit}")
+        if sorted(self.eps) != list(self.eps) or len(set(self.eps)) != len(self.eps):
+            raise ConfigError("bracket.eps", f"must be increasing, got {list(self.eps)}")
+        if len(set(self.controllers)) != len(self.controllers):
+            raise ConfigError("bracket.controllers", f"names a controller twice: {list(self.controllers)}")

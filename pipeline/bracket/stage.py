@@ -1,0 +1,159 @@
+"""Stage: the bracket `[ε_lo, ε_hi]` per controller and start cell (`python -m pipeline.bracket`; docs/bracket.md).
+
+Writes to the Hydra run dir: `bracket.csv` (one row per controller and start cell: `x0, x1, y0, y1`, `eps_lo` (the
+largest uniform ε certified; NaN: none), `certified_map` (certified with the error map's ε̄, when given),
+`eps_hi` (inf: no failure found up to `eps_max`), the adversary and outcome of the counterexample),
+`table.md` (the bracket table), `certificate.json` (the abstraction's sizes and counts per controller and ε),
+`counterexamples.npz` (the paths) and `bracket.png`.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from omegaconf import DictConfig
+
+from pipeline.bracket.certify_loop import certified_starts, certify
+from pipeline.bracket.errors import CellTable, Uniform
+from pipeline.bracket.falsifier import Search, falsify
+from pipeline.bracket.loop import OUTCOMES, FrameLoop
+from pipeline.cli import stage_main
+from pipeline.config import build
+from pipeline.errors import ConfigError
+from pipeline.experiments.report import markdown_table
+
+
+def objects(cfg: DictConfig):
+    """(scene, {name: law}, settings, sim, camera, error map or None), built and checked before any work."""
+    scene = build(cfg.scene, "scene")
+    if scene.n_obstacles != 1 or scene.barrier.kind != "squared":
+        raise ConfigError("scene", "the bracket covers one obstacle with the squared barrier (SPEC §5.5's scope)")
+    bs = build(cfg.bracket, "bracket")
+    laws = {}
+    for name in bs.controllers:
+        node = cfg.controller if name == "hybrid" else cfg.controllers[name]
+        laws[name] = build(node, "controller" if name == "hybrid" else f"controllers.{name}", scene=scene)
+    sim, camera = build(cfg.sim, "sim"), build(cfg.camera, "camera")
+    if camera.period is None:
+        raise ConfigError("camera.period", "the bracket needs a frame period (the sampled loop), got null")
+    emap = CellTable(bs.error_map) if bs.error_map else None
+    return scene, laws, bs, sim, camera, emap
+
+
+def check(cfg: DictConfig) -> None:
+    objects(cfg)
+
+
+def start_cells(scene, side: float) -> np.ndarray:
+    """Square start cells of side `side` with edges at `p_0 ± side/2 + k side` (a row of centres on `K`, the axis
+    behind the obstacle), clipped to the arena."""
+    (x0, x1), (y0, y1) = scene.bounds
+    edges = []
+    for lo, hi, c in ((x0, x1, scene.p_0[0]), (y0, y1, scene.p_0[1])):
+        k0 = int(np.floor((lo - c - side / 2) / side))
+        e = c - side / 2 + side * np.arange(k0, k0 + int((hi - lo) / side) + 3)
+        e = np.unique(np.clip(e, lo, hi))
+        edges.append(e)
+    (ex, ey) = edges
+    X0, Y0 = np.meshgrid(ex[:-1], ey[:-1], indexing="ij")
+    X1, Y1 = np.meshgrid(ex[1:], ey[1:], indexing="ij")
+    return np.stack([X0.ravel(), X1.ravel(), Y0.ravel(), Y1.ravel()], 1)
+
+
+def bracket_rows(name, law, scene, bs, sim, camera, emap, starts):
+    """One controller: the certificate at each ε (and the map's ε̄), the falsifier; rows, stats, paths."""
+    kw = dict(h=bs.cell, angle=bs.angle, period=camera.period, goal_radius=bs.goal_radius, n_split=bs.n_split,
+              window=bs.window)
+    eps_lo = np.full(len(starts), np.nan)
+    stats = {}
+    for eps in bs.eps:
+        t0 = time.perf_counter()
+        cert = certify(law, Uniform(eps), **kw)
+        ok = certified_starts(cert, starts)
+        eps_lo[ok] = eps
+        stats[f"eps={eps:g}"] = {**cert.stats, "certified_starts": int(ok.sum()), "seconds": time.perf_counter() - t0}
+    by_map = np.full(len(starts), False)
+    if emap is not None:
+        cert = certify(law, emap, **kw)
+        by_map = certified_starts(cert, starts)
+        stats["error_map"] = {**cert.stats, "certified_starts": int(by_map.sum())}
+    loop = FrameLoop(scene, law, period=camera.period, horizon=sim.horizon, delta=bs.goal_radius,
+                     stall_speed=sim.stall_speed, stall_time=sim.stall_time)
+    search = Search(n_dirs=bs.n_dirs, lookahead=bs.lookahead, commit=bs.commit, tail=bs.tail,
+                    n_random=bs.n_random, seed=bs.seed)
+    centres = np.stack([(starts[:, 0] + starts[:, 1]) / 2, (starts[:, 2] + starts[:, 3]) / 2], axis=1)
+    inside = np.hypot(*(centres - scene.p_0).T) >= scene.obstacle_radius
+    t0 = time.perf_counter()
+    br = falsify(loop, centres[inside], bs.eps_max, bs.n_bisect, search)
+    stats["falsifier_seconds"] = time.perf_counter() - t0
+    eps_hi = np.full(len(starts), 0.0)
+    adv, out = np.full(len(starts), "start in obstacle", dtype=object), np.full(len(starts), "collided", dtype=object)
+    eps_hi[inside], adv[inside] = br.eps_hi, br.adversary
+    out[inside] = [OUTCOMES[o] if np.isfinite(e) else "" for o, e in zip(br.outcome, br.eps_hi)]
+    rows = pd.DataFrame({"controller": name, "x0": starts[:, 0], "x1": starts[:, 1], "y0": starts[:, 2],
+                         "y1": starts[:, 3], "eps_lo": eps_lo, "certified_map": by_map, "eps_hi": eps_hi,
+                         "adversary": adv, "outcome": out})
+    paths = np.full((br.path.shape[0], len(starts), 2), np.nan)
+    paths[:, inside] = br.path
+    return rows, stats, paths
+
+
+def table(df: pd.DataFrame, scene, eps_list) -> pd.DataFrame:
+    """Per controller: certified share of start cells at each ε, falsified shares, behind the obstacle."""
+    cx, cy = (df.x0 + df.x1) / 2, (df.y0 + df.y1) / 2
+    a, b = scene.to_frame(np.stack([cx, cy], 1))
+    behind = (a < -scene.c) & (np.abs(b) < 15)
+    on_K = (a < -scene.c) & (df.y0 <= scene.p_0[1]) & (scene.p_0[1] < df.y1)
+    out = []
+    for name, g in df.groupby("controller", sort=False):
+        row = {"controller": name, "start cells": len(g)}
+        for eps in eps_list:
+            row[f"certified ε={eps:g}"] = f"{(g.eps_lo >= eps).mean():.0%}"
+        for eps in eps_list:
+            row[f"falsified ε<={eps:g}"] = f"{(g.eps_hi <= eps).mean():.0%}"
+        bh = g[behind[g.index]]
+        row["behind: certified (max ε)"] = f"{int(bh.eps_lo.notna().sum())}/{len(bh)} ({bh.eps_lo.max():g})"
+        k = g[on_K[g.index]]
+        row["on K: median ε_hi"] = f"{np.median(k.eps_hi):.3g}" if len(k) else "-"
+        row["map ε̄: certified"] = f"{g.certified_map.mean():.0%}"
+        row["soundness: ε_lo > ε_hi"] = int((g.eps_lo > g.eps_hi).sum())
+        out.append(row)
+    return pd.DataFrame(out)
+
+
+def run(cfg: DictConfig) -> dict:
+    scene, laws, bs, sim, camera, emap = objects(cfg)
+    run_dir = Path(cfg.paths.output_dir)
+    starts = start_cells(scene, bs.start_cell)
+    frames, stats, paths = [], {}, {}
+    for name, law in laws.items():
+        rows, st, pth = bracket_rows(name, law, scene, bs, sim, camera, emap, starts)
+        frames.append(rows)
+        stats[name], paths[name] = st, pth
+        print(f"bracket: {name}: certified at the largest ε {int(rows.eps_lo.notna().sum())}/{len(rows)} start "
+              f"cells, falsified {int(np.isfinite(rows.eps_hi).sum())}/{len(rows)}", flush=True)
+    df = pd.concat(frames, ignore_index=True)
+    tab = table(df, scene, bs.eps)
+    tmp = run_dir.with_name(run_dir.name + ".tmp")
+    tmp.mkdir(parents=True, exist_ok=True)
+    df.to_csv(tmp / "bracket.csv", index=False)
+    (tmp / "table.md").write_text(markdown_table(tab) + "\n")
+    (tmp / "certificate.json").write_text(json.dumps(stats, indent=1, default=float))
+    np.savez_compressed(tmp / "counterexamples.npz", **{k: v.astype(np.float32) for k, v in paths.items()})
+    from pipeline.bracket.figures import bracket_figure  # matplotlib: not imported by the preflight
+
+    bracket_figure(scene, df, paths, bs, tmp / "bracket", bs.formats)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    for f in tmp.iterdir():
+        f.replace(run_dir / f.name)
+    tmp.rmdir()
+    print(markdown_table(tab))
+    print(f"bracket -> {run_dir}")
+    return {"bracket": df, "table": tab, "stats": stats, "run_dir": run_dir}
+
+
+main = stage_main("bracket", run="pipeline.bracket.stage:run", check="pipeline.bracket.stage:check")
