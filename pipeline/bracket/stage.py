@@ -21,7 +21,6 @@ from pipeline.bracket.certify_loop import certified_starts, certify
 from pipeline.bracket.errors import CellTable, Uniform
 from pipeline.bracket.falsifier import Search, falsify
 from pipeline.bracket.loop import OUTCOMES, FrameLoop
-from pipeline.cli import stage_main
 from pipeline.config import build
 from pipeline.errors import ConfigError
 from pipeline.experiments.report import markdown_table
@@ -155,5 +154,3 @@ def run(cfg: DictConfig) -> dict:
     print(f"bracket -> {run_dir}")
     return {"bracket": df, "table": tab, "stats": stats, "run_dir": run_dir}
 
-
-main = stage_main("bracket", run="pipeline.bracket.stage:run", check="pipeline.bracket.stage:check")
