@@ -101,8 +101,9 @@ def bracket_rows(name, law, scene, bs, sim, camera, emap, starts):
     return rows, stats, paths
 
 
-def table(df: pd.DataFrame, scene, eps_list) -> pd.DataFrame:
-    """Per controller: certified share of start cells at each ε, falsified shares, behind the obstacle."""
+def table(df: pd.DataFrame, scene, eps_list, with_map: bool = False) -> pd.DataFrame:
+    """Per controller: certified share of start cells at each ε, falsified shares, behind the obstacle (frame
+    coordinate `a < -c`, `|b| < 15`), the median `ε_hi` on `K` (the row of cells centred on the axis behind)."""
     cx, cy = (df.x0 + df.x1) / 2, (df.y0 + df.y1) / 2
     a, b = scene.to_frame(np.stack([cx, cy], 1))
     behind = (a < -scene.c) & (np.abs(b) < 15)
@@ -115,10 +116,11 @@ def table(df: pd.DataFrame, scene, eps_list) -> pd.DataFrame:
         for eps in eps_list:
             row[f"falsified ε<={eps:g}"] = f"{(g.eps_hi <= eps).mean():.0%}"
         bh = g[behind[g.index]]
-        row["behind: certified (max ε)"] = f"{int(bh.eps_lo.notna().sum())}/{len(bh)} ({bh.eps_lo.max():g})"
+        top = f" (ε_lo up to {bh.eps_lo.max():g})" if bh.eps_lo.notna().any() else ""
+        row["behind: certified"] = f"{int(bh.eps_lo.notna().sum())}/{len(bh)}{top}"
         k = g[on_K[g.index]]
         row["on K: median ε_hi"] = f"{np.median(k.eps_hi):.3g}" if len(k) else "-"
-        row["map ε̄: certified"] = f"{g.certified_map.mean():.0%}"
+        row["map ε̄: certified"] = f"{g.certified_map.mean():.0%}" if with_map else "-"
         row["soundness: ε_lo > ε_hi"] = int((g.eps_lo > g.eps_hi).sum())
         out.append(row)
     return pd.DataFrame(out)
@@ -136,7 +138,7 @@ def run(cfg: DictConfig) -> dict:
         print(f"bracket: {name}: certified at the largest ε {int(rows.eps_lo.notna().sum())}/{len(rows)} start "
               f"cells, falsified {int(np.isfinite(rows.eps_hi).sum())}/{len(rows)}", flush=True)
     df = pd.concat(frames, ignore_index=True)
-    tab = table(df, scene, bs.eps)
+    tab = table(df, scene, bs.eps, with_map=emap is not None)
     tmp = run_dir.with_name(run_dir.name + ".tmp")
     tmp.mkdir(parents=True, exist_ok=True)
     df.to_csv(tmp / "bracket.csv", index=False)
