@@ -49,3 +49,17 @@ def test_bad_bracket_input_is_one_config_error(tmp_path, override, field):
     with pytest.raises(ConfigError) as err:
         preflight("bracket", [override, f"hydra.run.dir={tmp_path}"], check)
     assert err.value.field.startswith(field) and "\n" not in str(err.value), str(err.value)
+
+
+def test_settings_defaults_are_the_yaml():
+    """What runs is the YAML: `BracketSettings()` built in Python has conf/bracket.yaml's values."""
+    from dataclasses import asdict
+
+    import yaml
+
+    from pipeline.bracket.settings import BracketSettings
+    from pipeline.cli import CONF_DIR
+
+    node = yaml.safe_load((CONF_DIR / "bracket.yaml").read_text())["bracket"]
+    node.pop("_target_")
+    assert node == asdict(BracketSettings())
