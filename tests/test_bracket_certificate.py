@@ -142,3 +142,24 @@ def test_cell_table_bad_input_names_the_field(tmp_path):
         CellTable(tmp_path / "t.csv")
     with pytest.raises(ConfigError, match="bracket.error_map"):
         CellTable(tmp_path / "missing.csv")
+
+
+@pytest.mark.slow
+def test_edges_over_frames_certify_behind_the_obstacle_soundly():
+    """Edges over 4 frames (2 units of travel: 1-unit cells no longer let abstract paths drift along a row): the
+    hybrid law is certified on start cells behind the obstacle (x < -14) at ε = 0.1, and the three adversaries at
+    ε break none of their points. (About a minute on a busy 2-core machine: slow.)"""
+    from pipeline.bracket.certify_loop import certify, certified_starts
+
+    law = HybridController(SCENE)
+    cert = certify(law, lambda p, boxes=None, frame=None: np.full(len(p), 0.1), h=1.0, angle=45.0, period=0.05,
+                   goal_radius=5.0, frames=4, window=12)
+    starts = np.array([[x, x + 2, y, y + 2] for x in range(-50, -14, 2) for y in range(-30, 28, 2)], float)
+    ok = certified_starts(cert, starts)
+    assert ok.sum() >= 20
+    rng = np.random.default_rng(5)
+    pick = rng.choice(np.flatnonzero(ok), 24, replace=False)
+    p0 = starts[pick][:, [0, 2]] + rng.uniform(0, 2, (24, 2))
+    loop = FrameLoop(SCENE, law, delta=5.0)
+    failed = attack(loop, p0, np.full(24, 0.1), Search(n_dirs=8, tail=8))[0]
+    assert not failed.any(), p0[failed]

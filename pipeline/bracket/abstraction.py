@@ -116,6 +116,7 @@ class Abstraction:
     indptr: np.ndarray     # CSR successors of node n = cell * modes + (q - 1)
     succ: np.ndarray
     initial: np.ndarray    # (cells, modes) possible initial nodes
+    multi: np.ndarray | None = None  # (nodes,) edges over several frames (positions beyond P along them)
 
 
 def _cell_hits(grid: Grid, H: np.ndarray, window: int):
@@ -144,8 +145,45 @@ def _cell_hits(grid: Grid, H: np.ndarray, window: int):
     return ok[r], ix[r, w] * grid.ny + iy[r, w], overflow
 
 
+def _frames(grid: Grid, hP, Uq, period, frames, window, bad_cell, stop):
+    """Edges over `frames` frames where nothing can interrupt them: `R_0 = P`, `R_{i+1} = R_i ⊕ T_s U_i` with
+    `U_i` the hull of `U` over the cells meeting `R_i` (the position at frame `i` is in one of them, in the same
+    mode: no cell met can jump, `stop`), each frame's swept set checked for safety. A node whose reach set meets a
+    goal or jump cell (or spreads over `window` cells) before the last frame keeps one-frame edges. Returns the
+    endpoint sets, the unsafe nodes and the hull of the inputs used (for the transience rule)."""
+    n = len(hP)
+    R, used = hP.copy(), Uq.copy()
+    unsafe = np.zeros(n, bool)
+    one = np.zeros(n, bool)  # nodes that fall back to one frame
+    E1 = None
+    for i in range(frames):
+        if i == 0:
+            Ui = Uq
+        else:
+            r, c, over = _cell_hits(grid, R, window)
+            Ui = np.full_like(Uq, -np.inf)
+            np.maximum.at(Ui, r, Uq[c])
+            hit = over.copy()
+            np.logical_or.at(hit, r, stop[c] | bad_cell[c])
+            one |= hit
+            Ui = np.where(one[:, None], Uq, Ui)
+        S = R + period * np.maximum(Ui, 0.0)
+        r, c, over = _cell_hits(grid, S, window)
+        bad = over.copy()
+        np.logical_or.at(bad, r, bad_cell[c])
+        if i == 0:
+            unsafe |= bad
+            E1 = hP + period * Uq
+        else:
+            unsafe |= bad & ~one
+        R = R + period * Ui
+        used = np.where(one[:, None], used, np.maximum(used, Ui))
+    multi = ~one if frames > 1 else np.zeros(n, bool)
+    return np.where(one[:, None], E1, R), unsafe, np.where(one[:, None], Uq, used), multi
+
+
 def build(law, grid: Grid, eps_cells: np.ndarray, period: float, goal_radius: float, n_split: int = 4,
-          window: int = 8, in_view: np.ndarray | None = None) -> Abstraction:
+          window: int = 8, in_view: np.ndarray | None = None, frames: int = 1) -> Abstraction:
     """The abstraction of `law`'s sampled loop on `grid` with the error bound `eps_cells` `(cells,)` (module doc)."""
     kind = law_kind(law)
     modes = 2 if kind == "hybrid" else 1
@@ -166,19 +204,20 @@ def build(law, grid: Grid, eps_cells: np.ndarray, period: float, goal_radius: fl
     n_nodes = grid.n * modes
     safe = np.ones(n_nodes, bool)
     rows_all, cols_all = [], []
+    jump = np.zeros((grid.n, 1), bool)
     if modes == 2:
         stay, jump = decisions(law, M)
         initial = initial_modes(law, M)
     else:
         initial = np.ones((grid.n, 1), bool)
+    rate_U = U.copy()
+    multi = np.zeros(n_nodes, bool)
     for q in range(modes):
-        Uq = U[:, q]
-        S = hP + period * np.maximum(Uq, 0.0)
-        r, c, over = _cell_hits(grid, S, window)
-        unsafe = over.copy()
-        np.logical_or.at(unsafe, r, bad_cell[c])
+        no_jump = ~jump[:, q] if modes == 2 else np.ones(grid.n, bool)
+        E, unsafe, used, multi_q = _frames(grid, hP, U[:, q], period, frames, window, bad_cell, goal | ~no_jump)
+        multi[np.arange(grid.n) * modes + q] = multi_q
         safe[np.arange(grid.n) * modes + q] = ~unsafe & ~bad_cell
-        E = hP + period * Uq
+        rate_U[:, q] = used
         r, c, _ = _cell_hits(grid, E, window)
         if modes == 1:
             rows_all.append(r), cols_all.append(c)
@@ -196,4 +235,4 @@ def build(law, grid: Grid, eps_cells: np.ndarray, period: float, goal_radius: fl
     keep[1:] = (rows[1:] != rows[:-1]) | (cols[1:] != cols[:-1])
     rows, cols = rows[keep], cols[keep]
     indptr = np.searchsorted(rows, np.arange(n_nodes + 1))
-    return Abstraction(grid, modes, U, safe, goal, indptr, cols, initial)
+    return Abstraction(grid, modes, rate_U, safe, goal, indptr, cols, initial, multi)

@@ -24,7 +24,7 @@ class Certificate:
 
 
 def certify(law, eps_world, *, h: float, angle: float, period: float, goal_radius: float, n_split: int = 4,
-            window: int = 8) -> Certificate:
+            window: int = 8, frames: int = 1) -> Certificate:
     """`law`'s certificate on cells of side `h` in the frame rotated by `angle`; `eps_world(points (N, 2)) ->
     (N,)` the error bound at world points of a cell (`max` over its corners and centre is taken, so `eps_world`
     must be the largest bound over any cell it is asked about: see :mod:`pipeline.bracket.errors`)."""
@@ -36,7 +36,7 @@ def certify(law, eps_world, *, h: float, angle: float, period: float, goal_radiu
     boxes = grid.boxes()
     eps = eps_world(frame.to_world(grid.centres()), boxes=boxes, frame=frame)
     view = frame.in_view(boxes, law.scene.bounds)
-    ab = build(rlaw, grid, eps, period, goal_radius, n_split=n_split, window=window, in_view=view)
+    ab = build(rlaw, grid, eps, period, goal_radius, n_split=n_split, window=window, in_view=view, frames=frames)
     W, stats = win(ab, period, scene.p_T)
     cert = certified_cells(ab, W) & view
     stats = {**stats, "nodes": int(len(ab.safe)), "edges": int(len(ab.succ)), "cells": int(grid.n)}

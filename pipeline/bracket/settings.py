@@ -16,7 +16,7 @@ Law = Literal["hybrid", "smooth", "cbf"]
 class BracketSettings:
     """What the bracket computes (docs/bracket.md): the certificate at each uniform `eps` (and at the certified
     error map's `ε̄` when `error_map` names its cell table) on cells of side `cell` in a frame rotated by
-    `angle`, and the falsifier from the centre of every start cell of side `start_cell`, bisecting `ε_hi` on
+    `angle` with edges over `frames` camera frames, and the falsifier from the centre of every start cell of side `start_cell`, bisecting `ε_hi` on
     `[0, eps_max]` in `n_bisect` steps; success is reaching `B(p_T, goal_radius)` within `sim.horizon` seconds."""
 
     controllers: Annotated[list[Law], NonEmpty()] = field(default_factory=lambda: ["hybrid", "smooth", "cbf"])
@@ -25,7 +25,8 @@ class BracketSettings:
     cell: Positive = 1.0
     angle: float = 45.0
     n_split: PositiveInt = 4
-    window: PositiveInt = 8
+    window: PositiveInt = 12
+    frames: PositiveInt = 4
     goal_radius: Positive = 5.0
     start_cell: Positive = 5.0
     eps_max: Positive = 4.0

@@ -66,7 +66,7 @@ def start_cells(scene, side: float) -> np.ndarray:
 def bracket_rows(name, law, scene, bs, sim, camera, emap, starts):
     """One controller: the certificate at each ε (and the map's ε̄), the falsifier; rows, stats, paths."""
     kw = dict(h=bs.cell, angle=bs.angle, period=camera.period, goal_radius=bs.goal_radius, n_split=bs.n_split,
-              window=bs.window)
+              window=bs.window, frames=bs.frames)
     eps_lo = np.full(len(starts), np.nan)
     stats = {}
     for eps in bs.eps:

@@ -42,6 +42,8 @@ def rates(ab: Abstraction, period: float, p_T: np.ndarray) -> tuple[np.ndarray, 
         x = np.stack([boxes[:, cx], boxes[:, cy]], axis=1) - p_T
         worst = np.maximum(worst, support_at(U, x))
     lyap_ok = 2 * worst + period * r * r < 0
+    if ab.multi is not None:
+        lyap_ok &= ~ab.multi  # an edge over several frames leaves P: the bound above is on P only
     return dir_ok, lyap_ok
 
 
