@@ -149,7 +149,7 @@ def test_edges_over_frames_certify_behind_the_obstacle_soundly():
     """Edges over 4 frames (2 units of travel: 1-unit cells no longer let abstract paths drift along a row): the
     hybrid law is certified on start cells behind the obstacle (x < -14) at ε = 0.1, and the three adversaries at
     ε break none of their points. (About a minute on a busy 2-core machine: slow.)"""
-    from pipeline.bracket.certify_loop import certify, certified_starts
+    from pipeline.bracket.certify_loop import certified_starts, certify
 
     law = HybridController(SCENE)
     cert = certify(law, lambda p, boxes=None, frame=None: np.full(len(p), 0.1), h=1.0, angle=45.0, period=0.05,
