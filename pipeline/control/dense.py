@@ -43,17 +43,18 @@ def dense_scene(n_obstacles: PositiveInt = 10, seed: int = 0, radius: Positive =
                 spacing: tuple[float, float] = (2.5, 5.0), extent: Positive = 5.5, target: list[float] = (0.0, 0.0),
                 goal_clearance: Positive = 2.0, start_radius: Positive = 7.0, n_starts: PositiveInt = 100, clearance: NonNegative = 0.1,
                 reach: Positive = 0.2, h: Positive = 0.05, u_max: Positive = 1.0, T_s: Positive = 0.05,
-                half_width: Positive = 10.0, max_tries: PositiveInt = 200, name: str = "dense") -> Scene:
+                half_width: Positive = 10.0, inflation: NonNegative = 0.0, max_tries: PositiveInt = 200, name: str = "dense") -> Scene:
     """A seeded dense field (`conf/scene/dense.yaml`): `n_obstacles` discs of `radius`, centres `spacing` apart
     within `extent` of the goal `target` and at least `goal_clearance` from it, arena the square of `half_width` about it. Covering: apex
     `sqrt(2) (radius + clearance)`, barrier reach `reach` (rho_b = 0.5, scale `reach / sqrt(0.5)`), so
     `R = apex + sqrt(2) reach`. Redrawn (seed, then seed's stream) until V1-V3 (for `h`, `u_max`, `T_s`) and the
-    start rule for the `n_starts` starts on the circle of `start_radius` hold; ConfigError after `max_tries`."""
+    start rule for the `n_starts` starts on the circle of `start_radius` hold, also with every disc grown by
+    `inflation` (the unicycle's look-ahead, as `Scene.inflated` grows it); ConfigError after `max_tries`."""
     lo, hi = (float(x) for x in spacing)
     if not 0 < lo <= hi:
         raise ConfigError(f"{FIELD}.spacing", f"must be 0 < min <= max, got {spacing!r}")
     apex = math.sqrt(2.0) * (radius + clearance)
-    R = apex + math.sqrt(2.0) * reach
+    R = (apex + math.sqrt(2.0) * reach) * (radius + inflation) / radius
     p_T = np.asarray(target, dtype=float)
     th = 2.0 * np.pi * np.arange(n_starts) / n_starts
     starts = p_T + start_radius * np.stack([np.cos(th), np.sin(th)], axis=1)
@@ -64,8 +65,9 @@ def dense_scene(n_obstacles: PositiveInt = 10, seed: int = 0, radius: Positive =
         if cs is None:
             continue
         cs = cs + p_T
-        bad = field_violations(cs, np.full(len(cs), radius), p_T, apex=apex, reach=reach, h=h, u_max=u_max, T_s=T_s,
-                               arena=arena, starts=starts)
+        grow = (radius + inflation) / radius  # Scene.inflated: the unicycle's steering scene (SPEC §3.7)
+        bad = field_violations(cs, np.full(len(cs), radius + inflation), p_T, apex=apex * grow, reach=reach * grow,
+                               h=h, u_max=u_max, T_s=T_s, arena=arena, starts=starts)
         if not bad:
             obstacles = [Obstacle(center=[float(x), float(y)], radius=float(radius), apex=float(apex),
                                   barrier_scale=float(reach / math.sqrt(0.5))) for x, y in cs]
