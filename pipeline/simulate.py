@@ -6,6 +6,7 @@ resolved config (`.hydra/config.yaml`).
 
 from __future__ import annotations
 
+import sys
 import time
 from pathlib import Path
 
@@ -15,7 +16,7 @@ from pipeline.cli import stage_main
 from pipeline.config import build
 from pipeline.errors import ConfigError
 from pipeline.perception.adversary import is_attack
-from pipeline.plants import SingleIntegrator
+from pipeline.plants import SingleIntegrator, explain_steering, steering_warnings
 from pipeline.sim import frame_steps, simulate
 from pipeline.sim.settings import check_vehicle, run_keywords
 
@@ -27,7 +28,12 @@ def objects(cfg: DictConfig):
     inflated by its look-ahead, SPEC §3.7); the keywords carry the plant and its initial headings."""
     scene = build(cfg.scene, "scene")
     plant = build(cfg.vehicle, "vehicle") if cfg.get("vehicle") is not None else SingleIntegrator()
-    controller = build(cfg.controller, "controller", scene=plant.steering_scene(scene))
+    try:
+        controller = build(cfg.controller, "controller", scene=plant.steering_scene(scene))
+    except ConfigError as err:
+        raise explain_steering(plant, err) from None
+    for line in steering_warnings(plant, controller):
+        print(f"warning: {line}", file=sys.stderr)
     disturbance = build(cfg.disturbance, "disturbance")
     if is_attack(disturbance):
         raise ConfigError("disturbance", f"{disturbance.name} acts through the camera, and this stage simulates the "

@@ -92,7 +92,7 @@ def _case6_runs(disturbance, controller):
     scene = build(cfg.scene, "scene")
     ctl = build(cfg.controller, "controller", scene=scene)
     x0 = build(cfg.init, "init")(scene)
-    r = simulate(scene, ctl, x0, horizon=10.0, disturbance=disturbance, record=False, stall_speed=0.025)
+    r = simulate(scene, ctl, x0, horizon=10.0, disturbance=disturbance, record=False, )
     return np.asarray(r.metrics["success"]), np.asarray(r.metrics["collision"])
 
 
@@ -108,5 +108,65 @@ def test_side_hysteresis_is_what_beats_the_adversary():
     scene = build(cfg.scene, "scene")
     ctl = build(cfg.controller, "controller", scene=scene)
     r = simulate(scene, ctl, build(cfg.init, "init")(scene) if False else Circle()(scene), horizon=10.0,
-                 disturbance=Adversarial(eps=0.28), record=False, stall_speed=0.025)
+                 disturbance=Adversarial(eps=0.28), record=False, )
     assert ok_with.mean() > np.asarray(r.metrics["success"]).mean()
+
+
+# ---- friction 1: scenes and starts a user keeps outside the repository (--config-dir, hydra.searchpath)
+@pytest.mark.parametrize("how", ["config_dir", "searchpath"])
+def test_user_config_folder_outside_the_repo_passes_the_preflight(tmp_path, how):
+    (tmp_path / "scene").mkdir()
+    (tmp_path / "init").mkdir()
+    (tmp_path / "scene" / "mine.yaml").write_text(
+        "_target_: pipeline.control.Scene\nname: mine\ntarget: [0.0, 0.0]\nobstacles:\n"
+        "  - {center: [3.0, 0.0], radius: 0.5, apex: null, barrier_scale: null}\n"
+        "arena: {x: [-10.0, 10.0], y: [-10.0, 10.0]}\n")
+    (tmp_path / "init" / "ring.yaml").write_text("_target_: pipeline.sim.starts.Circle\nn: 5\nradius: 7.0\n")
+    flag = ["--config-dir", str(tmp_path)] if how == "config_dir" else [f"hydra.searchpath=[file://{tmp_path}]"]
+    from pipeline.simulate import check
+    assert preflight("simulate", [*flag, "scene=mine", "init=ring"], check) == 1
+
+
+# ---- friction 5: the unicycle's messages say the discs are inflated by vehicle.lookahead
+def test_unicycle_validity_message_names_the_lookahead():
+    from pipeline.simulate import objects
+    with pytest.raises(ConfigError) as err:
+        objects(compose("simulate", ["scene=case6", "controller=hybrid_dense", "vehicle=unicycle", "init=circle"]))
+    assert "vehicle.lookahead = 0.5" in err.value.reason and "inflated" in err.value.reason
+
+
+# ---- friction 8: the stall speed is a share of u_max (0.25 at the default u_max = 10: make run's numbers stay)
+def test_stall_speed_is_a_share_of_u_max():
+    from pipeline.sim.settings import SimSettings
+    from pipeline.sim.simulator import stall_threshold
+    scene = _scene("default")
+    assert stall_threshold(SimSettings(), HybridController(scene)) == pytest.approx(0.25)
+    slow = HybridController(scene, u_max=0.2)  # moving at 0.2 units/s the whole time: not stalled
+    r = simulate(scene, slow, np.array([[-40.0, 0.0]]), horizon=6.0, record=False)
+    assert r.metrics["outcome"][0] == "timed_out"
+
+
+# ---- friction 10: warnings when the unicycle cannot follow its look-ahead steering or the push speed is too high
+def test_steering_warnings(capsys):
+    from pipeline.plants import Unicycle, steering_warnings
+    scene = _scene("default")
+    lines = steering_warnings(Unicycle(lookahead=0.1, omega_max=1.0), HybridController(scene, u_max=1.0))
+    assert any("vehicle.lookahead" in s for s in lines) and any("push_speed" in s for s in lines)
+    ok = HybridController(scene, u_max=0.5, push_speed=0.2)
+    assert steering_warnings(Unicycle(lookahead=0.5, omega_max=1.0), ok) == []
+    assert steering_warnings(Unicycle(lookahead=0.5, omega_max=1.0), HybridController(scene)) != []
+
+
+# ---- the experiments: dense_fields and dense_unicycle end to end on tiny sizes
+@pytest.mark.parametrize("exp", ["dense_fields", "dense_unicycle"])
+def test_dense_experiments_run_end_to_end(tmp_path, exp):
+    from pipeline.experiments.stage import run
+    cfg = compose("experiments", [f"paths.paper_dir={tmp_path / 'paper'}", f"paths.outputs_dir={tmp_path / 'out'}",
+                                  "perception=oracle", "debug=tiny", f"experiment={exp}", "publish=true"])
+    out = run(cfg)
+    t = out["results"].tables["summary"].set_index(["condition", "controller"])
+    hyb = t.xs("hybrid", level="controller")
+    assert (hyb["collision_rate"] == 0).all() and len(out["results"].info["scenes"]) >= 1
+    assert (tmp_path / "paper" / f"tab_{exp}.md").exists() and (tmp_path / "paper" / f"fig_{exp}.png").exists()
+    if exp == "dense_fields":
+        assert hyb.loc["adversary 0.28", "success_rate"] == 1.0

@@ -23,7 +23,7 @@ from pipeline.errors import ConfigError
 from pipeline.experiments.context import Context, Results
 from pipeline.experiments.multi import summarise_field
 from pipeline.experiments.scenario import Scenario, _agent_rows
-from pipeline.schema import NonNegative, Positive, PositiveInt
+from pipeline.schema import NonNegative, NonNegativeInt, Positive, PositiveInt
 from pipeline.sim import starts
 
 DENSE_SCENE = "pipeline.control.dense.dense_scene"
@@ -51,8 +51,8 @@ class DenseFields(Scenario):
 
     figures: ClassVar[str] = "pipeline.experiments.dense_figures:draw_dense_fields"
     presets: dict = field(default_factory=dict)   # scene nodes by name (the bundle's defaults list)
-    n_scenes: int = 4
-    scene_seed: int = 0
+    n_scenes: NonNegativeInt = 4
+    scene_seed: NonNegativeInt = 0
     controllers: list[str] = field(default_factory=lambda: ["hybrid", "smooth", "cbf"])
     benchmark_m: list[float] = field(default_factory=lambda: [0.05, 0.2])
     alternating_eps: NonNegative | None = 0.28
@@ -60,6 +60,10 @@ class DenseFields(Scenario):
     n_agents: PositiveInt = 100
     start_radius: Positive = 7.0
     n_drawn: PositiveInt = 100     # agents of the first scene recorded for the figure, per controller
+
+    def validate(self) -> None:
+        if not self.presets and not self.n_scenes:
+            raise ConfigError("experiment.n_scenes", "must be >= 1 when there are no presets (no scene to run)")
 
     def uses(self):
         dist = ["world_alternating"] * bool(self.benchmark_m) + ["alternating"] * (self.alternating_eps is not None) \
@@ -75,7 +79,8 @@ class DenseFields(Scenario):
         return out
 
     def compute(self, ctx: Context) -> Results:
-        scenes = dense_scenes(ctx, self.presets, ctx.n(self.n_scenes, minimum=0), self.scene_seed)
+        n_scenes = ctx.n(self.n_scenes, minimum=0 if self.presets else 1) if self.n_scenes else 0
+        scenes = dense_scenes(ctx, self.presets, n_scenes, self.scene_seed)
         conds = self.conditions(ctx)
         ctx.expect(len(scenes) * len(conds) * len(self.controllers))
         n, frames, arrays = ctx.n(self.n_agents, minimum=4), [], {}
