@@ -170,3 +170,16 @@ def test_dense_experiments_run_end_to_end(tmp_path, exp):
     assert (tmp_path / "paper" / f"tab_{exp}.md").exists() and (tmp_path / "paper" / f"fig_{exp}.png").exists()
     if exp == "dense_fields":
         assert hyb.loc["adversary 0.28", "success_rate"] == 1.0
+
+
+# ---- friction 4: a command that lists every violation (V3 included) and the feasible settings
+def test_fieldcheck_lists_every_violation_and_the_feasible_settings(capsys):
+    from pipeline.fieldcheck import run
+    out = run(compose("fieldcheck", ["scene=case6", "init=circle"]))
+    text = capsys.readouterr().out
+    conds = {v.condition for v in out["violations"]}
+    assert conds == {"V2", "V3"} and f"{len(out['violations'])} violation(s)" in text
+    assert text.count("scene.obstacles[") >= len(out["violations"]) and "Largest cell hysteresis" in text
+    assert not out["analysis"].feasible   # at h = 1, u_max = 10 no covering fits case6
+    ok = run(compose("fieldcheck", ["scene=case6", "init=circle", "controller=hybrid_dense"]))
+    assert ok["violations"] == [] and ok["analysis"].kappa_max > 2.8   # the dense design's R = 2.8 r fits
