@@ -128,10 +128,6 @@ class Context:
                          scene=self.vehicle.steering_scene(scene or self.scene))
         except ConfigError as err:
             raise explain_steering(self.vehicle, err) from None
-        for line in steering_warnings(self.vehicle, ctrl):
-            if line not in self.warned:
-                self.warned.add(line)
-                print(f"warning: {line}", file=sys.stderr)
         ctrl.name = name
         return ctrl
 
@@ -255,6 +251,10 @@ class Context:
                   stop_on_success=self.sim.stop_on_success if stop_on_success is None else bool(stop_on_success))
         scene = scene or self.scene
         x0 = np.asarray(x0, float)
+        for line in steering_warnings(self.vehicle, controller):  # valid, but the unicycle cannot follow it
+            if line not in self.warned:
+                self.warned.add(line)
+                print(f"warning: {line}", file=sys.stderr)
         res = simulate(scene, controller, x0, disturbance=disturbance, measure=measure, target_fn=target_fn,
                        progress=len(x0) >= 2000 and sys.stderr.isatty(), plant=self.vehicle,
                        heading0=self.vehicle.initial_heading(x0, scene), **kw)

@@ -17,7 +17,7 @@ import pandas as pd
 
 from pipeline.errors import ConfigError
 from pipeline.hybrid import solve_continuous, solve_sampled
-from pipeline.plants import Plant, SingleIntegrator
+from pipeline.plants import Plant, SingleIntegrator, explain_steering
 from pipeline.sim.closed_loop import ContinuousLoop, Measure, SampledLoop, TargetFn, true_state
 from pipeline.sim.metrics import StallMonitor, outcome
 from pipeline.sim.monitor import COLLISION, TARGET, ArrivalCollision
@@ -117,8 +117,11 @@ def simulate(scene, controller, x0: np.ndarray, *, dt: float = _SIM.dt, horizon:
                                record=record, rtol=rtol, atol=atol, h_max=h_max, method=method)
         m = arc.c + arc.d["e"]
     else:
-        loop = SampledLoop(scene, controller, plant, disturbance, measure=measure, target_fn=target_fn,
-                           p_fail=p_fail, dt=dt, every=every)
+        try:  # V3 of SPEC §3.6 needs the frame period: checked here
+            loop = SampledLoop(scene, controller, plant, disturbance, measure=measure, target_fn=target_fn,
+                               p_fail=p_fail, dt=dt, every=every)
+        except ConfigError as err:
+            raise explain_steering(plant, err) from None
         arc = solve_sampled(loop, loop.initial(c0, rng), dt=dt, n_steps=sim.n_steps, every=every, rng=rng,
                             monitor=monitor, record_every=record_every, record=record,
                             progress=f"simulate {controller.name}" if progress else None)
