@@ -158,11 +158,12 @@ def test_steering_warnings(capsys):
 
 
 # ---- the experiments: dense_fields and dense_unicycle end to end on tiny sizes
-@pytest.mark.parametrize("exp", ["dense_fields", "dense_unicycle"])
+@pytest.mark.parametrize("exp", ["dense_fields", pytest.param("dense_unicycle", marks=pytest.mark.slow)])
 def test_dense_experiments_run_end_to_end(tmp_path, exp):
     from pipeline.experiments.stage import run
     cfg = compose("experiments", [f"paths.paper_dir={tmp_path / 'paper'}", f"paths.outputs_dir={tmp_path / 'out'}",
-                                  "perception=oracle", "debug=tiny", f"experiment={exp}", "publish=true"])
+                                  "perception=oracle", "debug=tiny", f"experiment={exp}", "publish=true",
+                                  "sim.horizon=10", "experiment.benchmark_m=[0.2]", "experiment.alternating_eps=null"])
     out = run(cfg)
     t = out["results"].tables["summary"].set_index(["condition", "controller"])
     hyb = t.xs("hybrid", level="controller")
