@@ -44,8 +44,12 @@ def resolve(ref: str):
     return getattr(importlib.import_module(module), name)
 
 
-def _reprefix(err: ConfigError, path: str) -> ConfigError:
+def _reprefix(err: ConfigError, path: str, objects=()) -> ConfigError:
+    """`err` naming the config path `path`; a field of an object passed in (`objects`, e.g. the `scene` a controller
+    checks against) keeps its own name (`scene.obstacles[0,4]`, not `controller.obstacles[0,4]`)."""
     field = err.field
+    if any(field == o or field.startswith((o + ".", o + "[")) for o in objects):
+        return err
     if path and not (field == path or field.startswith(path + ".") or field.startswith(path + "[")):
         tail = field.split(".", 1)[-1] if "." in field else field
         field = f"{path}.{tail}" if field not in ("", "_target_") else path
@@ -70,7 +74,7 @@ def build(node, path: str, /, **kwargs):
         # partial first: Hydra would turn a dataclass keyword (a Scene) into a config node
         obj = instantiate(clean, _partial_=True, _convert_="all", _recursive_=False)(**kwargs)
     except ConfigError as err:
-        raise _reprefix(err, path) from None
+        raise _reprefix(err, path, kwargs) from None
     except PipelineError:
         raise
     except InstantiationException as err:
@@ -78,7 +82,7 @@ def build(node, path: str, /, **kwargs):
         while cause is not None and not isinstance(cause, PipelineError):
             cause = cause.__cause__
         if isinstance(cause, ConfigError):
-            raise _reprefix(cause, path) from None
+            raise _reprefix(cause, path, kwargs) from None
         if cause is not None:
             raise cause from None
         raise ConfigError(path, str(err).splitlines()[0]) from None

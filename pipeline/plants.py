@@ -168,3 +168,33 @@ class Unicycle(Plant):
         p = np.array(p, dtype=float).reshape(-1, 2)
         th = np.zeros(len(p)) if heading is None else np.asarray(heading, dtype=float).reshape(-1)
         return np.column_stack([p, th])
+
+
+def explain_steering(plant: Plant, err: ConfigError) -> ConfigError:
+    """`err` (raised on the plant's steering scene) naming what the unicycle changes: its controller steers the
+    look-ahead point around every disc grown by `vehicle.lookahead` (SPEC §3.7), so a radius, apex or distance in
+    the message is the inflated one."""
+    d = getattr(plant, "lookahead", None)
+    if d is None or "vehicle.lookahead" in err.reason:
+        return err
+    return ConfigError(err.field, f"{err.reason} (the unicycle's look-ahead point steers around every disc grown by "
+                                  f"vehicle.lookahead = {d:g}: the radii, apexes and distances here are the inflated "
+                                  f"ones; a smaller vehicle.lookahead or a sparser scene helps)")
+
+
+def steering_warnings(plant: Plant, controller) -> list[str]:
+    """Lines warning that the unicycle cannot follow its look-ahead steering (SPEC §3.7; docs/multi.md): the law's
+    speed limit turns it at up to `u_max / d`, past `omega_max`; a push-out at `push_speed >= omega_max d / 2` can
+    hold it in a period-2 orbit at a face. Empty for a plant without a look-ahead."""
+    d, w = getattr(plant, "lookahead", None), getattr(plant, "omega_max", None)
+    if d is None or w is None:
+        return []
+    out = []
+    u_max, push = getattr(controller, "u_max", None), getattr(controller, "push_speed", None)
+    if u_max is not None and u_max / d > w:
+        out.append(f"vehicle.lookahead: the steering asks |ω| up to controller.u_max / d = {u_max / d:.3g} rad/s, past "
+                   f"vehicle.omega_max = {w:.3g}: the unicycle cannot follow it at full speed (saturated frames)")
+    if push is not None and getattr(controller, "hybrid", False) and push >= w * d / 2:
+        out.append(f"controller.push_speed: {push:g} >= omega_max d / 2 = {w * d / 2:.3g}: a push-out can hold the "
+                   f"unicycle at a face in a period-2 orbit (docs/multi.md, push-out speed)")
+    return out

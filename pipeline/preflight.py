@@ -46,6 +46,24 @@ def _split_argv(argv: list[str], config_name: str) -> tuple[str, list[str], bool
     return config_name, overrides, False
 
 
+def _search_path(argv: list[str]) -> list[str]:
+    """The `hydra.searchpath=[...]` override that puts a user's own config folders beside the project's: from
+    `--config-dir DIR` / `-cd DIR` and from the command line's own `hydra.searchpath=[...]` (empty: none), so
+    that the preflight composes the scenes and starts a user keeps outside the repository as Hydra will."""
+    import os
+
+    dirs, it = [], iter(argv)
+    for a in it:
+        if a in ("-cd", "--config-dir"):
+            dirs.append("file://" + os.path.abspath(next(it, "")))
+        elif a.startswith("--config-dir="):
+            dirs.append("file://" + os.path.abspath(a.split("=", 1)[1]))
+        elif a.lstrip("+").startswith("hydra.searchpath="):
+            value = a.split("=", 1)[1].strip()
+            dirs += [d.strip().strip("'\"") for d in value.strip("[]").split(",") if d.strip()]
+    return [f"hydra.searchpath=[{','.join(dirs)}]"] if dirs else []
+
+
 def _group_options(group: str) -> list[str]:
     return sorted(p.stem for p in (CONF_DIR / group).glob("*.yaml"))
 
@@ -131,11 +149,12 @@ def preflight(config_name: str, argv: list[str], check: Callable[[DictConfig], N
         key, _, value = a.lstrip("+").partition("=")
         if key in ("hydra.run.dir", "hydra.sweep.dir") and value and "${" not in value:
             check_folder(value, key)
+    search = _search_path(argv)
     _check_hydra_groups(config_name, argv)
     jobs = _expand(overrides)
     for job in jobs:
         try:
-            cfg = compose(config_name, job, check=False)
+            cfg = compose(config_name, [*search, *job], check=False)
         except PipelineError:
             raise
         except Exception as err:  # noqa: BLE001 - Hydra composition errors, reported in one line
@@ -143,7 +162,7 @@ def preflight(config_name: str, argv: list[str], check: Callable[[DictConfig], N
         added = _added_keys(job)
         base = None
         if any(o.startswith("++") for o in job):
-            base = compose(config_name, [o for o in job if not o.startswith("++")], check=False)
+            base = compose(config_name, [*search, *(o for o in job if not o.startswith("++"))], check=False)
         added = [k for k in added if base is None or OmegaConf.select(base, k, default="__missing__") == "__missing__"]
         check_schema(cfg, added)
         check_paths(cfg.get("paths"))

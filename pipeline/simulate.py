@@ -6,6 +6,7 @@ resolved config (`.hydra/config.yaml`).
 
 from __future__ import annotations
 
+import sys
 import time
 from pathlib import Path
 
@@ -15,7 +16,7 @@ from pipeline.cli import stage_main
 from pipeline.config import build
 from pipeline.errors import ConfigError
 from pipeline.perception.adversary import is_attack
-from pipeline.plants import SingleIntegrator
+from pipeline.plants import SingleIntegrator, explain_steering, steering_warnings
 from pipeline.sim import frame_steps, simulate
 from pipeline.sim.settings import check_vehicle, run_keywords
 
@@ -27,7 +28,10 @@ def objects(cfg: DictConfig):
     inflated by its look-ahead, SPEC §3.7); the keywords carry the plant and its initial headings."""
     scene = build(cfg.scene, "scene")
     plant = build(cfg.vehicle, "vehicle") if cfg.get("vehicle") is not None else SingleIntegrator()
-    controller = build(cfg.controller, "controller", scene=plant.steering_scene(scene))
+    try:
+        controller = build(cfg.controller, "controller", scene=plant.steering_scene(scene))
+    except ConfigError as err:
+        raise explain_steering(plant, err) from None
     disturbance = build(cfg.disturbance, "disturbance")
     if is_attack(disturbance):
         raise ConfigError("disturbance", f"{disturbance.name} acts through the camera, and this stage simulates the "
@@ -48,6 +52,8 @@ def check(cfg: DictConfig) -> None:
 def run(cfg: DictConfig) -> dict:
     """Run one batched simulation; returns `{"metrics": DataFrame, "result": SimResult, "run_dir": Path}`."""
     scene, controller, disturbance, x0, kw = objects(cfg)  # validate everything before any work
+    for line in steering_warnings(kw["plant"], controller):  # valid, but the unicycle cannot follow (SPEC §3.7)
+        print(f"warning: {line}", file=sys.stderr)
     run_dir = Path(cfg.paths.output_dir)
     t0 = time.perf_counter()
     result = simulate(scene, controller, x0, disturbance=disturbance, progress=len(x0) >= 1000, **kw)

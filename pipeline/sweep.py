@@ -16,6 +16,8 @@ import math
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
@@ -156,4 +158,11 @@ def simulate_headline(out: dict) -> dict:
     """simulate: the share of agents that reached the target, collided, and the median time to target."""
     m = out["metrics"]
     return {"agents": len(m), "success_rate": float(m["success"].mean()), "collision_rate": float(m["collision"].mean()),
-            "median_time_to_target": float(m["time_to_target"].median())}
+            "median_time_to_target": _median(m["time_to_target"])}
+
+
+def _median(x) -> float:
+    """The median of the finite values, NaN (without numpy's 'Mean of empty slice' warning) when there are none."""
+    v = np.asarray(x, dtype=float)
+    v = v[np.isfinite(v)]
+    return float(np.median(v)) if v.size else float("nan")

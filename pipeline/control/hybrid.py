@@ -29,7 +29,7 @@ from pipeline.control.potentials import both_potentials_frame, fused_potentials,
 from pipeline.control.scene import Scene
 from pipeline.control.validity import check_field
 from pipeline.errors import ConfigError
-from pipeline.schema import OpenShare, Positive, Range, checked
+from pipeline.schema import NonNegative, OpenShare, Positive, Range, checked
 
 
 class Evaluation:
@@ -53,7 +53,11 @@ class Evaluation:
 class HybridController(Feedback):
     """The hybrid controller of the paper (SPEC §3.3) over the locally active obstacle (SPEC §3.6).
 
-    `chi > 1`, `lam in (0, chi - 1)`: the hysteresis; `cell_hysteresis` (`h > 0`): the cells' hysteresis.
+    `chi > 1`, `lam in (0, chi - 1)`: the hysteresis; `cell_hysteresis` (`h > 0`): the cells' hysteresis;
+    `noise_tolerance` (`θ >= 0`, null: off): the side hysteresis of docs/dense.md, sized by the perception error the
+    loop must tolerate: a mode jump (the ratio rule or `m ∈ W_q`) only where the perceived position lies past the
+    line `b = 0` by at least `θ` on the side the new mode passes (`q = 1 -> 2` needs `b(m) >= θ`); elsewhere in
+    `W_q` the push-out rule applies.
     """
 
     name = "hybrid"
@@ -62,12 +66,13 @@ class HybridController(Feedback):
 
     def __init__(self, scene: Scene, k: Positive = 1.0, chi: Annotated[float, Range(gt=1)] = 1.1, lam: Positive = 0.09,
                  u_max: Positive | None = 10.0, push_speed: Positive | None = None, cell_hysteresis: Positive = 1.0,
-                 guard: bool = True, guard_gamma: OpenShare = 0.5):
+                 guard: bool = True, guard_gamma: OpenShare = 0.5, noise_tolerance: NonNegative | None = None):
         super().__init__(scene, k=k, u_max=u_max, push_speed=push_speed)
         if not lam < chi - 1:
             raise ConfigError("controller.lam", f"must be in (0, chi - 1) = (0, {chi - 1:.6g}), got {lam!r}")
         self.chi, self.lam, self.h = float(chi), float(lam), float(cell_hysteresis)
         self.guard, self.gamma = bool(guard), float(guard_gamma)
+        self.theta = None if noise_tolerance is None else float(noise_tolerance)
         self.M = scene.n_obstacles
         if self.M > 1:  # SPEC §3.6's validity: V1 (every target rule), V2 (the cells), the discs in the arena
             arr = scene.arrays
@@ -175,6 +180,8 @@ class HybridController(Feedback):
             _, Vq, Vo = self._modes(ev, xd["q"])
             with np.errstate(invalid="ignore"):
                 mode = (Vq > 0) & np.isfinite(Vo) & (Vq >= (self.chi - self.lam) * Vo)
+            if self.theta is not None:
+                mode &= self._past_line(ev, xd["q"])
             jump[ev.idx] |= mode
         return jump
 
@@ -198,8 +205,17 @@ class HybridController(Feedback):
         if ev.idx.size:
             _, Vq, Vo = self._modes(ev, xd["q"])
             with np.errstate(invalid="ignore"):
-                inside[ev.idx] &= np.isfinite(Vq) & (Vq <= self.chi * Vo)
+                flow = np.isfinite(Vq) & (Vq <= self.chi * Vo)
+            if self.theta is not None:
+                flow |= ~self._past_line(ev, xd["q"])
+            inside[ev.idx] &= flow
         return inside
+
+    def _past_line(self, ev: Evaluation, q: np.ndarray) -> np.ndarray:
+        """For the rows `ev.idx`: the perceived position lies past `b = 0` by at least `θ` on the side of the other
+        mode (`b >= θ` in mode 1, `b <= -θ` in mode 2): where the side hysteresis lets a mode jump happen."""
+        b = ev.b[ev.idx]
+        return np.where(q[ev.idx] == 1, b, -b) >= self.theta
 
     def flow_map(self, m, xd, target=None, ev=None) -> np.ndarray:
         """Eq. (gradient_flows1) `u = -k ∇V_q(m)` saturated at `u_max`; where `m ∉ O_q` (perception error

@@ -391,7 +391,9 @@ def check_field(*args, **kwargs) -> None:
     found = field_violations(*args, **kwargs)
     if found:
         v = found[0]
-        more = f" [{len(found) - 1} more violation(s) of SPEC §3.6's conditions]" if len(found) > 1 else ""
+        sampled = kwargs.get("u_max") is not None and kwargs.get("T_s") is not None
+        which = "V1-V3" if sampled else "V1-V2 (V3 is checked once the frame period is known)"
+        more = f" [{len(found) - 1} more violation(s) of SPEC §3.6's {which}]" if len(found) > 1 else ""
         raise ConfigError(v.field, v.message + more)
 
 

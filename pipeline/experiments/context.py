@@ -22,7 +22,7 @@ from pipeline.errors import ConfigError, DatasetError, ModelError
 from pipeline.experiments.settings import ExperimentSettings
 from pipeline.perception.adversary import is_attack, proposition1_direction
 from pipeline.perception.measure import CameraMeasure, FollowerTarget, LeaderTrack, OracleMap
-from pipeline.plants import SingleIntegrator
+from pipeline.plants import SingleIntegrator, explain_steering, steering_warnings
 from pipeline.render import load_occlusion
 from pipeline.sim import frame_steps, simulate, true_state
 from pipeline.sim.metrics import summarise_agents, wilson  # noqa: F401 - wilson: for the scenarios
@@ -88,6 +88,7 @@ class Context:
         self.frame_period = self.camera_settings.period
         self.gate = self.camera_settings.gate  # camera.gate: doubtful frames of a map with an uncertainty head are failures
         self.seed = self.sim.seed
+        self.warned: set[str] = set()  # steering warnings printed (once each)
         self.used: dict[str, str] = {}  # inputs used (map/dataset/error-map ids), for the index
         self._maps: dict = {}
         self.bar = None  # the stage's progress (pipeline.progress): one step per simulation (a batch of agents)
@@ -122,8 +123,11 @@ class Context:
         vehicle's steering scene of `scene` (the unicycle's look-ahead point: every disc inflated, SPEC §3.7)."""
         node = self._node("controllers", name)
         node = node if not params else {**tracking.to_plain(node), **params}
-        ctrl = build(node, "controller" if name == "hybrid" else f"controllers.{name}",
-                     scene=self.vehicle.steering_scene(scene or self.scene))
+        try:
+            ctrl = build(node, "controller" if name == "hybrid" else f"controllers.{name}",
+                         scene=self.vehicle.steering_scene(scene or self.scene))
+        except ConfigError as err:
+            raise explain_steering(self.vehicle, err) from None
         ctrl.name = name
         return ctrl
 
@@ -247,6 +251,10 @@ class Context:
                   stop_on_success=self.sim.stop_on_success if stop_on_success is None else bool(stop_on_success))
         scene = scene or self.scene
         x0 = np.asarray(x0, float)
+        for line in steering_warnings(self.vehicle, controller):  # valid, but the unicycle cannot follow it
+            if line not in self.warned:
+                self.warned.add(line)
+                print(f"warning: {line}", file=sys.stderr)
         res = simulate(scene, controller, x0, disturbance=disturbance, measure=measure, target_fn=target_fn,
                        progress=len(x0) >= 2000 and sys.stderr.isatty(), plant=self.vehicle,
                        heading0=self.vehicle.initial_heading(x0, scene), **kw)

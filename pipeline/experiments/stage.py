@@ -36,7 +36,7 @@ from pipeline.progress import progress
 # the code whose changes change the numbers (figures.py and report.py only draw)
 COMPUTE_CODE = ("experiments/scenario", "experiments/theory", "experiments/camera_loop", "experiments/generalisation",
                 "experiments/multi", "experiments/unicycle", "experiments/context", "experiments/attacks",
-                "experiments/margin",
+                "experiments/margin", "experiments/dense",
                 "perception/measure", "perception/metrics", "perception/attacks", "perception/adversary", "control",
                 "hybrid", "plants", "sim", "render", "data/sampling", "data/recipe")
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.schema import NonNegative, checked
+from pipeline.schema import NonNegative, Pair, checked
 
 
 def _frame_b(p: np.ndarray, scene) -> tuple[np.ndarray, np.ndarray]:
@@ -79,3 +79,19 @@ class Adversarial(Disturbance):
         sign = np.where(b >= 0, 1.0, -1.0)
         return -self.eps * sign[:, None] * e_b
 
+
+
+@checked("disturbance")
+class WorldAlternating(Disturbance):
+    """The hybrid-RL benchmark's noise: `e = s m (d_x, d_y)` in a world-fixed direction, `s = ±1` flipping every
+    frame; with `direction = (1, -1)` this is its `s (m, -m)` (norm `sqrt(2) m`)."""
+
+    name = "world_alternating"
+
+    def __init__(self, m: NonNegative = 0.05, direction: Pair = (1.0, -1.0)):
+        self.m = float(m)
+        self.direction = [float(x) for x in direction]
+
+    def __call__(self, p, frame, rng, scene):
+        sign = 1.0 if frame % 2 == 0 else -1.0
+        return np.broadcast_to(sign * self.m * np.asarray(self.direction), p.shape).copy()

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from typing import Annotated, Literal
 
 from pipeline.errors import ConfigError
-from pipeline.schema import NonNegative, NonNegativeInt, Positive, PositiveInt, Range, checked
+from pipeline.schema import NonNegative, NonNegativeInt, OpenShare, Positive, PositiveInt, Range, checked
 
 TimeModel = Literal["sampled", "continuous"]
 Method = Literal["rosenbrock23", "dopri5"]
@@ -36,7 +36,8 @@ class SimSettings:
     rtol: Positive = 1e-6
     atol: Positive = 1e-4
     h_max: Positive = 0.25
-    stall_speed: Positive = 0.25
+    stall_speed: Positive | None = None
+    stall_share: OpenShare = 0.025
     stall_time: Positive = 5.0
 
     def __post_init__(self):
@@ -85,5 +86,5 @@ def check_vehicle(plant, sim: SimSettings) -> None:
 def run_keywords(sim: SimSettings, camera: CameraSettings) -> dict:
     """The keywords of :func:`pipeline.sim.simulate` that the two settings nodes give."""
     keys = ("model", "dt", "horizon", "delta", "record_every", "stop_on_success", "seed", "method", "rtol", "atol",
-            "h_max", "stall_speed", "stall_time")
+            "h_max", "stall_speed", "stall_share", "stall_time")
     return {**{k: getattr(sim, k) for k in keys}, "camera_period": camera.period, "p_fail": camera.p_fail}

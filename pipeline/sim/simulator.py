@@ -17,7 +17,7 @@ import pandas as pd
 
 from pipeline.errors import ConfigError
 from pipeline.hybrid import solve_continuous, solve_sampled
-from pipeline.plants import Plant, SingleIntegrator
+from pipeline.plants import Plant, SingleIntegrator, explain_steering
 from pipeline.sim.closed_loop import ContinuousLoop, Measure, SampledLoop, TargetFn, true_state
 from pipeline.sim.metrics import StallMonitor, outcome
 from pipeline.sim.monitor import COLLISION, TARGET, ArrivalCollision
@@ -64,13 +64,22 @@ class SimResult:
 _SIM, _CAMERA = SimSettings(), CameraSettings()  # the defaults: conf/sim/default.yaml, conf/camera/default.yaml
 
 
+def stall_threshold(sim: SimSettings, controller) -> float:
+    """The stall speed of the outcome classes: `sim.stall_speed` when set, else `sim.stall_share` of the controller's
+    speed limit (of 10, the default `u_max`, for a law without one): 0.25 at the defaults."""
+    if sim.stall_speed is not None:
+        return float(sim.stall_speed)
+    u_max = getattr(controller, "u_max", None)
+    return sim.stall_share * (10.0 if u_max is None else float(u_max))
+
+
 def simulate(scene, controller, x0: np.ndarray, *, dt: float = _SIM.dt, horizon: float = _SIM.horizon,
              delta: float = _SIM.delta, camera_period: float | None = _CAMERA.period, p_fail: float = _CAMERA.p_fail,
              disturbance=None, measure: Measure | None = None, target_fn: TargetFn | None = None,
              seed: int | np.random.Generator = _SIM.seed, record_every: int = _SIM.record_every, record: bool = True,
              stop_on_success: bool = _SIM.stop_on_success, progress: bool = False, model: str = _SIM.model,
              rtol: float = _SIM.rtol, atol: float = _SIM.atol, h_max: float = _SIM.h_max, method: str = _SIM.method,
-             stall_speed: float = _SIM.stall_speed, stall_time: float = _SIM.stall_time, plant: Plant | None = None,
+             stall_speed: float | None = _SIM.stall_speed, stall_share: float = _SIM.stall_share, stall_time: float = _SIM.stall_time, plant: Plant | None = None,
              heading0: np.ndarray | None = None) -> SimResult:
     """Simulate all agents of `x0` `(N, 2)` at once (see the module docstring); the settings are checked by
     :class:`SimSettings` and :class:`CameraSettings`, whose defaults (the YAML's) are these keywords'.
@@ -80,11 +89,12 @@ def simulate(scene, controller, x0: np.ndarray, *, dt: float = _SIM.dt, horizon:
     integrates the hybrid arcs adaptively (`method`, `rtol`, `atol`, `h_max`; `dt` is then the record grid only)
     and takes the true state only. `plant` (default: the single integrator) with `heading0` (the unicycle's
     initial headings). Outcome per agent (`metrics['outcome']`): `reached`, `collided`, `stalled` (mean speed
-    below `stall_speed` over the last `stall_time` seconds, away from the target) or `timed_out`.
+    below `stall_speed` over the last `stall_time` seconds, away from the target; `stall_speed` None: `stall_share`
+    of the controller's `u_max`, of 10 (the default `u_max`) when it has none) or `timed_out`.
     """
     sim = SimSettings(model=model, dt=dt, horizon=horizon, delta=delta, record_every=record_every,
                       stop_on_success=stop_on_success, method=method, rtol=rtol, atol=atol, h_max=h_max,
-                      stall_speed=stall_speed, stall_time=stall_time)
+                      stall_speed=stall_speed, stall_share=stall_share, stall_time=stall_time)
     CameraSettings(period=camera_period, p_fail=p_fail)
     every = frame_steps(dt, camera_period)
     plant = plant or SingleIntegrator()
@@ -94,7 +104,7 @@ def simulate(scene, controller, x0: np.ndarray, *, dt: float = _SIM.dt, horizon:
     check_vehicle(plant, sim)
     c0 = plant.lift(x0, heading0)
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
-    stall = StallMonitor(len(x0), sim.stall_speed, sim.stall_time, dt)
+    stall = StallMonitor(len(x0), stall_threshold(sim, controller), sim.stall_time, dt)
     monitor = ArrivalCollision(scene, plant, len(x0), delta=delta, stop_on_success=stop_on_success, stall=stall)
     if model == "continuous":
         if (measure is not None and measure is not true_state) or target_fn is not None or p_fail > 0:
@@ -107,8 +117,11 @@ def simulate(scene, controller, x0: np.ndarray, *, dt: float = _SIM.dt, horizon:
                                record=record, rtol=rtol, atol=atol, h_max=h_max, method=method)
         m = arc.c + arc.d["e"]
     else:
-        loop = SampledLoop(scene, controller, plant, disturbance, measure=measure, target_fn=target_fn,
-                           p_fail=p_fail, dt=dt, every=every)
+        try:  # V3 of SPEC §3.6 needs the frame period: checked here
+            loop = SampledLoop(scene, controller, plant, disturbance, measure=measure, target_fn=target_fn,
+                               p_fail=p_fail, dt=dt, every=every)
+        except ConfigError as err:
+            raise explain_steering(plant, err) from None
         arc = solve_sampled(loop, loop.initial(c0, rng), dt=dt, n_steps=sim.n_steps, every=every, rng=rng,
                             monitor=monitor, record_every=record_every, record=record,
                             progress=f"simulate {controller.name}" if progress else None)

@@ -60,12 +60,45 @@ class Points:
     points: Annotated[list[Pair], NonEmpty()] = field(default_factory=lambda: [[-12.0, 2.0], [-37.0, -17.0]])
 
     def __call__(self, scene: Scene, field_: str = "init") -> np.ndarray:
-        pts = np.asarray(self.points, dtype=float)
-        inside = _in_obstacle(scene, pts)
-        if inside.any():
-            i = int(np.flatnonzero(inside)[0])
-            raise ConfigError(f"{field_}.points", f"start {pts[i].tolist()} lies inside an obstacle")
-        return pts
+        return _clear_of_diamonds(scene, np.asarray(self.points, dtype=float), f"{field_}.points")
+
+
+def _clear_of_diamonds(scene: Scene, pts: np.ndarray, name: str) -> np.ndarray:
+    """`pts`, after checking SPEC §3.6's start rule: every start outside every obstacle and every diamond."""
+    inside = _in_obstacle(scene, pts)
+    if inside.any():
+        i = int(np.flatnonzero(inside)[0])
+        raise ConfigError(name, f"start {pts[i].tolist()} lies inside an obstacle")
+    arr = scene.arrays
+    rel = pts[:, None, :] - arr["center"][None]
+    a = np.einsum("nmk,mk->nm", rel, arr["e_a"])
+    b = np.einsum("nmk,mk->nm", rel, arr["e_b"])
+    hit = np.abs(a) + np.abs(b) <= arr["c"][None]
+    if hit.any():
+        k, i = (int(x[0]) for x in np.nonzero(hit))
+        raise ConfigError(name, f"start {pts[k].tolist()} lies inside obstacle {i}'s diamond |a| + |b| <= c = "
+                                f"{arr['c'][i]:.3g} (SPEC §3.6: every start outside every diamond); move it or "
+                                f"shrink scene.obstacles[{i}].apex")
+    return pts
+
+
+@checked("init")
+@dataclass(frozen=True)
+class Circle:
+    """`n` starts evenly spaced on the circle of `radius` about `center` (null: the target), from angle `phase`
+    (radians): the hybrid-RL benchmark's starts (radius 7 about the goal). Every start must lie outside every
+    diamond (SPEC §3.6)."""
+
+    n: PositiveInt = 100
+    radius: Positive = 7.0
+    center: Pair | None = None
+    phase: float = 0.0
+
+    def __call__(self, scene: Scene, field_: str = "init") -> np.ndarray:
+        c = scene.p_T if self.center is None else np.asarray(self.center, dtype=float)
+        th = self.phase + 2.0 * np.pi * np.arange(self.n) / self.n
+        pts = c + self.radius * np.stack([np.cos(th), np.sin(th)], axis=1)
+        return _clear_of_diamonds(scene, pts, field_)
 
 
 @checked("init")

@@ -1,0 +1,106 @@
+"""Dense fields (issue 29; docs/dense.md): the hybrid controller's dense design against the smooth and CBF
+baselines on the hybrid-RL benchmark's clutter, under its noise (`s (m, -m)`, world-fixed, flipping every frame),
+the alternating noise of norm `eps` in the nearest obstacle's frame and SPEC §3.5's adversary near every disc.
+
+The scenes: the bundle's `presets` (scene nodes composed by its defaults list: `case6`, `case6_variant`) and
+`n_scenes` redraws of the composed `scene` (a `pipeline.control.dense.dense_scene` node, `scene=dense`) with
+seeds `scene_seed + j`; the starts: `n_agents` on the circle of `start_radius` about the goal (the benchmark's).
+The vehicle is the composed one (`vehicle=unicycle` in the unicycle bundle); every controller on its steering
+scene (SPEC §3.7).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import ClassVar
+
+import pandas as pd
+
+from pipeline import tracking
+from pipeline.config import build
+from pipeline.control import Scene
+from pipeline.errors import ConfigError
+from pipeline.experiments.context import Context, Results
+from pipeline.experiments.multi import summarise_field
+from pipeline.experiments.scenario import Scenario, _agent_rows
+from pipeline.schema import NonNegative, NonNegativeInt, Positive, PositiveInt
+from pipeline.sim import starts
+
+DENSE_SCENE = "pipeline.control.dense.dense_scene"
+
+
+def dense_scenes(ctx: Context, presets: dict, n_scenes: int, seed: int) -> list[tuple[str, Scene]]:
+    """The preset scenes (`experiment.presets.<name>`), then `n_scenes` redraws of the composed dense scene."""
+    out = [(name, build(node, f"experiment.presets.{name}")) for name, node in presets.items()]
+    node = tracking.to_plain(ctx.cfg.scene)
+    if n_scenes and node.get("_target_") != DENSE_SCENE:
+        raise ConfigError("scene", f"this experiment redraws dense fields: needs scene=dense (a {DENSE_SCENE} node), "
+                                   f"got {node.get('_target_')}")
+    for j in range(n_scenes):
+        name = f"{node.get('name', 'dense')}{j:02d}"
+        out.append((name, build({**node, "seed": int(seed) + j, "name": name}, "scene")))
+    return out
+
+
+@dataclass(kw_only=True)
+class DenseFields(Scenario):
+    """Hybrid (the composed controller: `hybrid_dense`) vs smooth vs CBF on dense scenes from the benchmark's
+    starts, under each noise level `m` of the benchmark, the alternating noise of norm `alternating_eps` and the
+    adversary of `adversary_eps` (null: left out): success and collisions with Wilson intervals, stalls
+    (traps), time, jumps and push-outs, pooled and per scene."""
+
+    figures: ClassVar[str] = "pipeline.experiments.dense_figures:draw_dense_fields"
+    presets: dict = field(default_factory=dict)   # scene nodes by name (the bundle's defaults list)
+    n_scenes: NonNegativeInt = 4
+    scene_seed: NonNegativeInt = 0
+    controllers: list[str] = field(default_factory=lambda: ["hybrid", "smooth", "cbf"])
+    benchmark_m: list[float] = field(default_factory=lambda: [0.05, 0.2])
+    alternating_eps: NonNegative | None = 0.28
+    adversary_eps: NonNegative | None = 0.28
+    n_agents: PositiveInt = 100
+    start_radius: Positive = 7.0
+    n_drawn: PositiveInt = 100     # agents of the first scene recorded for the figure, per controller
+
+    def validate(self) -> None:
+        if not self.presets and not self.n_scenes:
+            raise ConfigError("experiment.n_scenes", "must be >= 1 when there are no presets (no scene to run)")
+
+    def uses(self):
+        dist = ["world_alternating"] * bool(self.benchmark_m) + ["alternating"] * (self.alternating_eps is not None) \
+            + ["adversarial"] * (self.adversary_eps is not None)
+        return {"controllers": list(self.controllers), "disturbances": dist, "occlusions": []}
+
+    def conditions(self, ctx: Context) -> list[tuple[str, object]]:
+        out = [(f"benchmark m={m:g}", ctx.disturbance("world_alternating", m=m)) for m in self.benchmark_m]
+        if self.alternating_eps is not None:
+            out.append((f"alternating {self.alternating_eps:g}", ctx.disturbance("alternating", eps=self.alternating_eps)))
+        if self.adversary_eps is not None:
+            out.append((f"adversary {self.adversary_eps:g}", ctx.disturbance("adversarial", eps=self.adversary_eps)))
+        return out
+
+    def compute(self, ctx: Context) -> Results:
+        n_scenes = ctx.n(self.n_scenes, minimum=0 if self.presets else 1) if self.n_scenes else 0
+        scenes = dense_scenes(ctx, self.presets, n_scenes, self.scene_seed)
+        conds = self.conditions(ctx)
+        ctx.expect(len(scenes) * len(conds) * len(self.controllers))
+        n, frames, arrays = ctx.n(self.n_agents, minimum=4), [], {}
+        for j, (label, scene) in enumerate(scenes):
+            x0 = starts.Circle(n=n, radius=self.start_radius)(scene, "experiment.start_radius")
+            for cond, dist in conds:
+                for ctrl in self.controllers:
+                    rec = j == 0 and cond == conds[-1][0]
+                    res = ctx.simulate(ctx.controller(ctrl, scene=scene), x0, scene=scene, disturbance=dist,
+                                       record=rec)
+                    if rec:
+                        arrays[f"p_{ctrl}"] = res.p[:, : self.n_drawn]
+                    frames.append(_agent_rows(res, scene=label, condition=cond, obstacles=scene.n_obstacles))
+            print(f"[experiments] {self.id}: {label} done ({j + 1}/{len(scenes)})", flush=True)
+        metrics = pd.concat(frames, ignore_index=True)
+        table = summarise_field(metrics, ["condition", "controller"], ctx.seed)
+        per_scene = summarise_field(metrics, ["scene", "condition", "controller"], ctx.seed)
+        return Results({"metrics": metrics, "summary": table, "per_scene": per_scene}, arrays,
+                       {"scenes": [s for s, _ in scenes], "first": scenes[0][1].config(),
+                        "vehicle": ctx.vehicle.name})
+
+
+__all__ = ["DenseFields", "dense_scenes"]
