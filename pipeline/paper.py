@@ -127,6 +127,10 @@ def run(cfg) -> dict:
     datasets, maps, errormaps, experiments = list(cfg.datasets), list(cfg.maps), list(cfg.errormaps), list(cfg.experiments)
     lock: dict[str, dict[str, Path]] = {"datasets": {}, "maps": {}, "errormaps": {}, "experiments": {}}
     ds_root, models_root = Path(cfg.paths.datasets_dir), Path(cfg.paths.models_dir)
+    debug = debug_overrides(cfg)
+    if debug:
+        print(f"[paper] {debug[0]}: a smoke run at tiny sizes; its figures, tables and lock go to "
+              f"{cfg.paths.paper_dir} (the paper's folder is left as it is)", flush=True)
 
     run_stage("data", ["-m", f"data={','.join(datasets)}", *paths, *args["data"]], timings, stop)
     for name in datasets:
@@ -164,7 +168,7 @@ def run(cfg) -> dict:
             if entry.is_file():
                 lock["experiments"][exp] = (paper_dir / json.loads(entry.read_text())["cache"]).resolve()
     lock = {k: {n: f for n, f in v.items() if tracking.is_complete(f)} for k, v in lock.items()}
-    lock_path = write_lock(Path(cfg.paths.paper_dir) / cfg.lock, lock)
+    lock_path = write_lock(Path(cfg.paths.paper_dir) / cfg.lock, lock, debug=cfg.get("debug") or "none")
     if (Path(cfg.paths.paper_dir) / "index").is_dir():
         write_index(Path(cfg.paths.paper_dir))
     total = time.perf_counter() - t0

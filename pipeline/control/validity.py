@@ -52,7 +52,7 @@ STARTS_FIELD = "init.points"
 HYSTERESIS_FIELD = "controller.cell_hysteresis"
 U_MAX_FIELD = "controller.u_max"
 PERIOD_FIELD = "camera.period"
-RANDOM_FIELD = "scene.random"
+RANDOM_FIELD = "scene"   # a random field is the `scene` node itself (conf/scene/field.yaml)
 
 
 # ----------------------------------------------------------------------------- derived quantities

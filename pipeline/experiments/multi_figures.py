@@ -50,7 +50,7 @@ def draw_multi_cells(scen, ctx, res, out) -> None:
         ax.scatter(p[:, n, 0], p[:, n, 1], c=i[:, n], cmap=plt.get_cmap("tab10"), vmin=0, vmax=9, s=3, zorder=4)
     draw_frame(ax, scene, ctx.arena)
     ax.set_title("active potential min_q V_i^q on each cell; true-state runs coloured by the active obstacle", fontsize=9)
-    out.figure(fig, "fig14_multi_cells", "Several obstacles (SPEC §3.6): the cells of the locally active obstacle with "
+    out.figure(fig, "fig17_multi_cells", "Several obstacles (SPEC §3.6): the cells of the locally active obstacle with "
                "each obstacle's diamond and D_i, the hysteresis band, the active level sets and true-state runs.")
     out.table(res.tables["obstacles"], "tab_multi_cells",
               f"The field's obstacles: apex c_i, barrier reach rho_i, R_i, V1 slack (|p_T - c_i| - R_i), share of the "
@@ -69,7 +69,7 @@ def draw_multi_adversarial(scen, ctx, res, out) -> None:
     ax.legend()
     n = len(res.info["scenes"])
     ax.set_title(f"starts near every obstacle's K, {n} random fields", fontsize=9)
-    out.figure(fig, "fig15_multi_adversarial", f"Proposition 1 behind every obstacle: success versus ε from starts "
+    out.figure(fig, "fig18_multi_adversarial", f"Proposition 1 behind every obstacle: success versus ε from starts "
                f"near each obstacle's set K on {n} random valid fields (hybrid vs smooth vs CBF).")
     out.table(_columns(t, ["eps", "controller"]), "tab_multi_adversarial",
               "Success versus ε near every obstacle's K (Wilson CIs), with jumps by kind and push-outs per agent.")
@@ -106,7 +106,7 @@ def draw_multi_monte_carlo(scen, ctx, res, out) -> None:
     if first is not None:
         runs = {c: res.arrays[f"p_{c}"] for c in ctrls if f"p_{c}" in res.arrays}
         _field_runs(axes[1], first, first.bounds, runs, f"the first field ({first.name}): the same starts")
-    out.figure(fig, "fig16_multi_monte_carlo", "Monte Carlo over random valid fields (3–5 discs): success by "
+    out.figure(fig, "fig19_multi_monte_carlo", "Monte Carlo over random valid fields (3–5 discs): success by "
                "condition and controller, and runs on the first field.")
     out.table(_columns(t, ["condition", "controller"]), "tab_multi_monte_carlo",
               "Random valid fields x starts x disturbances x controllers: success/collision with Wilson CIs, outcome "
@@ -123,7 +123,7 @@ def draw_multi_camera(scen, ctx, res, out) -> None:
     for c in runs:
         m = res.arrays[f"m_{c}"]
         ax.plot(m[:, :, 0].ravel(), m[:, :, 1].ravel(), ".", ms=0.8, color=COLORS.get(c), alpha=0.3)
-    out.figure(fig, "fig17_multi_camera", "Hybrid, smooth and CBF on a 5-disc field with the CNN in the loop under "
+    out.figure(fig, "fig20_multi_camera", "Hybrid, smooth and CBF on a 5-disc field with the CNN in the loop under "
                "heavy clouds (dots: the perceived positions).")
     out.table(_columns(t, ["condition", "controller"]) .assign(perception_error_mean=t["perception_error_mean"]),
               "tab_multi_camera", "Camera in the loop on the field (learned map, clouds): outcomes with Wilson CIs and "
