@@ -159,6 +159,8 @@ def run(cfg) -> dict:
             lock["errormaps"][name] = Path(cfg.paths.errormaps_dir) / em_refs[name]
     if experiments:
         pins = experiment_pins(compose("experiments", paths), map_refs, em_refs)
+        if not any(p.startswith("paths.paper_dir=") for p in paths):  # the folder this job indexes and locks
+            pins.append(f"paths.paper_dir={cfg.paths.paper_dir}")
         run_stage("experiments", ["-m", f"experiment={','.join(experiments)}", *pins, *paths, "publish=true",
                                   *args["experiments"]],
                timings, stop)
