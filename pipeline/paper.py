@@ -3,8 +3,10 @@
 Inputs are pinned by id from stage to stage: the paper job computes the id each stage's config produces
 (with the `args` overrides), passes `maps.clean=clean-<id>` etc. to the next stage, and writes
 `outputs/paper/paper.lock.yaml` listing every dataset, map, error map and experiment result with its config
-hash and code version. Stages skip work whose tracked output is up to date, so a second `make paper` with
-nothing changed only re-draws the figures; another folder of the same name made on the side changes nothing.
+hash and code version, and the run's debug level. Stages skip work whose tracked output is up to date (checked
+against its manifest first), and figures whose inputs did not change are not redrawn, so a second `make paper`
+with nothing changed only starts the stages; another folder of the same name made on the side changes nothing.
+A smoke run (`debug=tiny`) writes its figures, index and lock to `outputs/debug/paper/` (conf/debug/tiny.yaml).
 """
 
 from __future__ import annotations
