@@ -4,10 +4,12 @@ that rebuilds it, exit 2; `force=true` discards an unreadable resume checkpoint 
 
 from __future__ import annotations
 
+import hashlib
 import os
 import shutil
 import subprocess
 import sys
+from types import SimpleNamespace
 
 import pytest
 
@@ -145,17 +147,40 @@ def test_an_unreadable_resume_checkpoint_is_one_line_and_force_retrains_cleanly(
     out = train_run(compose("train", resumable))
     name_id = f"{out['name']}-{out['id']}"
     work = root / "outputs" / "models" / f".work-{name_id}" / "ckpt"
-    work.mkdir(parents=True)
-    best = root / "outputs" / "models" / name_id / "best.ckpt"
-    (work / "last.ckpt").write_bytes(best.read_bytes()[:1000])  # an interrupted run's checkpoint, cut short
+    best = (root / "outputs" / "models" / name_id / "best.ckpt").read_bytes()
     shutil.rmtree(root / "outputs" / "models" / name_id)
-    with pytest.raises(PipelineError, match="resume checkpoint") as err:
+
+    def interrupted(last: bytes, digest: bytes | None = None):
+        work.mkdir(parents=True, exist_ok=True)
+        (work / "last.ckpt").write_bytes(last)
+        if digest is not None:
+            (work / "last.ckpt.sha256").write_text(hashlib.sha256(digest).hexdigest() + "\n")
+
+    interrupted(best[:1000])  # an interrupted run's checkpoint, cut short
+    with pytest.raises(PipelineError, match="resume checkpoint .* unreadable") as err:
         train_run(compose("train", resumable))
     assert str(work / "last.ckpt") in str(err.value) and "force=true" in str(err.value)
     assert "\n" not in str(err.value)
-    again = train_run(compose("train", [*resumable, "force=true"]))
+    flipped = bytearray(best)
+    flipped[len(best) // 2] ^= 0xFF
+    interrupted(bytes(flipped), digest=best)  # altered at the same size: torch would read it
+    with pytest.raises(PipelineError, match="does not match its last.ckpt.sha256"):
+        train_run(compose("train", resumable))
+    again = train_run(compose("train", [*resumable, "force=true"]))  # discards it: a clean run
     assert not again["skipped"] and again["id"] == out["id"]
-    assert not (work.parent).exists() and not tracking.verify(root / "outputs" / "models" / name_id)
+    assert not work.parent.exists() and not tracking.verify(root / "outputs" / "models" / name_id)
+
+
+def test_every_checkpoint_the_train_stage_saves_gets_its_digest(tmp_path, monkeypatch):
+    from lightning.pytorch.callbacks import ModelCheckpoint
+
+    from pipeline.train.stage import _with_digests
+
+    monkeypatch.setattr(ModelCheckpoint, "_save_checkpoint", lambda self, trainer, path: open(path, "wb").write(b"ck"))
+    cb = ModelCheckpoint(dirpath=tmp_path)
+    _with_digests(cb)
+    cb._save_checkpoint(SimpleNamespace(is_global_zero=True), str(tmp_path / "last.ckpt"))
+    assert (tmp_path / "last.ckpt.sha256").read_text().strip() == hashlib.sha256(b"ck").hexdigest()
 
 
 # ------------------------------------------------------------------- a file where a folder should be (issue 27)

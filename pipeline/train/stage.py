@@ -206,12 +206,26 @@ def _trainer(cfg, work: Path):
         ckpt_cb = ModelCheckpoint(dirpath=work / "ckpt", filename="best", monitor="val_mae", mode="min",
                                   save_top_k=1, save_last=True)
         callbacks.append(ckpt_cb)
+    _with_digests(ckpt_cb)
     # Lightning's bar on a terminal; one line per epoch in logs (a bar written to a file floods it)
     show_bar = bool(cfg.trainer.get("enable_progress_bar", True)) and sys.stderr.isatty()
     work.mkdir(parents=True, exist_ok=True)
     trainer = _build(cfg.trainer, "trainer", logger=loggers or False, callbacks=callbacks,
                      enable_progress_bar=show_bar)
     return trainer, ckpt_cb
+
+
+def _with_digests(cb: ModelCheckpoint) -> None:
+    """Each checkpoint the callback writes gets `<file>.sha256` beside it: a resume can tell one altered at the same
+    size, which torch loads without complaint (its zip reader checks no CRC)."""
+    save = cb._save_checkpoint
+
+    def saving(trainer, filepath):
+        save(trainer, filepath)
+        if trainer.is_global_zero and Path(filepath).is_file():
+            Path(f"{filepath}.sha256").write_text(tracking.sha256_file(Path(filepath)) + "\n")
+
+    cb._save_checkpoint = saving
 
 
 def _resume_point(work: Path, force: bool, command: str) -> None:
@@ -223,6 +237,10 @@ def _resume_point(work: Path, force: bool, command: str) -> None:
         return
     if not last.is_file():
         return
+    digest = Path(f"{last}.sha256")
+    if digest.is_file() and digest.read_text().strip() != tracking.sha256_file(last):
+        raise ModelError(f"resume checkpoint {last} of an interrupted run does not match its {digest.name} (altered); "
+                         f"`{command}` discards it and retrains")
     try:
         torch.load(last, map_location="cpu", weights_only=False)
     except Exception as err:  # noqa: BLE001 - a truncated zip, a flipped byte: torch's RuntimeError and friends
