@@ -201,7 +201,7 @@ def field_geometry(centers, radii, target, *, apex=None, reach=None, inflation: 
         raise ConfigError(TARGET_FIELD, f"must be one point [x, y], got {target!r}")
     d = float(inflation)
     if not (math.isfinite(d) and d >= 0):
-        raise ConfigError("controller.lookahead", f"the inflation d must be >= 0, got {inflation!r}")
+        raise ConfigError("vehicle.lookahead", f"the inflation d must be >= 0, got {inflation!r}")
     rc = r + d
     try:
         a = default_apex(rc, apex)
