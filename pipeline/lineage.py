@@ -33,6 +33,18 @@ def debug_overrides(cfg) -> list[str]:
     return [] if level in (None, "none") else [f"debug={level}"]
 
 
+def rerun_command(stage: str, fallback=(), cfg=None) -> str:
+    """This job's command line, `python -m pipeline.<stage> <its overrides>` without `force=` (outside a Hydra app:
+    `fallback` and the config's `debug=<level>`): what a message tells the user to run again."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        overrides = list(HydraConfig.get().overrides.task)
+    except Exception:  # noqa: BLE001 - not under @hydra.main (tests, a stage called from Python)
+        overrides = [*fallback, *debug_overrides(cfg)]
+    return " ".join([f"python -m pipeline.{stage}", *(o for o in overrides if not o.startswith("force="))])
+
+
 def _with(command: str | None, overrides) -> str | None:
     return " ".join([command, *overrides]) if command and overrides else command
 
@@ -101,12 +113,13 @@ def train_dataset_id(cfg) -> tuple[str, str]:
     return name, id_
 
 
-def resolve_dataset(ref, datasets_dir, overrides=()) -> Path:
-    """A dataset by path, `name-id`, id or name (`overrides`, e.g. `debug=tiny`, join the config a name means)."""
+def resolve_dataset(ref, datasets_dir, overrides=(), check: bool = True) -> Path:
+    """A dataset by path, `name-id`, id or name (`overrides`, e.g. `debug=tiny`, join the config a name means),
+    checked against its manifest (`check`; :func:`pipeline.tracking.resolve`)."""
     return tracking.resolve(Path(datasets_dir), ref, kind="dataset",
                             expected=lambda name: expected_dataset_id(name, overrides),
                             command=lambda name: _with(COMMANDS["dataset"].format(name=name), overrides),
-                            field="dataset")
+                            field="dataset", check=check)
 
 
 # ------------------------------------------------------------------------------------- perception maps
@@ -168,11 +181,11 @@ def resolve_errormap(ref, errormaps_dir, map_folder: Path | None = None, overrid
             raise ValueError("resolve_errormap: a reference or a perception map is needed")
         name, id_ = expected_errormap_id(map_folder, overrides)
         folder = Path(errormaps_dir) / f"{name}-{id_}"
-        if not tracking.is_complete(folder):
+        command = _with(f"python -m pipeline.errormap maps=[{map_folder.name}]", overrides)
+        if not tracking.is_complete(folder, "error map"):
             raise DatasetError(f"error map of {map_folder.name}: the current errormap config makes {folder.name}, "
-                               f"which is not built under {errormaps_dir}; run `"
-                               f"{_with(f'python -m pipeline.errormap maps=[{map_folder.name}]', overrides)}`")
-        return folder
+                               f"which is not built under {errormaps_dir}; run `{command}`")
+        return tracking.check_intact(folder, "error map", f"{command} force=true")
     return tracking.resolve(Path(errormaps_dir), ref, kind="error map", command=COMMANDS["error map"],
                             field="errormaps")
 
@@ -189,11 +202,11 @@ def lock_entry(folder: Path) -> dict:
 
 
 def write_lock(path: Path, sections: dict[str, dict[str, Path]],
-               generated_by: str = "make paper (pipeline.paper)") -> Path:
-    """`paper.lock.yaml`: for every dataset, map, error map and experiment result its id, config hash and
-    code version (sections: kind -> {name: folder})."""
+               generated_by: str = "make paper (pipeline.paper)", debug: str = "none") -> Path:
+    """`paper.lock.yaml`: the run's debug level (`none`: full size) and, for every dataset, map, error map and
+    experiment result, its id, config hash and code version (sections: kind -> {name: folder})."""
     lock = {kind: {name: lock_entry(folder) for name, folder in items.items()} for kind, items in sections.items()}
-    lock = {"generated_by": generated_by, "git_commit": tracking.git_commit(), **lock}
+    lock = {"generated_by": generated_by, "git_commit": tracking.git_commit(), "debug": str(debug), **lock}
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp")

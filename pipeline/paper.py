@@ -3,8 +3,10 @@
 Inputs are pinned by id from stage to stage: the paper job computes the id each stage's config produces
 (with the `args` overrides), passes `maps.clean=clean-<id>` etc. to the next stage, and writes
 `outputs/paper/paper.lock.yaml` listing every dataset, map, error map and experiment result with its config
-hash and code version. Stages skip work whose tracked output is up to date, so a second `make paper` with
-nothing changed only re-draws the figures; another folder of the same name made on the side changes nothing.
+hash and code version, and the run's debug level. Stages skip work whose tracked output is up to date (checked
+against its manifest first), and figures whose inputs did not change are not redrawn, so a second `make paper`
+with nothing changed only starts the stages; another folder of the same name made on the side changes nothing.
+A smoke run (`debug=tiny`) writes its figures, index and lock to `outputs/debug/paper/` (conf/debug/tiny.yaml).
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from pipeline import tracking
-from pipeline.cli import REPO_ROOT, stage_main
+from pipeline.cli import CONF_DIR, REPO_ROOT, stage_main
 from pipeline.config import compose, settings
 from pipeline.errors import ConfigError, PipelineError
 from pipeline.experiments.report import write_index
@@ -117,6 +119,50 @@ def run_stage(stage: str, argv: list[str], timings: dict, stop: bool, *, tag: st
     return True
 
 
+def up_to_date(stage: str, expected) -> dict[str, Path] | None:
+    """`expected()` (name -> folder) when every folder is built and matches its manifest: the stage would do
+    nothing, so it is not started; None (run it: it builds, or says in one line what is wrong) otherwise."""
+    try:
+        folders = expected()
+        intact = all(tracking.is_complete(f) and not tracking.verify(f, full=None) for f in folders.values())
+    except PipelineError:
+        return None
+    if not intact:
+        return None
+    print(f"\n[paper] === {stage}: up to date ({', '.join(f.name for f in folders.values())}); not started",
+          flush=True)
+    return folders
+
+
+def experiments_stamp(argv: list[str], lock: dict) -> str:
+    """What the experiments stage's outputs follow from: its command line (inputs pinned by id), the inputs'
+    ids, every module of the package and every config file."""
+    conf = sorted(p for p in CONF_DIR.rglob("*.yaml"))
+    return tracking.content_id(argv, {k: {n: f.name for n, f in v.items()} for k, v in lock.items()},
+                               tracking.code_version(*(p.name for p in Path(tracking.__file__).parent.iterdir()
+                                                       if p.suffix == ".py" or (p / "__init__.py").is_file())),
+                               [(str(p.relative_to(CONF_DIR)), p.read_text()) for p in conf])
+
+
+def experiments_up_to_date(stamp: Path, argv: list[str], experiments: list[str], lock: dict) -> bool:
+    """The experiments stage started with the same stamp before and every figure, table and cached result it
+    indexed is still there (results checked against their manifests): nothing to compute or draw."""
+    try:
+        if json.loads(stamp.read_text()).get("stamp") != experiments_stamp(argv, lock):
+            return False
+        paper_dir = stamp.parent
+        for exp in experiments:
+            entry = json.loads((paper_dir / "index" / f"{exp}.json").read_text())
+            files = [paper_dir / f for it in entry["items"] for f in it["files"]]
+            if not all(f.is_file() for f in files) or tracking.verify(paper_dir / entry["cache"], full=None):
+                return False
+    except (OSError, ValueError, KeyError, PipelineError):
+        return False
+    print(f"\n[paper] === experiments: up to date ({len(experiments)} results, figures and tables in {paper_dir}); "
+          "not started", flush=True)
+    return True
+
+
 def run(cfg) -> dict:
     check(cfg)
     t0 = time.perf_counter()
@@ -124,54 +170,77 @@ def run(cfg) -> dict:
     args, paths = _args(cfg), [*path_overrides(), *debug_overrides(cfg)]
     stop = bool(cfg.get("stop_on_error", True))
     timings: dict[str, float] = {}
-    datasets, maps, errormaps, experiments = list(cfg.datasets), list(cfg.maps), list(cfg.errormaps), list(cfg.experiments)
-    lock: dict[str, dict[str, Path]] = {"datasets": {}, "maps": {}, "errormaps": {}, "experiments": {}}
+    datasets, maps, errormaps = list(cfg.datasets), list(cfg.maps), list(cfg.errormaps)
     ds_root, models_root = Path(cfg.paths.datasets_dir), Path(cfg.paths.models_dir)
+    if debug_overrides(cfg):
+        print(f"[paper] {debug_overrides(cfg)[0]}: a smoke run at tiny sizes; its figures, tables and lock go to "
+              f"{cfg.paths.paper_dir} (the paper's folder is left as it is)", flush=True)
 
-    run_stage("data", ["-m", f"data={','.join(datasets)}", *paths, *args["data"]], timings, stop)
-    for name in datasets:
-        _, ds_id, _ = dataset_identity(compose("data", [f"data={name}", *paths, *args["data"]]))
-        lock["datasets"][name] = ds_root / f"{name}-{ds_id}"
-    map_refs = {}
+    def dataset_folders():
+        return {n: ds_root / f"{n}-{dataset_identity(compose('data', [f'data={n}', *paths, *args['data']]))[1]}"
+                for n in datasets}
+
+    def map_folders():
+        return {n: models_root / "-".join(map_identity(compose("train", [f"data={map_recipe(n)[0]}", *map_recipe(n)[1],
+                                                                         *paths, *args["train"]]))) for n in maps}
+
+    def errormap_folders():
+        return {n: Path(cfg.paths.errormaps_dir) / "-".join(expected_errormap_id(
+            models_root / lock["maps"][n].name, [*paths, *args["errormap"]])) for n in errormaps}
+
+    lock: dict[str, dict[str, Path]] = {"datasets": {}, "maps": {}, "errormaps": {}, "experiments": {}}
     groups: dict[tuple[str, ...], list[str]] = {}  # maps of the same model overrides: one multirun each
     for name in maps:
-        recipe, extra = map_recipe(name)
-        groups.setdefault(tuple(extra), []).append(recipe)
-    for extra, recipes in groups.items():
-        run_stage("train", ["-m", f"data={','.join(recipes)}", *extra, *paths, *args["train"]], timings, stop)
-    if maps:
-        for name in maps:
-            recipe, extra = map_recipe(name)
-            mname, mid = map_identity(compose("train", [f"data={recipe}", *extra, *paths, *args["train"]]))
-            map_refs[name] = f"{mname}-{mid}"
-            lock["maps"][name] = models_root / map_refs[name]
-    em_refs = {}
-    if errormaps:
-        run_stage("errormap", [f"maps=[{','.join(map_refs[m] for m in errormaps)}]", *paths, *args["errormap"]],
-               timings, stop)
-        for name in errormaps:
-            ename, eid = expected_errormap_id(models_root / map_refs[name], [*paths, *args["errormap"]])
-            em_refs[name] = f"{ename}-{eid}"
-            lock["errormaps"][name] = Path(cfg.paths.errormaps_dir) / em_refs[name]
-    if experiments:
-        pins = experiment_pins(compose("experiments", paths), map_refs, em_refs)
-        run_stage("experiments", ["-m", f"experiment={','.join(experiments)}", *pins, *paths, "publish=true",
-                                  *args["experiments"]],
-               timings, stop)
-        paper_dir = Path(cfg.paths.paper_dir)
-        for exp in experiments:
-            entry = paper_dir / "index" / f"{exp}.json"
-            if entry.is_file():
-                lock["experiments"][exp] = (paper_dir / json.loads(entry.read_text())["cache"]).resolve()
+        groups.setdefault(tuple(map_recipe(name)[1]), []).append(map_recipe(name)[0])
+    jobs = {"data": lambda: [["-m", f"data={','.join(datasets)}", *paths, *args["data"]]],
+            "train": lambda: [["-m", f"data={','.join(r)}", *extra, *paths, *args["train"]]
+                              for extra, r in groups.items()],
+            "errormap": lambda: [[f"maps=[{','.join(lock['maps'][m].name for m in errormaps)}]", *paths,
+                                  *args["errormap"]]]}
+    for stage, kind, names, folders in (("data", "datasets", datasets, dataset_folders),
+                                        ("train", "maps", maps, map_folders),
+                                        ("errormap", "errormaps", errormaps, errormap_folders)):
+        if not names:
+            continue
+        found = up_to_date(stage, folders)
+        for argv in jobs[stage]() if found is None else []:  # up to date: not started
+            run_stage(stage, argv, timings, stop)
+        lock[kind] = found or folders()
+    map_refs = {n: f.name for n, f in lock["maps"].items()}
+    em_refs = {n: f.name for n, f in lock["errormaps"].items()}
+    if cfg.experiments:
+        lock["experiments"] = _experiments(cfg, list(cfg.experiments), paths, args, map_refs, em_refs, lock,
+                                           timings, stop)
     lock = {k: {n: f for n, f in v.items() if tracking.is_complete(f)} for k, v in lock.items()}
-    lock_path = write_lock(Path(cfg.paths.paper_dir) / cfg.lock, lock)
+    lock_path = write_lock(Path(cfg.paths.paper_dir) / cfg.lock, lock, debug=cfg.get("debug") or "none")
     if (Path(cfg.paths.paper_dir) / "index").is_dir():
         write_index(Path(cfg.paths.paper_dir))
     total = time.perf_counter() - t0
-    line = ", ".join(f"{k} {v:.0f} s" for k, v in timings.items())
+    line = ", ".join(f"{k} {v:.0f} s" for k, v in timings.items()) or "every stage up to date"
     print(f"\n[paper] done in {total / 60:.1f} min ({line}); see {cfg.paths.paper_dir}/index.md; inputs pinned in "
           f"{lock_path}")
     return {"timings": timings, "total": total, "lock": lock_path, "maps": map_refs, "errormaps": em_refs}
+
+
+def _experiments(cfg, experiments, paths, args, map_refs, em_refs, lock, timings, stop) -> dict[str, Path]:
+    """The experiments stage with every input pinned, unless the same command ran before and everything it wrote is
+    still there; `{experiment: results folder}` from the paper folder's index."""
+    pins = experiment_pins(compose("experiments", paths), map_refs, em_refs)
+    if not any(p.startswith("paths.paper_dir=") for p in paths):  # the folder this job indexes and locks
+        pins.append(f"paths.paper_dir={cfg.paths.paper_dir}")
+    argv = ["-m", f"experiment={','.join(experiments)}", *pins, *paths, "publish=true", *args["experiments"]]
+    paper_dir = Path(cfg.paths.paper_dir)
+    stamp = paper_dir / f".{Path(cfg.lock).stem}.experiments.json"  # what the last run was started with
+    if not experiments_up_to_date(stamp, argv, experiments, lock):
+        stamp.unlink(missing_ok=True)
+        if run_stage("experiments", argv, timings, stop):
+            stamp.write_text(json.dumps({"stamp": experiments_stamp(argv, lock)}) + "\n")
+    out = {}
+    for exp in experiments:
+        entry = paper_dir / "index" / f"{exp}.json"
+        if entry.is_file():
+            out[exp] = (paper_dir / json.loads(entry.read_text())["cache"]).resolve()
+    return out
 
 
 main = stage_main("paper", run="pipeline.paper:run", check="pipeline.paper:check")

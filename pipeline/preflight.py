@@ -154,18 +154,27 @@ def preflight(config_name: str, argv: list[str], check: Callable[[DictConfig], N
     jobs = _expand(overrides)
     for job in jobs:
         try:
-            cfg = compose(config_name, [*search, *job], check=False)
-        except PipelineError:
-            raise
-        except Exception as err:  # noqa: BLE001 - Hydra composition errors, reported in one line
-            raise _composition_error(err) from None
-        added = _added_keys(job)
-        base = None
-        if any(o.startswith("++") for o in job):
-            base = compose(config_name, [*search, *(o for o in job if not o.startswith("++"))], check=False)
-        added = [k for k in added if base is None or OmegaConf.select(base, k, default="__missing__") == "__missing__"]
-        check_schema(cfg, added)
-        check_paths(cfg.get("paths"))
-        if check is not None:
-            check(cfg)
+            _check_job(config_name, [*search, *job], check)
+        except ConfigError as err:  # in a sweep, which job: a key may be valid for one and not for another
+            if len(jobs) == 1:
+                raise
+            raise ConfigError(err.field, f"{err.reason} (in the sweep's job `{' '.join(job)}`)") from None
     return len(jobs)
+
+
+def _check_job(config_name: str, job: list[str], check: Callable[[DictConfig], None] | None) -> None:
+    try:
+        cfg = compose(config_name, job, check=False)
+    except PipelineError:
+        raise
+    except Exception as err:  # noqa: BLE001 - Hydra composition errors, reported in one line
+        raise _composition_error(err) from None
+    added = _added_keys(job)
+    base = None
+    if any(o.startswith("++") for o in job):
+        base = compose(config_name, [o for o in job if not o.startswith("++")], check=False)
+    added = [k for k in added if base is None or OmegaConf.select(base, k, default="__missing__") == "__missing__"]
+    check_schema(cfg, added)
+    check_paths(cfg.get("paths"))
+    if check is not None:
+        check(cfg)

@@ -32,6 +32,10 @@ from pipeline.errors import DatasetError, PipelineError
 MANIFEST = "manifest.json"
 ID_LEN = 10
 _TMP_PREFIX = ".tmp-"
+# a tracked folder of at most this many bytes is re-hashed before use (`verify(full=None)`): maps, error maps and
+# results in milliseconds; a bigger dataset gets its sizes checked (`make verify-data` re-hashes it)
+HASH_LIMIT = 64 * 2**20
+_HASHED: dict[Path, tuple] = {}  # folders re-hashed in this process -> their files' sizes and times then
 
 
 # ----------------------------------------------------------------------------------------- hashing
@@ -131,22 +135,32 @@ def read_manifest(folder: Path) -> dict:
         return json.loads(path.read_text())
     except FileNotFoundError:
         raise DatasetError(f"{folder}: no {MANIFEST} (incomplete or not a tracked output)") from None
+    except NotADirectoryError:
+        raise DatasetError(f"{folder}: a file where a tracked output's folder should be; move it away") from None
     except json.JSONDecodeError as err:
         raise DatasetError(f"{path}: unreadable manifest ({err.msg})") from None
 
 
-def verify(folder: Path, *, full: bool = True) -> list[str]:
-    """Problems of a tracked folder, one line each (empty list: all good).
+def verify(folder: Path, *, full: bool | None = True) -> list[str]:
+    """Problems of a tracked folder, one line each naming the file (empty list: all good).
 
-    `full=False` checks presence and sizes only (cheap; used to decide whether to skip a stage).
+    `full=False` checks presence and sizes only; `None` also re-hashes a folder of at most `HASH_LIMIT` bytes (a
+    map, an error map, an experiment's results, a small dataset: cheap), once per process while its files keep
+    their sizes and times.
     """
     folder = Path(folder)
     try:
         manifest = read_manifest(folder)
     except DatasetError as err:
         return [str(err)]
+    files = manifest.get("files", {})
+    if full is None:
+        full = sum(int(info.get("size", 0)) for info in files.values()) <= HASH_LIMIT
+    stamp = _stamp(folder, files) if full else None
+    if stamp is not None and _HASHED.get(folder.resolve()) == stamp:
+        full = False  # re-hashed in this process already, nothing touched since
     problems = []
-    for rel, info in sorted(manifest.get("files", {}).items()):
+    for rel, info in sorted(files.items()):
         path = folder / rel
         if not path.is_file():
             problems.append(f"{path}: missing")
@@ -159,11 +173,46 @@ def verify(folder: Path, *, full: bool = True) -> list[str]:
     expected = folder.name.rsplit("-", 1)[-1]
     if manifest.get("id") != expected:
         problems.append(f"{folder}: manifest id {manifest.get('id')!r} != folder id {expected!r}")
+    if full and not problems and stamp is not None:
+        _HASHED[folder.resolve()] = stamp
     return problems
 
 
-def is_complete(folder: Path) -> bool:
-    return Path(folder).is_dir() and not verify(folder, full=False)
+def _stamp(folder: Path, files: Mapping) -> tuple | None:
+    """Sizes and modification times of a folder's files (None: one is missing)."""
+    try:
+        return tuple((rel, (st := (folder / rel).stat()).st_size, st.st_mtime_ns) for rel in sorted(files))
+    except OSError:
+        return None
+
+
+def exists(folder: Path, kind: str = "tracked output") -> bool:
+    """Whether a tracked output's folder exists; a file (or anything else) in its place is a DatasetError."""
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise DatasetError(f"{folder}: a file where the {kind}'s folder should be; move it away (nothing here "
+                           "reads or replaces it)")
+    return folder.is_dir()
+
+
+def check_intact(folder: Path, kind: str = "tracked output", rebuild: str | None = None,
+                 full: bool | None = None) -> Path:
+    """`folder` when it matches its manifest (sizes always; sha256 as :func:`verify` with `full`), else a one-line
+    DatasetError naming the first damaged file and the command that rebuilds it (`rebuild`)."""
+    folder = Path(folder)
+    if not exists(folder, kind):
+        raise DatasetError(f"{kind} {folder} does not exist" + (f"; run `{rebuild}`" if rebuild else ""))
+    problems = verify(folder, full=full)
+    if problems:
+        more = f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""
+        fix = f"rebuild it with `{rebuild}`" if rebuild else "rebuild it with the command that made it and force=true"
+        raise DatasetError(f"damaged {kind} {folder.name}: {problems[0]}{more}; {fix}")
+    return folder
+
+
+def is_complete(folder: Path, kind: str = "tracked output") -> bool:
+    """A finished output of that name is there (sizes checked; a file in its place is a DatasetError)."""
+    return exists(folder, kind) and not verify(folder, full=False)
 
 
 # -------------------------------------------------------------------------------------- resolution
@@ -190,7 +239,19 @@ def entries(root: Path, name: str | None = None) -> list[Path]:
 
 
 def resolve(root: Path, ref: str | os.PathLike, *, kind: str = "output", expected=None, command=None,
-            field: str | None = None) -> Path:
+            field: str | None = None, check: bool = True) -> Path:
+    """:func:`find`, then (`check`) :func:`check_intact`: a damaged output is one line naming the file and the
+    command that rebuilds it (`command` of its name, with `force=true`)."""
+    folder = find(root, ref, kind=kind, expected=expected, command=command, field=field)
+    if check:
+        cmd = _command_fn(command)
+        rebuild = cmd(folder.name.rsplit("-", 1)[0]) if cmd is not None else None
+        check_intact(folder, kind, f"{rebuild} force=true" if rebuild else None)
+    return folder
+
+
+def find(root: Path, ref: str | os.PathLike, *, kind: str = "output", expected=None, command=None,
+         field: str | None = None) -> Path:
     """A tracked folder from a path, `name-id`, an id, or a name (see :mod:`pipeline.lineage`).
 
     A bare name never means "the newest folder": `expected(name) -> id | None` gives the id the upstream
@@ -204,6 +265,8 @@ def resolve(root: Path, ref: str | os.PathLike, *, kind: str = "output", expecte
     p = Path(ref_s)
     if p.is_dir() and (p / MANIFEST).is_file():
         return p
+    for place in ([p] if os.sep in ref_s else []) + [Path(root) / ref_s]:
+        exists(place, kind)  # a file where a folder should be: one line
     all_entries = entries(root)
     for d in all_entries:  # exact folder name or id
         if d.name == ref_s or d.name.rsplit("-", 1)[-1] == ref_s:
@@ -220,7 +283,7 @@ def resolve(root: Path, ref: str | os.PathLike, *, kind: str = "output", expecte
     want = expected(ref_s) if expected is not None else None
     if want is not None:
         folder = Path(root) / f"{ref_s}-{want}"
-        if folder in all_entries:
+        if exists(folder, kind) and folder in all_entries:
             return folder
         raise DatasetError(f"{kind} {ref_s!r}: the current config makes {ref_s}-{want}, which is not built under "
                            f"{root}{make}{others}")
@@ -291,6 +354,7 @@ def tracked_output(root: Path, name: str, id_: str, meta: Mapping) -> Iterator[P
     root.mkdir(parents=True, exist_ok=True)
     stale_temporaries(root)
     final = root / f"{name}-{id_}"
+    exists(final)  # a file in the way is the user's to move, not ours to replace
     tmp = root / f"{_TMP_PREFIX}{name}-{id_}-{os.getpid()}"
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir()

@@ -552,8 +552,13 @@ def test_paper_keeps_its_maps_when_a_quick_experiment_trains_another(tmp_path):
                 *data, f"paths.root_dir={root}", f"hydra.run.dir={tmp_path / 'side'}", timeout=600)
     assert side.returncode == 0, side.stderr[-2000:]
     assert len(list((root / "outputs" / "models").glob(f"{map_folder.rsplit('-', 1)[0]}-*"))) == 2
+    figure = next((root / "outputs" / "paper").glob("fig*.png"))
+    drawn = figure.stat().st_mtime_ns
     again = _cli("pipeline.paper", *args[:-1], f"hydra.run.dir={tmp_path / 'run2'}", timeout=900)
     assert again.returncode == 0, again.stderr[-3000:]
+    # nothing changed for the paper (issue 32): no stage is started, no figure redrawn
+    assert again.stdout.count("; not started") == 4, again.stdout[-3000:]
+    assert figure.stat().st_mtime_ns == drawn
     lock2 = yaml.safe_load((root / "outputs" / "paper" / "paper.lock.yaml").read_text())
     assert lock2["maps"]["clean"]["folder"] == map_folder
     assert lock2["experiments"] == lock["experiments"]  # nothing recomputed with the side map

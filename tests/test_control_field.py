@@ -161,7 +161,7 @@ def test_random_field_seeds_differ_and_margin_holds():
 def test_random_field_gives_up_with_config_error():
     with pytest.raises(ConfigError) as e:
         random_field(30, seed=0, max_restarts=3)
-    assert e.value.field == "scene.random.n_obstacles" and "no valid field" in str(e.value)
+    assert e.value.field == "scene.n_obstacles" and "no valid field" in str(e.value)
     assert "\n" not in str(e.value)
 
 

@@ -128,7 +128,9 @@ def test_interrupted_render_leaves_nothing(tmp_path, monkeypatch):
     assert list(tmp_path.iterdir()) == []  # neither the dataset folder nor a temporary one
 
 
-def test_verify_catches_flipped_byte_and_missing_shard(tmp_path):
+def test_verify_catches_flipped_byte_and_missing_shard(tmp_path, monkeypatch):
+    from pipeline import tracking
+
     out = run(cfg_for(tmp_path, "clean"))
     folder = out["path"]
     assert verify_datasets(tmp_path, echo=lambda s: None) == {str(folder): []}
@@ -140,14 +142,17 @@ def test_verify_catches_flipped_byte_and_missing_shard(tmp_path):
     assert problems == [f"{shard}: sha256 mismatch (altered)"]
     with pytest.raises(DatasetError, match="images_val.npy"):
         open_dataset(out["id"], datasets_dir=tmp_path, verify=True)
-    open_dataset(out["id"], datasets_dir=tmp_path)  # the cheap check (sizes) does not re-hash
+    with pytest.raises(DatasetError, match="images_val.npy: sha256"):  # a small dataset is re-hashed before use
+        open_dataset(out["id"], datasets_dir=tmp_path)
+    monkeypatch.setattr(tracking, "HASH_LIMIT", 0)  # a big one: the cheap check (sizes) does not re-hash
+    open_dataset(out["id"], datasets_dir=tmp_path)
     (folder / "images_test.npy").unlink()
     problems = verify_datasets(tmp_path, echo=lambda s: None)[str(folder)]
     assert f"{folder / 'images_test.npy'}: missing" in problems and len(problems) == 2
     with pytest.raises(DatasetError, match="missing"):
         open_dataset(out["id"], datasets_dir=tmp_path)
     # the stage refuses to skip over (or silently replace) a folder that does not match its manifest
-    with pytest.raises(DatasetError, match="does not match its manifest"):
+    with pytest.raises(DatasetError, match="damaged dataset .*missing.*force=true"):
         run(cfg_for(tmp_path, "clean"))
     # the CLI lists each problem with its path and exits non-zero
     res = cli("pipeline.data.verify", f"paths.datasets_dir={tmp_path}", f"hydra.run.dir={tmp_path / 'hydra'}")

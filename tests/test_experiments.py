@@ -98,7 +98,10 @@ def test_tables_carry_the_raw_metrics_and_cache_redraws(tmp_path):
     mtime = png.stat().st_mtime_ns
     second = run(cfg)
     assert second["cached"] and second["cache"] == first["cache"]
-    assert png.stat().st_mtime_ns > mtime  # re-drawn from the cache
+    assert png.stat().st_mtime_ns == mtime  # nothing it shows changed: not redrawn (issue 32)
+    third = run(_cfg(tmp_path, "experiment=monte_carlo", "perception=oracle", "scale=0.1",
+                     "experiment.controllers=[hybrid,smooth]", "experiment.camera=false", "experiment.title=t2"))
+    assert third["cached"] and png.stat().st_mtime_ns > mtime  # its title changed: re-drawn from the cache
     pd.testing.assert_frame_equal(pd.read_csv(paper / "metrics_monte_carlo.csv"), raw)
 
 

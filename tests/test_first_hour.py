@@ -348,7 +348,9 @@ def test_a_debug_run_before_any_paper_lock_writes_nothing_into_the_paper_folder(
     assert {f.parent for f in out["files"]} == {side} and (side / "index.md").is_file()
     again = run(compose("experiments", ["experiment=coverings", "debug=tiny", f"paths.root_dir={tmp_path}",
                                         "publish=true"]))
-    assert {f.parent for f in again["files"]} == {paper}  # on purpose only
+    # on purpose only, and a smoke run's "paper" is its own (issue 32): outputs/debug/paper
+    assert {f.parent for f in again["files"]} == {tmp_path / "outputs" / "debug" / "paper"}
+    assert not paper.exists() or not any(paper.iterdir())
 
 
 # ------------------------------------------------------------------------------- scenario keys (item 8)
@@ -439,7 +441,8 @@ def test_make_paper_debug_tiny_runs_every_stage_end_to_end(tmp_path):
     root = tmp_path / "root"
     proc = _cli("pipeline.paper", "debug=tiny", f"paths.root_dir={root}", timeout=1800)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    lock = yaml.safe_load((root / "outputs" / "paper" / "paper.lock.yaml").read_text())
+    lock = yaml.safe_load((root / "outputs" / "debug" / "paper" / "paper.lock.yaml").read_text())
+    assert lock["debug"] == "tiny" and not (root / "outputs" / "paper").exists()  # a smoke run: its own folder
     paper = yaml.safe_load((CONF_DIR / "paper.yaml").read_text())
     assert set(lock["datasets"]) == set(paper["datasets"]) and set(lock["maps"]) == set(paper["maps"])
     assert set(lock["experiments"]) == set(paper["experiments"])

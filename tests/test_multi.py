@@ -134,7 +134,7 @@ def test_monte_carlo_figure_takes_a_wilson_bound_an_ulp_below_a_rate_of_one(tmp_
     res = Results({"summary": t, "per_scene": t.assign(scene="field00")}, {}, {"scenes": ["field00", "field01"]})
     out = Outputs(tmp_path, "multi_monte_carlo")
     draw_multi_monte_carlo(None, None, res, out)
-    assert (tmp_path / "fig16_multi_monte_carlo.png").stat().st_size > 1000
+    assert (tmp_path / "fig19_multi_monte_carlo.png").stat().st_size > 1000
     assert pd.read_csv(tmp_path / "tab_multi_monte_carlo.csv")["success_rate"].tolist() == [1.0, 0.5]
 
 

@@ -82,7 +82,7 @@ def test_unicycle_bundle_with_a_pose_map_from_the_camera(tmp_path, monkeypatch):
     table = np.genfromtxt(tmp_path / "paper" / "tab_unicycle.csv", delimiter=",", names=True, dtype=None,
                           encoding=None)
     assert np.allclose(table["success_rate"], 1.0) and len(table) == 4
-    with Image.open(tmp_path / "paper" / "anim8_unicycle.gif") as gif:
+    with Image.open(tmp_path / "paper" / "anim21_unicycle.gif") as gif:
         assert gif.n_frames > 4
 
 

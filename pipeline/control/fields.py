@@ -75,7 +75,7 @@ def random_field(
         raise ConfigError(f"{RANDOM_FIELD}.radius_range", f"must be 0 < r_min <= r_max, got {radius_range!r}")
     if not apex_factor > SQRT2:
         raise ConfigError(f"{RANDOM_FIELD}.apex_factor", f"must exceed sqrt(2) (the diamond must contain the disc), got {apex_factor!r}")
-    rho_b = _positive(barrier_rho, f"{RANDOM_FIELD}.barrier_rho")
+    rho_b = _positive(barrier_rho, f"{RANDOM_FIELD}.barrier.rho")
     scale_f = _positive(barrier_scale_factor, f"{RANDOM_FIELD}.barrier_scale_factor")
     h, step = _loop_params(h, u_max, T_s)
     margin = float(margin)

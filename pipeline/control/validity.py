@@ -52,7 +52,7 @@ STARTS_FIELD = "init.points"
 HYSTERESIS_FIELD = "controller.cell_hysteresis"
 U_MAX_FIELD = "controller.u_max"
 PERIOD_FIELD = "camera.period"
-RANDOM_FIELD = "scene.random"
+RANDOM_FIELD = "scene"   # a random field is the `scene` node itself (conf/scene/field.yaml)
 
 
 # ----------------------------------------------------------------------------- derived quantities
@@ -201,7 +201,7 @@ def field_geometry(centers, radii, target, *, apex=None, reach=None, inflation: 
         raise ConfigError(TARGET_FIELD, f"must be one point [x, y], got {target!r}")
     d = float(inflation)
     if not (math.isfinite(d) and d >= 0):
-        raise ConfigError("controller.lookahead", f"the inflation d must be >= 0, got {inflation!r}")
+        raise ConfigError("vehicle.lookahead", f"the inflation d must be >= 0, got {inflation!r}")
     rc = r + d
     try:
         a = default_apex(rc, apex)

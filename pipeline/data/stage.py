@@ -20,7 +20,8 @@ from pipeline import tracking
 from pipeline.data.plan import Plan, plan
 from pipeline.data.render import render_into
 from pipeline.data.sampling import split_pool
-from pipeline.errors import ConfigError, DatasetError
+from pipeline.errors import ConfigError
+from pipeline.lineage import rerun_command
 
 
 def _visits(p: Plan) -> tuple[object, dict]:
@@ -50,12 +51,8 @@ def run(cfg: DictConfig) -> dict:
     t0 = time.perf_counter()
     p = plan(cfg)
     out = {"id": p.id, "name": p.recipe.name, "path": p.path, "counts": p.counts, "parents": dict(p.parents)}
-    if p.path.exists() and not cfg.force:
-        problems = tracking.verify(p.path, full=False)
-        if problems:
-            raise DatasetError(f"{p.path} exists but does not match its manifest ({problems[0]}"
-                               f"{f' and {len(problems) - 1} more' if len(problems) > 1 else ''}); "
-                               "delete it or re-render with force=true")
+    if tracking.exists(p.path, "dataset") and not cfg.force:
+        tracking.check_intact(p.path, "dataset", f"{rerun_command('data', [f'data={p.recipe.name}'], cfg)} force=true")
         print(f"data: {p.folder_name} exists and matches its manifest -> {p.path} (nothing to do; force=true re-renders)")
         return {**out, "skipped": True, "seconds": time.perf_counter() - t0}
     if p.map_path is not None:

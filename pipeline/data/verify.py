@@ -1,7 +1,8 @@
 """`python -m pipeline.data.verify [dataset=<ref>]` (`make verify-data`): re-hash datasets against their manifests.
 
 Prints one line per missing, truncated or altered file (with its path) and exits non-zero when anything
-is wrong; `dataset=` limits the check to one dataset (name = latest, id, name-id or path).
+is wrong; `dataset=` limits the check to one dataset (a name means the dataset the current config renders
+for it, as in every stage; or an id, name-id or path).
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from omegaconf import DictConfig
 from pipeline import tracking
 from pipeline.cli import stage_main
 from pipeline.errors import DatasetError
+from pipeline.lineage import debug_overrides, resolve_dataset
 
 
 def incomplete(root: Path) -> list[Path]:
@@ -24,11 +26,12 @@ def incomplete(root: Path) -> list[Path]:
                   if d.is_dir() and not d.name.startswith(".") and not (d / tracking.MANIFEST).is_file())
 
 
-def verify_datasets(datasets_dir, dataset=None, full: bool = True, echo=print) -> dict[str, list[str]]:
-    """Problems per dataset folder (empty lists: all good). `echo` gets one line per dataset/problem."""
+def verify_datasets(datasets_dir, dataset=None, full: bool = True, echo=print, overrides=()) -> dict[str, list[str]]:
+    """Problems per dataset folder (empty lists: all good). `echo` gets one line per dataset/problem. A name means
+    the dataset the current config renders for it (with `overrides`, e.g. `debug=tiny`), as everywhere else."""
     root = Path(datasets_dir)
     if dataset is not None:
-        folders = [tracking.resolve(root, dataset, kind="dataset")]
+        folders = [resolve_dataset(dataset, root, overrides, check=False)]
     else:
         folders = sorted(tracking.entries(root), key=lambda d: d.name)
         tracking.stale_temporaries(root, remove=False, echo=lambda s: echo(f"note: {s}"))
@@ -52,7 +55,8 @@ def verify_datasets(datasets_dir, dataset=None, full: bool = True, echo=print) -
 
 def run(cfg: DictConfig) -> dict:
     root = Path(cfg.paths.datasets_dir)
-    report = verify_datasets(root, cfg.get("dataset"), full=bool(cfg.get("full", True)))
+    report = verify_datasets(root, cfg.get("dataset"), full=bool(cfg.get("full", True)),
+                             overrides=debug_overrides(cfg))
     bad = {k: v for k, v in report.items() if v}
     if not report:
         print(f"verify: no datasets under {root} (run `make data`)")

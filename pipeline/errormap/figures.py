@@ -104,20 +104,24 @@ def _coverage_figure(fields: dict, results: dict, settings, *, scene, arena, ext
     marks = sorted(settings["coverage"].get("eps_marks") or [])
     fig, axes = plt.subplots(n + 1, 1, figsize=(7.5, 3.5 * (n + 1)), squeeze=False, layout="constrained")
     axes = axes[:, 0]
+    covered = []
     for lv in levels:
         c = results[lv]["coverage"]
         (line,) = axes[0].plot(c["eps"], c["fraction"], label=f"{lv} (L = {results[lv]['L']:.3g})")
         ec = results[lv]["eps_cover"]
         if ec is not None and math.isfinite(ec):
             axes[0].axvline(ec, ls=":", color=line.get_color())
+            covered.append(lv)
     for m in marks:
-        axes[0].axvline(m, color="0.6", lw=0.6)
+        axes[0].axvline(m, color="0.6", lw=0.6, ls="-")
     axes[0].set_xlabel("ε")
     axes[0].set_ylabel("covered fraction\nof the operational set")
     axes[0].set_ylim(0, 1.02)
     axes[0].legend(fontsize=8)
-    axes[0].set_title(f"Assumption 1: p ∈ S(L, ε), r_cov = {settings['coverage']['r_cov']} "
-                      "(dotted: smallest ε whose coverage set holds the operational set)", fontsize=9)
+    lines = [*(["dotted: the smallest ε whose coverage set holds the operational set"] if covered else []),
+             *(["thin grey: the marked ε of the maps below"] if marks else [])]
+    axes[0].set_title(f"Assumption 1: p ∈ S(L, ε), r_cov = {settings['coverage']['r_cov']}"
+                      + (f"\n({'; '.join(lines)})" if lines else ""), fontsize=9)
     # nested covered sets: the colour of p is the smallest marked ε whose coverage set contains it
     bounds = [0.0, *marks, np.inf]
     cmap = plt.get_cmap("viridis", len(bounds) - 1).with_extremes(bad="tab:red")

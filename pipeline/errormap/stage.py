@@ -44,7 +44,7 @@ from pipeline.errormap.read import summary_table
 from pipeline.errormap.settings import ErrorMapSettings
 from pipeline.errormap.writers import write_outputs
 from pipeline.errors import ConfigError, DatasetError, ModelError
-from pipeline.lineage import debug_overrides, errormap_settings, resolve_map
+from pipeline.lineage import debug_overrides, errormap_settings, rerun_command, resolve_dataset, resolve_map
 from pipeline.perception.maps import load_perception_map
 from pipeline.render import load_occlusion
 
@@ -164,7 +164,9 @@ def run_one(cfg: DictConfig, *, perception_map=None, camera=None, occlusions: Ma
     """
     plan = _plan(cfg, perception_map, camera, occlusions)
     pmap, settings, final = plan.pmap, plan.settings, plan.final
-    if tracking.is_complete(final) and not settings.get("force", False):
+    if tracking.exists(final, "error map") and not settings.get("force", False):
+        tracking.check_intact(final, "error map",
+                              f"{rerun_command('errormap', [f'maps=[{final.name}]'], cfg)} force=true")
         print(f"errormap: {final} is complete (force=true to recompute)")
         return {"path": final, "summary": json.loads((final / "summary.json").read_text()), "skipped": True,
                 "fields": None}
@@ -247,7 +249,14 @@ def _dataset(pmap, manifest: dict, cfg: DictConfig):
     ds_ref = manifest.get("dataset_id") or manifest.get("dataset_name")
     if not ds_ref:
         raise DatasetError(f"perception map {pmap.name}-{pmap.id}: manifest names no dataset_id")
-    return open_dataset(ds_ref, datasets_dir=cfg.paths.get("datasets_dir"))
+    if manifest.get("dataset_name") and manifest.get("dataset_id"):
+        ds_ref = f"{manifest['dataset_name']}-{manifest['dataset_id']}"
+    try:
+        folder = resolve_dataset(ds_ref, cfg.paths.get("datasets_dir"), debug_overrides(cfg))
+        return open_dataset(folder, datasets_dir=cfg.paths.get("datasets_dir"))
+    except DatasetError as err:
+        raise DatasetError(f"the training data of perception map {pmap.name}-{pmap.id} (its error map samples the "
+                           f"training positions): {err}") from None
 
 
 def _compute_levels(plan: _Plan, samples, sample_err_vec, margin, progress: bool):

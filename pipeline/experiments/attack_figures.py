@@ -13,6 +13,7 @@ from matplotlib.animation import FuncAnimation, PillowWriter  # noqa: E402
 from pipeline.experiments.animation import frame_indices  # noqa: E402
 from pipeline.experiments.report import draw_frame  # noqa: E402
 from pipeline.render import CloudSample  # noqa: E402
+from pipeline.viz import legend_outside  # noqa: E402
 
 TABLE = ["budget", "attack", "controller", "gated", "n", "success_rate", "success_lo", "success_hi", "stalled_rate",
          "stalled_lo", "stalled_hi", "collision_rate", "collision_lo", "collision_hi", "timed_out",
@@ -36,7 +37,7 @@ def _sweep_figure(res, xlabel: str, title: str):
         ax.set(xlabel=xlabel, ylabel=f"{key} rate (95% CI)", ylim=(-0.03, 1.03), title=f"{key}: {title}")
         ax.set_xticks(xs, [f"{b:g}" if isinstance(b, float) else str(b) for b in budgets])
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7)
+        legend_outside(ax, below=True, ncol=2)  # rates fill the axes from 0 to 1
     ax = axes[2]
     ungated = df[~df["gated"].astype(bool)]
     for ctrl, g in ungated.groupby("controller", sort=False):
@@ -52,8 +53,8 @@ def _sweep_figure(res, xlabel: str, title: str):
         fl = ungated.groupby("budget", sort=False)["flag_rate"].mean().reindex(budgets)
         tw.plot(xs, fl, "s:", color="tab:purple", label="flag rate (uncertainty head)")
         tw.set(ylabel="flag rate", ylim=(-0.03, 1.03))
-        tw.legend(fontsize=7, loc="center right")
-    ax.legend(fontsize=7, loc="upper left")
+    handles = [h for a in fig.axes[2:] for h in a.get_legend_handles_labels()[0]]  # the twin's line in one key
+    legend_outside(ax, handles, below=True, ncol=1)
     ax.grid(alpha=0.3)
     return fig
 

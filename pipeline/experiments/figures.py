@@ -18,10 +18,11 @@ from matplotlib.patches import Circle  # noqa: E402
 from pipeline.experiments.animation import leader_follower_gif  # noqa: E402
 from pipeline.experiments.report import draw_frame  # noqa: E402
 from pipeline.experiments.scheme import scheme_figure  # noqa: E402
+from pipeline.viz import legend_outside  # noqa: E402
 
 
 def draw_coverings(scen, ctx, res, out) -> None:
-    fig, axes = plt.subplots(2, 1, figsize=(6.5, 7.2))  # the paper's layout: q = 1 top, q = 2 bottom
+    fig, axes = plt.subplots(2, 1, figsize=(6.5, 7.2), layout="constrained")  # the paper's: q = 1 top, q = 2 bottom
     x, y = res.arrays["x"], res.arrays["y"]
     for q, ax in zip((1, 2), axes):
         V = res.arrays[f"V{q}"]
@@ -30,7 +31,7 @@ def draw_coverings(scen, ctx, res, out) -> None:
         levels = np.quantile(V[finite], np.linspace(0.02, 0.9, 12))
         ax.contour(x, y, np.where(finite, V, np.nan), levels=np.unique(levels), colors="k", linewidths=0.5)
         draw_frame(ax, ctx.scene, ctx.arena)
-        ax.set_title(f"O_{q} (shaded) and level sets of V_{q}")
+        ax.set_title(f"$O_{q}$ (shaded) and level sets of $V_{q}$")
     out.figure(fig, "fig3_coverings", "Coverings O_1, O_2 (shaded) with level sets of V_1, V_2 (paper Fig. coverings).")
     out.table(res.tables["coverings"], "tab_coverings", "Share of the arena in each covering set.")
 
@@ -40,7 +41,7 @@ def draw_sensitive_set(scen, ctx, res, out) -> None:
     x, y, keep = res.arrays["x"], res.arrays["y"], res.arrays["keep"]
     cmap = ListedColormap(["#d62728", "#1f77b4", "#ff7f0e"])  # stall, K_1, K_2
     cases = ["clean", f"adversarial eps={eps}"]
-    fig, axes = plt.subplots(2, 2, figsize=(11, 6.5))
+    fig, axes = plt.subplots(2, 2, figsize=(11, 6.5), layout="constrained")  # no title over the panel above
     for i, ctrl in enumerate(("smooth", "hybrid")):
         for j, case in enumerate(cases):
             grid = np.full(keep.shape, np.nan)
@@ -62,8 +63,11 @@ def draw_noise_failure(scen, ctx, res, out) -> None:
     ax = axes[0]
     draw_frame(ax, ctx.scene, ctx.arena)
     for i in range(a["single_p"].shape[1]):
-        ax.plot(a["single_m"][:, i, 0], a["single_m"][:, i, 1], ".", ms=1.5, color="0.6")
-        ax.plot(a["single_p"][:, i, 0], a["single_p"][:, i, 1], lw=1.5)
+        ax.plot(a["single_m"][:, i, 0], a["single_m"][:, i, 1], ".", ms=1.5, color="0.6",
+                label="perceived positions" if i == 0 else None)
+        start = a["single_p"][0, i]
+        ax.plot(a["single_p"][:, i, 0], a["single_p"][:, i, 1], lw=1.5, label=f"from ({start[0]:g}, {start[1]:g})")
+    legend_outside(ax, below=True)
     ax.set_title(f"hybrid, CNN in the loop, noise σ={res.info['sigma']}, {res.info['p_fail']:.0%} camera failure",
                  fontsize=9)
     ax = axes[1]
@@ -72,7 +76,7 @@ def draw_noise_failure(scen, ctx, res, out) -> None:
     ax.plot(a["foll_p"][:, 0, 0], a["foll_p"][:, 0, 1], color="tab:green", lw=1.5, label="follower")
     ax.plot(a["foll_target"][:, 0, 0], a["foll_target"][:, 0, 1], ".", ms=1.5, color="tab:olive",
             label="leader as perceived by the follower")
-    ax.legend(fontsize=7, loc="lower right")
+    legend_outside(ax, below=True)
     ax.set_title("leader-follower", fontsize=9)
     _gif(ctx, out, "anim7_noise_failure", "leader and follower under noise and camera failure: the arena, the "
          "follower's camera frame and the perceived leader", a["foll_t"], a["lead_p"][:, 0], a["foll_p"][:, 0],
@@ -188,7 +192,7 @@ def draw_monte_carlo(scen, ctx, res, out) -> None:
         ax.bar(xs, g.success_rate, w, label=ctrl, yerr=yerr, capsize=2)
     ax.set_xticks(np.arange(len(conds)), conds, rotation=20, ha="right", fontsize=7)
     ax.set(ylabel="success rate", ylim=(0, 1.05))
-    ax.legend(fontsize=8)
+    legend_outside(ax, fontsize=8)  # beside the bars: a rate of 1 fills the axes
     out.figure(fig, "fig9_monte_carlo", "Monte Carlo success rates with 95% CIs per condition and controller.")
 
 

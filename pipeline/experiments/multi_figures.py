@@ -11,6 +11,7 @@ from matplotlib.patches import Circle  # noqa: E402
 
 from pipeline.control import Scene  # noqa: E402
 from pipeline.experiments.report import draw_frame  # noqa: E402
+from pipeline.viz import legend_outside  # noqa: E402
 
 COLORS = {"hybrid": "tab:blue", "smooth": "tab:orange", "cbf": "tab:green"}
 SUMMARY_COLUMNS = ["n", "success_rate", "success_lo", "success_hi", "collision_rate", "stalled", "median_time",
@@ -34,7 +35,7 @@ def draw_multi_cells(scen, ctx, res, out) -> None:
     for c, R in zip(arr["center"], arr["R"]):
         ax.add_patch(Circle(c, R, fill=False, ls=":", color="k", lw=0.8))
     draw_frame(ax, scene, ctx.arena)
-    ax.set_title(f"cells of the locally active obstacle (dotted: D_i; hatched: hysteresis band h = {res.info['h']:g})",
+    ax.set_title(f"cells of the locally active obstacle (dotted: $D_i$; hatched: hysteresis band h = {res.info['h']:g})",
                  fontsize=9)
     ax = axes[1]
     V = a["V"]
@@ -43,14 +44,20 @@ def draw_multi_cells(scen, ctx, res, out) -> None:
     levels = np.unique(np.nanquantile(logV, np.linspace(0.02, 0.98, 18)))
     ax.contour(a["x"], a["y"], logV, levels=levels, colors="k", linewidths=0.5)
     p, i = a["p"], a.get("i")
+    tab10 = plt.get_cmap("tab10")
     for n in range(p.shape[1]):
         if i is None:
-            ax.plot(p[:, n, 0], p[:, n, 1], lw=1.5)
+            ax.plot(p[:, n, 0], p[:, n, 1], lw=1.5, label=f"run from ({p[0, n, 0]:g}, {p[0, n, 1]:g})")
             continue
-        ax.scatter(p[:, n, 0], p[:, n, 1], c=i[:, n], cmap=plt.get_cmap("tab10"), vmin=0, vmax=9, s=3, zorder=4)
+        ax.scatter(p[:, n, 0], p[:, n, 1], c=i[:, n], cmap=tab10, vmin=0, vmax=9, s=3, zorder=4)
+    if i is not None:  # the colour key: which obstacle was active
+        for k in np.unique(i[np.isfinite(i)]).astype(int):
+            ax.plot([], [], "o", ms=4, color=tab10(k % 10), label=f"active obstacle {k}")
     draw_frame(ax, scene, ctx.arena)
-    ax.set_title("active potential min_q V_i^q on each cell; true-state runs coloured by the active obstacle", fontsize=9)
-    out.figure(fig, "fig14_multi_cells", "Several obstacles (SPEC §3.6): the cells of the locally active obstacle with "
+    legend_outside(ax, below=True, ncol=4)
+    ax.set_title(r"active potential $\min_q V_i^q$ on each cell; true-state runs coloured by the active obstacle",
+                 fontsize=9)
+    out.figure(fig, "fig17_multi_cells", "Several obstacles (SPEC §3.6): the cells of the locally active obstacle with "
                "each obstacle's diamond and D_i, the hysteresis band, the active level sets and true-state runs.")
     out.table(res.tables["obstacles"], "tab_multi_cells",
               f"The field's obstacles: apex c_i, barrier reach rho_i, R_i, V1 slack (|p_T - c_i| - R_i), share of the "
@@ -66,10 +73,10 @@ def draw_multi_adversarial(scen, ctx, res, out) -> None:
     ax.set_xlabel("ε (adversary, SPEC §3.5, in the nearest obstacle's frame)")
     ax.set_ylabel("success rate (95% Wilson CI)")
     ax.set_ylim(-0.03, 1.03)
-    ax.legend()
+    legend_outside(ax, fontsize=8)
     n = len(res.info["scenes"])
     ax.set_title(f"starts near every obstacle's K, {n} random fields", fontsize=9)
-    out.figure(fig, "fig15_multi_adversarial", f"Proposition 1 behind every obstacle: success versus ε from starts "
+    out.figure(fig, "fig18_multi_adversarial", f"Proposition 1 behind every obstacle: success versus ε from starts "
                f"near each obstacle's set K on {n} random valid fields (hybrid vs smooth vs CBF).")
     out.table(_columns(t, ["eps", "controller"]), "tab_multi_adversarial",
               "Success versus ε near every obstacle's K (Wilson CIs), with jumps by kind and push-outs per agent.")
@@ -100,13 +107,13 @@ def draw_multi_monte_carlo(scen, ctx, res, out) -> None:
     axes[0].set_xticks(np.arange(len(conds)) + 0.4 - width / 2, conds)
     axes[0].set_ylabel("success rate (95% Wilson CI)")
     axes[0].set_ylim(0, 1.05)
-    axes[0].legend(fontsize=8)
+    legend_outside(axes[0], below=True, fontsize=8)  # a rate of 1 fills the axes
     axes[0].set_title(f"{len(res.info['scenes'])} random valid fields x {int(t['n'].iloc[0] / len(res.info['scenes']))} "
                       "starts (true state)", fontsize=9)
     if first is not None:
         runs = {c: res.arrays[f"p_{c}"] for c in ctrls if f"p_{c}" in res.arrays}
         _field_runs(axes[1], first, first.bounds, runs, f"the first field ({first.name}): the same starts")
-    out.figure(fig, "fig16_multi_monte_carlo", "Monte Carlo over random valid fields (3–5 discs): success by "
+    out.figure(fig, "fig19_multi_monte_carlo", "Monte Carlo over random valid fields (3–5 discs): success by "
                "condition and controller, and runs on the first field.")
     out.table(_columns(t, ["condition", "controller"]), "tab_multi_monte_carlo",
               "Random valid fields x starts x disturbances x controllers: success/collision with Wilson CIs, outcome "
@@ -123,7 +130,7 @@ def draw_multi_camera(scen, ctx, res, out) -> None:
     for c in runs:
         m = res.arrays[f"m_{c}"]
         ax.plot(m[:, :, 0].ravel(), m[:, :, 1].ravel(), ".", ms=0.8, color=COLORS.get(c), alpha=0.3)
-    out.figure(fig, "fig17_multi_camera", "Hybrid, smooth and CBF on a 5-disc field with the CNN in the loop under "
+    out.figure(fig, "fig20_multi_camera", "Hybrid, smooth and CBF on a 5-disc field with the CNN in the loop under "
                "heavy clouds (dots: the perceived positions).")
     out.table(_columns(t, ["condition", "controller"]) .assign(perception_error_mean=t["perception_error_mean"]),
               "tab_multi_camera", "Camera in the loop on the field (learned map, clouds): outcomes with Wilson CIs and "

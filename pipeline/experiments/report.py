@@ -28,6 +28,16 @@ FIGURES = {
     "fig12_sample_and_hold": ("sample_and_hold", "not in the paper: the 20 Hz sample-and-hold vs continuous time"),
     "fig13_perception_generalisation": ("perception_generalisation",
                                         "not in the paper: every perception map on every cloud level (issue 11)"),
+    # make paper's attacks (issue 20), then make multi's (issue 19): one sequence, one index.md
+    "fig14_camera_attack": ("camera_attack", "not in the paper: Proposition 1 through the camera (pixel attack)"),
+    "fig15_worst_cloud": ("worst_cloud", "not in the paper: the worst cloud layout each frame"),
+    "fig16_geometry_margin": ("geometry_margin", "not in the paper: Theorem 1's margin over the geometry"),
+    "fig17_multi_cells": ("multi_cells", "not in the paper: several obstacles, the cells of the active one"),
+    "fig18_multi_adversarial": ("multi_adversarial", "not in the paper: Proposition 1 behind every obstacle"),
+    "fig19_multi_monte_carlo": ("multi_monte_carlo", "not in the paper: Monte Carlo over random valid fields"),
+    "fig20_multi_camera": ("multi_camera", "not in the paper: the camera in the loop on a 5-disc field"),
+    "fig21_unicycle": ("unicycle", "not in the paper: the unicycle from its pose map"),
+    "fig21_unicycle_field": ("unicycle_field", "not in the paper: the unicycle on the 5-disc field"),
 }
 
 

@@ -26,6 +26,7 @@ from pipeline import tracking
 from pipeline.config import resolve
 from pipeline.experiments.checks import build_scenario, check
 from pipeline.experiments.context import Context, Results
+from pipeline.experiments.redraw import drawing_key, drawn_entry
 from pipeline.experiments.report import FIGURES, Outputs, write_index
 from pipeline.experiments.scenario import Scenario
 from pipeline.lineage import pinned_folders
@@ -102,8 +103,9 @@ def run(cfg) -> dict:
     cid = tracking.content_id(key_parts)
     root = Path(cfg.paths.outputs_dir) / "experiments"
     folder = root / f"{scen.id}-{cid}"
-    cached = tracking.is_complete(folder) and not cfg.get("force", False)
+    cached = tracking.exists(folder, "experiment result") and not cfg.get("force", False)
     if cached:
+        tracking.check_intact(folder, "experiment result", f"{_command(cfg, scen.id)} force=true")
         res = Results.load(folder)
         print(f"[experiments] {scen.id}: re-using cached results {folder}")
     else:
@@ -119,6 +121,12 @@ def run(cfg) -> dict:
         print(f"[experiments] {scen.id}: the lock in {cfg.paths.paper_dir} pins another computation of {scen.id}; this "
               f"run ({folder.name}) writes to {paper_dir} and leaves the paper's figures as pinned (publish=true: "
               "write there anyway)")
+    drawn = drawing_key(cfg, folder)
+    if (entry := drawn_entry(paper_dir, scen.id, drawn)) is not None:
+        files = [paper_dir / f for it in entry["items"] for f in it["files"]]
+        print(f"[experiments] {scen.id}: its {len(files)} files in {paper_dir} are up to date (drawn from "
+              f"{folder.name}; nothing redrawn)")
+        return {"id": scen.id, "cache": folder, "cached": cached, "results": res, "files": files}
     out = Outputs(paper_dir, scen.id)
     resolve(scen.figures)(scen, ctx, res, out)
     # the raw per-agent metrics of the scenario, next to its figures
@@ -127,7 +135,7 @@ def run(cfg) -> dict:
         out.items.append({"kind": "metrics", "files": [f"metrics_{scen.id}.csv"],
                           "caption": "raw per-agent metrics (one row per simulated vehicle)"})
     entry = {"id": scen.id, "title": scen.title, "paper": scen.paper, "command": _command(cfg, scen.id),
-             "inputs": dict(ctx.used), "cache": os.path.relpath(folder, paper_dir), "items": out.items}
+             "inputs": dict(ctx.used), "cache": os.path.relpath(folder, paper_dir), "items": out.items, "drawn": drawn}
     (paper_dir / "index").mkdir(parents=True, exist_ok=True)
     (paper_dir / "index" / f"{scen.id}.json").write_text(json.dumps(entry, indent=2) + "\n")
     index = write_index(paper_dir, FIGURES)

@@ -49,7 +49,7 @@ def draw_unicycle(scen, ctx, res, out) -> None:
     axh.set_ylabel("|heading error| (deg)")
     axh.legend(fontsize=7)
     axh.set_title("measured heading against the true one", fontsize=9)
-    out.figure(fig, f"fig18_{scen.id}", f"The unicycle on {res.info['scene']} (SPEC §3.7): runs from the paper's "
+    out.figure(fig, f"fig21_{scen.id}", f"The unicycle on {res.info['scene']} (SPEC §3.7): runs from the paper's "
                "starts and random starts under each perception condition, the single integrator from the same "
                "starts, and the heading error along the runs.")
     cap = (f"The unicycle on {res.info['scene']}: success/collision (Wilson CIs), time (and its median ratio to the "
@@ -74,7 +74,7 @@ def _gif(scen, ctx, res, out, cond: str) -> None:
     cam = ctx.camera(scen.map_kind) if scen.maps else build(ctx.cfg.render, "render", scene=ctx.scene)
     caption = (f"the unicycle ({cond}) from ({p[0, 0]:g}, {p[0, 1]:g}) on {res.info['scene']}: the arena with its "
                "true pose (triangle) and perceived pose (cross and arrow), beside its camera view")
-    path = unicycle_gif(out.dir / f"anim8_{scen.id}.gif", ctx, cam, t[:n], p[:n], th[:n], m[:n], thm[:n],
+    path = unicycle_gif(out.dir / f"anim21_{scen.id}.gif", ctx, cam, t[:n], p[:n], th[:n], m[:n], thm[:n],
                         max_frames=max(8, round(60 * min(1.0, ctx.scale))))
     out.items.append({"kind": "animation", "files": [path.name], "caption": caption})
 

@@ -29,7 +29,7 @@ from typing import ClassVar, Literal
 import numpy as np
 
 from pipeline.perception.measure import OracleMap, check_gate
-from pipeline.schema import Kappa, Name, NonNegativeInt, Positive, PositiveInt, check_fields
+from pipeline.schema import Kappa, Name, Positive, PositiveInt, check_fields
 
 ATTACKS = ("pixel", "cloud")
 
@@ -62,7 +62,7 @@ class PixelAttack:
     uniform point of the ball (else from the clean image); `batch_size`: images per gradient batch."""
 
     kappa: Kappa = 4.0
-    steps: NonNegativeInt = 2
+    steps: PositiveInt = 2  # 0 would deliver the clean frame (or noise) while the tables report an attack
     step_size: Positive | None = None
     random_start: bool = False
     batch_size: PositiveInt = 512
@@ -152,7 +152,7 @@ class AttackedCamera:
     attack: Literal["pixel", "cloud"] = "pixel"
     occlusion: object | None = None
     kappa: Kappa = 4.0
-    steps: NonNegativeInt = 2
+    steps: PositiveInt = 2  # 0 would deliver the clean frame (or noise) while the tables report an attack
     step_size: Positive | None = None
     random_start: bool = False
     batch_size: PositiveInt = 512

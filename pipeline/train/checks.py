@@ -10,7 +10,7 @@ from __future__ import annotations
 from pipeline.config import build, settings
 from pipeline.data import open_dataset
 from pipeline.errors import ConfigError
-from pipeline.lineage import train_dataset_id
+from pipeline.lineage import debug_overrides, resolve_dataset, train_dataset_id
 from pipeline.render import occlusion_levels
 from pipeline.train.settings import TrainSettings
 
@@ -19,7 +19,9 @@ def check(cfg) -> TrainSettings:
     """Preflight: the stage's settings, the cloud levels it evaluates on, and its dataset (by id) must be built."""
     s = check_settings(cfg)
     name, id_ = train_dataset_id(cfg)
-    open_dataset(f"{name}-{id_}", datasets_dir=cfg.paths.datasets_dir)
+    # resolved with the run's debug level: a missing dataset's hint is the command that renders this one
+    open_dataset(resolve_dataset(f"{name}-{id_}", cfg.paths.datasets_dir, debug_overrides(cfg)),
+                 datasets_dir=cfg.paths.datasets_dir)
     return s
 
 

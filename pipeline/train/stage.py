@@ -8,8 +8,9 @@ work (:mod:`pipeline.train.checks`, in the preflight without torch; here the dev
 Output: `outputs/models/<name>-<id>/` with `model.pt` (weights + hyper-parameters), `best.ckpt` (the Lightning
 checkpoint of the best validation epoch), `metrics.json` (:mod:`pipeline.train.evaluate`), `curves.csv/png`,
 `scatter.png`, `config.yaml` and `manifest.json`. The id (:func:`pipeline.identity.map_identity`) hashes what
-changes the weights, not where the run happened, so an unchanged run is skipped. Interrupted runs resume from
-`outputs/models/.work-<name>-<id>/ckpt/last.ckpt`.
+changes the weights, not where the run happened, so an unchanged run is skipped (after its files are checked
+against its manifest: a damaged map is one line). Interrupted runs resume from
+`outputs/models/.work-<name>-<id>/ckpt/last.ckpt` (an unreadable one is one line; `force=true` discards it).
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ from pipeline import identity, tracking
 from pipeline.config import build
 from pipeline.data import open_dataset
 from pipeline.errors import ConfigError, ModelError, PipelineError
-from pipeline.lineage import train_dataset_id
+from pipeline.lineage import debug_overrides, rerun_command, resolve_dataset, train_dataset_id
 from pipeline.perception.maps import PerceptionMapPredictor, resolve_device
 from pipeline.train.checks import check
 from pipeline.train.evaluate import evaluate, fit_clean_gate
@@ -117,13 +118,16 @@ def run(cfg) -> dict:
     name, id_ = identity.map_identity(tracking.to_plain_lenient(cfg), ds.name, ds.id)
     root = Path(cfg.paths.models_dir)
     final = root / f"{name}-{id_}"
-    if tracking.is_complete(final) and not cfg.get("force", False):
+    command = f"{rerun_command('train', [f'data={ds.name}'], cfg)} force=true"
+    if tracking.exists(final, "perception map") and not cfg.get("force", False):
+        tracking.check_intact(final, "perception map", command)
         print(f"[train] {final.name} is up to date ({final}); nothing to do (force=true retrains)")
         return {"id": id_, "name": name, "path": str(final), "skipped": True,
                 "metrics": json.loads((final / "metrics.json").read_text())}
 
     dm = _build(cfg.datamodule, "datamodule", dataset=None, seed=s.seed).attach(ds)  # batch vs split size
     work = root / f".work-{name}-{id_}"
+    _resume_point(work, bool(cfg.get("force", False)), command)
     cfg = _run_dir(cfg, work)
     model = _model(cfg, s.seed, shape, arena, name, ds)
     dm.pose = model.pose
@@ -164,8 +168,8 @@ def _dataset(cfg):
     `image_shape`, where given, must match."""
     model_cfg = tracking.to_plain_lenient(cfg.model)
     ds_name, ds_id = train_dataset_id(cfg)
-    ds = open_dataset(f"{ds_name}-{ds_id}", datasets_dir=cfg.paths.datasets_dir,
-                      verify=bool(cfg.get("verify_dataset", True)))
+    folder = resolve_dataset(f"{ds_name}-{ds_id}", cfg.paths.datasets_dir, debug_overrides(cfg))  # hints: debug=
+    ds = open_dataset(folder, datasets_dir=cfg.paths.datasets_dir, verify=bool(cfg.get("verify_dataset", True)))
     shape = tuple(int(s) for s in ds.images("train").shape[1:])
     want = model_cfg.get("image_shape")
     if want is not None and tuple(want) != shape:
@@ -202,12 +206,46 @@ def _trainer(cfg, work: Path):
         ckpt_cb = ModelCheckpoint(dirpath=work / "ckpt", filename="best", monitor="val_mae", mode="min",
                                   save_top_k=1, save_last=True)
         callbacks.append(ckpt_cb)
+    _with_digests(ckpt_cb)
     # Lightning's bar on a terminal; one line per epoch in logs (a bar written to a file floods it)
     show_bar = bool(cfg.trainer.get("enable_progress_bar", True)) and sys.stderr.isatty()
     work.mkdir(parents=True, exist_ok=True)
     trainer = _build(cfg.trainer, "trainer", logger=loggers or False, callbacks=callbacks,
                      enable_progress_bar=show_bar)
     return trainer, ckpt_cb
+
+
+def _with_digests(cb: ModelCheckpoint) -> None:
+    """Each checkpoint the callback writes gets `<file>.sha256` beside it: a resume can tell one altered at the same
+    size, which torch loads without complaint (its zip reader checks no CRC)."""
+    save = cb._save_checkpoint
+
+    def saving(trainer, filepath):
+        save(trainer, filepath)
+        if trainer.is_global_zero and Path(filepath).is_file():
+            Path(f"{filepath}.sha256").write_text(tracking.sha256_file(Path(filepath)) + "\n")
+
+    cb._save_checkpoint = saving
+
+
+def _resume_point(work: Path, force: bool, command: str) -> None:
+    """An interrupted run's `work/ckpt/last.ckpt` is resumed from only when torch can read it: `force=true` discards
+    the work folder (a clean retrain); an unreadable checkpoint without it is one line saying so."""
+    last = work / "ckpt" / "last.ckpt"
+    if force:
+        shutil.rmtree(work, ignore_errors=True)
+        return
+    if not last.is_file():
+        return
+    digest = Path(f"{last}.sha256")
+    if digest.is_file() and digest.read_text().strip() != tracking.sha256_file(last):
+        raise ModelError(f"resume checkpoint {last} of an interrupted run does not match its {digest.name} (altered); "
+                         f"`{command}` discards it and retrains")
+    try:
+        torch.load(last, map_location="cpu", weights_only=False)
+    except Exception as err:  # noqa: BLE001 - a truncated zip, a flipped byte: torch's RuntimeError and friends
+        raise ModelError(f"resume checkpoint {last} of an interrupted run is unreadable ({_first_line(err)}); "
+                         f"`{command}` discards it and retrains") from None
 
 
 def _fit(cfg, trainer, model, dm, work: Path, label: str) -> float:
