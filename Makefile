@@ -50,6 +50,9 @@ train: $(STAMP) ## train the perception maps on clean and occluded data
 errormap: $(STAMP) ## epsilon-error maps, Lipschitz estimate and Assumption-1 coverage
 	$(PY) -m pipeline.errormap $(ARGS)
 
+certify: $(STAMP) ## certified error maps: sound bounds of the perception error over cells (SPEC 5.1-5.3; docs/certify.md)
+	$(PY) -m pipeline.certify $(ARGS)
+
 experiments: $(STAMP) ## every scenario of make paper (figures under outputs/side/<experiment>-<id>/; ARGS=publish=true: outputs/paper/)
 	$(PY) -m pipeline.experiments -m 'experiment=glob(*,exclude=[perception_generalisation,multi_*,unicycle*,camera_attack_sweep,worst_cloud_sweep,geometry_margin_grid])' $(ARGS)
 
@@ -71,4 +74,4 @@ lint: $(STAMP) ## ruff
 clean: ## remove generated data and outputs (keeps .venv)
 	rm -rf data/datasets outputs/* && touch outputs/.gitkeep
 
-.PHONY: help setup run paper multi dagger generalisation simulate data verify-data train errormap experiments test test-all bench lint clean
+.PHONY: help setup run paper multi dagger generalisation simulate data verify-data train errormap certify experiments test test-all bench lint clean

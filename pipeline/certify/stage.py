@@ -21,10 +21,11 @@ from omegaconf import DictConfig
 
 from pipeline import identity, tracking
 from pipeline.certify.bounds import prepare
-from pipeline.certify.checks import check
+from pipeline.certify.settings import CertifySettings
 from pipeline.certify.figures import write_figures, write_table
 from pipeline.certify.split import certify_cells, eps_of, sampled_errors
 from pipeline.config import build
+from pipeline.config import settings as settings_
 from pipeline.errormap import estimates as core
 from pipeline.errormap.analysis import operational_margin, operational_set
 from pipeline.errors import ConfigError, ModelError
@@ -90,7 +91,7 @@ def run(cfg: DictConfig, *, perception_map=None, camera=None) -> dict:
     """The certified error map of `cfg.maps`; returns `{"path", "summary", "skipped"}`. `perception_map` and
     `camera` may be injected (`.model` a `PerceptionMap`, `.predict`, `.id`, `.name`, `.manifest`, `.camera()`)."""
     s = tracking.to_plain({k: cfg[k] for k in cfg.keys() if k not in ("paths", "hydra")})
-    check(cfg)
+    settings_(cfg, CertifySettings)
     pmap = perception_map if perception_map is not None else _load(cfg, cfg.maps)
     camera = camera if camera is not None else pmap.camera()
     manifest = getattr(pmap, "manifest", None) or {}
