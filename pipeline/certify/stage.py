@@ -21,8 +21,8 @@ from omegaconf import DictConfig
 
 from pipeline import identity, tracking
 from pipeline.certify.bounds import prepare
-from pipeline.certify.settings import CertifySettings
 from pipeline.certify.figures import write_figures, write_table
+from pipeline.certify.settings import CertifySettings
 from pipeline.certify.split import certify_cells, eps_of, sampled_errors
 from pipeline.config import build
 from pipeline.config import settings as settings_
