@@ -96,7 +96,7 @@ class Block:
     pool_hi: torch.Tensor
     member: torch.Tensor  # (N, C', pr, pc) in 0..3: the member with the largest lower bound
     dominant: torch.Tensor  # (N, C', pr, pc) bool
-    umax: torch.Tensor  # (N, C', pr, pc): the largest member upper bound
+    umax: torch.Tensor  # (N, S, C', pr, pc): the upper form of a pool that no member dominates
     mask: torch.Tensor  # (1 or N, 1, pr, pc): pooled neurons inside the next grid
 
 
@@ -132,11 +132,31 @@ def _pool(lo, hi):
     lbest = lv.gather(-1, member[..., None])[..., 0]
     others = uv.masked_fill(F.one_hot(member, 4).bool(), float("-inf")).amax(-1)
     dominant = lbest >= others
-    umax = uv.amax(-1)
+    umax = _max_plane(fhi, uv.amax(-1))
     idx = member[:, None, ..., None].expand(n, s, *member.shape[1:], 1)
     plo = flo.gather(-1, idx)[..., 0]
-    phi = torch.where(dominant[:, None], fhi.gather(-1, idx)[..., 0], as_form(umax, s))
+    phi = torch.where(dominant[:, None], fhi.gather(-1, idx)[..., 0], umax)
     return plo, phi, member, dominant, umax
+
+
+_CORNERS = ((-1.0, -1.0), (1.0, -1.0), (-1.0, 1.0), (1.0, 1.0))
+
+
+def _max_plane(fhi: torch.Tensor, umax: torch.Tensor) -> torch.Tensor:
+    """An upper form of `max_i U_i(t)` (members' upper forms `fhi (N, S, C, p, q, 4)`): the max is convex in `t`, so
+    a plane above it at the box's four corners is above it on the whole box; the plane fitted to the corner values
+    and lifted by the largest residual, or the constant `umax` where that is lower on average (and in IBP)."""
+    if fhi.shape[1] != 3:
+        return as_form(umax, fhi.shape[1])
+    corners = torch.tensor(_CORNERS, dtype=fhi.dtype, device=fhi.device)  # (4, 2)
+    vals = (fhi[:, 0, ..., None] + fhi[:, 1, ..., None] * corners[:, 0] + fhi[:, 2, ..., None] * corners[:, 1])
+    vals = vals.amax(-2)  # (N, C, p, q, 4 corners): the max over members at each corner
+    a = vals.mean(-1)
+    bx = (vals[..., 1] + vals[..., 3] - vals[..., 0] - vals[..., 2]) / 4
+    by = (vals[..., 2] + vals[..., 3] - vals[..., 0] - vals[..., 1]) / 4
+    a = a + (vals - (a[..., None] + bx[..., None] * corners[:, 0] + by[..., None] * corners[:, 1])).amax(-1)
+    plane = torch.stack([a, bx, by], 1)
+    return torch.where((a <= umax)[:, None], plane, as_form(umax, 3))
 
 
 def _block(net: Deployed, static_padded, k: int, origin, lo, hi, ibp: bool):

@@ -25,7 +25,8 @@ def _back_block(rec: Block, weight: torch.Tensor, lam: torch.Tensor, const: torc
     n, p = lam.shape[:2]
     lam = lam * rec.mask[:, None]
     pos, neg = lam.clamp(min=0), lam.clamp(max=0)
-    const = const + (neg * (~rec.dominant[:, None]) * rec.umax[:, None]).flatten(2).sum(-1)
+    free = (neg * (~rec.dominant[:, None]))[:, :, None]  # (N, P, 1, C', pr, pc): onto the plane over the members
+    const = const + (free * rec.umax[:, None]).flatten(3).sum(-1)
     to_member = pos + neg * rec.dominant[:, None]
     onehot = F.one_hot(rec.member, 4).to(lam.dtype)[:, None]  # (N, 1, C', pr, pc, 4)
     members = to_member[..., None] * onehot
@@ -34,19 +35,24 @@ def _back_block(rec: Block, weight: torch.Tensor, lam: torch.Tensor, const: torc
     osize = (rec.size[0] + 2, rec.size[1] + 2)
     changed = extract(aligned, rec.parity, osize)
     static_lam = aligned - _embed(changed, aligned, rec.parity)
-    const = const + _static(static_lam, rec.pool_lo, rec.pool_hi)
+    const = _add(const, _static(static_lam, rec.pool_lo, rec.pool_hi))
     # ReLU: lower side lam * y for positive coefficients, upper slope * y + shift for negative ones
-    const = const + (changed.clamp(max=0) * rec.shift[:, None]).flatten(2).sum(-1)
+    const = _add(const, (changed.clamp(max=0) * rec.shift[:, None]).flatten(2).sum(-1))
     lam_y = torch.where(changed >= 0, changed * rec.lam[:, None], changed * rec.slope[:, None])
     bias = rec.bias[:, None] if level0 else rec.bias.view(1, 1, -1, 1, 1)
-    const = const + (lam_y * bias).flatten(2).sum(-1)
+    const = _add(const, (lam_y * bias).flatten(2).sum(-1))
     lam_x = F.conv_transpose2d(lam_y.flatten(0, 1), weight).unflatten(0, (n, p))
     h, w = rec.size
     inner = lam_x[..., 2:2 + h, 2:2 + w]
     ring = lam_x.clone()
     ring[..., 2:2 + h, 2:2 + w] = 0
-    const = const + _static(ring, rec.halo_lo, rec.halo_hi)
+    const = _add(const, _static(ring, rec.halo_lo, rec.halo_hi))
     return inner, const
+
+
+def _add(form: torch.Tensor, value: torch.Tensor) -> torch.Tensor:
+    """`form (N, P, S) + value (N, P)` on the constant slot."""
+    return torch.cat([form[..., :1] + value[..., None], form[..., 1:]], -1)
 
 
 def _embed(inner: torch.Tensor, outer: torch.Tensor, offset: torch.Tensor) -> torch.Tensor:
@@ -56,9 +62,9 @@ def _embed(inner: torch.Tensor, outer: torch.Tensor, offset: torch.Tensor) -> to
 def backward(net, cone: Cone, lam: torch.Tensor, const: torch.Tensor, pix_lo: torch.Tensor, pix_hi: torch.Tensor):
     """Lower-bound forms `(N, P, S)` of `lam · features + const` (`lam (N, P, C, pr, pc)` on the cone's feature
     window, `const (N, P)`), through every block to the pixel forms `pix_lo, pix_hi (N, S, 3, Kr, Kc)`."""
+    const = torch.cat([const[..., None], const.new_zeros((*const.shape, pix_lo.shape[1] - 1))], -1)  # a form
     for k in reversed(range(net.levels)):
         lam, const = _back_block(cone.blocks[k], net.weights[k], lam, const, k == 0)
     # pixels: lam (N, P, 3, Kr, Kc); forms (N, S, 3, Kr, Kc)
     form = (lam.clamp(min=0)[:, :, None] * pix_lo[:, None] + lam.clamp(max=0)[:, :, None] * pix_hi[:, None])
-    form = form.flatten(3).sum(-1)  # (N, P, S)
-    return torch.cat([form[..., :1] + const[..., None], form[..., 1:]], -1)
+    return form.flatten(3).sum(-1) + const  # (N, P, S)
