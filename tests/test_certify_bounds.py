@@ -267,3 +267,37 @@ def test_pgd_inside_the_cells_set_stays_below_the_bound(camera, trained, kappa):
     assert torch.all(worst <= limit + SLACK), (worst - limit).max()
     # the attack is not idle: it gets within reach of the bound somewhere
     assert (worst / limit.abs().clamp(min=1e-6)).max() > 0.2
+
+
+# -------------------------------------------------------------------------------- relaxations alone
+def _random_forms(rng, shape, spread):
+    """Random lower / upper forms `(N, 3, *shape)` with `lo(t) <= hi(t)` on the box."""
+    lo = torch.as_tensor(rng.normal(0, spread, (shape[0], 3, *shape[1:])))
+    gap = torch.as_tensor(rng.normal(0, spread, lo.shape))
+    width = gap[:, 1:].abs().sum(1) + torch.as_tensor(rng.exponential(spread, (shape[0], *shape[1:])))
+    hi = lo + gap
+    hi[:, 0] = lo[:, 0] + width  # hi - lo = width + gap_t . t >= 0 everywhere on the box
+    return lo, hi
+
+
+def _at(form, t):
+    return form[:, 0] + form[:, 1] * t[:, 0].view(-1, *[1] * (form.dim() - 2)) \
+        + form[:, 2] * t[:, 1].view(-1, *[1] * (form.dim() - 2))
+
+
+@settings(max_examples=20, deadline=None, phases=PHASES)
+@given(seed=st.integers(0, 10_000), spread=st.sampled_from([0.1, 1.0, 10.0]))
+def test_pool_and_relu_relaxations_hold_pointwise(seed, spread):
+    from pipeline.certify.cone import _pool, _relu
+
+    rng = np.random.default_rng(seed)
+    lo, hi = _random_forms(rng, (64, 2, 4, 4), spread)
+    plo, phi, *_ = _pool(lo, hi)
+    rlo, rhi, *_ = _relu(lo, hi, ibp=False)
+    for _ in range(20):
+        t = torch.as_tensor(rng.uniform(-1, 1, (64, 2)))
+        t[:4] = torch.tensor([[-1.0, -1.0], [1.0, -1.0], [-1.0, 1.0], [1.0, 1.0]])
+        x = _at(lo, t) + torch.as_tensor(rng.uniform(0, 1, (64, 2, 4, 4))) * (_at(hi, t) - _at(lo, t))
+        pooled = torch.nn.functional.max_pool2d(x, 2)
+        assert torch.all(_at(plo, t) <= pooled + 1e-9) and torch.all(pooled <= _at(phi, t) + 1e-9)
+        assert torch.all(_at(rlo, t) <= x.relu() + 1e-9) and torch.all(x.relu() <= _at(rhi, t) + 1e-9)
