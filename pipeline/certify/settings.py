@@ -17,7 +17,7 @@ class CertifySettings:
     mode: Literal["ibp", "forward", "crown"] = "crown"
     kappas: Annotated[list[NonNegative], NonEmpty(distinct=True)] = field(default_factory=lambda: [0.0, 1.0])
     tolerance: Positive = 1.0
-    max_depth: NonNegativeInt = 1
+    max_depth: NonNegativeInt = 0
     samples: PositiveInt = 16
     operational_margin: Literal["auto"] | NonNegative = "auto"
     region: list[list[float]] | None = None
