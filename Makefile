@@ -52,6 +52,8 @@ errormap: $(STAMP) ## epsilon-error maps, Lipschitz estimate and Assumption-1 co
 
 bracket: $(STAMP) ## the closed loop bracketed: certified eps_lo and falsified eps_hi per controller and start cell (outputs/bracket/)
 	$(PY) -m pipeline.bracket hydra.run.dir=outputs/bracket/default $(ARGS)
+certify: $(STAMP) ## certified error maps: sound bounds of the perception error over cells (SPEC 5.1-5.3; docs/certify.md)
+	$(PY) -m pipeline.certify $(ARGS)
 
 experiments: $(STAMP) ## every scenario of make paper (figures under outputs/side/<experiment>-<id>/; ARGS=publish=true: outputs/paper/)
 	$(PY) -m pipeline.experiments -m 'experiment=glob(*,exclude=[perception_generalisation,multi_*,unicycle*,camera_attack_sweep,worst_cloud_sweep,geometry_margin_grid])' $(ARGS)
@@ -74,4 +76,4 @@ lint: $(STAMP) ## ruff
 clean: ## remove generated data and outputs (keeps .venv)
 	rm -rf data/datasets outputs/* && touch outputs/.gitkeep
 
-.PHONY: help setup run paper multi dagger generalisation simulate data verify-data train errormap bracket experiments test test-all bench lint clean
+.PHONY: help setup run paper multi dagger generalisation simulate data verify-data train errormap certify bracket experiments test test-all bench lint clean

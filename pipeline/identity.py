@@ -113,3 +113,16 @@ def errormap_id(settings: Mapping, occlusions: Mapping, map_id: str, scene: Mapp
     return tracking.content_id(tracking.strip_keys(settings, volatile), dict(occlusions), str(map_id),
                                dict(scene), [float(v) for pair in arena for v in pair],
                                tracking.code_version(*ERRORMAP_CODE))
+
+
+# --------------------------------------------------------------------------------------- certified maps
+CERTIFY_VOLATILE = ("force", "progress", "paths", "hydra", "maps", "debug", "threads")
+CERTIFY_CODE = ("certify", "render", "perception/network", "perception/maps", "errormap/analysis",
+                "errormap/estimates", "control")
+
+
+def certify_id(settings: Mapping, map_id: str, scene: Mapping, arena) -> str:
+    """Id of the certified error map of perception map `map_id` (its scene and arena) under the certify settings
+    (plain, minus volatile keys)."""
+    return tracking.content_id(tracking.strip_keys(settings, CERTIFY_VOLATILE), str(map_id), dict(scene),
+                               [float(v) for pair in arena for v in pair], tracking.code_version(*CERTIFY_CODE))

@@ -1,0 +1,31 @@
+"""Certified error maps (SPEC §5.1-5.3): sound bounds of the perception error `e = l(h(p)) - p` over cells of
+positions, propagated from the position itself through the camera and the network exactly as deployed.
+
+Plain torch (no bound-propagation library runs on the project's torch), differentiable in the network's weights
+so that a training loss can use the bound::
+
+    from pipeline.certify import prepare, certified_error_bound
+    prep = prepare(model, camera, kappa=0.0)          # deployed net (BatchNorm folded, eval semantics) and the
+                                                      # static image's activations; rebuild after a weight update
+    b = certified_error_bound(prep, cells, mode="crown")   # cells: (N, 4) = (x0, x1, y0, y1), world units
+    b.lower, b.upper   # (N, 2): lower <= l(h(p)) - p <= upper per coordinate, for every p in the cell
+    b.eps              # (N,): the Euclidean bound max |e| over the cell
+
+- `mode`: `ibp` (intervals; cheapest: the warm-up of certified training), `forward` (forms linear in the
+  position through every layer), `crown` (forward, then a backward pass from the output; tightest).
+- What the bound covers: every image the camera renders for a position of the cell, the `uint8` rounding
+  included (`±0.5` level on fractional-coverage pixels), and under `kappa > 0` every image within `kappa`
+  levels of it per pixel and channel (clipped to `[0, 255]`: the pixel attack's set).
+- Models: position maps (`PerceptionMap`, flat head without a hidden layer, any filters, BatchNorm and
+  CoordConv or not, `clamp` or not). Float32 by default; pass `dtype=torch.float64` to `prepare` for bounds
+  free of the bound computation's own float32 rounding (the deployed network itself runs in float32).
+- Cost: one static pass per `prepare`; per cell only the cone of activations the robot's pixels reach
+  (:mod:`.cone`), batched over cells (no per-cell Python).
+
+Modules: :mod:`.renderer` (the camera inside the bound), :mod:`.deployed` (the folded network, the static
+pass), :mod:`.cone` (forward forms through the cone), :mod:`.crown` (backward pass), :mod:`.bounds` (the API).
+"""
+
+from pipeline.certify.bounds import MODES, ErrorBound, Prepared, certified_error_bound, prepare
+
+__all__ = ["MODES", "ErrorBound", "Prepared", "certified_error_bound", "prepare"]

@@ -1,0 +1,118 @@
+"""`certified_error_bound`: sound bounds of the perception error `e = l(h(p)) - p` over cells (SPEC §5.1-5.2)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from pipeline.certify.cone import concretize, forward, gather, pad
+from pipeline.certify.crown import backward
+from pipeline.certify.deployed import Deployed, Static, deployed, static_pass
+from pipeline.certify.renderer import pixel_window
+
+MODES = ("ibp", "forward", "crown")
+
+
+@dataclass
+class Prepared:
+    """A map and camera ready to bound: the deployed network and the static image's activations at `kappa`."""
+
+    net: Deployed
+    static: Static
+    camera: object
+    kappa: float
+
+
+def prepare(model, camera, kappa: float = 0.0, dtype: torch.dtype = torch.float32) -> Prepared:
+    """The deployed form of `model` (differentiable in its parameters) and its static pass on `camera`'s
+    static image. Rebuild it after the weights change."""
+    net = model if isinstance(model, Deployed) else deployed(model, dtype)
+    background = torch.as_tensor(camera.background, device=net.head_w.device)
+    return Prepared(net, static_pass(net, background, float(kappa)), camera, float(kappa))
+
+
+@dataclass
+class ErrorBound:
+    """Per cell and coordinate: `lower <= e <= upper` for every position of the cell (`(N, 2)`, world units)."""
+
+    lower: torch.Tensor
+    upper: torch.Tensor
+
+    @property
+    def eps(self) -> torch.Tensor:
+        """The Euclidean bound `max |e|` over the cell from the per-coordinate bounds `(N,)`."""
+        worst = torch.maximum(self.lower.abs(), self.upper.abs())
+        return torch.sqrt((worst ** 2).sum(-1))
+
+
+def _head(prep: Prepared, cone):
+    """The head's weights on the feature window `(N, 2, C, pr, pc)` and the rest's contribution `(N, 2)` as
+    lower / upper constants (bias included)."""
+    net, st = prep.net, prep.static
+    size = tuple(cone.lo.shape[-2:])
+    w = net.head_w
+    win = gather(pad(w.flatten(0, 1)), cone.origin, size).unflatten(1, w.shape[:2])
+    f_lo, f_hi = st.inputs_lo[-1], st.inputs_hi[-1]
+    total_lo = (w.clamp(min=0) * f_lo + w.clamp(max=0) * f_hi).flatten(1).sum(-1)
+    total_hi = (w.clamp(min=0) * f_hi + w.clamp(max=0) * f_lo).flatten(1).sum(-1)
+    s_lo, s_hi = gather(pad(f_lo), cone.origin, size)[:, None], gather(pad(f_hi), cone.origin, size)[:, None]
+    in_lo = (win.clamp(min=0) * s_lo + win.clamp(max=0) * s_hi).flatten(2).sum(-1)
+    in_hi = (win.clamp(min=0) * s_hi + win.clamp(max=0) * s_lo).flatten(2).sum(-1)
+    return win, net.head_b + total_lo - in_lo, net.head_b + total_hi - in_hi
+
+
+def _error_range(prep: Prepared, cells: torch.Tensor, z_lo: torch.Tensor, z_hi: torch.Tensor):
+    """Bounds of `e = clamp(z) * half_range + center - p` from forms of `z` `(N, 2, S)` over the cells."""
+    net = prep.net
+    half, center = net.half_range, net.center
+    c = torch.stack([(cells[:, 0] + cells[:, 1]) / 2, (cells[:, 2] + cells[:, 3]) / 2], 1)
+    h = torch.stack([(cells[:, 1] - cells[:, 0]) / 2, (cells[:, 3] - cells[:, 2]) / 2], 1)
+
+    def err_range(z):  # half * z + center - p as a form in t (p = c + h t), and its range
+        e = z * half[:, None]
+        const = e[..., 0] + center - c
+        coef = -torch.diag_embed(h)
+        if z.shape[-1] > 1:
+            coef = coef + e[..., 1:]
+        form = torch.cat([const[..., None], coef], -1).movedim(-1, 1)
+        return concretize(form, form)
+
+    d_lo, _ = err_range(z_lo)
+    _, d_hi = err_range(z_hi)
+    if not net.clamp:
+        return d_lo, d_hi
+    p_lo, p_hi = c - h, c + h
+    a_lo, b_lo = half + center - p_hi, -half + center - p_hi
+    lower = torch.minimum(a_lo, torch.maximum(b_lo, d_lo))
+    a_hi, b_hi = -half + center - p_lo, half + center - p_lo
+    upper = torch.maximum(a_hi, torch.minimum(b_hi, d_hi))
+    return lower, upper
+
+
+def certified_error_bound(prep: Prepared, cells: torch.Tensor, mode: str = "crown") -> ErrorBound:
+    """Sound bounds of `e = l(h(p)) - p` over each cell `cells (N, 4) = (x0, x1, y0, y1)` (world units) for
+    every image the camera renders there (uint8 rounding included; under `prep.kappa`, every image within
+    `kappa` levels of it). `mode`: `ibp` (intervals), `forward` (linear forms in the position, forward only),
+    `crown` (forward, then the backward pass; the tightest)."""
+    if mode not in MODES:
+        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+    net = prep.net
+    dtype = net.head_w.dtype
+    cells = torch.as_tensor(cells)
+    pw = pixel_window(prep.camera, cells, prep.kappa, symbolic=mode != "ibp")
+    lo, hi = pw.lo.to(dtype), pw.hi.to(dtype)
+    cone = forward(net, prep.static, pw.origin, lo, hi, ibp=mode == "ibp")
+    win, out_lo, out_hi = _head(prep, cone)
+    wp, wn = win.clamp(min=0)[:, :, None], win.clamp(max=0)[:, :, None]  # (N, 2, 1, C, pr, pc)
+    z_lo = (wp * cone.lo[:, None] + wn * cone.hi[:, None]).flatten(3).sum(-1)  # (N, 2, S)
+    z_hi = (wp * cone.hi[:, None] + wn * cone.lo[:, None]).flatten(3).sum(-1)
+    z_lo = torch.cat([z_lo[..., :1] + out_lo[..., None], z_lo[..., 1:]], -1)
+    z_hi = torch.cat([z_hi[..., :1] + out_hi[..., None], z_hi[..., 1:]], -1)
+    cells = cells.to(dtype)
+    lower, upper = _error_range(prep, cells, z_lo, z_hi)
+    if mode == "crown":
+        forms = backward(net, cone, torch.cat([win, -win], 1), torch.cat([out_lo, -out_hi], 1), lo, hi)
+        c_lo, c_hi = _error_range(prep, cells, forms[:, :2], -forms[:, 2:])
+        lower, upper = torch.maximum(lower, c_lo), torch.minimum(upper, c_hi)
+    return ErrorBound(lower, upper)

@@ -1,0 +1,136 @@
+"""The perception map as deployed, in the form the bounds read (SPEC §5.2).
+
+:func:`deployed` rewrites a position map (`PerceptionMap`, eval-mode semantics) exactly as
+`pipeline.perception.network.FoldedPerceptionNet` does (BatchNorm folded into the convolutions with its running
+statistics, the input scaling `x / 255 - 0.5` and the CoordConv channels folded into the first convolution's
+weights and a per-pixel bias map, dropout dropped), but **without detaching**: every tensor is a differentiable
+function of the model's parameters, so a training loss can backpropagate through a bound.
+
+:func:`static_pass` is the nominal forward pass on the camera's static image (background, obstacle, target: no
+robot), optionally as intervals under a pixel budget `kappa` (every pixel `±kappa` levels, clipped to
+`[0, 255]`): every activation outside the robot's cone equals (lies within) these maps.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from pipeline.errors import ConfigError
+
+
+@dataclass
+class Deployed:
+    """The deployed position map: conv blocks, the linear head and `_to_world`'s scaling.
+
+    - `weights[k]`, `biases[k]`: block `k`'s folded 3x3 convolution (padding 1); `biases[0]` is the first
+      block's per-pixel bias map `(C, H, W)` (input scaling and CoordConv folded in), the others `(C,)`;
+      `weights[0]` reads images in `[0, 255]`;
+    - `head_w (2, C, h, w)`, `head_b (2,)`: the flat head on the last block's pooled features;
+    - world position `= clamp(z, -1, 1) * half_range + center` (`clamp` as the model's eval mode).
+    """
+
+    weights: list[torch.Tensor]
+    biases: list[torch.Tensor]
+    head_w: torch.Tensor
+    head_b: torch.Tensor
+    center: torch.Tensor
+    half_range: torch.Tensor
+    clamp: bool
+    grids: list[tuple[int, int]]  # each block's input grid (H_k, W_k); grids[-1]: the pooled features' grid
+
+    @property
+    def levels(self) -> int:
+        return len(self.weights)
+
+
+def _fold(conv: nn.Conv2d, bn: nn.BatchNorm2d | None) -> tuple[torch.Tensor, torch.Tensor]:
+    w = conv.weight
+    b = conv.bias if conv.bias is not None else torch.zeros(w.shape[0], dtype=w.dtype, device=w.device)
+    if bn is None:
+        return w, b
+    scale = bn.weight / torch.sqrt(bn.running_var + bn.eps)
+    return w * scale.view(-1, 1, 1, 1), (b - bn.running_mean) * scale + bn.bias
+
+
+def deployed(model, dtype: torch.dtype = torch.float32) -> Deployed:
+    """The position map `model` (a `PerceptionMap` with the flat head and no hidden layer) as :class:`Deployed`.
+
+    Differentiable in the model's parameters; BatchNorm uses its running statistics (eval mode) whatever
+    `model.training` is. Raises `ConfigError` for the parts the bounds do not cover (keypoint head, pose
+    outputs, a hidden layer)."""
+    if getattr(model, "keypoint", False) or getattr(model, "pose", False):
+        raise ConfigError("certify.maps", "the certified bound covers position maps with the flat head "
+                                          "(model.position_head=flat, model.outputs=position)")
+    lin = [m for m in model.head if isinstance(m, nn.Linear)]
+    if len(lin) != 1:
+        raise ConfigError("certify.maps", "the certified bound covers a flat head without a hidden layer "
+                                          "(model.hidden=0)")
+    mods = list(model.features)
+    blocks = [_fold(m, mods[i + 1] if i + 1 < len(mods) and isinstance(mods[i + 1], nn.BatchNorm2d) else None)
+              for i, m in enumerate(mods) if isinstance(m, nn.Conv2d)]
+    h, w, _ = model.image_shape
+    w0, b0 = blocks[0]
+    ones = torch.ones(1, 3, h, w, dtype=w0.dtype, device=w0.device)
+    bias_map = -0.5 * F.conv2d(ones, w0[:, :3], padding=1)[0]
+    if model.coord_channels:
+        bias_map = bias_map + F.conv2d(model.coords.to(w0.dtype), w0[:, 3:], padding=1)[0]
+    bias_map = bias_map + b0.view(-1, 1, 1)
+    weights = [w0[:, :3] / 255.0] + [wk for wk, _ in blocks[1:]]
+    biases = [bias_map] + [bk for _, bk in blocks[1:]]
+    grids = [(h, w)]
+    for _ in blocks:
+        grids.append((grids[-1][0] // 2, grids[-1][1] // 2))
+    c_last = weights[-1].shape[0]
+    head_w = lin[0].weight.reshape(lin[0].out_features, c_last, *grids[-1])
+    cast = lambda t: t.to(dtype)  # noqa: E731
+    return Deployed([cast(t) for t in weights], [cast(t) for t in biases], cast(head_w), cast(lin[0].bias),
+                    cast(model.center), cast(model.half_range), bool(model.clamp), grids)
+
+
+def _conv_interval(lo, hi, w, b, level0: bool):
+    mid, rad = (lo + hi) / 2, (hi - lo) / 2
+    c = F.conv2d(mid, w, padding=1)
+    r = F.conv2d(rad, w.abs(), padding=1)
+    bias = b[None] if level0 else b.view(1, -1, 1, 1)
+    return c - r + bias, c + r + bias
+
+
+@dataclass
+class Static:
+    """The static image's activations (intervals under `kappa`; `lo is hi` when `kappa == 0`).
+
+    `inputs[k]`: block `k`'s input `(C, H_k, W_k)` (the image in `[0, 255]` for `k = 0`, else the previous
+    block's pooled output); `post[k]`: block `k`'s ReLU output before its pooling; `features`: the last pooled map.
+    """
+
+    inputs_lo: list[torch.Tensor]
+    inputs_hi: list[torch.Tensor]
+    post_lo: list[torch.Tensor]
+    post_hi: list[torch.Tensor]
+
+
+def static_pass(net: Deployed, background: torch.Tensor, kappa: float = 0.0) -> Static:
+    """The nominal pass on `background` (`(H, W, 3)` uint8 or float in `[0, 255]`); with `kappa > 0` an
+    interval pass over every image within `kappa` levels of it (clipped to `[0, 255]`)."""
+    x = background.to(net.head_w.dtype).permute(2, 0, 1)[None]
+    lo, hi = (x - kappa).clamp(0, 255), (x + kappa).clamp(0, 255)
+    in_lo, in_hi, post_lo, post_hi = [], [], [], []
+    for k, (w, b) in enumerate(zip(net.weights, net.biases)):
+        in_lo.append(lo[0])
+        in_hi.append(hi[0])
+        if kappa == 0:
+            y = F.conv2d(lo, w, padding=1) + (b[None] if k == 0 else b.view(1, -1, 1, 1))
+            lo = hi = F.relu(y)
+        else:
+            lo, hi = (F.relu(t) for t in _conv_interval(lo, hi, w, b, k == 0))
+        post_lo.append(lo[0])
+        post_hi.append(hi[0])
+        lo = F.max_pool2d(lo, 2)
+        hi = lo if kappa == 0 else F.max_pool2d(hi, 2)
+    in_lo.append(lo[0])
+    in_hi.append(hi[0])
+    return Static(in_lo, in_hi, post_lo, post_hi)

@@ -1,0 +1,88 @@
+"""Adaptive splitting and sampling over a set of cells (SPEC §5.2-5.3).
+
+:func:`certify_cells` bounds every cell, bisects (into four) the cells whose bound `eps` is above the tolerance
+until it holds or the depth reaches `max_depth`, and returns per top cell the worst bound over its leaves and the
+depth reached. :func:`sampled_errors` is `eps_emp`: the largest `|l(h(p)) - p|` over `n` positions drawn in each
+cell, and the check that each of them lies inside its cell's bound.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from pipeline.certify.bounds import Prepared, certified_error_bound
+from pipeline.progress import progress as progress_bar
+
+
+def _children(cells: np.ndarray) -> np.ndarray:
+    """Each cell `(x0, x1, y0, y1)` bisected in both axes: `(4 N, 4)`, children of cell `i` at `4 i .. 4 i + 3`."""
+    x0, x1, y0, y1 = cells.T
+    xm, ym = (x0 + x1) / 2, (y0 + y1) / 2
+    quads = [(x0, xm, y0, ym), (xm, x1, y0, ym), (x0, xm, ym, y1), (xm, x1, ym, y1)]
+    return np.stack([np.stack(q, 1) for q in quads], 1).reshape(-1, 4)
+
+
+def _bound_all(prep: Prepared, cells: np.ndarray, mode: str, batch: int, bar) -> tuple[np.ndarray, np.ndarray]:
+    lower, upper = np.empty((len(cells), 2)), np.empty((len(cells), 2))
+    with torch.no_grad():
+        for s in range(0, len(cells), batch):
+            b = certified_error_bound(prep, torch.as_tensor(cells[s:s + batch]), mode)
+            lower[s:s + batch], upper[s:s + batch] = b.lower.double().numpy(), b.upper.double().numpy()
+            bar.update(min(batch, len(cells) - s))
+    return lower, upper
+
+
+def eps_of(lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    return np.sqrt((np.maximum(np.abs(lower), np.abs(upper)) ** 2).sum(-1))
+
+
+def certify_cells(prep: Prepared, cells: np.ndarray, mode: str = "crown", tolerance: float = np.inf,
+                  max_depth: int = 0, batch: int = 1024, progress: bool = True, desc: str = "certify"):
+    """Per cell: `(lower (N, 2), upper (N, 2), depth (N,), leaves (N,))`: the per-coordinate bounds over its leaves
+    (a cell split into sub-cells holds the worst of theirs) and the depth and number of leaves it took."""
+    n = len(cells)
+    lower, upper = np.full((n, 2), np.inf), np.full((n, 2), -np.inf)
+    depth, leaves = np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int64)
+    current, owner = np.asarray(cells, dtype=np.float64), np.arange(n)
+    with progress_bar(total=n, desc=desc, unit="cell", enabled=progress) as bar:
+        for d in range(max_depth + 1):
+            lo, hi = _bound_all(prep, current, mode, batch, bar)
+            split = (eps_of(lo, hi) > tolerance) if d < max_depth else np.zeros(len(current), dtype=bool)
+            done = ~split
+            np.minimum.at(lower, owner[done], lo[done])
+            np.maximum.at(upper, owner[done], hi[done])
+            np.add.at(leaves, owner[done], 1)
+            if not split.any():
+                break
+            depth[owner[split]] = d + 1
+            current, owner = _children(current[split]), np.repeat(owner[split], 4)
+            bar.total += len(current)
+            bar.refresh()
+    return lower, upper, depth, leaves
+
+
+def sampled_errors(predict, camera, cells: np.ndarray, lower: np.ndarray, upper: np.ndarray, n: int, seed: int,
+                   batch: int = 4096, progress: bool = True):
+    """`eps_emp (N,)`: the largest error among `n` uniform positions per cell; `violations`: how many sampled
+    errors leave their cell's per-coordinate bound; `worst`: the largest excess and where (a counterexample)."""
+    rng = np.random.default_rng([int(seed), 104729])
+    emp = np.zeros(len(cells))
+    violations, worst = 0, (-np.inf, None)
+    per = max(1, batch // n)
+    with progress_bar(total=len(cells), desc="sampled positions", unit="cell", enabled=progress) as bar:
+        for s in range(0, len(cells), per):
+            c = cells[s:s + per]
+            t = rng.uniform(size=(len(c), n, 2))
+            p = np.stack([c[:, None, 0] + t[..., 0] * (c[:, None, 1] - c[:, None, 0]),
+                          c[:, None, 2] + t[..., 1] * (c[:, None, 3] - c[:, None, 2])], -1)
+            est = np.asarray(predict(camera.render(p.reshape(-1, 2))), dtype=np.float64)[:, :2]
+            e = est.reshape(p.shape) - p
+            emp[s:s + per] = np.linalg.norm(e, axis=-1).max(1)
+            excess = np.maximum(lower[s:s + per, None] - e, e - upper[s:s + per, None]).max(-1)  # (n_c, n)
+            violations += int((excess > 0).sum())
+            k = np.unravel_index(np.argmax(excess), excess.shape)
+            if excess[k] > worst[0]:
+                worst = (float(excess[k]), {"p": p[k].tolist(), "e": e[k].tolist(), "cell": c[k[0]].tolist()})
+            bar.update(len(c))
+    return emp, violations, worst

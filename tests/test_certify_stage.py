@@ -1,0 +1,68 @@
+"""The certify stage end to end on a tiny config (pipeline.certify.stage), and its bad inputs: one line, exit 2."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from pipeline.cli import REPO_ROOT, compose
+from pipeline.errors import PipelineError
+from pipeline.preflight import preflight
+
+
+def _cfg(tiny_maps, tmp_path, *extra):
+    root, ids = tiny_maps
+    return compose("certify", ["debug=tiny", f"maps={ids['clean']}", f"paths.models_dir={root / 'models'}",
+                               f"paths.certified_dir={tmp_path / 'certified'}", "progress=false", *extra])
+
+
+def test_certify_tiny_end_to_end(tiny_maps, tmp_path):
+    from pipeline.certify.stage import run
+
+    out = run(_cfg(tiny_maps, tmp_path))
+    s = out["summary"]
+    folder = out["path"]
+    assert folder.name.startswith("clean-") and (folder / "manifest.json").exists()
+    cells = np.load(folder / "cells.npz")
+    for k, r in s["kappas"].items():
+        eps = cells[f"eps_{k}"][cells["operational"]]
+        assert np.all(np.isfinite(eps)) and len(eps) == s["n_cells"] == r["eps_bar"]["n"]
+        assert r["eps_bar"]["max"] == pytest.approx(float(eps.max()))
+        assert sum(r["depth"].values()) == s["n_cells"]
+        assert r["theorem1"]["holds"] == (float(eps.max()) < s["margin_c_minus_r"])
+    r0 = s["kappas"]["0"]
+    assert r0["soundness"]["violations"] == 0 and r0["soundness"]["samples"] == 4 * s["n_cells"]
+    emp = cells["emp_0"][cells["operational"]]
+    assert np.all(cells["eps_0"][cells["operational"]] >= emp)  # the bound holds the sampled maximum
+    assert np.all(cells["eps_1"][cells["operational"]] >= cells["eps_0"][cells["operational"]] - 1e-6)
+    assert s["margin_c_minus_r"] == pytest.approx(2 * np.sqrt(2) * 4 - 4)
+    table = (folder / "table.md").read_text()
+    assert f"{r0['eps_bar']['p95']:.3g}" in table
+    for f in ("certified_error_map.png", "tightness_map.png", "coverage_curve.png"):
+        assert (folder / f).stat().st_size > 1000
+    again = run(_cfg(tiny_maps, tmp_path))  # same config, same id: skipped
+    assert again["skipped"] and again["path"] == folder
+    assert json.loads((folder / "summary.json").read_text())["id"] == s["id"]
+
+
+@pytest.mark.parametrize("override, field", [
+    ("tolerance=-1", "tolerance"), ("kappas=[]", "kappas"), ("mode=exact", "mode"), ("max_depth=-1", "max_depth"),
+    ("region=[[1,0],[0,1]]", "region"), ("samples=0", "samples"), ("dtype=half", "dtype"), ("cell=0", "cell"),
+])
+def test_bad_settings_are_one_line(override, field, tmp_path):
+    from pipeline.certify.checks import check
+
+    with pytest.raises(PipelineError) as err:
+        preflight("certify", [override, f"paths.outputs_dir={tmp_path}"], check)
+    assert err.value.field == field and "\n" not in str(err.value), str(err.value)
+
+
+def test_bad_key_on_the_command_line_is_one_line_exit_2(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "pipeline.certify", "tolerence=1", f"paths.root_dir={tmp_path}",
+                           f"hydra.run.dir={tmp_path / 'run'}"], cwd=REPO_ROOT, capture_output=True, text=True,
+                          timeout=300)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1 and "tolerence" in lines[0], proc.stderr
+    assert not (tmp_path / "outputs" / "certified").exists()
