@@ -235,13 +235,19 @@ class Context:
 
     # simulation ------------------------------------------------------------------------------
     def simulate(self, controller, x0, *, scene: Scene | None = None, disturbance=None, measure=None,
-                 target_fn=None, p_fail: float = 0.0, seed: int | None = None, record: bool = True,
+                 target_fn=None, p_fail: float | None = None, seed: int | None = None, record: bool = True,
                  record_every: int | None = None, horizon: float | None = None, model: str | None = None,
                  stop_on_success: bool | None = None):
         """One batched run; `model` (sampled | continuous) overrides `sim.model` (the camera is sampled-only),
-        `stop_on_success` overrides `sim.stop_on_success`."""
+        `stop_on_success` overrides `sim.stop_on_success`, `p_fail` (a scenario's failure condition) overrides
+        `camera.p_fail`."""
         kw = run_keywords(self.sim, self.camera_settings)
-        kw.update(p_fail=p_fail, seed=self.seed if seed is None else seed, record=record,
+        if p_fail is not None:
+            kw["p_fail"] = p_fail
+        if (model or self.sim.model) == "continuous" and kw["p_fail"] > 0:
+            raise ConfigError("camera.p_fail", f"a continuous-time run takes no camera failures, got {kw['p_fail']} "
+                                               "(camera.p_fail=0, or the scenario's sampled time model)")
+        kw.update(seed=self.seed if seed is None else seed, record=record,
                   record_every=record_every or self.sim.record_every, horizon=horizon or self.horizon,
                   model=model or self.sim.model,
                   stop_on_success=self.sim.stop_on_success if stop_on_success is None else bool(stop_on_success))
@@ -298,10 +304,11 @@ class Context:
                               flag_gate=flag_gate, keep_clouds=keep_clouds)
 
     def leader_follower(self, leader_x0, follower_x0, *, kind: str = "clean", level: str | None = None,
-                        sigma: float = 0.0, p_fail: float = 0.0, seed: int | None = None,
+                        sigma: float = 0.0, p_fail: float | None = None, seed: int | None = None,
                         follower_controller: str = "hybrid"):
         """Leader: hybrid on its own noisy state towards p_T. Follower: its own noisy state, target = the
-        leader's position seen by its camera through the map (failures hold the last estimate).
+        leader's position seen by its camera through the map (failures, `p_fail` or else `camera.p_fail`, hold the
+        last estimate; the leader reads its own state, not a camera: it has none).
 
         The leader never stops on success: it is the follower's target, and it keeps regulating to p_T after
         it first comes within delta. (Frozen on the delta-circle, it would leave the follower's own success,
@@ -309,7 +316,7 @@ class Context:
         seed = self.seed if seed is None else seed
         noise = self.disturbance("gaussian", sigma=sigma) if sigma > 0 else None
         every = max(1, round((self.frame_period or self.dt) / self.dt))
-        lead = self.simulate(self.controller("hybrid"), leader_x0, disturbance=noise, seed=seed,
+        lead = self.simulate(self.controller("hybrid"), leader_x0, disturbance=noise, seed=seed, p_fail=0.0,
                              record_every=every, stop_on_success=False)
         track = LeaderTrack(lead.t, lead.p)
         pm = self.perception_map(kind)

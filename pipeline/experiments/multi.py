@@ -54,10 +54,10 @@ def check_map_scene(ctx: Context, kind: str) -> None:
                                           "simulated")
 
 
-def summarise_field(metrics: pd.DataFrame, by: list[str], seed: int) -> pd.DataFrame:
+def summarise_field(metrics: pd.DataFrame, by: list[str], seed: int, delta_practical: float | None = None) -> pd.DataFrame:
     """The Monte Carlo table (:func:`pipeline.experiments.context.summarise`) plus the mean of each counter per
     agent (cell jumps, mode jumps, push-outs, guard-active frames) with its 95% interval."""
-    table = summarise(metrics, by, seed=seed)
+    table = summarise(metrics, by, seed=seed, delta_practical=delta_practical)
     extra = []
     for _, g in metrics.groupby(by, sort=False):
         row = {}
@@ -243,7 +243,7 @@ class MultiCamera(Scenario):
             frames[-1]["perception_error_mean"] = np.nanmean(err, axis=0)
             print(f"[experiments] {self.id}: {ctrl} done", flush=True)
         metrics = pd.concat(frames, ignore_index=True)
-        table = summarise_field(metrics, ["condition", "controller"], ctx.seed)
+        table = summarise_field(metrics, ["condition", "controller"], ctx.seed, self.delta_practical)
         table["perception_error_mean"] = metrics.groupby(["condition", "controller"], sort=False)[
             "perception_error_mean"].mean().to_numpy()
         return Results({"metrics": metrics, "summary": table}, arrays, {"occlusion": self.occlusion})

@@ -281,6 +281,9 @@ class SampleAndHold(Scenario):
                                                                 [-30.0, 20.0], [10.0, 25.0]])
     limit_dt: Positive = 0.0005
 
+    def time_models(self, ctx: Context) -> set[str]:
+        return {"sampled", "continuous"}
+
     def compute(self, ctx: Context) -> Results:
         x0 = np.asarray(self.initial_conditions, float)
         literal, guarded = ctx.controller("hybrid", guard=False), ctx.controller("hybrid", guard=True)

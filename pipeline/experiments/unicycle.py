@@ -82,6 +82,7 @@ class UnicycleRuns(Scenario):
     gif: bool = True
     gif_agent: int = 0             # which start the GIF follows (0: the paper's first)
     record_every: PositiveInt = 5
+    DRAW_ONLY: ClassVar[tuple[str, ...]] = (*Scenario.DRAW_ONLY, "gif", "gif_agent")  # the GIF is drawn, not computed
 
     @property
     def maps(self) -> tuple[str, ...]:  # type: ignore[override]
