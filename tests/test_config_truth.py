@@ -413,7 +413,7 @@ def test_experiment_settings_and_simulate_defaults_are_the_yaml():
     assert set(experiments) - {"defaults", "hydra"} == set(_code_defaults(ExperimentSettings))
     sim, camera = _yaml("sim/default.yaml"), _yaml("camera/default.yaml")
     run = {**{k: v for k, v in sim.items() if k != "_target_"}, "camera_period": camera["period"],
-           "p_fail": camera["p_fail"]}
+           **{k: camera[k] for k in ("p_fail", "predict", "drift", "max_drift")}}
     assert _differences(run, simulate) == []
 
 

@@ -104,6 +104,8 @@ class _AttackSweep(Scenario):
                "induced_along_start": _mean(frames["along"][first]), "induced_norm_start": _mean(frames["norm"][first]),
                "induced_norm_run": _mean(frames["norm"]), "frames_near_K": int(near.sum()),
                "attacked_images": len(frames)}
+        if "stopped_frames" in m:  # dead reckoning (camera.predict): agents its fallback stopped at least once
+            row["stopped_by_drift"] = int(np.sum(m["stopped_frames"] > 0))
         if frames["predicted_error"].notna().any():
             row |= {"flag_rate": float(frames["flagged"].mean()), "flag_rate_near_K": _mean(frames["flagged"][near]),
                     "gated_share": float(frames["gated"].mean())}
