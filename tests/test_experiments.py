@@ -166,7 +166,7 @@ def test_margin_map_cell_against_a_direct_simulation(tmp_path):
     its bisection stopped, checked by simulating those two ε directly."""
     from pipeline.experiments.context import Context
     from pipeline.experiments.scenario import practical_success
-    from pipeline.experiments.theory import HysteresisMargin
+    from pipeline.experiments.paper.theory import HysteresisMargin
 
     cfg = _cfg(tmp_path, "experiment=hysteresis_margin", "perception=oracle")
     ctx = Context(cfg)

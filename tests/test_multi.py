@@ -54,7 +54,7 @@ def test_behind_obstacles_lie_near_each_K_in_its_cell(seed, m, band):
 
 
 def test_field_scenes_need_a_random_field(tmp_path):
-    from pipeline.experiments.multi import field_scenes
+    from pipeline.experiments.multi.fields import field_scenes
 
     ctx = Context(_cfg(tmp_path, "experiment=multi_monte_carlo"))
     scenes = field_scenes(ctx, 4, [3, 5], seed=7)
@@ -65,7 +65,7 @@ def test_field_scenes_need_a_random_field(tmp_path):
 
 
 def test_cells_partition_the_arena_by_the_nearest_cell(tmp_path):
-    from pipeline.experiments.multi import MultiCells
+    from pipeline.experiments.multi.fields import MultiCells
 
     cfg = _cfg(tmp_path, "experiment=multi_cells")
     ctx = Context(cfg)
@@ -86,7 +86,7 @@ def test_cells_partition_the_arena_by_the_nearest_cell(tmp_path):
 
 def test_proposition1_behind_every_obstacle(tmp_path):
     """The adversary near each K_i stalls the smooth and CBF baselines and not the hybrid controller."""
-    from pipeline.experiments.multi import MultiAdversarial
+    from pipeline.experiments.multi.fields import MultiAdversarial
 
     ctx = Context(_cfg(tmp_path, "experiment=multi_adversarial", "scale=0.1"))
     scen = MultiAdversarial(id="multi_adversarial", title="t", eps=[0.5], n_scenes=10, obstacles=[4])
@@ -98,7 +98,7 @@ def test_proposition1_behind_every_obstacle(tmp_path):
 
 def test_guard_shortens_the_sampled_arc_without_pushouts(tmp_path):
     """SPEC §3.3: with the guard the 20 Hz arc from (-12, 2) comes within 10% of the continuous one, 0 push-outs."""
-    from pipeline.experiments.theory import SampleAndHold
+    from pipeline.experiments.paper.theory import SampleAndHold
 
     ctx = Context(_cfg(tmp_path, "experiment=sample_and_hold"))
     df = SampleAndHold(id="s", title="t", initial_conditions=[[-12.0, 2.0]], limit_dt=0.005).compute(ctx).tables[
@@ -110,7 +110,7 @@ def test_guard_shortens_the_sampled_arc_without_pushouts(tmp_path):
 
 
 def test_camera_on_a_field_needs_the_map_of_that_field(tmp_path, monkeypatch):
-    from pipeline.experiments.multi import MultiCamera
+    from pipeline.experiments.multi.fields import MultiCamera
 
     ctx = Context(_cfg(tmp_path, "experiment=multi_camera"))
     monkeypatch.setattr(Context, "map_scene", lambda self, kind: Scene())  # a map trained on the default scene
@@ -126,7 +126,7 @@ def test_monte_carlo_figure_takes_a_wilson_bound_an_ulp_below_a_rate_of_one(tmp_
     import pandas as pd
 
     from pipeline.experiments.context import Results
-    from pipeline.experiments.multi_figures import draw_multi_monte_carlo
+    from pipeline.experiments.multi.figures import draw_multi_monte_carlo
     from pipeline.experiments.report import Outputs
 
     t = pd.DataFrame({"condition": ["none", "none"], "controller": ["hybrid", "smooth"], "n": [400, 400],

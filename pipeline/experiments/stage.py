@@ -34,9 +34,9 @@ from pipeline.plants import SingleIntegrator
 from pipeline.progress import progress
 
 # the code whose changes change the numbers (figures.py and report.py only draw)
-COMPUTE_CODE = ("experiments/scenario", "experiments/theory", "experiments/camera_loop", "experiments/generalisation",
-                "experiments/multi", "experiments/unicycle", "experiments/context", "experiments/attacks",
-                "experiments/margin",
+COMPUTE_CODE = ("experiments/scenario", "experiments/paper/theory", "experiments/paper/camera_loop", "experiments/generalisation/maps",
+                "experiments/multi/fields", "experiments/multi/unicycle", "experiments/context", "experiments/attacks/camera",
+                "experiments/attacks/margin",
                 "perception/measure", "perception/metrics", "perception/attacks", "perception/adversary", "control",
                 "hybrid", "plants", "sim", "render", "data/sampling", "data/recipe")
 

@@ -1,4 +1,4 @@
-"""Figures and tables of the several-obstacle scenarios (pipeline.experiments.multi; drawing code only)."""
+"""Figures and tables of the several-obstacle scenarios (pipeline.experiments.multi.fields; drawing code only)."""
 
 from __future__ import annotations
 

@@ -152,7 +152,7 @@ class _AttackSweep(Scenario):
 class CameraAttack(_AttackSweep):
     """The pixel attack (`disturbances.pixel_attack`) on the clean map, its budget `kappa` (intensity levels) swept."""
 
-    figures: ClassVar[str] = "pipeline.experiments.attack_figures:draw_camera_attack"
+    figures: ClassVar[str] = "pipeline.experiments.attacks.figures:draw_camera_attack"
     attack: Literal["pixel_attack"] = "pixel_attack"  # the camera attack of `disturbances` whose kappa is swept
     occlusion: str | None = None   # the scene's clouds under the attack (null: clean images)
     kappas: Annotated[list[float], Range(ge=0, le=255), NonEmpty()] = field(default_factory=lambda: [0.0, 2.0, 4.0, 8.0])
@@ -170,7 +170,7 @@ class WorstCloudAttack(_AttackSweep):
     `record`, the runs at the last level are kept for the animation (a smooth controller stalled beside the hybrid
     passing). The worst cloud draws its own clouds: the scene has none besides."""
 
-    figures: ClassVar[str] = "pipeline.experiments.attack_figures:draw_worst_cloud"
+    figures: ClassVar[str] = "pipeline.experiments.attacks.figures:draw_worst_cloud"
     budget_key: ClassVar[str] = "level"
     attack: Literal["worst_cloud"] = "worst_cloud"
     map: str = "occluded"

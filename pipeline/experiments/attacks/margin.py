@@ -19,7 +19,7 @@ from pipeline.control import in_diamond
 from pipeline.errors import ConfigError
 from pipeline.experiments.context import Context, Results
 from pipeline.experiments.scenario import practical_success
-from pipeline.experiments.theory import HysteresisMargin
+from pipeline.experiments.paper.theory import HysteresisMargin
 from pipeline.schema import NonEmpty, Range
 
 SQRT2 = 1.4142135623730951
@@ -39,7 +39,7 @@ def cell_scene(scene_cfg: dict, *, apex_ratio: float, rho: float, scale: float):
 class GeometryMargin(HysteresisMargin):
     """The margin map of `HysteresisMargin` over (c / r, ρ_b, ℓ_B) at `chi` x `lam` (default: the paper's cell)."""
 
-    figures: ClassVar[str] = "pipeline.experiments.attack_figures:draw_geometry_margin"
+    figures: ClassVar[str] = "pipeline.experiments.attacks.figures:draw_geometry_margin"
 
     chi: list[float] = field(default_factory=lambda: [1.1])
     lam: list[float] = field(default_factory=lambda: [0.09])

@@ -20,7 +20,7 @@ from pipeline.sim.settings import FailureRate
 # ------------------------------------------------------------------------------ noise + failure
 @dataclass(kw_only=True)
 class NoiseFailure(Scenario):
-    figures: ClassVar[str] = "pipeline.experiments.figures:draw_noise_failure"
+    figures: ClassVar[str] = "pipeline.experiments.paper.figures:draw_noise_failure"
     sigma: NonNegative = 0.5
     p_fail: FailureRate = 0.5
     initial_conditions: Points = field(default_factory=lambda: [[-12.0, 2.0], [-37.0, -17.0]])
@@ -45,7 +45,7 @@ class NoiseFailure(Scenario):
 # --------------------------------------------------------------------------------------- occlusion
 @dataclass(kw_only=True)
 class Occlusion(Scenario):
-    figures: ClassVar[str] = "pipeline.experiments.figures:draw_occlusion"
+    figures: ClassVar[str] = "pipeline.experiments.paper.figures:draw_occlusion"
     occlusion: str = "heavy"
     initial_conditions: Points = field(default_factory=lambda: [[-12.0, 2.0], [-37.0, -17.0]])
     n_agents: PositiveInt = 100   # followers from random initial conditions for the table
@@ -103,7 +103,7 @@ class Occlusion(Scenario):
 # --------------------------------------------------------------------------------- leader-follower
 @dataclass(kw_only=True)
 class LeaderFollower(Scenario):
-    figures: ClassVar[str] = "pipeline.experiments.figures:draw_leader_follower"
+    figures: ClassVar[str] = "pipeline.experiments.paper.figures:draw_leader_follower"
     instants: list[int] = field(default_factory=lambda: [1, 90, 180])   # camera frames
     sigma: NonNegative = 0.0
     grid_step: Positive = 0.5
@@ -140,7 +140,7 @@ class LeaderFollower(Scenario):
 # ---------------------------------------------------------------------------- perception closeness
 @dataclass(kw_only=True)
 class PerceptionCloseness(Scenario):
-    figures: ClassVar[str] = "pipeline.experiments.figures:draw_perception_closeness"
+    figures: ClassVar[str] = "pipeline.experiments.paper.figures:draw_perception_closeness"
     initial_conditions: Points = field(default_factory=lambda: [[-37.0, -17.0]])
     maps: ClassVar[tuple[str, ...]] = ("clean",)
     errormaps: ClassVar[tuple[str, ...]] = ("clean",)
@@ -159,7 +159,7 @@ class PerceptionCloseness(Scenario):
 # ------------------------------------------------------------------------------------ Monte Carlo
 @dataclass(kw_only=True)
 class MonteCarlo(Scenario):
-    figures: ClassVar[str] = "pipeline.experiments.figures:draw_monte_carlo"
+    figures: ClassVar[str] = "pipeline.experiments.paper.figures:draw_monte_carlo"
     controllers: list[str] = field(default_factory=lambda: ["hybrid", "smooth", "cbf"])
     sigma: NonNegative = 0.5
     p_fail: FailureRate = 0.5

@@ -77,7 +77,7 @@ class MultiCells(Scenario):
     obstacle's diamond and disc `D_i`, the active potential's level sets, a few true-state trajectories with
     their cell and mode, and the field's validity margins (V1–V3)."""
 
-    figures: ClassVar[str] = "pipeline.experiments.multi_figures:draw_multi_cells"
+    figures: ClassVar[str] = "pipeline.experiments.multi.figures:draw_multi_cells"
     grid_step: float = 0.25
     initial_conditions: list[list[float]] = field(default_factory=lambda: [[-40.0, 0.0], [-12.0, 2.0],
                                                                             [-37.0, -17.0]])
@@ -122,7 +122,7 @@ class MultiAdversarial(Scenario):
     near every obstacle's set K (`pipeline.sim.starts.BehindObstacles`), on `n_scenes` random valid fields:
     hybrid against the smooth and CBF baselines, with Wilson intervals."""
 
-    figures: ClassVar[str] = "pipeline.experiments.multi_figures:draw_multi_adversarial"
+    figures: ClassVar[str] = "pipeline.experiments.multi.figures:draw_multi_adversarial"
     eps: list[float] = field(default_factory=lambda: [0.0, 0.25, 0.5, 1.0])
     controllers: list[str] = field(default_factory=lambda: ["hybrid", "smooth", "cbf"])
     n_scenes: int = 5
@@ -158,7 +158,7 @@ class MultiMonteCarlo(Scenario):
     stall, time, clearance, jumps by kind, push-outs and guard frames, with intervals (per condition and
     controller, and per field)."""
 
-    figures: ClassVar[str] = "pipeline.experiments.multi_figures:draw_multi_monte_carlo"
+    figures: ClassVar[str] = "pipeline.experiments.multi.figures:draw_multi_monte_carlo"
     controllers: list[str] = field(default_factory=lambda: ["hybrid", "smooth", "cbf"])
     n_scenes: int = 20
     obstacles: list[int] = field(default_factory=lambda: [3, 4, 5])
@@ -209,7 +209,7 @@ class MultiCamera(Scenario):
     trajectories of a few of them. The map's own scene (from its dataset's manifest) must be the composed one:
     the camera draws the obstacles the vehicle avoids."""
 
-    figures: ClassVar[str] = "pipeline.experiments.multi_figures:draw_multi_camera"
+    figures: ClassVar[str] = "pipeline.experiments.multi.figures:draw_multi_camera"
     controllers: list[str] = field(default_factory=lambda: ["hybrid", "smooth", "cbf"])
     occlusion: str = "heavy"
     map_kind: str = "field_heavy"

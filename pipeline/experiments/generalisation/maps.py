@@ -28,7 +28,7 @@ from pipeline import tracking
 from pipeline.data.recipe import Follower, Recipe, Sampling, Splits
 from pipeline.data.sampling import plan_split
 from pipeline.errors import ConfigError
-from pipeline.experiments.camera_loop import Occlusion
+from pipeline.experiments.paper.camera_loop import Occlusion
 from pipeline.experiments.context import Context, Results
 from pipeline.experiments.scenario import Points, Scenario
 from pipeline.perception.measure import OracleMap
@@ -45,7 +45,7 @@ FOLLOWER_COLUMNS = ("n", "success_rate", "success_lo", "success_hi", "success_pr
 
 @dataclass(kw_only=True)
 class PerceptionGeneralisation(Scenario):
-    figures: ClassVar[str] = "pipeline.experiments.figures:draw_perception_generalisation"
+    figures: ClassVar[str] = "pipeline.experiments.paper.figures:draw_perception_generalisation"
     maps: Names = field(default_factory=lambda: ["clean", "authors", "occluded", "clean_paper"])
     levels: Names = field(default_factory=lambda: ["none", "light", "authors", "heavy"])
     n_positions: PositiveInt = 4000  # test positions per level (uniform over the arena), the same at every level

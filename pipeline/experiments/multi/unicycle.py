@@ -24,7 +24,7 @@ import pandas as pd
 
 from pipeline.errors import ConfigError
 from pipeline.experiments.context import Context, Results, mean_ci
-from pipeline.experiments.multi import check_map_scene, summarise_field
+from pipeline.experiments.multi.fields import check_map_scene, summarise_field
 from pipeline.experiments.scenario import Points, Scenario, _agent_rows
 from pipeline.plants import SingleIntegrator
 from pipeline.schema import NonNegative, PositiveInt
@@ -71,7 +71,7 @@ class UnicycleRuns(Scenario):
     """The unicycle on the composed scene under each condition of `conditions`, beside the single integrator;
     a GIF of one camera run beside its camera view (`gif: true`)."""
 
-    figures: ClassVar[str] = "pipeline.experiments.unicycle_figures:draw_unicycle"
+    figures: ClassVar[str] = "pipeline.experiments.multi.unicycle_figures:draw_unicycle"
     map_kind: str = "unicycle_pose"
     conditions: list[Condition] = field(default_factory=lambda: ["true_state", "camera", "imu"])
     initial_conditions: Points = field(default_factory=lambda: [list(p) for p in PAPER_STARTS])

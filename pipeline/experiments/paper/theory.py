@@ -13,7 +13,7 @@ import pandas as pd
 
 from pipeline.control import in_covering_set, in_diamond, potential
 from pipeline.errors import ConfigError
-from pipeline.experiments.camera_loop import MonteCarlo
+from pipeline.experiments.paper.camera_loop import MonteCarlo
 from pipeline.experiments.context import Context, Results, summarise, wilson
 from pipeline.experiments.scenario import Points, Scenario, practical_success
 from pipeline.schema import Interval, NonEmpty, NonNegative, Positive, PositiveInt, Range
@@ -24,7 +24,7 @@ from pipeline.sim.settings import FailureRate, TimeModel
 # --------------------------------------------------------------------------------- coverings
 @dataclass(kw_only=True)
 class Coverings(Scenario):
-    figures: ClassVar[str] = "pipeline.experiments.figures:draw_coverings"
+    figures: ClassVar[str] = "pipeline.experiments.paper.figures:draw_coverings"
     grid_step: Positive = 0.25
 
     def uses(self):
@@ -50,7 +50,7 @@ class Coverings(Scenario):
 # ---------------------------------------------------------------------------- sensitive set
 @dataclass(kw_only=True)
 class SensitiveSet(Scenario):
-    figures: ClassVar[str] = "pipeline.experiments.figures:draw_sensitive_set"
+    figures: ClassVar[str] = "pipeline.experiments.paper.figures:draw_sensitive_set"
     grid_step: Positive = 1.0
     grid_step_y: Positive = 0.25   # fine across K to resolve the ε band
     eps: NonNegative = 0.5         # size of the adversarial disturbance in the second column
@@ -88,7 +88,7 @@ class SensitiveSet(Scenario):
 # ------------------------------------------------------------------------------- robustness sweep
 @dataclass(kw_only=True)
 class RobustnessSweep(Scenario):
-    figures: ClassVar[str] = "pipeline.experiments.figures:draw_robustness_sweep"
+    figures: ClassVar[str] = "pipeline.experiments.paper.figures:draw_robustness_sweep"
     eps: list[NonNegative] = field(default_factory=lambda: [0.0, 0.1, 0.25, 0.5, 1.0, 1.5])
     disturbances: list[str] = field(default_factory=lambda: ["adversarial", "alternating"])
     controllers: list[str] = field(default_factory=lambda: ["hybrid", "smooth", "cbf"])
@@ -139,7 +139,7 @@ class AuthorsCode(Scenario):
     """The authors' released-code scene (composed as `other_scene`: r = 8, apex 1.5 r, log barrier) side by side
     with the default, through the true-state scenarios (the maps are trained on the default scene's images)."""
 
-    figures: ClassVar[str] = "pipeline.experiments.figures:draw_authors_code"
+    figures: ClassVar[str] = "pipeline.experiments.paper.figures:draw_authors_code"
 
     eps: list[NonNegative] = field(default_factory=lambda: [0.0, 0.25, 0.5, 1.0])
     disturbances: list[str] = field(default_factory=lambda: ["adversarial"])
@@ -181,7 +181,7 @@ class HysteresisMargin(Scenario):
     size ε for which the hybrid controller still reaches the target from >= `success` of the starts near K
     (bisection on ε per cell; starts and seed fixed)."""
 
-    figures: ClassVar[str] = "pipeline.experiments.figures:draw_hysteresis_margin"
+    figures: ClassVar[str] = "pipeline.experiments.paper.figures:draw_hysteresis_margin"
 
     chi: Annotated[list[float], Range(gt=1), NonEmpty()] = field(default_factory=lambda: [1.05, 1.1, 1.2, 1.4, 1.8])
     lam: Annotated[list[float], Range(gt=0), NonEmpty()] = field(default_factory=lambda: [0.01, 0.03, 0.09, 0.2, 0.4])
@@ -259,7 +259,7 @@ class HysteresisMargin(Scenario):
 class Scheme(Scenario):
     """Fig. 4: the closed loop's block diagram, drawn from code (nothing to compute)."""
 
-    figures: ClassVar[str] = "pipeline.experiments.figures:draw_scheme"
+    figures: ClassVar[str] = "pipeline.experiments.paper.figures:draw_scheme"
 
     def uses(self):
         return {"controllers": [], "disturbances": [], "occlusions": []}
@@ -275,7 +275,7 @@ class SampleAndHold(Scenario):
     every `camera.period`), the continuous-time model, and the sampled model with dt = period = `limit_dt`
     (the dt -> 0 limit), on the true state without disturbance."""
 
-    figures: ClassVar[str] = "pipeline.experiments.figures:draw_sample_and_hold"
+    figures: ClassVar[str] = "pipeline.experiments.paper.figures:draw_sample_and_hold"
 
     initial_conditions: Points = field(default_factory=lambda: [[-12.0, 2.0], [-45.0, 0.3], [-37.0, -17.0],
                                                                 [-30.0, 20.0], [10.0, 25.0]])
