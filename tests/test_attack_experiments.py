@@ -193,8 +193,8 @@ def test_worst_cloud_at_debug_tiny_with_animation(tmp_path, tiny_maps):
 def test_geometry_margin_grid_skips_invalid_cells_and_varies(tmp_path):
     """The grid is the product of the three lists; a cell whose barrier reaches the target is skipped with the
     scene's reason; the apex moves the margin (the bisection of HysteresisMargin, checked on one cell directly)."""
-    from pipeline.experiments.context import Context
     from pipeline.experiments.attacks.margin import GeometryMargin
+    from pipeline.experiments.context import Context
     from pipeline.experiments.scenario import practical_success
 
     ctx = Context(_cfg(tmp_path, "experiment=geometry_margin", "perception=oracle"))

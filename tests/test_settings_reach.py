@@ -56,7 +56,7 @@ def test_the_override_lists_cover_every_field():
 
 
 def test_sim_and_camera_settings_reach_the_simulator_and_the_camera(tmp_path, monkeypatch):
-    from pipeline.experiments import context
+    from pipeline.experiments import runs
 
     calls = []
 
@@ -65,7 +65,7 @@ def test_sim_and_camera_settings_reach_the_simulator_and_the_camera(tmp_path, mo
         steps = 3
         return SimpleNamespace(t=np.arange(steps) * 0.1, p=np.zeros((steps, len(x0), 2)))
 
-    monkeypatch.setattr(context, "simulate", simulate)
+    monkeypatch.setattr(runs, "simulate", simulate)
     ctx = _ctx(tmp_path)
     x0 = np.array([[-12.0, 2.0], [-37.0, -17.0]])
     ctx.simulate(ctx.controller(), x0)
@@ -80,7 +80,7 @@ def test_sim_and_camera_settings_reach_the_simulator_and_the_camera(tmp_path, mo
     assert ctx.simulate(ctx.controller(), x0, p_fail=0.5) is not None and calls[-1]["p_fail"] == 0.5  # a condition's own
 
     seen = {}
-    monkeypatch.setattr(context, "CameraMeasure", lambda camera, pm, occ, **kw: seen.update(kw) or "measure")
+    monkeypatch.setattr(runs, "CameraMeasure", lambda camera, pm, occ, **kw: seen.update(kw) or "measure")
     monkeypatch.setattr(ctx, "perception_map", lambda kind: object())  # a learned map (not the oracle)
     monkeypatch.setattr(ctx, "camera", lambda kind: None)
     assert ctx.camera_measure("clean") == "measure"

@@ -14,7 +14,8 @@ import numpy as np
 import pandas as pd
 
 from pipeline.errors import ConfigError
-from pipeline.experiments.context import Context, Results
+from pipeline.experiments.context import Context
+from pipeline.experiments.results import Results
 from pipeline.schema import NonEmpty, Pair, check_fields
 from pipeline.sim import starts
 

@@ -22,11 +22,13 @@ from typing import Annotated, ClassVar, Literal
 import numpy as np
 import pandas as pd
 
-from pipeline.experiments.context import Context, Results, wilson
+from pipeline.experiments.context import Context
+from pipeline.experiments.results import Results
 from pipeline.experiments.scenario import Scenario, _agent_rows
 from pipeline.render import load_occlusion
 from pipeline.schema import Interval, NonEmpty, Option, Positive, PositiveInt, Range
 from pipeline.sim import starts
+from pipeline.sim.metrics import wilson
 
 Controller = Annotated[str, Option("controller")]  # hybrid, smooth, cbf
 

@@ -17,9 +17,10 @@ import pandas as pd
 from pipeline.config import build
 from pipeline.control import in_diamond
 from pipeline.errors import ConfigError
-from pipeline.experiments.context import Context, Results
-from pipeline.experiments.scenario import practical_success
+from pipeline.experiments.context import Context
 from pipeline.experiments.paper.theory import HysteresisMargin
+from pipeline.experiments.results import Results
+from pipeline.experiments.scenario import practical_success
 from pipeline.schema import NonEmpty, Range
 
 SQRT2 = 1.4142135623730951

@@ -21,9 +21,11 @@ from pipeline.control import Scene
 from pipeline.control.fields import analyse_field
 from pipeline.control.potentials import potential
 from pipeline.errors import ConfigError
-from pipeline.experiments.context import Context, Results, mean_ci, summarise, wilson
+from pipeline.experiments.context import Context
+from pipeline.experiments.results import Results, mean_ci, summarise
 from pipeline.experiments.scenario import Scenario, _agent_rows
 from pipeline.sim import starts
+from pipeline.sim.metrics import wilson
 
 RANDOM_SCENE = "pipeline.control.fields.random_scene"
 COUNTERS = ("cell_jumps", "mode_jumps", "pushouts", "guard_frames")

@@ -23,8 +23,9 @@ import numpy as np
 import pandas as pd
 
 from pipeline.errors import ConfigError
-from pipeline.experiments.context import Context, Results, mean_ci
+from pipeline.experiments.context import Context
 from pipeline.experiments.multi.fields import check_map_scene, summarise_field
+from pipeline.experiments.results import Results, mean_ci
 from pipeline.experiments.scenario import Points, Scenario, _agent_rows
 from pipeline.plants import SingleIntegrator
 from pipeline.schema import NonNegative, PositiveInt

@@ -10,7 +10,8 @@ import numpy as np
 import pandas as pd
 
 from pipeline.control import potential
-from pipeline.experiments.context import Context, Results, summarise
+from pipeline.experiments.context import Context
+from pipeline.experiments.results import Results, summarise
 from pipeline.experiments.scenario import Points, Scenario, _agent_rows, _frame_index
 from pipeline.schema import NonNegative, Positive, PositiveInt
 from pipeline.sim import starts
@@ -44,7 +45,10 @@ class NoiseFailure(Scenario):
 
 # --------------------------------------------------------------------------------------- occlusion
 @dataclass(kw_only=True)
-class Occlusion(Scenario):
+class OccludedFollowers(Scenario):
+    """The paper's occlusion figure: followers of a leader under `occlusion` clouds, with the clean and the
+    occluded map (not the renderer's clouds, `pipeline.render.Occlusion`)."""
+
     figures: ClassVar[str] = "pipeline.experiments.paper.figures:draw_occlusion"
     occlusion: str = "heavy"
     initial_conditions: Points = field(default_factory=lambda: [[-12.0, 2.0], [-37.0, -17.0]])

@@ -16,8 +16,8 @@ from matplotlib.colors import ListedColormap  # noqa: E402
 from matplotlib.patches import Circle  # noqa: E402
 
 from pipeline.experiments.paper.animation import leader_follower_gif  # noqa: E402
-from pipeline.experiments.report import draw_frame  # noqa: E402
 from pipeline.experiments.paper.scheme import scheme_figure  # noqa: E402
+from pipeline.experiments.report import draw_frame  # noqa: E402
 
 
 def draw_coverings(scen, ctx, res, out) -> None:

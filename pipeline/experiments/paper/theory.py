@@ -13,11 +13,13 @@ import pandas as pd
 
 from pipeline.control import in_covering_set, in_diamond, potential
 from pipeline.errors import ConfigError
+from pipeline.experiments.context import Context
 from pipeline.experiments.paper.camera_loop import MonteCarlo
-from pipeline.experiments.context import Context, Results, summarise, wilson
+from pipeline.experiments.results import Results, summarise
 from pipeline.experiments.scenario import Points, Scenario, practical_success
 from pipeline.schema import Interval, NonEmpty, NonNegative, Positive, PositiveInt, Range
 from pipeline.sim import simulate, starts
+from pipeline.sim.metrics import wilson
 from pipeline.sim.settings import FailureRate, TimeModel
 
 
