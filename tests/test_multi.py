@@ -10,9 +10,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from pipeline.cli import compose
-from pipeline.control import Scene
+from pipeline.control import Scene, in_diamond
 from pipeline.control.fields import random_scene
-from pipeline.control.validity import in_diamonds
 from pipeline.errors import ConfigError
 from pipeline.experiments.context import Context
 from pipeline.sim.starts import BehindObstacles
@@ -48,7 +47,7 @@ def test_behind_obstacles_lie_near_each_K_in_its_cell(seed, m, band):
         a, b = scene.covering(int(i)).to_frame(pts[cell == i])
         assert (a <= -arr["c"][i] - 1.0 + 1e-9).all() and (a >= -arr["c"][i] - 9.0 - 1e-9).all()  # behind its diamond
         assert (np.abs(b) < band).all()
-    assert not in_diamonds(pts, arr["center"], arr["c"], scene.p_T).any()
+    assert not in_diamond(scene, pts).any()
     (x0, x1), (y0, y1) = scene.bounds
     assert ((pts[:, 0] > x0) & (pts[:, 0] < x1) & (pts[:, 1] > y0) & (pts[:, 1] < y1)).all()
 
@@ -125,7 +124,7 @@ def test_monte_carlo_figure_takes_a_wilson_bound_an_ulp_below_a_rate_of_one(tmp_
     ulp below 1.0 and matplotlib rejected the negative error bar after an hour of simulation."""
     import pandas as pd
 
-    from pipeline.experiments.context import Results
+    from pipeline.experiments.results import Results
     from pipeline.experiments.multi.figures import draw_multi_monte_carlo
     from pipeline.experiments.report import Outputs
 

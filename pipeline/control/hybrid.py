@@ -27,7 +27,7 @@ import numpy as np
 from pipeline.control.feedback import _SQRT1_2, Feedback
 from pipeline.control.potentials import both_potentials_frame, fused_potentials, potential
 from pipeline.control.scene import Scene
-from pipeline.control.validity import check_field
+from pipeline.control.validity import cell_distance, check_field
 from pipeline.errors import ConfigError
 from pipeline.schema import OpenShare, Positive, Range, checked
 
@@ -80,9 +80,8 @@ class HybridController(Feedback):
 
     # ---- the cells (SPEC §3.6) --------------------------------------------------------------------------
     def cell_distance(self, m: np.ndarray) -> np.ndarray:
-        """`dist_j(m) = |m - c_j| - R_j` `(N, M)`."""
-        rel = m[:, None, :] - self._arr["center"][None]
-        return np.hypot(rel[..., 0], rel[..., 1]) - self._arr["R"][None]
+        """`dist_j(m) = |m - c_j| - R_j` `(N, M)` (:func:`pipeline.control.validity.cell_distance`)."""
+        return cell_distance(m, self._arr["center"], self._arr["R"])
 
     def initial_state(self, m0: np.ndarray, target=None) -> dict[str, np.ndarray]:
         """`i0 = argmin_j dist_j(m0)`, `q0` the mode with the smaller `V_{i0}^q(m0)` (ties: `q = 1` below `b = 0`)."""

@@ -22,7 +22,7 @@ from pipeline.sim import starts
 Points = Annotated[list[Pair], NonEmpty()]  # initial conditions [[x, y], ...]
 
 
-def _agent_rows(res, **cols) -> pd.DataFrame:
+def agent_rows(res, **cols) -> pd.DataFrame:
     df = res.metrics_frame()
     for k, v in cols.items():
         df[k] = v
@@ -37,7 +37,7 @@ def practical_success(res, delta: float, eps: float) -> np.ndarray:
     return (m["success"] | (m["final_error"] <= delta + eps + 1e-9)) & ~m["collision"]
 
 
-def _frame_index(t: np.ndarray, times) -> list[int]:
+def frame_index(t: np.ndarray, times) -> list[int]:
     return [int(min(np.searchsorted(t, s - 1e-9), len(t) - 1)) for s in times]
 
 

@@ -25,6 +25,7 @@ import numpy as np
 
 from pipeline.hybrid import HybridSystem, State
 from pipeline.hybrid.system import row_norm
+from pipeline.sim.disturbances import NoDisturbance
 
 # measure(c_true (n, dim), idx (n,), frame, rng) -> measured states (n, dim), before the disturbance
 Measure = Callable[[np.ndarray, np.ndarray, int, np.random.Generator], np.ndarray]
@@ -70,7 +71,7 @@ class _Loop(HybridSystem):
 
     def __init__(self, scene, controller, plant, disturbance):
         self.scene, self.controller, self.plant, self.disturbance = scene, controller, plant, disturbance
-        self.exact = disturbance is None or type(disturbance).__name__ == "NoDisturbance"
+        self.exact = disturbance is None or isinstance(disturbance, NoDisturbance)
         self._memo = None
 
     def measured(self, x: State) -> np.ndarray:  # pragma: no cover - interface

@@ -24,7 +24,7 @@ import pandas as pd
 
 from pipeline.experiments.context import Context
 from pipeline.experiments.results import Results
-from pipeline.experiments.scenario import Scenario, _agent_rows
+from pipeline.experiments.scenario import Scenario, agent_rows
 from pipeline.render import load_occlusion
 from pipeline.schema import Interval, NonEmpty, Option, Positive, PositiveInt, Range
 from pipeline.sim import starts
@@ -138,7 +138,7 @@ class _AttackSweep(Scenario):
                 frames = measure.table()
                 label = {"budget": budget, "attack": att.label(), "controller": ctrl, "gated": gated}
                 rows.append(self.row(ctx, res, frames, **label))
-                agents.append(_agent_rows(res, **label))
+                agents.append(agent_rows(res, **label))
                 if rec and not gated:
                     arrays |= {f"rec_{ctrl}_p": res.p, f"rec_{ctrl}_m": res.m, f"rec_{ctrl}_t": res.t,
                                f"rec_{ctrl}_rows": frames[["frame", "agent"]].to_numpy(),

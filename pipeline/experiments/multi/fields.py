@@ -23,7 +23,7 @@ from pipeline.control.potentials import potential
 from pipeline.errors import ConfigError
 from pipeline.experiments.context import Context
 from pipeline.experiments.results import Results, mean_ci, summarise
-from pipeline.experiments.scenario import Scenario, _agent_rows
+from pipeline.experiments.scenario import Scenario, agent_rows
 from pipeline.sim import starts
 from pipeline.sim.metrics import wilson
 
@@ -114,7 +114,7 @@ class MultiCells(Scenario):
                 "summary": fa.summary()}
         arrays = {"x": xs, "y": ys, "cell": cell.reshape(X.shape).astype(np.int16), "band": band.reshape(X.shape),
                   "V": V.reshape(X.shape), "p": res.p, "i": res.i, "q": res.q}
-        return Results({"obstacles": obstacles, "metrics": _agent_rows(res)}, arrays, info)
+        return Results({"obstacles": obstacles, "metrics": agent_rows(res)}, arrays, info)
 
 
 # ------------------------------------------------------------------------ Proposition 1, every obstacle
@@ -146,7 +146,7 @@ class MultiAdversarial(Scenario):
                 d = ctx.disturbance("adversarial", eps=eps) if eps > 0 else None
                 for ctrl in self.controllers:
                     res = ctx.simulate(ctx.controller(ctrl, scene=scene), x0, scene=scene, disturbance=d, record=False)
-                    frames.append(_agent_rows(res, scene=label, eps=eps))
+                    frames.append(agent_rows(res, scene=label, eps=eps))
             print(f"[experiments] {self.id}: {label} done", flush=True)
         metrics = pd.concat(frames, ignore_index=True)
         table = summarise_field(metrics, ["eps", "controller"], ctx.seed)
@@ -194,7 +194,7 @@ class MultiMonteCarlo(Scenario):
                     if rec:
                         arrays[f"p_{ctrl}"] = res.p
                         res = ctx.simulate(ctx.controller(ctrl, scene=scene), x0, scene=scene, record=False)
-                    frames.append(_agent_rows(res, scene=label, condition=cond, obstacles=scene.n_obstacles))
+                    frames.append(agent_rows(res, scene=label, condition=cond, obstacles=scene.n_obstacles))
             print(f"[experiments] {self.id}: {label} done ({j + 1}/{len(scenes)})", flush=True)
         metrics = pd.concat(frames, ignore_index=True)
         table = summarise_field(metrics, ["condition", "controller"], ctx.seed)
@@ -239,7 +239,7 @@ class MultiCamera(Scenario):
         frames, arrays = [], {}
         for ctrl in self.controllers:
             res = ctx.simulate(ctx.controller(ctrl), x0, measure=measure, record=True)
-            frames.append(_agent_rows(res, condition=f"{self.occlusion} clouds, {self.map_kind} map"))
+            frames.append(agent_rows(res, condition=f"{self.occlusion} clouds, {self.map_kind} map"))
             arrays[f"p_{ctrl}"], arrays[f"m_{ctrl}"] = res.p[:, : self.n_drawn], res.m[:, : self.n_drawn]
             err = np.hypot(*(res.m - res.p).transpose(2, 0, 1))
             frames[-1]["perception_error_mean"] = np.nanmean(err, axis=0)

@@ -26,7 +26,7 @@ from pipeline.errors import ConfigError
 from pipeline.experiments.context import Context
 from pipeline.experiments.multi.fields import check_map_scene, summarise_field
 from pipeline.experiments.results import Results, mean_ci
-from pipeline.experiments.scenario import Points, Scenario, _agent_rows
+from pipeline.experiments.scenario import Points, Scenario, agent_rows
 from pipeline.plants import SingleIntegrator
 from pipeline.schema import NonNegative, PositiveInt
 from pipeline.sim import starts
@@ -115,7 +115,7 @@ class UnicycleRuns(Scenario):
         return dataclasses.replace(measure, heading=heading, heading_noise=self.imu_noise if cond == "imu" else 0.0)
 
     def _rows(self, ctx: Context, res, cond: str, vehicle: str) -> pd.DataFrame:
-        df = _agent_rows(res, condition=cond, vehicle=vehicle, start=np.arange(len(res.x0)))
+        df = agent_rows(res, condition=cond, vehicle=vehicle, start=np.arange(len(res.x0)))
         period = ctx.frame_period or ctx.dt
         t_end = np.where(df["success"], df["time_to_target"], ctx.horizon)
         frames = np.maximum(np.ceil(t_end / period), 1.0)

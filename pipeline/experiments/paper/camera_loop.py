@@ -12,7 +12,7 @@ import pandas as pd
 from pipeline.control import potential
 from pipeline.experiments.context import Context
 from pipeline.experiments.results import Results, summarise
-from pipeline.experiments.scenario import Points, Scenario, _agent_rows, _frame_index
+from pipeline.experiments.scenario import Points, Scenario, agent_rows, frame_index
 from pipeline.schema import NonNegative, Positive, PositiveInt
 from pipeline.sim import starts
 from pipeline.sim.settings import FailureRate
@@ -36,8 +36,8 @@ class NoiseFailure(Scenario):
         single = ctx.simulate(ctx.controller("hybrid"), ics, disturbance=noise, p_fail=self.p_fail,
                               measure=ctx.camera_measure("clean"))
         lead, foll, _ = ctx.leader_follower(ics[:1], ics[1:2], kind="clean", sigma=self.sigma, p_fail=self.p_fail)
-        rows = pd.concat([_agent_rows(single, role="vehicle"), _agent_rows(lead, role="leader"),
-                          _agent_rows(foll, role="follower")], ignore_index=True)
+        rows = pd.concat([agent_rows(single, role="vehicle"), agent_rows(lead, role="leader"),
+                          agent_rows(foll, role="follower")], ignore_index=True)
         arrays = {"single_p": single.p, "single_m": single.m, "lead_p": lead.p, "foll_p": foll.p,
                   "foll_target": foll.target, "lead_t": lead.t, "foll_t": foll.t}
         return Results({"metrics": rows}, arrays, {"sigma": self.sigma, "p_fail": self.p_fail})
@@ -73,7 +73,7 @@ class OccludedFollowers(Scenario):
         perceived leader), the leader and follower runs and the tracking errors (T, N)."""
         lead, foll, track = ctx.leader_follower(leaders, followers, kind=kind, level=level)
         err = np.hypot(*(foll.target - track.position(foll.t)).transpose(2, 0, 1))
-        df = _agent_rows(foll, map=kind, occlusion=level)
+        df = agent_rows(foll, map=kind, occlusion=level)
         df["tracking_error_mean"] = np.nanmean(err, axis=0)
         return df, lead, foll, err
 
@@ -122,7 +122,7 @@ class LeaderFollower(Scenario):
         lead, foll, _ = ctx.leader_follower(ics[:1], ics[-1:], kind="clean", sigma=self.sigma)
         frames = list(self.instants)
         period = ctx.frame_period or ctx.dt
-        idx = _frame_index(foll.t, [f * period for f in frames])
+        idx = frame_index(foll.t, [f * period for f in frames])
         (x0, x1), (y0, y1) = ctx.arena
         xs, ys = np.arange(x0, x1 + 1e-9, self.grid_step), np.arange(y0, y1 + 1e-9, self.grid_step)
         X, Y = np.meshgrid(xs, ys)
@@ -137,7 +137,7 @@ class LeaderFollower(Scenario):
                          "target_y": float(foll.target[k, 0, 1]), "follower_x": float(foll.p[k, 0, 0]),
                          "follower_y": float(foll.p[k, 0, 1])})
         return Results({"instants": pd.DataFrame(rows),
-                        "metrics": pd.concat([_agent_rows(lead, role="leader"), _agent_rows(foll, role="follower")])},
+                        "metrics": pd.concat([agent_rows(lead, role="leader"), agent_rows(foll, role="follower")])},
                        arrays, {"frames": frames})
 
 
@@ -204,7 +204,7 @@ class MonteCarlo(Scenario):
                 measure, x0 = ctx.camera_measure(kind, level), x0_all[:n_cam]
             for ctrl in self.controllers:
                 res = ctx.simulate(ctx.controller(ctrl, scene=scene), x0, scene=scene, measure=measure, record=False, **kw)
-                frames.append(_agent_rows(res, scene=label, condition=cond))
+                frames.append(agent_rows(res, scene=label, condition=cond))
         return pd.concat(frames, ignore_index=True)
 
     def compute(self, ctx: Context) -> Results:
