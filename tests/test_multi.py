@@ -124,9 +124,9 @@ def test_monte_carlo_figure_takes_a_wilson_bound_an_ulp_below_a_rate_of_one(tmp_
     ulp below 1.0 and matplotlib rejected the negative error bar after an hour of simulation."""
     import pandas as pd
 
-    from pipeline.experiments.results import Results
     from pipeline.experiments.multi.figures import draw_multi_monte_carlo
     from pipeline.experiments.report import Outputs
+    from pipeline.experiments.results import Results
 
     t = pd.DataFrame({"condition": ["none", "none"], "controller": ["hybrid", "smooth"], "n": [400, 400],
                       "success_rate": [1.0, 0.5], "success_lo": [0.99, 0.45], "success_hi": [1.0 - 1e-16, 0.55]})

@@ -19,6 +19,7 @@ error only) the flow map pushes out of `W_q` along its outward normal at `push_s
 
 from __future__ import annotations
 
+import copy
 import math
 from typing import Annotated
 
@@ -77,6 +78,17 @@ class HybridController(Feedback):
         b = scene.barrier
         self._barrier = {"kind": b.kind, "rho": float(b.rho), "gain": float(b.gain),
                          "phi_weight": 0.5 if b.kind == "authors_code" else 1.0}
+
+    def with_hysteresis(self, chi: float, lam: float) -> HybridController:
+        """This controller with the hysteresis `(chi, lam)` (the margin sweeps' variants: derived from the built
+        object, not rebuilt from config); the rules of `__init__` hold."""
+        if not chi > 1:
+            raise ConfigError("controller.chi", f"must be > 1, got {chi!r}")
+        if not 0 < lam < chi - 1:
+            raise ConfigError("controller.lam", f"must be in (0, chi - 1) = (0, {chi - 1:.6g}), got {lam!r}")
+        variant = copy.copy(self)
+        variant.chi, variant.lam = float(chi), float(lam)
+        return variant
 
     # ---- the cells (SPEC §3.6) --------------------------------------------------------------------------
     def cell_distance(self, m: np.ndarray) -> np.ndarray:

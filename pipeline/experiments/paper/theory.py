@@ -212,27 +212,27 @@ class HysteresisMargin(Scenario):
     def starts(self, ctx: Context) -> np.ndarray:
         return starts.NearK(n=ctx.n(self.n_agents), seed=ctx.seed, band=self.band, a_range=list(self.a_range))(ctx.scene)
 
-    def success_rate(self, ctx: Context, x0, chi: float, lam: float, dist: str, eps: float) -> float:
+    def success_rate(self, ctx: Context, x0, ctrl, dist: str, eps: float, scene=None) -> float:
         """Share of starts that get past the obstacle to the target up to the disturbance: |p - p_T| <= delta + ε
         at the horizon, never in N (a biased measurement moves the equilibrium by up to ε, so the strict
         |p - p_T| <= delta is lost at ε >= delta by every controller, whatever its hysteresis)."""
         d = ctx.disturbance(dist, eps=eps) if eps > 0 else None
-        res = ctx.simulate(ctx.controller("hybrid", chi=chi, lam=lam), x0, disturbance=d, record=False,
-                           model=self.time_model)
+        res = ctx.simulate(ctrl, x0, scene=scene, disturbance=d, record=False, model=self.time_model)
         return float(np.mean(practical_success(res, ctx.delta, eps)))
 
-    def margin(self, ctx: Context, x0, chi: float, lam: float, dist: str) -> tuple[float, float, int]:
-        """(largest robust ε found, smallest failing ε found, simulations): bisection on [0, eps_max]."""
+    def margin(self, ctx: Context, x0, ctrl, dist: str, scene=None) -> tuple[float, float, int]:
+        """(largest robust ε found, smallest failing ε found, simulations): bisection on [0, eps_max] of the
+        controller `ctrl` (a hysteresis variant of the run's hybrid controller, on `scene`)."""
         lo, hi, sims = 0.0, self.eps_max, 1
-        if self.success_rate(ctx, x0, chi, lam, dist, 0.0) < self.success:
+        if self.success_rate(ctx, x0, ctrl, dist, 0.0, scene) < self.success:
             return float("nan"), 0.0, sims
         sims += 1
-        if self.success_rate(ctx, x0, chi, lam, dist, hi) >= self.success:
+        if self.success_rate(ctx, x0, ctrl, dist, hi, scene) >= self.success:
             return hi, float("inf"), sims
         while hi - lo > self.tol:
             mid = 0.5 * (lo + hi)
             sims += 1
-            if self.success_rate(ctx, x0, chi, lam, dist, mid) >= self.success:
+            if self.success_rate(ctx, x0, ctrl, dist, mid, scene) >= self.success:
                 lo = mid
             else:
                 hi = mid
@@ -246,10 +246,11 @@ class HysteresisMargin(Scenario):
         x0 = self.starts(ctx)
         rows = []
         ctx.expect(len(self.disturbances) * len(self.cells()) * self.steps())
+        hybrid = ctx.controller("hybrid")  # built once: the cells are its hysteresis variants
         for dist in self.disturbances:
             for chi, lam in self.cells():
                 ctx.label = f"{dist} chi={chi:g} lam={lam:g}"
-                lo, hi, sims = self.margin(ctx, x0, chi, lam, dist)
+                lo, hi, sims = self.margin(ctx, x0, hybrid.with_hysteresis(chi, lam), dist)
                 ctx.advance(self.steps() - sims)  # a bisection that stopped early
                 rows.append({"disturbance": dist, "chi": chi, "lam": lam, "eps_margin": lo, "eps_fails": hi,
                              "n_starts": len(x0), "simulations": sims})
