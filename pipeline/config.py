@@ -21,7 +21,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from pipeline.errors import ConfigError, PipelineError
 from pipeline.repo import CONF_DIR, REPO_ROOT
-from pipeline.schema import _hints, check_value
+from pipeline.schema import check_value, type_hints
 from pipeline.signatures import signature
 
 META_KEYS = {"_target_", "_partial_", "_convert_", "_recursive_", "_args_", "name"}
@@ -148,7 +148,7 @@ def settings(cfg: DictConfig, cls):
     dataclass `cls`: every field's value checked against its annotation, then the object's own rules."""
     import dataclasses
 
-    hints = _hints(cls)
+    hints = type_hints(cls)
     values = {}
     for f in dataclasses.fields(cls):
         if f.name in cfg:

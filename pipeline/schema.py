@@ -26,6 +26,8 @@ import typing
 from dataclasses import dataclass
 from typing import Annotated, Any
 
+import numpy as np
+
 from pipeline.errors import ConfigError
 from pipeline.repo import CONF_DIR
 
@@ -240,7 +242,7 @@ def _scalar_ok(value, tp) -> bool:
     if tp is type(None):
         return value is None
     if tp is bool:
-        return isinstance(value, bool) or type(value).__name__ == "bool_"  # numpy's too
+        return isinstance(value, bool | np.bool_)  # numpy's too
     if tp is int:
         return isinstance(value, numbers.Integral) and not isinstance(value, bool)
     if tp is float:
@@ -265,7 +267,7 @@ def _check_dataclass(value, cls, path: str) -> bool:
     unknown = sorted(set(value) - set(fields))
     if unknown:
         raise ConfigError(f"{path}.{unknown[0]}", f"unknown key ({cls.__name__} takes {', '.join(fields)})")
-    hints = _hints(cls)
+    hints = type_hints(cls)
     for name, f in fields.items():
         if name not in value:
             if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
@@ -277,7 +279,7 @@ def _check_dataclass(value, cls, path: str) -> bool:
 
 # ----------------------------------------------------------------------------------- objects from Python
 @functools.cache
-def _hints(obj) -> dict:
+def type_hints(obj) -> dict:
     """The annotations of a class (a dataclass's fields) or function, `Annotated` kept; a name that does not
     resolve (an import for type checkers only) is not checked."""
     try:
@@ -305,7 +307,7 @@ def _is_object(tp) -> bool:
 
 def check_fields(obj, prefix: str) -> None:
     """Every field of the dataclass instance `obj` against its annotation (`ConfigError("<prefix>.<field>")`)."""
-    hints = _hints(type(obj))
+    hints = type_hints(type(obj))
     for f in dataclasses.fields(obj):
         if f.init:
             check_value(getattr(obj, f.name), hints.get(f.name), f"{prefix}.{f.name}" if prefix else f.name)
@@ -317,7 +319,7 @@ def _check_arguments(sig: inspect.Signature, source, prefix: str, objects, args,
         bound = sig.bind(*args, **kwargs)
     except TypeError:  # let the call itself say what is missing or unknown
         return
-    hints = _hints(source)
+    hints = type_hints(source)
     for name, value in bound.arguments.items():
         tp = hints.get(name)
         if name == "self" or name in objects or _is_object(tp) or sig.parameters[name].kind in (inspect.Parameter.VAR_POSITIONAL,

@@ -17,7 +17,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 

@@ -193,8 +193,8 @@ def test_worst_cloud_at_debug_tiny_with_animation(tmp_path, tiny_maps):
 def test_geometry_margin_grid_skips_invalid_cells_and_varies(tmp_path):
     """The grid is the product of the three lists; a cell whose barrier reaches the target is skipped with the
     scene's reason; the apex moves the margin (the bisection of HysteresisMargin, checked on one cell directly)."""
+    from pipeline.experiments.attacks.margin import GeometryMargin
     from pipeline.experiments.context import Context
-    from pipeline.experiments.margin import GeometryMargin
     from pipeline.experiments.scenario import practical_success
 
     ctx = Context(_cfg(tmp_path, "experiment=geometry_margin", "perception=oracle"))
@@ -208,7 +208,7 @@ def test_geometry_margin_grid_skips_invalid_cells_and_varies(tmp_path):
     good = df[df.valid].set_index("apex_ratio")
     assert good.loc[3.5, "eps_margin"] > good.loc[2.0, "eps_margin"] + scen.tol  # the margin varies with c / r
     row = good.loc[2.0]
-    from pipeline.experiments.margin import cell_scene
+    from pipeline.experiments.attacks.margin import cell_scene
 
     scene = cell_scene(ctx.scene_cfg, apex_ratio=2.0, rho=0.5, scale=4.0)
     for eps, robust in ((row.eps_margin, True), (row.eps_fails, False)):

@@ -413,7 +413,7 @@ def test_experiment_settings_and_simulate_defaults_are_the_yaml():
     assert set(experiments) - {"defaults", "hydra"} == set(_code_defaults(ExperimentSettings))
     sim, camera = _yaml("sim/default.yaml"), _yaml("camera/default.yaml")
     run = {**{k: v for k, v in sim.items() if k != "_target_"}, "camera_period": camera["period"],
-           "p_fail": camera["p_fail"]}
+           **{k: camera[k] for k in ("p_fail", "predict", "drift", "max_drift")}}
     assert _differences(run, simulate) == []
 
 
@@ -569,9 +569,9 @@ def test_paper_keeps_its_maps_when_a_quick_experiment_trains_another(tmp_path):
 def test_schema_rejects_wrong_types_in_instantiated_scenarios():
     """A scenario is built from its node (`experiment._target_`): its typed signature is the node's schema."""
     from pipeline.config import build
-    from pipeline.experiments.theory import RobustnessSweep
+    from pipeline.experiments.paper.theory import RobustnessSweep
 
-    node = {"_target_": "pipeline.experiments.theory.RobustnessSweep", "id": "x", "title": "x"}
+    node = {"_target_": "pipeline.experiments.paper.theory.RobustnessSweep", "id": "x", "title": "x"}
     assert isinstance(build(node, "experiment"), RobustnessSweep)
     with pytest.raises(ConfigError, match="experiment.eps") as err:
         build({**node, "eps": "big"}, "experiment")
@@ -584,7 +584,7 @@ def test_schema_rejects_wrong_types_in_instantiated_scenarios():
 
 def test_the_code_hashed_into_each_id_covers_the_modules_that_compute_it():
     """Lineage: an output's id hashes the code that computes its bytes. Every experiment bundle's scenario module is
-    in the experiments' code (`experiments/unicycle` was missing: a change to the unicycle runs kept their cached
+    in the experiments' code (`experiments/multi/unicycle` was missing: a change to the unicycle runs kept their cached
     results), and every `pipeline.perception` module the network imports is in the maps' code (the keypoint head)."""
     import ast
 

@@ -29,7 +29,6 @@ from pipeline.control.validity import (
     default_apex,
     diamond_signed_distance,
     field_violations,
-    in_diamonds,
     influence_radius,
     to_frames,
 )
@@ -93,7 +92,6 @@ def test_diamond_distance_against_corners(phi, apex, psi, rad):
     inside = abs(a) + abs(b) <= apex
     sd = diamond_signed_distance(p[None], c[None], [apex], target)[0, 0]
     assert sd == pytest.approx(-boundary if inside else boundary, abs=1e-9)
-    assert in_diamonds(p[None], c[None], [apex], target)[0, 0] == inside
     A, B = to_frames(p[None], c[None], target)
     assert (A[0, 0], B[0, 0]) == pytest.approx((a, b))
 

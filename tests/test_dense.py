@@ -12,6 +12,7 @@ from pipeline.cli import compose
 from pipeline.config import build
 from pipeline.control import HybridController, Scene
 from pipeline.errors import ConfigError
+from pipeline.experiments.report import figure_stem
 from pipeline.preflight import preflight
 from pipeline.sim import Adversarial, WorldAlternating, simulate
 from pipeline.sim.starts import Circle, Points
@@ -168,7 +169,7 @@ def test_dense_experiments_run_end_to_end(tmp_path, exp):
     t = out["results"].tables["summary"].set_index(["condition", "controller"])
     hyb = t.xs("hybrid", level="controller")
     assert (hyb["collision_rate"] == 0).all() and len(out["results"].info["scenes"]) >= 1
-    assert (tmp_path / "paper" / f"tab_{exp}.md").exists() and (tmp_path / "paper" / f"fig_{exp}.png").exists()
+    assert (tmp_path / "paper" / f"tab_{exp}.md").exists() and (tmp_path / "paper" / f"{figure_stem(exp)}.png").exists()
     if exp == "dense_fields":
         assert hyb.loc["adversary 0.28", "success_rate"] == 1.0
 

@@ -183,7 +183,7 @@ def test_bad_input_is_one_line_exit_2(tmp_path):
 
 
 def test_scenario_rejects_bad_parameters():
-    from pipeline.experiments.generalisation import PerceptionGeneralisation
+    from pipeline.experiments.generalisation.maps import PerceptionGeneralisation
 
     with pytest.raises(ConfigError, match="experiment.levels"):
         PerceptionGeneralisation(id="g", title="g", levels=["none", "none"])

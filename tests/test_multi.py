@@ -10,9 +10,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from pipeline.cli import compose
-from pipeline.control import Scene
+from pipeline.control import Scene, in_diamond
 from pipeline.control.fields import random_scene
-from pipeline.control.validity import in_diamonds
 from pipeline.errors import ConfigError
 from pipeline.experiments.context import Context
 from pipeline.sim.starts import BehindObstacles
@@ -48,13 +47,13 @@ def test_behind_obstacles_lie_near_each_K_in_its_cell(seed, m, band):
         a, b = scene.covering(int(i)).to_frame(pts[cell == i])
         assert (a <= -arr["c"][i] - 1.0 + 1e-9).all() and (a >= -arr["c"][i] - 9.0 - 1e-9).all()  # behind its diamond
         assert (np.abs(b) < band).all()
-    assert not in_diamonds(pts, arr["center"], arr["c"], scene.p_T).any()
+    assert not in_diamond(scene, pts).any()
     (x0, x1), (y0, y1) = scene.bounds
     assert ((pts[:, 0] > x0) & (pts[:, 0] < x1) & (pts[:, 1] > y0) & (pts[:, 1] < y1)).all()
 
 
 def test_field_scenes_need_a_random_field(tmp_path):
-    from pipeline.experiments.multi import field_scenes
+    from pipeline.experiments.multi.fields import field_scenes
 
     ctx = Context(_cfg(tmp_path, "experiment=multi_monte_carlo"))
     scenes = field_scenes(ctx, 4, [3, 5], seed=7)
@@ -65,7 +64,7 @@ def test_field_scenes_need_a_random_field(tmp_path):
 
 
 def test_cells_partition_the_arena_by_the_nearest_cell(tmp_path):
-    from pipeline.experiments.multi import MultiCells
+    from pipeline.experiments.multi.fields import MultiCells
 
     cfg = _cfg(tmp_path, "experiment=multi_cells")
     ctx = Context(cfg)
@@ -86,7 +85,7 @@ def test_cells_partition_the_arena_by_the_nearest_cell(tmp_path):
 
 def test_proposition1_behind_every_obstacle(tmp_path):
     """The adversary near each K_i stalls the smooth and CBF baselines and not the hybrid controller."""
-    from pipeline.experiments.multi import MultiAdversarial
+    from pipeline.experiments.multi.fields import MultiAdversarial
 
     ctx = Context(_cfg(tmp_path, "experiment=multi_adversarial", "scale=0.1"))
     scen = MultiAdversarial(id="multi_adversarial", title="t", eps=[0.5], n_scenes=10, obstacles=[4])
@@ -98,7 +97,7 @@ def test_proposition1_behind_every_obstacle(tmp_path):
 
 def test_guard_shortens_the_sampled_arc_without_pushouts(tmp_path):
     """SPEC §3.3: with the guard the 20 Hz arc from (-12, 2) comes within 10% of the continuous one, 0 push-outs."""
-    from pipeline.experiments.theory import SampleAndHold
+    from pipeline.experiments.paper.theory import SampleAndHold
 
     ctx = Context(_cfg(tmp_path, "experiment=sample_and_hold"))
     df = SampleAndHold(id="s", title="t", initial_conditions=[[-12.0, 2.0]], limit_dt=0.005).compute(ctx).tables[
@@ -110,7 +109,7 @@ def test_guard_shortens_the_sampled_arc_without_pushouts(tmp_path):
 
 
 def test_camera_on_a_field_needs_the_map_of_that_field(tmp_path, monkeypatch):
-    from pipeline.experiments.multi import MultiCamera
+    from pipeline.experiments.multi.fields import MultiCamera
 
     ctx = Context(_cfg(tmp_path, "experiment=multi_camera"))
     monkeypatch.setattr(Context, "map_scene", lambda self, kind: Scene())  # a map trained on the default scene
@@ -125,9 +124,9 @@ def test_monte_carlo_figure_takes_a_wilson_bound_an_ulp_below_a_rate_of_one(tmp_
     ulp below 1.0 and matplotlib rejected the negative error bar after an hour of simulation."""
     import pandas as pd
 
-    from pipeline.experiments.context import Results
-    from pipeline.experiments.multi_figures import draw_multi_monte_carlo
+    from pipeline.experiments.multi.figures import draw_multi_monte_carlo
     from pipeline.experiments.report import Outputs
+    from pipeline.experiments.results import Results
 
     t = pd.DataFrame({"condition": ["none", "none"], "controller": ["hybrid", "smooth"], "n": [400, 400],
                       "success_rate": [1.0, 0.5], "success_lo": [0.99, 0.45], "success_hi": [1.0 - 1e-16, 0.55]})

@@ -8,8 +8,8 @@ from matplotlib.figure import Figure
 from PIL import Image
 
 from pipeline.control import Scene
-from pipeline.experiments.animation import frame_indices, leader_follower_gif
-from pipeline.experiments.scheme import scheme_figure
+from pipeline.experiments.paper.animation import frame_indices, leader_follower_gif
+from pipeline.experiments.paper.scheme import scheme_figure
 
 
 def _texts(fig: Figure) -> str:

@@ -256,7 +256,7 @@ def test_continuous_rejects_sampled_only_inputs(scene):
 
 
 def test_model_comparison_table_and_figure(scene):
-    from pipeline.sim.compare import model_comparison, zigzag_figure
+    from sim_compare import model_comparison, zigzag_figure  # tests/sim_compare.py: used by this test only
 
     df = model_comparison(scene, ((-12.0, 2.0), (10.0, 25.0)), limit_dt=0.001, horizon=15.0)
     assert list(df[["x0", "y0"]].itertuples(index=False, name=None)) == [(-12.0, 2.0), (10.0, 25.0)]

@@ -53,8 +53,8 @@ def test_unicycle_bundle_with_a_pose_map_from_the_camera(tmp_path, monkeypatch):
     from PIL import Image
 
     from pipeline.experiments.checks import build_scenario
+    from pipeline.experiments.multi.unicycle_figures import draw_unicycle
     from pipeline.experiments.report import Outputs
-    from pipeline.experiments.unicycle_figures import draw_unicycle
 
     folder = _map_folder(tmp_path / "models", "moments", "pose")
     cfg = compose("experiments", [f"paths.outputs_dir={tmp_path}", f"paths.models_dir={folder.parent}",

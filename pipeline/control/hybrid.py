@@ -19,6 +19,7 @@ error only) the flow map pushes out of `W_q` along its outward normal at `push_s
 
 from __future__ import annotations
 
+import copy
 import math
 from typing import Annotated
 
@@ -27,7 +28,7 @@ import numpy as np
 from pipeline.control.feedback import _SQRT1_2, Feedback
 from pipeline.control.potentials import both_potentials_frame, fused_potentials, potential
 from pipeline.control.scene import Scene
-from pipeline.control.validity import check_field
+from pipeline.control.validity import cell_distance, check_field
 from pipeline.errors import ConfigError
 from pipeline.schema import NonNegative, OpenShare, Positive, Range, checked
 
@@ -83,11 +84,21 @@ class HybridController(Feedback):
         self._barrier = {"kind": b.kind, "rho": float(b.rho), "gain": float(b.gain),
                          "phi_weight": 0.5 if b.kind == "authors_code" else 1.0}
 
+    def with_hysteresis(self, chi: float, lam: float) -> HybridController:
+        """This controller with the hysteresis `(chi, lam)` (the margin sweeps' variants: derived from the built
+        object, not rebuilt from config); the rules of `__init__` hold."""
+        if not chi > 1:
+            raise ConfigError("controller.chi", f"must be > 1, got {chi!r}")
+        if not 0 < lam < chi - 1:
+            raise ConfigError("controller.lam", f"must be in (0, chi - 1) = (0, {chi - 1:.6g}), got {lam!r}")
+        variant = copy.copy(self)
+        variant.chi, variant.lam = float(chi), float(lam)
+        return variant
+
     # ---- the cells (SPEC §3.6) --------------------------------------------------------------------------
     def cell_distance(self, m: np.ndarray) -> np.ndarray:
-        """`dist_j(m) = |m - c_j| - R_j` `(N, M)`."""
-        rel = m[:, None, :] - self._arr["center"][None]
-        return np.hypot(rel[..., 0], rel[..., 1]) - self._arr["R"][None]
+        """`dist_j(m) = |m - c_j| - R_j` `(N, M)` (:func:`pipeline.control.validity.cell_distance`)."""
+        return cell_distance(m, self._arr["center"], self._arr["R"])
 
     def initial_state(self, m0: np.ndarray, target=None) -> dict[str, np.ndarray]:
         """`i0 = argmin_j dist_j(m0)`, `q0` the mode with the smaller `V_{i0}^q(m0)` (ties: `q = 1` below `b = 0`)."""

@@ -119,12 +119,6 @@ def diamond_signed_distance(points, centers, apex, target) -> np.ndarray:
     return np.hypot(np.maximum(ex, 0.0), np.maximum(ey, 0.0)) + np.minimum(np.maximum(ex, ey), 0.0)
 
 
-def in_diamonds(points, centers, apex, target) -> np.ndarray:
-    """Membership of `(N, 2)` points in each obstacle's closed diamond, `(N, M)` booleans."""
-    a, b = to_frames(points, centers, target)
-    return np.abs(a) + np.abs(b) <= np.asarray(apex, dtype=float)
-
-
 # ----------------------------------------------------------------------------- inputs
 def _fmt(x: float) -> str:
     x = float(x)

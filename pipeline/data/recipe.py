@@ -11,6 +11,8 @@ import math
 from dataclasses import dataclass, field
 from typing import Annotated, Literal
 
+from hydra.utils import get_class
+
 from pipeline.errors import ConfigError
 from pipeline.schema import (
     Device,
@@ -154,7 +156,7 @@ class Recipe:
     @property
     def headings(self) -> bool:
         """Whether the images show a heading (a vehicle with one, SPEC §1): labels `(x, y, θ)`."""
-        return self.vehicle is not None and str(self.vehicle.get("_target_", "")).endswith("Unicycle")
+        return self.vehicle is not None and bool(getattr(get_class(self.vehicle["_target_"]), "heading", False))
 
     def check_arena(self, arena) -> None:
         """A follower annulus that fits nowhere in the arena is an impossible recipe (issue 21)."""

@@ -147,18 +147,18 @@ def eps_marks(settings: Mapping, eps_min_op: list[np.ndarray]) -> list[float]:
     return sorted(out)
 
 
-def _fmt_eps(v) -> str:
+def fmt_eps(v) -> str:
     return "never (points beyond r_cov of every sample)" if v is None or not math.isfinite(v) else f"{v:.3g}"
 
 
-def _jsonable(obj):
+def jsonable(obj):
     """numpy -> plain Python; non-finite floats -> None (JSON has no inf/nan)."""
     if isinstance(obj, Mapping):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
+        return {str(k): jsonable(v) for k, v in obj.items()}
     if isinstance(obj, list | tuple):
-        return [_jsonable(v) for v in obj]
+        return [jsonable(v) for v in obj]
     if isinstance(obj, np.ndarray):
-        return _jsonable(obj.tolist())
+        return jsonable(obj.tolist())
     if isinstance(obj, np.integer | bool | np.bool_):
         return obj.item() if hasattr(obj, "item") else obj
     if isinstance(obj, float | np.floating):

@@ -11,7 +11,7 @@ from matplotlib import pyplot as plt
 from matplotlib.colors import BoundaryNorm, LogNorm, Normalize
 
 from pipeline.control import Scene
-from pipeline.errormap.analysis import _fmt_eps
+from pipeline.errormap.analysis import fmt_eps
 from pipeline.viz import draw_scene, save
 
 
@@ -134,7 +134,7 @@ def _coverage_figure(fields: dict, results: dict, settings, *, scene, arena, ext
                   vmin=0, vmax=1.6, alpha=0.75, interpolation="nearest")  # grey veil: not operational
         draw_scene(ax, scene, arena)
         ax.set_title(f"occlusion {lv}: covered sets (red: no sample within r_cov); operational set covered "
-                     f"for ε >= {_fmt_eps(results[lv]['eps_cover'])}", fontsize=8)
+                     f"for ε >= {fmt_eps(results[lv]['eps_cover'])}", fontsize=8)
         cb = fig.colorbar(im, ax=ax, ticks=range(len(bounds) - 1), shrink=0.85)
         cb.ax.set_yticklabels([f"ε ≤ {m:g}" for m in marks] + [f"ε > {marks[-1]:g}" if marks else "covered"],
                               fontsize=7)

@@ -31,11 +31,11 @@ from pipeline.data import open_dataset
 from pipeline.errormap import estimates as core
 from pipeline.errormap.analysis import (
     _dean_center,
-    _fmt_eps,
-    _jsonable,
     analyse_heading,
     analyse_level,
     eps_marks,
+    fmt_eps,
+    jsonable,
     operational_margin,
     operational_set,
 )
@@ -284,7 +284,7 @@ def _compute_levels(plan: _Plan, samples, sample_err_vec, margin, progress: bool
                 if plan.pose else "")
         print(f"errormap: {plan.pmap.name} [{level}]: |E| over the operational set mean {r['mean']:.3g}, "
               f"p95 {r['p95']:.3g}, max {r['max']:.3g}; L {r['L_max']:.3g} (p99 {r['L_p99']:.3g}); "
-              f"covered for eps >= {_fmt_eps(r['eps_cover'])}{head}; {r['points_per_s']:.0f} points/s")
+              f"covered for eps >= {fmt_eps(r['eps_cover'])}{head}; {r['points_per_s']:.0f} points/s")
     return results, fields, operational
 
 
@@ -325,7 +325,7 @@ def _summary(cfg, plan: _Plan, settings, results, samples, sample_err_vec, t_tra
     center = _dean_center(settings["dean"].get("center", "origin"), plan.scene)
     sample_err = np.linalg.norm(sample_err_vec, axis=1)
     train_summary = {**core.error_stats(sample_err), "seconds": t_train,
-                     "dean": _jsonable(core.dean_fit(sample_err_vec, samples, center, settings["dean"]["eps_C"]))}
+                     "dean": jsonable(core.dean_fit(sample_err_vec, samples, center, settings["dean"]["eps_C"]))}
     return {
         "id": plan.id,
         "name": pmap.name,
@@ -341,5 +341,5 @@ def _summary(cfg, plan: _Plan, settings, results, samples, sample_err_vec, t_tra
         **({"headings_deg": np.degrees(plan.headings).tolist()} if plan.pose else {}),
         "dean_center": [float(c) for c in center],
         "train_samples": train_summary,
-        "levels": _jsonable(results),
+        "levels": jsonable(results),
     }

@@ -11,7 +11,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.control import Scene
-from pipeline.errormap.analysis import _jsonable
+from pipeline.errormap.analysis import jsonable
 from pipeline.errormap.figures import figures
 
 
@@ -56,4 +56,4 @@ def write_outputs(folder: Path, summary: dict, fields: dict, results: dict, scen
     figs = figures(folder, fields, results, scene, arena, settings, levels)
     summary["files"] = sorted(p.name for p in folder.iterdir()) + ["summary.json"]
     summary["figures"] = figs
-    (folder / "summary.json").write_text(json.dumps(_jsonable(summary), indent=2) + "\n")
+    (folder / "summary.json").write_text(json.dumps(jsonable(summary), indent=2) + "\n")

@@ -38,7 +38,14 @@ FIGURES = {
     "fig20_multi_camera": ("multi_camera", "not in the paper: the camera in the loop on a 5-disc field"),
     "fig21_unicycle": ("unicycle", "not in the paper: the unicycle from its pose map"),
     "fig21_unicycle_field": ("unicycle_field", "not in the paper: the unicycle on the 5-disc field"),
+    "fig22_dense_fields": ("dense_fields", "not in the paper: the hybrid-RL benchmark's dense clutter"),
+    "fig23_dense_unicycle": ("dense_unicycle", "not in the paper: the unicycle in dense clutter"),
 }
+
+
+def figure_stem(experiment: str) -> str:
+    """The figure stem (`figNN_...`, the one sequence of `make paper` and `make multi`) of an experiment id."""
+    return next(stem for stem, (exp, _) in FIGURES.items() if exp == experiment)
 
 
 # ----------------------------------------------------------------------------------------- writers

@@ -13,14 +13,16 @@ from typing import Annotated, ClassVar
 import numpy as np
 import pandas as pd
 
-from pipeline.experiments.context import Context, Results
+from pipeline.errors import ConfigError
+from pipeline.experiments.context import Context
+from pipeline.experiments.results import Results
 from pipeline.schema import NonEmpty, Pair, check_fields
 from pipeline.sim import starts
 
 Points = Annotated[list[Pair], NonEmpty()]  # initial conditions [[x, y], ...]
 
 
-def _agent_rows(res, **cols) -> pd.DataFrame:
+def agent_rows(res, **cols) -> pd.DataFrame:
     df = res.metrics_frame()
     for k, v in cols.items():
         df[k] = v
@@ -35,7 +37,7 @@ def practical_success(res, delta: float, eps: float) -> np.ndarray:
     return (m["success"] | (m["final_error"] <= delta + eps + 1e-9)) & ~m["collision"]
 
 
-def _frame_index(t: np.ndarray, times) -> list[int]:
+def frame_index(t: np.ndarray, times) -> list[int]:
     return [int(min(np.searchsorted(t, s - 1e-9), len(t) - 1)) for s in times]
 
 
@@ -61,8 +63,16 @@ class Scenario:
         """Names of the composed controllers, disturbances and cloud levels the computation reads."""
         return {"controllers": ["hybrid"], "disturbances": [], "occlusions": []}
 
+    def time_models(self, ctx: Context) -> set[str]:
+        """The time models the computation's runs use (`sim.model`, and a scenario's own `time_model`)."""
+        return {ctx.sim.model, getattr(self, "time_model", ctx.sim.model)}
+
     def check(self, ctx: Context) -> None:
         """Preflight: build what the computation will use (no simulation)."""
+        p_fail = ctx.camera_settings.p_fail
+        if p_fail > 0 and "continuous" in self.time_models(ctx):
+            raise ConfigError("camera.p_fail", f"does not apply to {self.id}: its continuous-time runs take no camera "
+                                               f"failures, got {p_fail} (camera.p_fail=0, or a sampled time model)")
         for name in self.uses()["controllers"]:
             ctx.controller(name)
         for name in self.uses()["disturbances"]:

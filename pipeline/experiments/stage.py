@@ -25,9 +25,10 @@ from hydra.core.hydra_config import HydraConfig
 from pipeline import tracking
 from pipeline.config import resolve
 from pipeline.experiments.checks import build_scenario, check
-from pipeline.experiments.context import Context, Results
+from pipeline.experiments.context import Context
 from pipeline.experiments.redraw import drawing_key, drawn_entry
 from pipeline.experiments.report import FIGURES, Outputs, write_index
+from pipeline.experiments.results import Results
 from pipeline.experiments.scenario import Scenario
 from pipeline.lineage import pinned_folders
 from pipeline.perception.maps import load_perception_map, resolve_device
@@ -35,9 +36,10 @@ from pipeline.plants import SingleIntegrator
 from pipeline.progress import progress
 
 # the code whose changes change the numbers (figures.py and report.py only draw)
-COMPUTE_CODE = ("experiments/scenario", "experiments/theory", "experiments/camera_loop", "experiments/generalisation",
-                "experiments/multi", "experiments/unicycle", "experiments/context", "experiments/attacks",
-                "experiments/margin", "experiments/dense",
+COMPUTE_CODE = ("experiments/scenario", "experiments/paper/theory", "experiments/paper/camera_loop", "experiments/generalisation/maps",
+                "experiments/multi/fields", "experiments/multi/unicycle", "experiments/context", "experiments/composed",
+                "experiments/maps", "experiments/runs", "experiments/results", "experiments/attacks/camera",
+                "experiments/attacks/margin", "experiments/multi/dense",
                 "perception/measure", "perception/metrics", "perception/attacks", "perception/adversary", "control",
                 "hybrid", "plants", "sim", "render", "data/sampling", "data/recipe")
 

@@ -82,6 +82,18 @@ def variance_head(n_in: int) -> nn.Sequential:
     return head.requires_grad_(False)
 
 
+def _check_variant(image_shape, uncertainty_thumbnail, outputs, position_head, heading_head) -> None:
+    """The cross-field rules of a map's variant: a thumbnail cell that fits the image; the attention heading head
+    with the keypoint position head (pooled or flat with flat)."""
+    if uncertainty_thumbnail > min(image_shape[:2]):
+        raise ConfigError("model.uncertainty_thumbnail", f"must be <= {min(image_shape[:2])} (pixels per side of "
+                                                         f"a thumbnail cell), got {uncertainty_thumbnail!r}")
+    if outputs == "pose" and (heading_head == "attention") != (position_head == "keypoint"):
+        raise ConfigError("model.heading_head", f"{heading_head!r} with position_head={position_head!r}: the "
+                                                "attention head reads the keypoint's weights (attention with "
+                                                "keypoint; pooled or flat with flat)")
+
+
 @checked("model")
 class PerceptionMap(L.LightningModule):
     """CNN perception map; `forward(uint8 or float images NHWC) -> (N, 2)` world coordinates.
@@ -118,13 +130,7 @@ class PerceptionMap(L.LightningModule):
         heading_weight: Positive = 1.0,
     ):
         super().__init__()
-        if uncertainty_thumbnail > min(image_shape[:2]):
-            raise ConfigError("model.uncertainty_thumbnail", f"must be <= {min(image_shape[:2])} (pixels per side of "
-                                                             f"a thumbnail cell), got {uncertainty_thumbnail!r}")
-        if outputs == "pose" and (heading_head == "attention") != (position_head == "keypoint"):
-            raise ConfigError("model.heading_head", f"{heading_head!r} with position_head={position_head!r}: the "
-                                                    "attention head reads the keypoint's weights (attention with "
-                                                    "keypoint; pooled or flat with flat)")
+        _check_variant(image_shape, uncertainty_thumbnail, outputs, position_head, heading_head)
         self.save_hyperparameters()
         h, w, _ = (int(s) for s in image_shape)
         self.image_shape = (h, w, 3)

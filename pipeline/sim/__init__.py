@@ -2,7 +2,14 @@
 batches by the solvers of :mod:`pipeline.hybrid`; disturbances, outcomes and the reviewer's tables."""
 
 from pipeline.sim.closed_loop import ContinuousLoop, SampledLoop, true_state
-from pipeline.sim.disturbances import Adversarial, Alternating, Disturbance, Gaussian, NoDisturbance, WorldAlternating
+from pipeline.sim.disturbances import (
+    Adversarial,
+    Alternating,
+    Disturbance,
+    Gaussian,
+    NoDisturbance,
+    WorldAlternating,
+)
 from pipeline.sim.metrics import OUTCOMES, summarise_agents, wilson
 from pipeline.sim.settings import CameraSettings, SimSettings, frame_steps
 from pipeline.sim.simulator import MODELS, TERMINATIONS, SimResult, simulate

@@ -9,7 +9,9 @@ else None). The four maps are the law's, read at the steered point of the measur
 
 - :class:`SampledLoop` (`sim.model: sampled`): `m` is held between camera frames; at a frame (`sample`) the
   camera (or the true state) and the disturbance give a new `m`, lost with probability `p_fail` (the last
-  estimate is held; a measurement hook may also return NaN rows, held alike);
+  estimate is held; a measurement hook may also return NaN rows, held alike); with dead reckoning
+  (:class:`DeadReckoning`, `camera.predict`) a lost frame's estimate is predicted with the vehicle's own held
+  input instead, `m <- plant.step(m, w, T_s)` (`m + T_s u` for the single integrator);
 - :class:`ContinuousLoop` (`sim.model: continuous`): `m = c + e` along the flow, the disturbance `e` drawn at the
   frames from the true state and held (true state only: no camera, no failures).
 """
@@ -17,10 +19,13 @@ else None). The four maps are the law's, read at the steered point of the measur
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
 from pipeline.hybrid import HybridSystem, State
+from pipeline.hybrid.system import row_norm
+from pipeline.sim.disturbances import NoDisturbance
 
 # measure(c_true (n, dim), idx (n,), frame, rng) -> measured states (n, dim), before the disturbance
 Measure = Callable[[np.ndarray, np.ndarray, int, np.random.Generator], np.ndarray]
@@ -43,6 +48,17 @@ def _hold(new: np.ndarray, last: np.ndarray) -> np.ndarray:
     return new
 
 
+@dataclass(frozen=True)
+class DeadReckoning:
+    """A lost frame's estimate predicted with the vehicle's own input held over the frame, `m <- plant.step(m, w,
+    T_s)` (`p_hat <- p_hat + T_s u`), instead of held. Its uncertainty `r` grows by `drift` per unit of distance
+    predicted (the odometry's error) and is 0 after a frame is used; past `max_drift` the vehicle stops (input 0)
+    until a frame is used again: it no longer knows well enough where it is to move (docs/attacks.md)."""
+
+    drift: float = 0.1
+    max_drift: float = 2.0
+
+
 def _counters(n: int) -> dict[str, np.ndarray]:
     """Jump counters by kind: logic variables that the jump map increments."""
     return {"cell_jumps": np.zeros(n, dtype=np.int64), "mode_jumps": np.zeros(n, dtype=np.int64)}
@@ -55,7 +71,7 @@ class _Loop(HybridSystem):
 
     def __init__(self, scene, controller, plant, disturbance):
         self.scene, self.controller, self.plant, self.disturbance = scene, controller, plant, disturbance
-        self.exact = disturbance is None or type(disturbance).__name__ == "NoDisturbance"
+        self.exact = disturbance is None or isinstance(disturbance, NoDisturbance)
         self._memo = None
 
     def measured(self, x: State) -> np.ndarray:  # pragma: no cover - interface
@@ -124,25 +140,36 @@ class SampledLoop(_Loop):
     a frame is the law's through its sampled-data guard (SPEC §3.3, `controller.guard`)."""
 
     def __init__(self, scene, controller, plant, disturbance=None, *, measure: Measure | None = None,
-                 target_fn: TargetFn | None = None, p_fail: float = 0.0, dt: float = 0.01, every: int = 1):
+                 target_fn: TargetFn | None = None, p_fail: float = 0.0, dt: float = 0.01, every: int = 1,
+                 reckoning: DeadReckoning | None = None):
         super().__init__(scene, controller, plant, disturbance)
         self.measure = measure or true_state
         self.target_fn, self.p_fail, self.dt, self.every = target_fn, float(p_fail), dt, every
+        self.reckoning = reckoning
         self.period = every * dt
         controller.check_loop(self.period)
         self._guarded = (None, None)
+        self._held = None  # the input held over the last frame (dead reckoning predicts the estimate with it)
 
     def input(self, x):
         point, xd, target, ev = self._law(x)
         u = self.controller.flow_map(point, xd, target, ev=ev)
         u, guarded = self.controller.hold(u, point, xd, ev, self.period)
         self._guarded = (x, guarded)
-        return self.plant.actuate(self.measured(x), u)
+        w = self.plant.actuate(self.measured(x), u)
+        if self.reckoning is not None:
+            w = np.where((x.drift > self.reckoning.max_drift)[:, None], 0.0, w)  # the fallback: stop
+            self._held = w
+        return w
 
     def frame_counts(self, x, w) -> dict[str, np.ndarray]:
-        """Per frame: the guard acted (SPEC §3.3), the vehicle's input was clipped (the unicycle's |ω|)."""
+        """Per frame: the guard acted (SPEC §3.3), the vehicle's input was clipped (the unicycle's |ω|); with dead
+        reckoning, the estimate was predicted, the vehicle stopped (its uncertainty past `max_drift`)."""
         guarded = self._guarded[1] if self._guarded[0] is x else np.zeros(len(x), dtype=bool)
-        return {"guard_frames": guarded, "saturated_frames": self.plant.saturated(w)}
+        counts = {"guard_frames": guarded, "saturated_frames": self.plant.saturated(w)}
+        if self.reckoning is not None:
+            counts |= {"predicted_frames": x.predicted, "stopped_frames": x.drift > self.reckoning.max_drift}
+        return counts
 
     def measured(self, x):
         return x.m
@@ -160,27 +187,38 @@ class SampledLoop(_Loop):
         if self.target_fn is not None:
             target = np.asarray(self.target_fn(0.0, 0, self.plant.position(c0), all_idx, rng), dtype=float)
         xd = self.controller.initial_state(self.plant.point(m), target)
-        return State(c0, m=m, target=target, **xd, **_counters(len(c0)))
+        reckon = {} if self.reckoning is None else {"drift": np.zeros(len(c0)), "predicted": np.zeros(len(c0), bool)}
+        return State(c0, m=m, target=target, **xd, **_counters(len(c0)), **reckon)
 
     def sample(self, x, frame, rng, active):
         n = len(x)
         fresh = active & (rng.random(n) >= self.p_fail) if self.p_fail > 0 else active
         t = (frame * self.every) * self.dt
-        m, target = x.m, x.d.get("target")
+        target = x.d.get("target")
+        prior = x.m if self.reckoning is None else self.plant.step(x.m, np.where(active[:, None], self._held, 0.0),
+                                                                   self.period)
+        m, used = prior, np.zeros(n, dtype=bool)
         if fresh.all():
             idx = np.arange(n)
-            m = _hold(self._perceive(x.c, idx, frame, rng), m)
+            new = self._perceive(x.c, idx, frame, rng)
+            m, used = _hold(new, prior), ~np.isnan(new).any(axis=1)
             if self.target_fn is not None:
                 target = _hold(np.asarray(self.target_fn(t, frame, self.plant.position(x.c), idx, rng), float), target)
         elif fresh.any():
             idx = np.flatnonzero(fresh)
-            m = m.copy()
-            m[idx] = _hold(self._perceive(x.c[idx], idx, frame, rng), m[idx])
+            new = self._perceive(x.c[idx], idx, frame, rng)
+            m = prior.copy()
+            m[idx] = _hold(new, prior[idx])
+            used[idx] = ~np.isnan(new).any(axis=1)
             if self.target_fn is not None:
                 target = target.copy()
                 target[idx] = _hold(np.asarray(self.target_fn(t, frame, self.plant.position(x.c[idx]), idx, rng),
                                                float), target[idx])
-        return x.replace(m=m, target=target)
+        if self.reckoning is None:
+            return x.replace(m=m, target=target)
+        moved = row_norm(self.plant.position(prior) - self.plant.position(x.m))
+        drift = np.where(used, 0.0, x.drift + self.reckoning.drift * moved)
+        return x.replace(m=m, target=target, drift=drift, predicted=~used & active)
 
 
 class ContinuousLoop(_Loop):

@@ -56,13 +56,19 @@ class CameraSettings:
     `p_fail` (the last estimate is held); with `gate`, a frame whose predicted error (a map with an uncertainty
     head) exceeds `gate` world units is lost too. A vehicle with a heading (the unicycle) reads it from the pose
     map (`heading: camera`) or from an onboard sensor: the true heading plus Gaussian noise of `heading_noise`
-    radians (`heading: imu`, the ablation of SPEC §3.7)."""
+    radians (`heading: imu`, the ablation of SPEC §3.7). A lost frame holds the last estimate (`predict: false`, the
+    paper's failure model) or predicts it with the vehicle's own input (`predict: true`, dead reckoning:
+    :class:`pipeline.sim.closed_loop.DeadReckoning`, its uncertainty growing by `drift` per unit of distance, the
+    vehicle stopping past `max_drift` world units until a frame is used)."""
 
     period: Positive | None = 0.05
     p_fail: FailureRate = 0.0
     gate: Positive | None = None
     heading: HeadingSource = "camera"
     heading_noise: NonNegative = 0.0
+    predict: bool = False
+    drift: NonNegative = 0.1
+    max_drift: Positive = 2.0
 
 
 def frame_steps(dt: float, period: float | None) -> int:
@@ -87,4 +93,5 @@ def run_keywords(sim: SimSettings, camera: CameraSettings) -> dict:
     """The keywords of :func:`pipeline.sim.simulate` that the two settings nodes give."""
     keys = ("model", "dt", "horizon", "delta", "record_every", "stop_on_success", "seed", "method", "rtol", "atol",
             "h_max", "stall_speed", "stall_share", "stall_time")
-    return {**{k: getattr(sim, k) for k in keys}, "camera_period": camera.period, "p_fail": camera.p_fail}
+    return {**{k: getattr(sim, k) for k in keys}, "camera_period": camera.period, "p_fail": camera.p_fail,
+            "predict": camera.predict, "drift": camera.drift, "max_drift": camera.max_drift}

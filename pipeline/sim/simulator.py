@@ -18,7 +18,7 @@ import pandas as pd
 from pipeline.errors import ConfigError
 from pipeline.hybrid import solve_continuous, solve_sampled
 from pipeline.plants import Plant, SingleIntegrator, explain_steering
-from pipeline.sim.closed_loop import ContinuousLoop, Measure, SampledLoop, TargetFn, true_state
+from pipeline.sim.closed_loop import ContinuousLoop, DeadReckoning, Measure, SampledLoop, TargetFn, true_state
 from pipeline.sim.metrics import StallMonitor, outcome
 from pipeline.sim.monitor import COLLISION, TARGET, ArrivalCollision
 from pipeline.sim.settings import CameraSettings, SimSettings, check_vehicle, frame_steps
@@ -79,8 +79,10 @@ def simulate(scene, controller, x0: np.ndarray, *, dt: float = _SIM.dt, horizon:
              seed: int | np.random.Generator = _SIM.seed, record_every: int = _SIM.record_every, record: bool = True,
              stop_on_success: bool = _SIM.stop_on_success, progress: bool = False, model: str = _SIM.model,
              rtol: float = _SIM.rtol, atol: float = _SIM.atol, h_max: float = _SIM.h_max, method: str = _SIM.method,
-             stall_speed: float | None = _SIM.stall_speed, stall_share: float = _SIM.stall_share, stall_time: float = _SIM.stall_time, plant: Plant | None = None,
-             heading0: np.ndarray | None = None) -> SimResult:
+             stall_speed: float | None = _SIM.stall_speed, stall_share: float = _SIM.stall_share,
+             stall_time: float = _SIM.stall_time, plant: Plant | None = None,
+             heading0: np.ndarray | None = None, predict: bool = _CAMERA.predict, drift: float = _CAMERA.drift,
+             max_drift: float = _CAMERA.max_drift) -> SimResult:
     """Simulate all agents of `x0` `(N, 2)` at once (see the module docstring); the settings are checked by
     :class:`SimSettings` and :class:`CameraSettings`, whose defaults (the YAML's) are these keywords'.
 
@@ -88,14 +90,16 @@ def simulate(scene, controller, x0: np.ndarray, *, dt: float = _SIM.dt, horizon:
     the horizon without ever entering an obstacle; collision: `|p - c_i| < r_i` at any step. `model='continuous'`
     integrates the hybrid arcs adaptively (`method`, `rtol`, `atol`, `h_max`; `dt` is then the record grid only)
     and takes the true state only. `plant` (default: the single integrator) with `heading0` (the unicycle's
-    initial headings). Outcome per agent (`metrics['outcome']`): `reached`, `collided`, `stalled` (mean speed
-    below `stall_speed` over the last `stall_time` seconds, away from the target; `stall_speed` None: `stall_share`
-    of the controller's `u_max`, of 10 (the default `u_max`) when it has none) or `timed_out`.
+    initial headings). `predict`: a lost frame's estimate is predicted with the held input (dead reckoning, `drift`,
+    `max_drift`: :class:`CameraSettings`) instead of held. Outcome per agent (`metrics['outcome']`): `reached`,
+    `collided`, `stalled` (mean speed below `stall_speed` over the last `stall_time` seconds, away from the target;
+    `stall_speed` None: `stall_share` of the controller's `u_max`, of 10 (the default `u_max`) when it has none) or
+    `timed_out`.
     """
     sim = SimSettings(model=model, dt=dt, horizon=horizon, delta=delta, record_every=record_every,
                       stop_on_success=stop_on_success, method=method, rtol=rtol, atol=atol, h_max=h_max,
                       stall_speed=stall_speed, stall_share=stall_share, stall_time=stall_time)
-    CameraSettings(period=camera_period, p_fail=p_fail)
+    CameraSettings(period=camera_period, p_fail=p_fail, predict=predict, drift=drift, max_drift=max_drift)
     every = frame_steps(dt, camera_period)
     plant = plant or SingleIntegrator()
     x0 = np.asarray(x0, dtype=float)
@@ -119,7 +123,8 @@ def simulate(scene, controller, x0: np.ndarray, *, dt: float = _SIM.dt, horizon:
     else:
         try:  # V3 of SPEC §3.6 needs the frame period: checked here
             loop = SampledLoop(scene, controller, plant, disturbance, measure=measure, target_fn=target_fn,
-                               p_fail=p_fail, dt=dt, every=every)
+                               p_fail=p_fail, dt=dt, every=every,
+                               reckoning=DeadReckoning(drift, max_drift) if predict else None)
         except ConfigError as err:
             raise explain_steering(plant, err) from None
         arc = solve_sampled(loop, loop.initial(c0, rng), dt=dt, n_steps=sim.n_steps, every=every, rng=rng,
@@ -151,6 +156,7 @@ def _result(scene, controller, plant, x0, arc, m, monitor: ArrivalCollision, del
         "pushouts": arc.outside,
         "guard_frames": arc.counts.get("guard_frames", np.zeros(len(x0), dtype=np.int64)),
         "saturated_frames": arc.counts.get("saturated_frames", np.zeros(len(x0), dtype=np.int64)),
+        **{k: arc.counts[k] for k in ("predicted_frames", "stopped_frames") if k in arc.counts},  # dead reckoning
         "path_length": arc.path,
         "final_error": final_error,
         "termination": np.asarray(TERMINATIONS)[term],

@@ -1,4 +1,4 @@
-"""Figures, tables and the animation of the unicycle scenarios (pipeline.experiments.unicycle; drawing code only)."""
+"""Figures, tables and the animation of the unicycle scenarios (pipeline.experiments.multi.unicycle; drawing code only)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import numpy as np  # noqa: E402
 from matplotlib.animation import FuncAnimation, PillowWriter  # noqa: E402
 
 from pipeline.config import build  # noqa: E402
-from pipeline.experiments.animation import frame_indices  # noqa: E402
+from pipeline.experiments.paper.animation import frame_indices  # noqa: E402
 from pipeline.experiments.report import draw_frame  # noqa: E402
 
 STYLE = {"true_state": ("tab:blue", "-"), "camera": ("tab:red", "-"), "imu": ("tab:purple", "--"),

@@ -20,9 +20,10 @@ from pipeline import tracking
 from pipeline.config import build
 from pipeline.control import Scene
 from pipeline.errors import ConfigError
-from pipeline.experiments.context import Context, Results
-from pipeline.experiments.multi import summarise_field
-from pipeline.experiments.scenario import Scenario, _agent_rows
+from pipeline.experiments.context import Context
+from pipeline.experiments.multi.fields import summarise_field
+from pipeline.experiments.results import Results
+from pipeline.experiments.scenario import Scenario, agent_rows
 from pipeline.schema import NonNegative, NonNegativeInt, Positive, PositiveInt
 from pipeline.sim import starts
 
@@ -49,7 +50,7 @@ class DenseFields(Scenario):
     adversary of `adversary_eps` (null: left out): success and collisions with Wilson intervals, stalls
     (traps), time, jumps and push-outs, pooled and per scene."""
 
-    figures: ClassVar[str] = "pipeline.experiments.dense_figures:draw_dense_fields"
+    figures: ClassVar[str] = "pipeline.experiments.multi.dense_figures:draw_dense_fields"
     presets: dict = field(default_factory=dict)   # scene nodes by name (the bundle's defaults list)
     n_scenes: NonNegativeInt = 4
     scene_seed: NonNegativeInt = 0
@@ -93,7 +94,7 @@ class DenseFields(Scenario):
                                        record=rec)
                     if rec:
                         arrays[f"p_{ctrl}"] = res.p[:, : self.n_drawn]
-                    frames.append(_agent_rows(res, scene=label, condition=cond, obstacles=scene.n_obstacles))
+                    frames.append(agent_rows(res, scene=label, condition=cond, obstacles=scene.n_obstacles))
             print(f"[experiments] {self.id}: {label} done ({j + 1}/{len(scenes)})", flush=True)
         metrics = pd.concat(frames, ignore_index=True)
         table = summarise_field(metrics, ["condition", "controller"], ctx.seed)

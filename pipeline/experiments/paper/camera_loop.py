@@ -10,8 +10,9 @@ import numpy as np
 import pandas as pd
 
 from pipeline.control import potential
-from pipeline.experiments.context import Context, Results, summarise
-from pipeline.experiments.scenario import Points, Scenario, _agent_rows, _frame_index
+from pipeline.experiments.context import Context
+from pipeline.experiments.results import Results, summarise
+from pipeline.experiments.scenario import Points, Scenario, agent_rows, frame_index
 from pipeline.schema import NonNegative, Positive, PositiveInt
 from pipeline.sim import starts
 from pipeline.sim.settings import FailureRate
@@ -20,7 +21,7 @@ from pipeline.sim.settings import FailureRate
 # ------------------------------------------------------------------------------ noise + failure
 @dataclass(kw_only=True)
 class NoiseFailure(Scenario):
-    figures: ClassVar[str] = "pipeline.experiments.figures:draw_noise_failure"
+    figures: ClassVar[str] = "pipeline.experiments.paper.figures:draw_noise_failure"
     sigma: NonNegative = 0.5
     p_fail: FailureRate = 0.5
     initial_conditions: Points = field(default_factory=lambda: [[-12.0, 2.0], [-37.0, -17.0]])
@@ -35,8 +36,8 @@ class NoiseFailure(Scenario):
         single = ctx.simulate(ctx.controller("hybrid"), ics, disturbance=noise, p_fail=self.p_fail,
                               measure=ctx.camera_measure("clean"))
         lead, foll, _ = ctx.leader_follower(ics[:1], ics[1:2], kind="clean", sigma=self.sigma, p_fail=self.p_fail)
-        rows = pd.concat([_agent_rows(single, role="vehicle"), _agent_rows(lead, role="leader"),
-                          _agent_rows(foll, role="follower")], ignore_index=True)
+        rows = pd.concat([agent_rows(single, role="vehicle"), agent_rows(lead, role="leader"),
+                          agent_rows(foll, role="follower")], ignore_index=True)
         arrays = {"single_p": single.p, "single_m": single.m, "lead_p": lead.p, "foll_p": foll.p,
                   "foll_target": foll.target, "lead_t": lead.t, "foll_t": foll.t}
         return Results({"metrics": rows}, arrays, {"sigma": self.sigma, "p_fail": self.p_fail})
@@ -44,8 +45,11 @@ class NoiseFailure(Scenario):
 
 # --------------------------------------------------------------------------------------- occlusion
 @dataclass(kw_only=True)
-class Occlusion(Scenario):
-    figures: ClassVar[str] = "pipeline.experiments.figures:draw_occlusion"
+class OccludedFollowers(Scenario):
+    """The paper's occlusion figure: followers of a leader under `occlusion` clouds, with the clean and the
+    occluded map (not the renderer's clouds, `pipeline.render.Occlusion`)."""
+
+    figures: ClassVar[str] = "pipeline.experiments.paper.figures:draw_occlusion"
     occlusion: str = "heavy"
     initial_conditions: Points = field(default_factory=lambda: [[-12.0, 2.0], [-37.0, -17.0]])
     n_agents: PositiveInt = 100   # followers from random initial conditions for the table
@@ -69,7 +73,7 @@ class Occlusion(Scenario):
         perceived leader), the leader and follower runs and the tracking errors (T, N)."""
         lead, foll, track = ctx.leader_follower(leaders, followers, kind=kind, level=level)
         err = np.hypot(*(foll.target - track.position(foll.t)).transpose(2, 0, 1))
-        df = _agent_rows(foll, map=kind, occlusion=level)
+        df = agent_rows(foll, map=kind, occlusion=level)
         df["tracking_error_mean"] = np.nanmean(err, axis=0)
         return df, lead, foll, err
 
@@ -103,7 +107,7 @@ class Occlusion(Scenario):
 # --------------------------------------------------------------------------------- leader-follower
 @dataclass(kw_only=True)
 class LeaderFollower(Scenario):
-    figures: ClassVar[str] = "pipeline.experiments.figures:draw_leader_follower"
+    figures: ClassVar[str] = "pipeline.experiments.paper.figures:draw_leader_follower"
     instants: list[int] = field(default_factory=lambda: [1, 90, 180])   # camera frames
     sigma: NonNegative = 0.0
     grid_step: Positive = 0.5
@@ -118,7 +122,7 @@ class LeaderFollower(Scenario):
         lead, foll, _ = ctx.leader_follower(ics[:1], ics[-1:], kind="clean", sigma=self.sigma)
         frames = list(self.instants)
         period = ctx.frame_period or ctx.dt
-        idx = _frame_index(foll.t, [f * period for f in frames])
+        idx = frame_index(foll.t, [f * period for f in frames])
         (x0, x1), (y0, y1) = ctx.arena
         xs, ys = np.arange(x0, x1 + 1e-9, self.grid_step), np.arange(y0, y1 + 1e-9, self.grid_step)
         X, Y = np.meshgrid(xs, ys)
@@ -133,14 +137,14 @@ class LeaderFollower(Scenario):
                          "target_y": float(foll.target[k, 0, 1]), "follower_x": float(foll.p[k, 0, 0]),
                          "follower_y": float(foll.p[k, 0, 1])})
         return Results({"instants": pd.DataFrame(rows),
-                        "metrics": pd.concat([_agent_rows(lead, role="leader"), _agent_rows(foll, role="follower")])},
+                        "metrics": pd.concat([agent_rows(lead, role="leader"), agent_rows(foll, role="follower")])},
                        arrays, {"frames": frames})
 
 
 # ---------------------------------------------------------------------------- perception closeness
 @dataclass(kw_only=True)
 class PerceptionCloseness(Scenario):
-    figures: ClassVar[str] = "pipeline.experiments.figures:draw_perception_closeness"
+    figures: ClassVar[str] = "pipeline.experiments.paper.figures:draw_perception_closeness"
     initial_conditions: Points = field(default_factory=lambda: [[-37.0, -17.0]])
     maps: ClassVar[tuple[str, ...]] = ("clean",)
     errormaps: ClassVar[tuple[str, ...]] = ("clean",)
@@ -159,7 +163,7 @@ class PerceptionCloseness(Scenario):
 # ------------------------------------------------------------------------------------ Monte Carlo
 @dataclass(kw_only=True)
 class MonteCarlo(Scenario):
-    figures: ClassVar[str] = "pipeline.experiments.figures:draw_monte_carlo"
+    figures: ClassVar[str] = "pipeline.experiments.paper.figures:draw_monte_carlo"
     controllers: list[str] = field(default_factory=lambda: ["hybrid", "smooth", "cbf"])
     sigma: NonNegative = 0.5
     p_fail: FailureRate = 0.5
@@ -200,7 +204,7 @@ class MonteCarlo(Scenario):
                 measure, x0 = ctx.camera_measure(kind, level), x0_all[:n_cam]
             for ctrl in self.controllers:
                 res = ctx.simulate(ctx.controller(ctrl, scene=scene), x0, scene=scene, measure=measure, record=False, **kw)
-                frames.append(_agent_rows(res, scene=label, condition=cond))
+                frames.append(agent_rows(res, scene=label, condition=cond))
         return pd.concat(frames, ignore_index=True)
 
     def compute(self, ctx: Context) -> Results:

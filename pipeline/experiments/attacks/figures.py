@@ -1,4 +1,4 @@
-"""Figures, tables and the animation of the attack scenarios (`pipeline.experiments.attacks`; drawing code only:
+"""Figures, tables and the animation of the attack scenarios (`pipeline.experiments.attacks.camera`; drawing code only:
 re-drawn from the cached results, never re-simulated)."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.animation import FuncAnimation, PillowWriter  # noqa: E402
 
-from pipeline.experiments.animation import frame_indices  # noqa: E402
+from pipeline.experiments.paper.animation import frame_indices  # noqa: E402
 from pipeline.experiments.report import draw_frame  # noqa: E402
 from pipeline.render import CloudSample  # noqa: E402
 from pipeline.viz import legend_outside  # noqa: E402

@@ -15,9 +15,9 @@ import numpy as np  # noqa: E402
 from matplotlib.colors import ListedColormap  # noqa: E402
 from matplotlib.patches import Circle  # noqa: E402
 
-from pipeline.experiments.animation import leader_follower_gif  # noqa: E402
+from pipeline.experiments.paper.animation import leader_follower_gif  # noqa: E402
+from pipeline.experiments.paper.scheme import scheme_figure  # noqa: E402
 from pipeline.experiments.report import draw_frame  # noqa: E402
-from pipeline.experiments.scheme import scheme_figure  # noqa: E402
 from pipeline.viz import legend_outside  # noqa: E402
 
 

@@ -11,8 +11,8 @@ cloud level of `levels`:
 - one batched render per level, one batched inference per map and level; `perception_metrics` gives the MAE,
   p95, the visible / hidden split (`hidden_alpha` of cloud opacity over the leader) and, on the near-target
   set, the near-target errors;
-- the follower of the occlusion scenario (:meth:`Occlusion.starts`, :meth:`Occlusion.follow`,
-  :meth:`Occlusion.summary`) with each map under each level: success (|p - p_T| <= sim.delta), practical
+- the follower of the occlusion scenario (:meth:`OccludedFollowers.starts`, :meth:`OccludedFollowers.follow`,
+  :meth:`OccludedFollowers.summary`) with each map under each level: success (|p - p_T| <= sim.delta), practical
   success (within `delta_practical`), collisions.
 """
 
@@ -28,8 +28,9 @@ from pipeline import tracking
 from pipeline.data.recipe import Follower, Recipe, Sampling, Splits
 from pipeline.data.sampling import plan_split
 from pipeline.errors import ConfigError
-from pipeline.experiments.camera_loop import Occlusion
-from pipeline.experiments.context import Context, Results
+from pipeline.experiments.context import Context
+from pipeline.experiments.paper.camera_loop import OccludedFollowers
+from pipeline.experiments.results import Results
 from pipeline.experiments.scenario import Points, Scenario
 from pipeline.perception.measure import OracleMap
 from pipeline.perception.metrics import perception_metrics
@@ -45,7 +46,7 @@ FOLLOWER_COLUMNS = ("n", "success_rate", "success_lo", "success_hi", "success_pr
 
 @dataclass(kw_only=True)
 class PerceptionGeneralisation(Scenario):
-    figures: ClassVar[str] = "pipeline.experiments.figures:draw_perception_generalisation"
+    figures: ClassVar[str] = "pipeline.experiments.paper.figures:draw_perception_generalisation"
     maps: Names = field(default_factory=lambda: ["clean", "authors", "occluded", "clean_paper"])
     levels: Names = field(default_factory=lambda: ["none", "light", "authors", "heavy"])
     n_positions: PositiveInt = 4000  # test positions per level (uniform over the arena), the same at every level
@@ -130,12 +131,12 @@ class PerceptionGeneralisation(Scenario):
     # ------------------------------------------------------------------------------------ follower
     def followers(self, ctx: Context) -> tuple[pd.DataFrame, pd.DataFrame]:
         """Per-agent rows and their summary per (map, level): the occlusion scenario's follower."""
-        occ = Occlusion(id=self.id, title=self.title, initial_conditions=self.initial_conditions,
+        occ = OccludedFollowers(id=self.id, title=self.title, initial_conditions=self.initial_conditions,
                         n_agents=self.n_agents, delta_practical=self.delta_practical)
         leaders, followers = occ.starts(ctx)
         rows = [occ.follow(ctx, name, level, leaders, followers)[0] for name in self.maps for level in self.levels]
         metrics = pd.concat(rows, ignore_index=True).rename(columns={"occlusion": "level"})
-        return metrics, Occlusion.summary(metrics, ["map", "level"], ctx.seed, self.delta_practical)
+        return metrics, OccludedFollowers.summary(metrics, ["map", "level"], ctx.seed, self.delta_practical)
 
     def compute(self, ctx: Context) -> Results:
         perception = self.perception(ctx)

@@ -23,9 +23,10 @@ import numpy as np
 import pandas as pd
 
 from pipeline.errors import ConfigError
-from pipeline.experiments.context import Context, Results, mean_ci
-from pipeline.experiments.multi import check_map_scene, summarise_field
-from pipeline.experiments.scenario import Points, Scenario, _agent_rows
+from pipeline.experiments.context import Context
+from pipeline.experiments.multi.fields import check_map_scene, summarise_field
+from pipeline.experiments.results import Results, mean_ci
+from pipeline.experiments.scenario import Points, Scenario, agent_rows
 from pipeline.plants import SingleIntegrator
 from pipeline.schema import NonNegative, PositiveInt
 from pipeline.sim import starts
@@ -71,7 +72,7 @@ class UnicycleRuns(Scenario):
     """The unicycle on the composed scene under each condition of `conditions`, beside the single integrator;
     a GIF of one camera run beside its camera view (`gif: true`)."""
 
-    figures: ClassVar[str] = "pipeline.experiments.unicycle_figures:draw_unicycle"
+    figures: ClassVar[str] = "pipeline.experiments.multi.unicycle_figures:draw_unicycle"
     map_kind: str = "unicycle_pose"
     conditions: list[Condition] = field(default_factory=lambda: ["true_state", "camera", "imu"])
     initial_conditions: Points = field(default_factory=lambda: [list(p) for p in PAPER_STARTS])
@@ -82,6 +83,7 @@ class UnicycleRuns(Scenario):
     gif: bool = True
     gif_agent: int = 0             # which start the GIF follows (0: the paper's first)
     record_every: PositiveInt = 5
+    DRAW_ONLY: ClassVar[tuple[str, ...]] = (*Scenario.DRAW_ONLY, "gif", "gif_agent")  # the GIF is drawn, not computed
 
     @property
     def maps(self) -> tuple[str, ...]:  # type: ignore[override]
@@ -113,7 +115,7 @@ class UnicycleRuns(Scenario):
         return dataclasses.replace(measure, heading=heading, heading_noise=self.imu_noise if cond == "imu" else 0.0)
 
     def _rows(self, ctx: Context, res, cond: str, vehicle: str) -> pd.DataFrame:
-        df = _agent_rows(res, condition=cond, vehicle=vehicle, start=np.arange(len(res.x0)))
+        df = agent_rows(res, condition=cond, vehicle=vehicle, start=np.arange(len(res.x0)))
         period = ctx.frame_period or ctx.dt
         t_end = np.where(df["success"], df["time_to_target"], ctx.horizon)
         frames = np.maximum(np.ceil(t_end / period), 1.0)

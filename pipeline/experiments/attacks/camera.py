@@ -22,11 +22,13 @@ from typing import Annotated, ClassVar, Literal
 import numpy as np
 import pandas as pd
 
-from pipeline.experiments.context import Context, Results, wilson
-from pipeline.experiments.scenario import Scenario, _agent_rows
+from pipeline.experiments.context import Context
+from pipeline.experiments.results import Results
+from pipeline.experiments.scenario import Scenario, agent_rows
 from pipeline.render import load_occlusion
 from pipeline.schema import Interval, NonEmpty, Option, Positive, PositiveInt, Range
 from pipeline.sim import starts
+from pipeline.sim.metrics import wilson
 
 Controller = Annotated[str, Option("controller")]  # hybrid, smooth, cbf
 
@@ -104,6 +106,8 @@ class _AttackSweep(Scenario):
                "induced_along_start": _mean(frames["along"][first]), "induced_norm_start": _mean(frames["norm"][first]),
                "induced_norm_run": _mean(frames["norm"]), "frames_near_K": int(near.sum()),
                "attacked_images": len(frames)}
+        if "stopped_frames" in m:  # dead reckoning (camera.predict): agents its fallback stopped at least once
+            row["stopped_by_drift"] = int(np.sum(m["stopped_frames"] > 0))
         if frames["predicted_error"].notna().any():
             row |= {"flag_rate": float(frames["flagged"].mean()), "flag_rate_near_K": _mean(frames["flagged"][near]),
                     "gated_share": float(frames["gated"].mean())}
@@ -134,7 +138,7 @@ class _AttackSweep(Scenario):
                 frames = measure.table()
                 label = {"budget": budget, "attack": att.label(), "controller": ctrl, "gated": gated}
                 rows.append(self.row(ctx, res, frames, **label))
-                agents.append(_agent_rows(res, **label))
+                agents.append(agent_rows(res, **label))
                 if rec and not gated:
                     arrays |= {f"rec_{ctrl}_p": res.p, f"rec_{ctrl}_m": res.m, f"rec_{ctrl}_t": res.t,
                                f"rec_{ctrl}_rows": frames[["frame", "agent"]].to_numpy(),
@@ -150,7 +154,7 @@ class _AttackSweep(Scenario):
 class CameraAttack(_AttackSweep):
     """The pixel attack (`disturbances.pixel_attack`) on the clean map, its budget `kappa` (intensity levels) swept."""
 
-    figures: ClassVar[str] = "pipeline.experiments.attack_figures:draw_camera_attack"
+    figures: ClassVar[str] = "pipeline.experiments.attacks.figures:draw_camera_attack"
     attack: Literal["pixel_attack"] = "pixel_attack"  # the camera attack of `disturbances` whose kappa is swept
     occlusion: str | None = None   # the scene's clouds under the attack (null: clean images)
     kappas: Annotated[list[float], Range(ge=0, le=255), NonEmpty()] = field(default_factory=lambda: [0.0, 2.0, 4.0, 8.0])
@@ -168,7 +172,7 @@ class WorstCloudAttack(_AttackSweep):
     `record`, the runs at the last level are kept for the animation (a smooth controller stalled beside the hybrid
     passing). The worst cloud draws its own clouds: the scene has none besides."""
 
-    figures: ClassVar[str] = "pipeline.experiments.attack_figures:draw_worst_cloud"
+    figures: ClassVar[str] = "pipeline.experiments.attacks.figures:draw_worst_cloud"
     budget_key: ClassVar[str] = "level"
     attack: Literal["worst_cloud"] = "worst_cloud"
     map: str = "occluded"

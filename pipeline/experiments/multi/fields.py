@@ -21,9 +21,11 @@ from pipeline.control import Scene
 from pipeline.control.fields import analyse_field
 from pipeline.control.potentials import potential
 from pipeline.errors import ConfigError
-from pipeline.experiments.context import Context, Results, mean_ci, summarise, wilson
-from pipeline.experiments.scenario import Scenario, _agent_rows
+from pipeline.experiments.context import Context
+from pipeline.experiments.results import Results, mean_ci, summarise
+from pipeline.experiments.scenario import Scenario, agent_rows
 from pipeline.sim import starts
+from pipeline.sim.metrics import wilson
 
 RANDOM_SCENE = "pipeline.control.fields.random_scene"
 COUNTERS = ("cell_jumps", "mode_jumps", "pushouts", "guard_frames")
@@ -54,10 +56,10 @@ def check_map_scene(ctx: Context, kind: str) -> None:
                                           "simulated")
 
 
-def summarise_field(metrics: pd.DataFrame, by: list[str], seed: int) -> pd.DataFrame:
+def summarise_field(metrics: pd.DataFrame, by: list[str], seed: int, delta_practical: float | None = None) -> pd.DataFrame:
     """The Monte Carlo table (:func:`pipeline.experiments.context.summarise`) plus the mean of each counter per
     agent (cell jumps, mode jumps, push-outs, guard-active frames) with its 95% interval."""
-    table = summarise(metrics, by, seed=seed)
+    table = summarise(metrics, by, seed=seed, delta_practical=delta_practical)
     extra = []
     for _, g in metrics.groupby(by, sort=False):
         row = {}
@@ -77,7 +79,7 @@ class MultiCells(Scenario):
     obstacle's diamond and disc `D_i`, the active potential's level sets, a few true-state trajectories with
     their cell and mode, and the field's validity margins (V1–V3)."""
 
-    figures: ClassVar[str] = "pipeline.experiments.multi_figures:draw_multi_cells"
+    figures: ClassVar[str] = "pipeline.experiments.multi.figures:draw_multi_cells"
     grid_step: float = 0.25
     initial_conditions: list[list[float]] = field(default_factory=lambda: [[-40.0, 0.0], [-12.0, 2.0],
                                                                             [-37.0, -17.0]])
@@ -112,7 +114,7 @@ class MultiCells(Scenario):
                 "summary": fa.summary()}
         arrays = {"x": xs, "y": ys, "cell": cell.reshape(X.shape).astype(np.int16), "band": band.reshape(X.shape),
                   "V": V.reshape(X.shape), "p": res.p, "i": res.i, "q": res.q}
-        return Results({"obstacles": obstacles, "metrics": _agent_rows(res)}, arrays, info)
+        return Results({"obstacles": obstacles, "metrics": agent_rows(res)}, arrays, info)
 
 
 # ------------------------------------------------------------------------ Proposition 1, every obstacle
@@ -122,7 +124,7 @@ class MultiAdversarial(Scenario):
     near every obstacle's set K (`pipeline.sim.starts.BehindObstacles`), on `n_scenes` random valid fields:
     hybrid against the smooth and CBF baselines, with Wilson intervals."""
 
-    figures: ClassVar[str] = "pipeline.experiments.multi_figures:draw_multi_adversarial"
+    figures: ClassVar[str] = "pipeline.experiments.multi.figures:draw_multi_adversarial"
     eps: list[float] = field(default_factory=lambda: [0.0, 0.25, 0.5, 1.0])
     controllers: list[str] = field(default_factory=lambda: ["hybrid", "smooth", "cbf"])
     n_scenes: int = 5
@@ -144,7 +146,7 @@ class MultiAdversarial(Scenario):
                 d = ctx.disturbance("adversarial", eps=eps) if eps > 0 else None
                 for ctrl in self.controllers:
                     res = ctx.simulate(ctx.controller(ctrl, scene=scene), x0, scene=scene, disturbance=d, record=False)
-                    frames.append(_agent_rows(res, scene=label, eps=eps))
+                    frames.append(agent_rows(res, scene=label, eps=eps))
             print(f"[experiments] {self.id}: {label} done", flush=True)
         metrics = pd.concat(frames, ignore_index=True)
         table = summarise_field(metrics, ["eps", "controller"], ctx.seed)
@@ -158,7 +160,7 @@ class MultiMonteCarlo(Scenario):
     stall, time, clearance, jumps by kind, push-outs and guard frames, with intervals (per condition and
     controller, and per field)."""
 
-    figures: ClassVar[str] = "pipeline.experiments.multi_figures:draw_multi_monte_carlo"
+    figures: ClassVar[str] = "pipeline.experiments.multi.figures:draw_multi_monte_carlo"
     controllers: list[str] = field(default_factory=lambda: ["hybrid", "smooth", "cbf"])
     n_scenes: int = 20
     obstacles: list[int] = field(default_factory=lambda: [3, 4, 5])
@@ -192,7 +194,7 @@ class MultiMonteCarlo(Scenario):
                     if rec:
                         arrays[f"p_{ctrl}"] = res.p
                         res = ctx.simulate(ctx.controller(ctrl, scene=scene), x0, scene=scene, record=False)
-                    frames.append(_agent_rows(res, scene=label, condition=cond, obstacles=scene.n_obstacles))
+                    frames.append(agent_rows(res, scene=label, condition=cond, obstacles=scene.n_obstacles))
             print(f"[experiments] {self.id}: {label} done ({j + 1}/{len(scenes)})", flush=True)
         metrics = pd.concat(frames, ignore_index=True)
         table = summarise_field(metrics, ["condition", "controller"], ctx.seed)
@@ -209,7 +211,7 @@ class MultiCamera(Scenario):
     trajectories of a few of them. The map's own scene (from its dataset's manifest) must be the composed one:
     the camera draws the obstacles the vehicle avoids."""
 
-    figures: ClassVar[str] = "pipeline.experiments.multi_figures:draw_multi_camera"
+    figures: ClassVar[str] = "pipeline.experiments.multi.figures:draw_multi_camera"
     controllers: list[str] = field(default_factory=lambda: ["hybrid", "smooth", "cbf"])
     occlusion: str = "heavy"
     map_kind: str = "field_heavy"
@@ -237,13 +239,13 @@ class MultiCamera(Scenario):
         frames, arrays = [], {}
         for ctrl in self.controllers:
             res = ctx.simulate(ctx.controller(ctrl), x0, measure=measure, record=True)
-            frames.append(_agent_rows(res, condition=f"{self.occlusion} clouds, {self.map_kind} map"))
+            frames.append(agent_rows(res, condition=f"{self.occlusion} clouds, {self.map_kind} map"))
             arrays[f"p_{ctrl}"], arrays[f"m_{ctrl}"] = res.p[:, : self.n_drawn], res.m[:, : self.n_drawn]
             err = np.hypot(*(res.m - res.p).transpose(2, 0, 1))
             frames[-1]["perception_error_mean"] = np.nanmean(err, axis=0)
             print(f"[experiments] {self.id}: {ctrl} done", flush=True)
         metrics = pd.concat(frames, ignore_index=True)
-        table = summarise_field(metrics, ["condition", "controller"], ctx.seed)
+        table = summarise_field(metrics, ["condition", "controller"], ctx.seed, self.delta_practical)
         table["perception_error_mean"] = metrics.groupby(["condition", "controller"], sort=False)[
             "perception_error_mean"].mean().to_numpy()
         return Results({"metrics": metrics, "summary": table}, arrays, {"occlusion": self.occlusion})

@@ -13,18 +13,20 @@ import pandas as pd
 
 from pipeline.control import in_covering_set, in_diamond, potential
 from pipeline.errors import ConfigError
-from pipeline.experiments.camera_loop import MonteCarlo
-from pipeline.experiments.context import Context, Results, summarise, wilson
+from pipeline.experiments.context import Context
+from pipeline.experiments.paper.camera_loop import MonteCarlo
+from pipeline.experiments.results import Results, summarise
 from pipeline.experiments.scenario import Points, Scenario, practical_success
 from pipeline.schema import Interval, NonEmpty, NonNegative, Positive, PositiveInt, Range
 from pipeline.sim import simulate, starts
+from pipeline.sim.metrics import wilson
 from pipeline.sim.settings import FailureRate, TimeModel
 
 
 # --------------------------------------------------------------------------------- coverings
 @dataclass(kw_only=True)
 class Coverings(Scenario):
-    figures: ClassVar[str] = "pipeline.experiments.figures:draw_coverings"
+    figures: ClassVar[str] = "pipeline.experiments.paper.figures:draw_coverings"
     grid_step: Positive = 0.25
 
     def uses(self):
@@ -50,7 +52,7 @@ class Coverings(Scenario):
 # ---------------------------------------------------------------------------- sensitive set
 @dataclass(kw_only=True)
 class SensitiveSet(Scenario):
-    figures: ClassVar[str] = "pipeline.experiments.figures:draw_sensitive_set"
+    figures: ClassVar[str] = "pipeline.experiments.paper.figures:draw_sensitive_set"
     grid_step: Positive = 1.0
     grid_step_y: Positive = 0.25   # fine across K to resolve the ε band
     eps: NonNegative = 0.5         # size of the adversarial disturbance in the second column
@@ -88,7 +90,7 @@ class SensitiveSet(Scenario):
 # ------------------------------------------------------------------------------- robustness sweep
 @dataclass(kw_only=True)
 class RobustnessSweep(Scenario):
-    figures: ClassVar[str] = "pipeline.experiments.figures:draw_robustness_sweep"
+    figures: ClassVar[str] = "pipeline.experiments.paper.figures:draw_robustness_sweep"
     eps: list[NonNegative] = field(default_factory=lambda: [0.0, 0.1, 0.25, 0.5, 1.0, 1.5])
     disturbances: list[str] = field(default_factory=lambda: ["adversarial", "alternating"])
     controllers: list[str] = field(default_factory=lambda: ["hybrid", "smooth", "cbf"])
@@ -139,7 +141,7 @@ class AuthorsCode(Scenario):
     """The authors' released-code scene (composed as `other_scene`: r = 8, apex 1.5 r, log barrier) side by side
     with the default, through the true-state scenarios (the maps are trained on the default scene's images)."""
 
-    figures: ClassVar[str] = "pipeline.experiments.figures:draw_authors_code"
+    figures: ClassVar[str] = "pipeline.experiments.paper.figures:draw_authors_code"
 
     eps: list[NonNegative] = field(default_factory=lambda: [0.0, 0.25, 0.5, 1.0])
     disturbances: list[str] = field(default_factory=lambda: ["adversarial"])
@@ -181,7 +183,7 @@ class HysteresisMargin(Scenario):
     size ε for which the hybrid controller still reaches the target from >= `success` of the starts near K
     (bisection on ε per cell; starts and seed fixed)."""
 
-    figures: ClassVar[str] = "pipeline.experiments.figures:draw_hysteresis_margin"
+    figures: ClassVar[str] = "pipeline.experiments.paper.figures:draw_hysteresis_margin"
 
     chi: Annotated[list[float], Range(gt=1), NonEmpty()] = field(default_factory=lambda: [1.05, 1.1, 1.2, 1.4, 1.8])
     lam: Annotated[list[float], Range(gt=0), NonEmpty()] = field(default_factory=lambda: [0.01, 0.03, 0.09, 0.2, 0.4])
@@ -210,27 +212,27 @@ class HysteresisMargin(Scenario):
     def starts(self, ctx: Context) -> np.ndarray:
         return starts.NearK(n=ctx.n(self.n_agents), seed=ctx.seed, band=self.band, a_range=list(self.a_range))(ctx.scene)
 
-    def success_rate(self, ctx: Context, x0, chi: float, lam: float, dist: str, eps: float) -> float:
+    def success_rate(self, ctx: Context, x0, ctrl, dist: str, eps: float, scene=None) -> float:
         """Share of starts that get past the obstacle to the target up to the disturbance: |p - p_T| <= delta + ε
         at the horizon, never in N (a biased measurement moves the equilibrium by up to ε, so the strict
         |p - p_T| <= delta is lost at ε >= delta by every controller, whatever its hysteresis)."""
         d = ctx.disturbance(dist, eps=eps) if eps > 0 else None
-        res = ctx.simulate(ctx.controller("hybrid", chi=chi, lam=lam), x0, disturbance=d, record=False,
-                           model=self.time_model)
+        res = ctx.simulate(ctrl, x0, scene=scene, disturbance=d, record=False, model=self.time_model)
         return float(np.mean(practical_success(res, ctx.delta, eps)))
 
-    def margin(self, ctx: Context, x0, chi: float, lam: float, dist: str) -> tuple[float, float, int]:
-        """(largest robust ε found, smallest failing ε found, simulations): bisection on [0, eps_max]."""
+    def margin(self, ctx: Context, x0, ctrl, dist: str, scene=None) -> tuple[float, float, int]:
+        """(largest robust ε found, smallest failing ε found, simulations): bisection on [0, eps_max] of the
+        controller `ctrl` (a hysteresis variant of the run's hybrid controller, on `scene`)."""
         lo, hi, sims = 0.0, self.eps_max, 1
-        if self.success_rate(ctx, x0, chi, lam, dist, 0.0) < self.success:
+        if self.success_rate(ctx, x0, ctrl, dist, 0.0, scene) < self.success:
             return float("nan"), 0.0, sims
         sims += 1
-        if self.success_rate(ctx, x0, chi, lam, dist, hi) >= self.success:
+        if self.success_rate(ctx, x0, ctrl, dist, hi, scene) >= self.success:
             return hi, float("inf"), sims
         while hi - lo > self.tol:
             mid = 0.5 * (lo + hi)
             sims += 1
-            if self.success_rate(ctx, x0, chi, lam, dist, mid) >= self.success:
+            if self.success_rate(ctx, x0, ctrl, dist, mid, scene) >= self.success:
                 lo = mid
             else:
                 hi = mid
@@ -244,10 +246,11 @@ class HysteresisMargin(Scenario):
         x0 = self.starts(ctx)
         rows = []
         ctx.expect(len(self.disturbances) * len(self.cells()) * self.steps())
+        hybrid = ctx.controller("hybrid")  # built once: the cells are its hysteresis variants
         for dist in self.disturbances:
             for chi, lam in self.cells():
                 ctx.label = f"{dist} chi={chi:g} lam={lam:g}"
-                lo, hi, sims = self.margin(ctx, x0, chi, lam, dist)
+                lo, hi, sims = self.margin(ctx, x0, hybrid.with_hysteresis(chi, lam), dist)
                 ctx.advance(self.steps() - sims)  # a bisection that stopped early
                 rows.append({"disturbance": dist, "chi": chi, "lam": lam, "eps_margin": lo, "eps_fails": hi,
                              "n_starts": len(x0), "simulations": sims})
@@ -259,7 +262,7 @@ class HysteresisMargin(Scenario):
 class Scheme(Scenario):
     """Fig. 4: the closed loop's block diagram, drawn from code (nothing to compute)."""
 
-    figures: ClassVar[str] = "pipeline.experiments.figures:draw_scheme"
+    figures: ClassVar[str] = "pipeline.experiments.paper.figures:draw_scheme"
 
     def uses(self):
         return {"controllers": [], "disturbances": [], "occlusions": []}
@@ -275,11 +278,14 @@ class SampleAndHold(Scenario):
     every `camera.period`), the continuous-time model, and the sampled model with dt = period = `limit_dt`
     (the dt -> 0 limit), on the true state without disturbance."""
 
-    figures: ClassVar[str] = "pipeline.experiments.figures:draw_sample_and_hold"
+    figures: ClassVar[str] = "pipeline.experiments.paper.figures:draw_sample_and_hold"
 
     initial_conditions: Points = field(default_factory=lambda: [[-12.0, 2.0], [-45.0, 0.3], [-37.0, -17.0],
                                                                 [-30.0, 20.0], [10.0, 25.0]])
     limit_dt: Positive = 0.0005
+
+    def time_models(self, ctx: Context) -> set[str]:
+        return {"sampled", "continuous"}
 
     def compute(self, ctx: Context) -> Results:
         x0 = np.asarray(self.initial_conditions, float)

@@ -1,4 +1,4 @@
-"""Figures and tables of the dense-field scenarios (pipeline.experiments.dense; drawing code only)."""
+"""Figures and tables of the dense-field scenarios (pipeline.experiments.multi.dense; drawing code only)."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ matplotlib.use("Agg", force=False)
 import matplotlib.pyplot as plt  # noqa: E402
 
 from pipeline.control import Scene  # noqa: E402
-from pipeline.experiments.multi_figures import COLORS, _columns  # noqa: E402
-from pipeline.experiments.report import draw_frame  # noqa: E402
+from pipeline.experiments.multi.figures import COLORS, columns  # noqa: E402
+from pipeline.experiments.report import draw_frame, figure_stem  # noqa: E402
 
 EXTRA = ["timed_out"]
 
@@ -27,10 +27,10 @@ def draw_dense_fields(scen, ctx, res, out) -> None:
         ax.set_title(f"{ctrl}", fontsize=9)
     last = scen.conditions(ctx)[-1][0]
     n = len(res.info["scenes"])
-    out.figure(fig, f"fig_{scen.id}", f"{first.name} ({vehicle}) under {last}: the benchmark's starts on the circle "
+    out.figure(fig, figure_stem(scen.id), f"{first.name} ({vehicle}) under {last}: the benchmark's starts on the circle "
                                       f"of radius {scen.start_radius:g}, hybrid (dense design) vs smooth vs CBF.")
-    out.table(_columns(t, ["condition", "controller"]), f"tab_{scen.id}",
+    out.table(columns(t, ["condition", "controller"]), f"tab_{scen.id}",
               f"Dense fields ({vehicle}; {n} scenes: {', '.join(res.info['scenes'])}): success and collisions with "
               f"95% Wilson intervals, stalls (traps), jumps and push-outs per agent, pooled over the scenes.")
-    out.table(_columns(per, ["scene", "condition", "controller"]), f"tab_{scen.id}_per_scene",
+    out.table(columns(per, ["scene", "condition", "controller"]), f"tab_{scen.id}_per_scene",
               f"Dense fields ({vehicle}), per scene.")

@@ -1,4 +1,4 @@
-"""Figures and tables of the several-obstacle scenarios (pipeline.experiments.multi; drawing code only)."""
+"""Figures and tables of the several-obstacle scenarios (pipeline.experiments.multi.fields; drawing code only)."""
 
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ SUMMARY_COLUMNS = ["n", "success_rate", "success_lo", "success_hi", "collision_r
                    "mean_guard_frames"]
 
 
-def _columns(df, first: list[str]):
+def columns(df, first: list[str]):
     return df[[c for c in first + SUMMARY_COLUMNS if c in df.columns]]
 
 
@@ -78,7 +78,7 @@ def draw_multi_adversarial(scen, ctx, res, out) -> None:
     ax.set_title(f"starts near every obstacle's K, {n} random fields", fontsize=9)
     out.figure(fig, "fig18_multi_adversarial", f"Proposition 1 behind every obstacle: success versus ε from starts "
                f"near each obstacle's set K on {n} random valid fields (hybrid vs smooth vs CBF).")
-    out.table(_columns(t, ["eps", "controller"]), "tab_multi_adversarial",
+    out.table(columns(t, ["eps", "controller"]), "tab_multi_adversarial",
               "Success versus ε near every obstacle's K (Wilson CIs), with jumps by kind and push-outs per agent.")
 
 
@@ -115,10 +115,10 @@ def draw_multi_monte_carlo(scen, ctx, res, out) -> None:
         _field_runs(axes[1], first, first.bounds, runs, f"the first field ({first.name}): the same starts")
     out.figure(fig, "fig19_multi_monte_carlo", "Monte Carlo over random valid fields (3–5 discs): success by "
                "condition and controller, and runs on the first field.")
-    out.table(_columns(t, ["condition", "controller"]), "tab_multi_monte_carlo",
+    out.table(columns(t, ["condition", "controller"]), "tab_multi_monte_carlo",
               "Random valid fields x starts x disturbances x controllers: success/collision with Wilson CIs, outcome "
               "shares, median time, min clearance, jumps by kind, push-outs and guard frames per agent (means).")
-    out.table(_columns(res.tables["per_scene"], ["scene", "condition", "controller"]), "tab_multi_monte_carlo_fields",
+    out.table(columns(res.tables["per_scene"], ["scene", "condition", "controller"]), "tab_multi_monte_carlo_fields",
               "The same per field.")
 
 
@@ -132,6 +132,6 @@ def draw_multi_camera(scen, ctx, res, out) -> None:
         ax.plot(m[:, :, 0].ravel(), m[:, :, 1].ravel(), ".", ms=0.8, color=COLORS.get(c), alpha=0.3)
     out.figure(fig, "fig20_multi_camera", "Hybrid, smooth and CBF on a 5-disc field with the CNN in the loop under "
                "heavy clouds (dots: the perceived positions).")
-    out.table(_columns(t, ["condition", "controller"]) .assign(perception_error_mean=t["perception_error_mean"]),
+    out.table(columns(t, ["condition", "controller"]) .assign(perception_error_mean=t["perception_error_mean"]),
               "tab_multi_camera", "Camera in the loop on the field (learned map, clouds): outcomes with Wilson CIs and "
               "the mean perception error along the runs.")

@@ -17,9 +17,9 @@ import pandas as pd
 from pipeline.config import build
 from pipeline.control import in_diamond
 from pipeline.errors import ConfigError
-from pipeline.experiments.context import Context, Results
-from pipeline.experiments.scenario import practical_success
-from pipeline.experiments.theory import HysteresisMargin
+from pipeline.experiments.context import Context
+from pipeline.experiments.paper.theory import HysteresisMargin
+from pipeline.experiments.results import Results
 from pipeline.schema import NonEmpty, Range
 
 SQRT2 = 1.4142135623730951
@@ -39,7 +39,7 @@ def cell_scene(scene_cfg: dict, *, apex_ratio: float, rho: float, scale: float):
 class GeometryMargin(HysteresisMargin):
     """The margin map of `HysteresisMargin` over (c / r, ρ_b, ℓ_B) at `chi` x `lam` (default: the paper's cell)."""
 
-    figures: ClassVar[str] = "pipeline.experiments.attack_figures:draw_geometry_margin"
+    figures: ClassVar[str] = "pipeline.experiments.attacks.figures:draw_geometry_margin"
 
     chi: list[float] = field(default_factory=lambda: [1.1])
     lam: list[float] = field(default_factory=lambda: [0.09])
@@ -54,33 +54,26 @@ class GeometryMargin(HysteresisMargin):
     def geometry(self) -> list[tuple[float, float, float]]:
         return [(c, r, s) for c in self.apex_ratio for r in self.rho for s in self.barrier_scale]
 
-    def success_rate(self, ctx: Context, x0, chi: float, lam: float, dist: str, eps: float) -> float:
-        """`HysteresisMargin.success_rate` on the current cell's scene."""
-        d = ctx.disturbance(dist, eps=eps) if eps > 0 else None
-        scene = self._scene
-        res = ctx.simulate(ctx.controller("hybrid", scene=scene, chi=chi, lam=lam), x0, scene=scene, disturbance=d,
-                           record=False, model=self.time_model)
-        return float(np.mean(practical_success(res, ctx.delta, eps)))
-
     def cell(self, ctx: Context, x0, apex_ratio: float, rho: float, scale: float):
-        """(scene, None) or (None, the reason the cell is skipped)."""
+        """(scene, its hybrid controller, None) or (None, None, the reason the cell is skipped)."""
         try:
             scene = cell_scene(ctx.scene_cfg, apex_ratio=apex_ratio, rho=rho, scale=scale)
+            hybrid = ctx.controller("hybrid", scene=scene)
             for chi, lam in self.cells():
-                ctx.controller("hybrid", scene=scene, chi=chi, lam=lam)
+                hybrid.with_hysteresis(chi, lam)
         except ConfigError as err:
-            return None, str(err)
+            return None, None, str(err)
         inside = int(in_diamond(scene, x0).sum())
         if inside:
-            return None, f"{inside} starts inside the diamond (c = {scene.c:.3g}): a_range must end below -c"
-        return scene, None
+            return None, None, f"{inside} starts inside the diamond (c = {scene.c:.3g}): a_range must end below -c"
+        return scene, hybrid, None
 
     def compute(self, ctx: Context) -> Results:
         x0 = self.starts(ctx)
         rows = []
         ctx.expect(len(self.geometry()) * len(self.disturbances) * len(self.cells()) * self.steps())
         for apex_ratio, rho, scale in self.geometry():
-            scene, note = self.cell(ctx, x0, apex_ratio, rho, scale)
+            scene, hybrid, note = self.cell(ctx, x0, apex_ratio, rho, scale)
             base = {"apex_ratio": apex_ratio, "rho": rho, "barrier_scale": scale, "valid": scene is not None,
                     "note": note or ""}
             if scene is not None:
@@ -93,9 +86,8 @@ class GeometryMargin(HysteresisMargin):
                         rows.append(row | {"eps_margin": np.nan, "eps_fails": np.nan, "simulations": 0})
                         ctx.advance(self.steps())
                         continue
-                    self._scene = scene
                     ctx.label = f"c/r={apex_ratio:g} rho_b={rho:g} l_B={scale:g}"
-                    lo, hi, sims = self.margin(ctx, x0, chi, lam, dist)
+                    lo, hi, sims = self.margin(ctx, x0, hybrid.with_hysteresis(chi, lam), dist, scene)
                     ctx.advance(self.steps() - sims)  # a bisection that stopped early
                     rows.append(row | {"eps_margin": lo, "eps_fails": hi, "n_starts": len(x0), "simulations": sims})
         default = ctx.scene.covering(0)

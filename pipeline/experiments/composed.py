@@ -1,0 +1,68 @@
+"""The objects a scenario computes with, built from the run's composed config: the controllers, disturbances,
+camera attacks and cloud levels it compares (by name: `controllers.<name>`, `disturbances.<name>`, `occlusions`)
+and a second scene."""
+
+from __future__ import annotations
+
+from pipeline import tracking
+from pipeline.config import build
+from pipeline.control import Scene
+from pipeline.errors import ConfigError
+from pipeline.perception.adversary import is_attack
+from pipeline.plants import explain_steering
+from pipeline.render import load_occlusion
+
+
+class Composed:
+    """The composed objects of `Context` (its `cfg`, `scene` and `vehicle` set by it)."""
+
+    # composed objects --------------------------------------------------------------------------
+    def _node(self, group: str, name: str):
+        """The node `<group>.<name>` a scenario names (in `experiment.<group>`)."""
+        nodes = self.cfg[group]
+        if name not in nodes:
+            raise ConfigError(f"experiment.{group}", f"unknown {group[:-1]} {name!r}; known: {', '.join(nodes)}")
+        return nodes[name]
+
+    def controller(self, name: str = "hybrid", scene: Scene | None = None, **params):
+        """The controller `controllers.<name>` of the composed config (hybrid: the run's `controller`), on the
+        vehicle's steering scene of `scene` (the unicycle's look-ahead point: every disc inflated, SPEC §3.7)."""
+        node = self._node("controllers", name)
+        node = node if not params else {**tracking.to_plain(node), **params}
+        try:
+            ctrl = build(node, "controller" if name == "hybrid" else f"controllers.{name}",
+                         scene=self.vehicle.steering_scene(scene or self.scene))
+        except ConfigError as err:
+            raise explain_steering(self.vehicle, err) from None
+        ctrl.name = name
+        return ctrl
+
+    def disturbance(self, name: str, **params):
+        """The disturbance `disturbances.<name>`; `params` set what the scenario sweeps (eps, sigma)."""
+        return build(self._node("disturbances", name), f"disturbances.{name}", **params)
+
+    def attack(self, name: str, **params):
+        """The camera attack `disturbances.<name>` (pixel_attack, worst_cloud; docs/attacks.md); `params` set what
+        the scenario sweeps (kappa, level). The worst cloud's level is checked here (a name of `occlusions`)."""
+        att = self.disturbance(name)
+        if not is_attack(att):
+            raise ConfigError("experiment.attack", f"{name!r} is a state disturbance, not an attack through the camera "
+                                                   "(pixel_attack, worst_cloud)")
+        if att.kind == "cloud":  # the node's own level too (a sweep sets another): every key's bad value is caught
+            load_occlusion(att.level, self.cfg.occlusions, field=f"disturbances.{name}.level")
+        att = self.disturbance(name, **params) if params else att
+        if att.kind == "cloud":
+            load_occlusion(att.level, self.cfg.occlusions, field="experiment.levels")
+        return att
+
+    def occlusion(self, level: str | None):
+        if level is None:
+            return None
+        occ = load_occlusion(level, self.cfg.occlusions, field="experiment.occlusion")
+        return occ if occ.active else None
+
+    def other_scene(self) -> tuple[str, Scene]:
+        node = self.cfg.get("other_scene")
+        if node is None:
+            raise ConfigError("other_scene", "this experiment needs a second scene (defaults: /scene@other_scene)")
+        return str(node.get("name", "other")), build(node, "other_scene")

@@ -1,0 +1,93 @@
+"""Dead reckoning (issue 27): a lost frame's estimate is predicted with the vehicle's own held input,
+`p_hat <- p_hat + T_s u` (the single integrator) and the exact held arc (the unicycle), its uncertainty growing
+with the distance predicted; past `max_drift` the vehicle stops until a frame is used."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from pipeline.control import HybridController, Obstacle, Scene
+from pipeline.errors import ConfigError
+from pipeline.plants import SingleIntegrator, Unicycle
+from pipeline.sim import simulate, true_state
+
+
+@pytest.fixture(scope="module")
+def scene() -> Scene:
+    return Scene(target=[40.0, 0.0], obstacles=[Obstacle(center=[0.0, 0.0], radius=4.0)])
+
+
+def blind_after(first_frames: int):
+    """A camera that sees the true state for `first_frames` frames, then loses every frame (NaN rows)."""
+    def measure(c, idx, frame, rng):
+        return c.copy() if frame < first_frames else np.full_like(c, np.nan)
+    return measure
+
+
+def at_frames(res):
+    """The estimate taken at each frame start and the true state there (`m[k]` is recorded one step after)."""
+    return res.m[1::5], res.p[0:-1:5][: len(res.m[1::5])]
+
+
+X0 = np.array([[-40.0, 20.0], [-30.0, -0.2], [-45.0, 5.0], [20.0, 25.0]])
+
+
+def _run(scene, plant=None, **kw):
+    plant = plant or SingleIntegrator()
+    ctrl = HybridController(plant.steering_scene(scene), guard=plant.heading)
+    kw = {"dt": 0.01, "horizon": 40.0, "camera_period": 0.05, "seed": 0, "record_every": 1, "plant": plant,
+          "stop_on_success": False,
+          "heading0": plant.initial_heading(X0, scene)} | kw
+    return simulate(scene, ctrl, X0, **kw)
+
+
+def test_predicted_estimate_is_the_true_state_and_the_vehicle_arrives(scene):
+    """Blind after the first frame: with the held input the estimate follows the true state exactly (a plant that
+    executes its input exactly), every vehicle arrives and stays; holding it, none stays."""
+    reck = _run(scene, measure=blind_after(1), predict=True, max_drift=1e9)
+    np.testing.assert_allclose(*at_frames(reck), atol=1e-9)
+    assert reck.metrics["success"].all() and not reck.metrics["collision"].any()
+    assert (reck.metrics["predicted_frames"] > 0).all() and (reck.metrics["stopped_frames"] == 0).all()
+    held = _run(scene, measure=blind_after(1), horizon=10.0)
+    assert (held.metrics["final_error"] > 5.0).all()  # a held estimate: the same input for ever, past the target
+    assert "predicted_frames" not in held.metrics
+
+
+def test_unicycle_predicted_pose(scene):
+    plant = Unicycle(heading0="target")
+    reck = _run(scene, plant, measure=blind_after(1), predict=True, max_drift=1e9)
+    np.testing.assert_allclose(*at_frames(reck), atol=1e-6)
+    np.testing.assert_allclose(reck.heading_measured[1::5], reck.heading[0:-1:5][: len(reck.heading_measured[1::5])],
+                               atol=1e-6)
+    assert reck.metrics["success"].all() and not reck.metrics["collision"].any()
+
+
+@settings(max_examples=8, deadline=None)
+@given(drift=st.floats(0.05, 1.0), max_drift=st.floats(0.5, 5.0), frames=st.integers(1, 40))
+def test_fallback_stops_once_the_uncertainty_passes_max_drift(scene, drift, max_drift, frames):
+    """The vehicle stops once `drift x distance predicted` passes `max_drift`: it moves at most
+    `max_drift / drift` + one frame's travel on predictions, then not at all."""
+    res = _run(scene, measure=blind_after(frames), predict=True, drift=drift, max_drift=max_drift, horizon=30.0)
+    u_max = HybridController(scene).u_max
+    moved_blind = np.hypot(*(res.p[-1] - res.p[(frames - 1) * 5 + 1]).T)
+    reached = res.metrics["success"]
+    assert (moved_blind[~reached] <= max_drift / drift + 2 * u_max * 0.05 + 1e-9).all()
+    stopped = ~reached & (res.metrics["stopped_frames"] > 0)
+    assert (np.hypot(*res.u[-1][stopped].T) == 0).all()
+
+
+def test_a_frame_used_resets_the_uncertainty(scene):
+    """p_fail failures with dead reckoning: every lost frame is predicted (counted), none stops the vehicle when
+    frames come back often; the estimate stays the true state."""
+    res = _run(scene, predict=True, p_fail=0.8, max_drift=5.0, drift=0.1)  # 100 lost frames at full speed
+    assert (res.metrics["predicted_frames"] > 0).all() and (res.metrics["stopped_frames"] == 0).all()
+    np.testing.assert_allclose(*at_frames(res), atol=1e-9)
+
+
+def test_bad_settings(scene):
+    for kw, field in (({"drift": -1.0}, "camera.drift"), ({"max_drift": 0.0}, "camera.max_drift")):
+        with pytest.raises(ConfigError, match=field.replace(".", r"\.")):
+            _run(scene, measure=true_state, predict=True, **kw)
