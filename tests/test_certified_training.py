@@ -103,7 +103,7 @@ def test_a_tiny_run_with_the_term_lowers_the_certified_bound(camera):
         L.seed_everything(0, verbose=False)
         m = _model()
         if on:
-            m.certified_term = CertifiedTerm(CertifiedTraining(weight=0.05, target=0.0, cell_start=0.05,
+            m.certified_term = CertifiedTerm(CertifiedTraining(weight=0.05, target=0.0, cell=0.25, cell_start=0.05,
                                                                warmup_epochs=1, ramp_epochs=1, ibp_epochs=1,
                                                                cells_per_step=8), camera)
         dl = torch.utils.data.DataLoader(torch.utils.data.TensorDataset(images, labels), batch_size=32)

@@ -34,15 +34,15 @@ from pipeline.schema import NonNegative, Positive, PositiveInt, checked
 class CertifiedTraining:
     """The certified-training term's settings (conf/certified/on.yaml documents each)."""
 
-    weight: Positive = 1.0e-3
-    target: NonNegative = 0.5
-    cell: Positive = 0.25
-    cell_start: Positive = 0.02
+    weight: Positive = 5.0e-3
+    target: NonNegative = 0.25
+    cell: Positive = 0.0625
+    cell_start: Positive = 0.01
     warmup_epochs: NonNegative = 1.0
     ramp_epochs: NonNegative = 2.0
-    ibp_epochs: NonNegative = 1.0
+    ibp_epochs: NonNegative = 0.0
     mode: Literal["ibp", "forward", "crown"] = "crown"
-    cells_per_step: PositiveInt = 8
+    cells_per_step: PositiveInt = 16
     kappa: NonNegative = 0.0
 
     def __post_init__(self):
