@@ -96,6 +96,7 @@ def map_identity(cfg: Mapping, dataset_name: str, dataset_id_: str) -> tuple[str
         trainer, datamodule, _weight_callbacks(cfg.get("callbacks") or {}),
         dataset_id_, int(cfg["seed"]), list(cfg.get("eval_levels") or []), tracking.code_version(*MAP_CODE),
         *([cfg["uncertainty_eval"]] if cfg.get("uncertainty_eval") is not None else []),
+        *([{"certified": cfg["certified"], "code": tracking.code_version("certify")}] if cfg.get("certified") is not None else []),
     )
     return name, id_
 

@@ -178,6 +178,8 @@ class PerceptionMap(L.LightningModule):
         # calibration of the predicted sigma on the validation split (set after training; 1 = raw NLL sigma)
         self.register_buffer("sigma_scale", torch.ones(()))
         self.head = head
+        # certified training (pipeline.train.certified): a bound-based term the train stage attaches; None: off
+        self.certified_term = None
         self._loss = {"mse": nn.functional.mse_loss, "l1": nn.functional.l1_loss,
                       "smooth_l1": nn.functional.smooth_l1_loss}[loss]
         self.to(memory_format=torch.channels_last)
@@ -258,7 +260,18 @@ class PerceptionMap(L.LightningModule):
         return loss
 
     def training_step(self, batch, batch_idx):
-        return self._step(batch, "train")
+        loss = self._step(batch, "train")
+        if self.certified_term is None:
+            return loss
+        n = self.trainer.num_training_batches
+        epoch = self.current_epoch + (batch_idx / n if n and n != float("inf") else 0.0)
+        term = self.certified_term(self, batch[1], epoch)
+        if term is None:  # the warm-up: regression only
+            return loss
+        self.log("train_cert_term", term.detach(), on_epoch=True, on_step=False, batch_size=len(batch[1]))
+        self.log("train_cert_eps", self.certified_term.last["eps_mean"], on_epoch=True, on_step=False,
+                 batch_size=len(batch[1]))
+        return loss + term
 
     def validation_step(self, batch, batch_idx):
         return self._step(batch, "val")

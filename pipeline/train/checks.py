@@ -34,6 +34,8 @@ def check_settings(cfg) -> TrainSettings:
             raise ConfigError("eval_levels", f"unknown occlusion level {lv!r}; known: {', '.join(known)}")
     if cfg.get("uncertainty_eval") is not None:
         build(cfg.uncertainty_eval, "uncertainty_eval")
+    if cfg.get("certified") is not None:
+        build(cfg.certified, "certified")
     me = cfg.trainer.get("max_epochs")
     if me is not None and (isinstance(me, bool) or not isinstance(me, int) or me <= 0):
         raise ConfigError("trainer.max_epochs", f"must be a positive integer, got {me!r}")

@@ -37,6 +37,7 @@ class TrainSettings:
     eval_levels: list[str] = field(default_factory=lambda: ["none", "light", "medium", "heavy", "authors"])
     eval_seed: int = 123
     uncertainty_eval: dict | None = None
+    certified: dict | None = None
     device: Device = "auto"
     num_threads: PositiveInt | None = None
     optimized_metric: str | None = None

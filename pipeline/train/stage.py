@@ -37,6 +37,7 @@ from pipeline.data import open_dataset
 from pipeline.errors import ConfigError, ModelError, PipelineError
 from pipeline.lineage import debug_overrides, rerun_command, resolve_dataset, train_dataset_id
 from pipeline.perception.maps import PerceptionMapPredictor, resolve_device
+from pipeline.train.certified import CertifiedTerm
 from pipeline.train.checks import check
 from pipeline.train.evaluate import evaluate, fit_clean_gate
 from pipeline.train.figures import curves as plot_curves
@@ -186,6 +187,8 @@ def _model(cfg, seed: int, shape, arena, name: str, ds):
     if model.pose and not ds.has_headings:
         raise ConfigError("model.outputs", f"pose: dataset {ds.name}-{ds.id} shows no heading (a recipe with "
                                            "data.vehicle: a unicycle)")
+    if cfg.get("certified") is not None:  # certified training: the bound-based term (pipeline.train.certified)
+        model.certified_term = CertifiedTerm(build(cfg.certified, "certified"), ds.camera())
     return model
 
 

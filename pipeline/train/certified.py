@@ -1,0 +1,91 @@
+"""Maps trained to be certifiable (SPEC §5.2, "Certifiable maps"): a bound-based term on sampled cells added to the
+regression loss in `PerceptionMap.training_step`.
+
+Each training step draws `cells_per_step` cells of side `s(t)` centred on the batch's own positions (the training
+distribution), bounds the perception error over them with :func:`pipeline.certify.certified_error_bound` (from the
+position through the camera and the network as deployed, differentiable in the weights) and adds
+
+    weight(t) * mean(relu(eps_bar(P) - target))          (eps_bar in world units)
+
+to the loss. The schedule (`t` in epochs, fractional within an epoch; the warm-up certified training needs):
+
+- `t < warmup_epochs`: regression only (the term is not computed);
+- then over `ramp_epochs` the weight ramps linearly from 0 to `weight` and the cell side from `cell_start` to
+  `cell`; both stay there afterwards;
+- the bound is `ibp` (cheap, loose) until `warmup_epochs + ibp_epochs`, then `mode` (`crown`: the tight one).
+
+Off by default (`certified: null` in conf/train.yaml): the loss and the weights are those of a map without it.
+`certified=on` (conf/certified/on.yaml) turns it on; its keys are part of the map's id.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+
+from pipeline.errors import ConfigError
+from pipeline.schema import NonNegative, Positive, PositiveInt, checked
+
+
+@checked("certified")
+@dataclass(frozen=True)
+class CertifiedTraining:
+    """The certified-training term's settings (conf/certified/on.yaml documents each)."""
+
+    weight: Positive = 5.0e-3
+    target: NonNegative = 0.25
+    cell: Positive = 0.0625
+    cell_start: Positive = 0.01
+    warmup_epochs: NonNegative = 1.0
+    ramp_epochs: NonNegative = 2.0
+    ibp_epochs: NonNegative = 0.0
+    mode: Literal["ibp", "forward", "crown"] = "crown"
+    cells_per_step: PositiveInt = 16
+    kappa: NonNegative = 0.0
+
+    def __post_init__(self):
+        if self.cell_start > self.cell:
+            raise ConfigError("certified.cell_start", f"must be <= cell ({self.cell!r}), got {self.cell_start!r}")
+
+    def ramp(self, t: float) -> float:
+        """The ramp's progress in [0, 1] at epoch `t` (0 during the warm-up)."""
+        if t < self.warmup_epochs:
+            return 0.0
+        if self.ramp_epochs == 0:
+            return 1.0
+        return min(1.0, (t - self.warmup_epochs) / self.ramp_epochs)
+
+    def schedule(self, t: float) -> tuple[float, float, str]:
+        """`(weight, cell side, bound mode)` at epoch `t`; weight 0 during the warm-up."""
+        r = self.ramp(t)
+        mode = "ibp" if t < self.warmup_epochs + self.ibp_epochs else self.mode
+        return self.weight * r, self.cell_start + (self.cell - self.cell_start) * r, mode
+
+
+class CertifiedTerm:
+    """The term for one run: the settings and the camera the bound renders with (the dataset's)."""
+
+    def __init__(self, settings: CertifiedTraining, camera):
+        self.settings = settings
+        self.camera = camera
+        self.last: dict = {}
+
+    def __call__(self, model, labels: torch.Tensor, epoch: float) -> torch.Tensor | None:
+        """The term at fractional epoch `epoch` on cells around the first `cells_per_step` positions of `labels`;
+        None during the warm-up (nothing computed)."""
+        from pipeline.certify import certified_error_bound, prepare  # torch-heavy; only when the term is on
+
+        w, side, mode = self.settings.schedule(epoch)
+        if w == 0:
+            self.last = {"weight": 0.0, "cell": side, "mode": mode}
+            return None
+        c = labels[: self.settings.cells_per_step, :2].detach().to(torch.float32)
+        h = side / 2
+        cells = torch.stack([c[:, 0] - h, c[:, 0] + h, c[:, 1] - h, c[:, 1] + h], 1)
+        prep = prepare(model, self.camera, self.settings.kappa)  # rebuilt every step: the weights moved
+        eps = certified_error_bound(prep, cells, mode).eps
+        term = torch.relu(eps - self.settings.target).mean()
+        self.last = {"weight": w, "cell": side, "mode": mode, "eps_mean": float(eps.detach().mean())}
+        return w * term
