@@ -17,7 +17,7 @@ import pytest  # noqa: E402
 from matplotlib.colors import to_rgba  # noqa: E402
 
 from pipeline.control import Scene  # noqa: E402
-from pipeline.experiments.context import Results  # noqa: E402
+from pipeline.experiments.results import Results  # noqa: E402
 from pipeline.experiments.report import Outputs  # noqa: E402
 
 SCENE = Scene()
@@ -99,7 +99,7 @@ def _summary(conds=("none", "gaussian"), ctrls=("hybrid", "smooth", "cbf")):
 
 
 def test_fig9_s_legend_does_not_cover_its_bars(drawn):
-    from pipeline.experiments.figures import draw_monte_carlo
+    from pipeline.experiments.paper.figures import draw_monte_carlo
 
     out, figs = drawn
     draw_monte_carlo(None, CTX, Results({"summary": _summary()}, {}, {}), out)
@@ -107,7 +107,7 @@ def test_fig9_s_legend_does_not_cover_its_bars(drawn):
 
 
 def test_the_multi_monte_carlo_legend_does_not_cover_its_bars(drawn):
-    from pipeline.experiments.multi_figures import draw_multi_monte_carlo
+    from pipeline.experiments.multi.figures import draw_multi_monte_carlo
 
     out, figs = drawn
     t = _summary()
@@ -119,7 +119,7 @@ def test_the_multi_monte_carlo_legend_does_not_cover_its_bars(drawn):
 @pytest.mark.parametrize("draw, stem", [("draw_camera_attack", "fig14_camera_attack"),
                                         ("draw_worst_cloud", "fig15_worst_cloud")])
 def test_the_attack_sweeps_legends_do_not_cover_their_curves(drawn, draw, stem):
-    from pipeline.experiments import attack_figures
+    from pipeline.experiments.attacks import figures as attack_figures
 
     out, figs = drawn
     rows = []
@@ -153,7 +153,7 @@ def _titles_clear(fig) -> list[str]:
 
 
 def test_fig2_and_fig3_lower_titles_clear_the_upper_panels(drawn):
-    from pipeline.experiments.figures import draw_coverings, draw_sensitive_set
+    from pipeline.experiments.paper.figures import draw_coverings, draw_sensitive_set
 
     out, figs = drawn
     x, y = np.linspace(-50, 50, 41), np.linspace(-30, 30, 25)
@@ -172,7 +172,7 @@ def test_fig2_and_fig3_lower_titles_clear_the_upper_panels(drawn):
 
 # ------------------------------------------------------------------------------ colour keys and mathtext
 def test_fig7_left_keys_each_run_and_covers_nothing(drawn, monkeypatch):
-    from pipeline.experiments import figures
+    from pipeline.experiments.paper import figures
 
     monkeypatch.setattr(figures, "_gif", lambda *a, **k: None)
     out, figs = drawn
@@ -192,7 +192,7 @@ def test_fig7_left_keys_each_run_and_covers_nothing(drawn, monkeypatch):
 
 
 def test_the_multi_cells_figure_keys_the_active_obstacle_colours_and_typesets_its_symbols(drawn):
-    from pipeline.experiments.multi_figures import draw_multi_cells
+    from pipeline.experiments.multi.figures import draw_multi_cells
 
     out, figs = drawn
     x, y = np.linspace(-50, 50, 21), np.linspace(-30, 30, 13)
@@ -213,7 +213,7 @@ def test_the_multi_cells_figure_keys_the_active_obstacle_colours_and_typesets_it
 
 
 def test_fig3_typesets_o_and_v(drawn):
-    from pipeline.experiments.figures import draw_coverings
+    from pipeline.experiments.paper.figures import draw_coverings
 
     out, figs = drawn
     x, y = np.linspace(-50, 50, 21), np.linspace(-30, 30, 13)
