@@ -107,7 +107,7 @@ def test_a_tiny_run_with_the_term_lowers_the_certified_bound(camera):
                                                                warmup_epochs=1, ramp_epochs=1, ibp_epochs=1,
                                                                cells_per_step=8), camera)
         dl = torch.utils.data.DataLoader(torch.utils.data.TensorDataset(images, labels), batch_size=32)
-        trainer = L.Trainer(max_epochs=4, accelerator="cpu", logger=False, enable_checkpointing=False,
+        trainer = L.Trainer(max_epochs=6, accelerator="cpu", logger=False, enable_checkpointing=False,
                             enable_progress_bar=False, enable_model_summary=False)
         trainer.fit(m, dl)
         out[on] = float(_eps(m, camera, cells).mean())

@@ -17,8 +17,8 @@ import pytest  # noqa: E402
 from matplotlib.colors import to_rgba  # noqa: E402
 
 from pipeline.control import Scene  # noqa: E402
-from pipeline.experiments.results import Results  # noqa: E402
 from pipeline.experiments.report import Outputs  # noqa: E402
+from pipeline.experiments.results import Results  # noqa: E402
 
 SCENE = Scene()
 CTX = SimpleNamespace(scene=SCENE, arena=SCENE.bounds)

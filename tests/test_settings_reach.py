@@ -30,7 +30,8 @@ BUNDLES = sorted(p.stem for p in (CONF_DIR / "experiment").glob("*.yaml"))
 
 # a value off the default for every field of `sim` and `camera` (a field missing here fails the test)
 SIM = {"model": "sampled", "dt": 0.02, "horizon": 7.0, "delta": 1.5, "record_every": 3, "stop_on_success": False,
-       "seed": 11, "method": "dopri5", "rtol": 1e-5, "atol": 1e-3, "h_max": 0.2, "stall_speed": 0.3, "stall_time": 4.0}
+       "seed": 11, "method": "dopri5", "rtol": 1e-5, "atol": 1e-3, "h_max": 0.2, "stall_speed": 0.3, "stall_share": 0.03,
+       "stall_time": 4.0}
 CAMERA = {"period": 0.04, "p_fail": 0.3, "gate": 1.25, "heading": "imu", "heading_noise": 0.05, "predict": True,
           "drift": 0.2, "max_drift": 3.0}
 TO_SIMULATE = {"period": "camera_period", "p_fail": "p_fail", "predict": "predict", "drift": "drift",

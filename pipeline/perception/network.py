@@ -261,17 +261,7 @@ class PerceptionMap(L.LightningModule):
 
     def training_step(self, batch, batch_idx):
         loss = self._step(batch, "train")
-        if self.certified_term is None:
-            return loss
-        n = self.trainer.num_training_batches
-        epoch = self.current_epoch + (batch_idx / n if n and n != float("inf") else 0.0)
-        term = self.certified_term(self, batch[1], epoch)
-        if term is None:  # the warm-up: regression only
-            return loss
-        self.log("train_cert_term", term.detach(), on_epoch=True, on_step=False, batch_size=len(batch[1]))
-        self.log("train_cert_eps", self.certified_term.last["eps_mean"], on_epoch=True, on_step=False,
-                 batch_size=len(batch[1]))
-        return loss + term
+        return loss if self.certified_term is None else self.certified_term.add_to(self, loss, batch, batch_idx)
 
     def validation_step(self, batch, batch_idx):
         return self._step(batch, "val")

@@ -89,3 +89,14 @@ class CertifiedTerm:
         term = torch.relu(eps - self.settings.target).mean()
         self.last = {"weight": w, "cell": side, "mode": mode, "eps_mean": float(eps.detach().mean())}
         return w * term
+
+    def add_to(self, model, loss: torch.Tensor, batch, batch_idx: int) -> torch.Tensor:
+        """`loss` plus the term at the step's fractional epoch, logged on the model (the warm-up: `loss` alone)."""
+        n = model.trainer.num_training_batches
+        epoch = model.current_epoch + (batch_idx / n if n and n != float("inf") else 0.0)
+        term = self(model, batch[1], epoch)
+        if term is None:
+            return loss
+        model.log("train_cert_term", term.detach(), on_epoch=True, on_step=False, batch_size=len(batch[1]))
+        model.log("train_cert_eps", self.last["eps_mean"], on_epoch=True, on_step=False, batch_size=len(batch[1]))
+        return loss + term
