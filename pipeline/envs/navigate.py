@@ -76,7 +76,12 @@ def compose_env(overrides=None) -> DictConfig:
 
 
 def objects(overrides=None) -> EnvObjects:
-    cfg = compose_env(overrides)
+    """The objects of conf/env.yaml composed with `overrides`."""
+    return objects_from(compose_env(overrides))
+
+
+def objects_from(cfg: DictConfig) -> EnvObjects:
+    """The objects of a composed config holding the env's nodes (conf/env.yaml's, or a stage's that includes them)."""
     scene = build(cfg.scene, "scene")
     plant = build(cfg.vehicle, "vehicle")
     sim, cam = build(cfg.sim, "sim"), build(cfg.camera, "camera")
