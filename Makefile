@@ -35,6 +35,10 @@ dagger: $(STAMP) ## DAgger-style rounds: data -> train -> closed loop with the m
 generalisation: $(STAMP) ## maps on every cloud level (issue 11): authors + clean_paper maps, tab_perception_generalisation
 	$(PY) -m pipeline.paper --config-name paper_generalisation $(ARGS)
 
+learned: $(STAMP) ## learned end-to-end policies (SPEC §6): imitate the hybrid controller (BC + DAgger; ARGS), then compare them with the paper's architecture (LEARNED_ARGS) in outputs/learned/
+	$(PY) -m pipeline.learned.imitate $(ARGS)
+	$(PY) -m pipeline.learned.evaluate $(LEARNED_ARGS)
+
 simulate: $(STAMP) ## closed-loop simulation demo on the true state (Hydra: make simulate ARGS="controller=smooth")
 	$(PY) -m pipeline.simulate $(ARGS)
 
@@ -71,4 +75,4 @@ lint: $(STAMP) ## ruff
 clean: ## remove generated data and outputs (keeps .venv)
 	rm -rf data/datasets outputs/* && touch outputs/.gitkeep
 
-.PHONY: help setup run paper multi dagger generalisation simulate data verify-data train errormap experiments test test-all bench lint clean
+.PHONY: help setup run paper multi dagger generalisation learned simulate data verify-data train errormap experiments test test-all bench lint clean

@@ -136,3 +136,22 @@ def test_bad_keys_are_one_line_and_exit_2(module, arg, field):
     assert out.returncode == 2, out.stderr
     lines = [ln for ln in out.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and field in lines[0], out.stderr
+
+
+def test_ppo_runs_on_the_vector_environment_through_sb3(tmp_path):
+    """SB3's PPO on the batched environment (a few agent-steps): episodes end, the model and its curve are written."""
+    from pipeline.cli import compose
+    from pipeline.learned.ppo import SB3VecEnv, run
+
+    venv = envs.make_vector("hycontrol/Navigate-v0", 3)
+    env = SB3VecEnv(venv)
+    obs = env.reset()
+    obs, r, done, infos = env.step(np.array([[10.0, 0.0], [0.0, 0.0], [-10.0, 0.0]]))
+    assert obs.shape == (3, 60, 100, 3) and r.dtype == np.float32 and len(infos) == 3
+    cfg = compose("ppo", ["ppo.num_envs=4", "ppo.total_timesteps=32", "ppo.n_steps=8", "ppo.batch_size=16",
+                          "ppo.n_epochs=1", "init=points", "init.points=[[39.0,0.5]]",
+                          f"paths.models_dir={tmp_path}", f"paths.output_dir={tmp_path}"])
+    out = run(cfg)
+    assert (out["path"] / "model.zip").is_file()
+    curve = np.loadtxt(out["path"] / "curve.csv", delimiter=",", skiprows=1, ndmin=2)
+    assert len(curve) >= 1 and set(curve[:, 1]) <= {0.0, 1.0}  # starts 1.1 units from the target: episodes end

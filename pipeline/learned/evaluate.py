@@ -41,6 +41,8 @@ class LearnedSettings:
     seed: NonNegativeInt = 7
     agents_list: list[Literal["hybrid", "smooth", "cbf", "imitated", "learned_hybrid"]] = \
         field(default_factory=lambda: list(AGENTS))
+    attack_list: list[Literal["hybrid", "smooth", "cbf", "imitated", "learned_hybrid"]] = \
+        field(default_factory=lambda: list(AGENTS))
     grid: tuple[PositiveInt, PositiveInt] = (101, 61)
 
 
@@ -103,11 +105,13 @@ def run(cfg: DictConfig) -> dict:
 
     check(cfg)
     obj, s = objects_from(cfg), build(cfg.learned, "learned")
-    pm = load_perception_map(cfg.maps.clean, cfg.paths.models_dir, device="cpu")
+    needs_map = set(s.agents_list) - {"imitated"}
+    pm = load_perception_map(cfg.maps.clean, cfg.paths.models_dir, device="cpu") if needs_map else None
+    map_name = f"{pm.name}-{pm.id}" if pm is not None else None
     model = load_policy_model(cfg.policies.imitation, cfg.paths.models_dir)
     id_ = tracking.content_id(tracking.to_plain(cfg.learned), tracking.to_plain(cfg.scene),
-                              tracking.to_plain(cfg.controllers), f"{pm.name}-{pm.id}", model.tracked_name,
-                              tracking.code_version(*CODE))
+                              tracking.to_plain(cfg.controllers), tracking.to_plain(cfg.sim), map_name,
+                              model.tracked_name, tracking.code_version(*CODE))
     root = Path(cfg.paths.outputs_dir) / "learned"
     if (root / f"learned-{id_}").is_dir() and not cfg.force:
         print(f"learned: up to date -> {root / f'learned-{id_}'}")
@@ -117,16 +121,18 @@ def run(cfg: DictConfig) -> dict:
     direction = proposition1_direction(obj.scene)
     table = []
     for name, policy in _policies(cfg, obj, pm, model, s.agents_list).items():
-        for cond, x0, attack in (("random, clean", random, None), ("near K, clean", near, None),
-                                 (f"near K, pixel attack κ={s.kappa:g}", near,
-                                  PolicyAttack(_attack_net(name, pm, model), direction, s.kappa, s.attack_steps))):
+        conditions = [("random, clean", random, None), ("near K, clean", near, None)]
+        if name in s.attack_list:
+            conditions.append((f"near K, pixel attack κ={s.kappa:g}", near,
+                               PolicyAttack(_attack_net(name, pm, model), direction, s.kappa, s.attack_steps)))
+        for cond, x0, attack in conditions:
             res = run_policy(obj, policy, x0, seed=s.seed, attack=attack, stall_speed=obj.sim.stall_speed,
                              stall_time=obj.sim.stall_time)
             table.append(rows(name, cond, res, attack.summary() if attack else (np.nan, np.nan)))
             print(f"learned: {name:15s} {cond:28s} reached {table[-1]['reached']:.0%} "
                   f"stalled {table[-1]['stalled']:.0%} collided {table[-1]['collided']:.0%}")
     df = pd.DataFrame(table)
-    meta = {"kind": "learned", "config": tracking.to_plain(cfg), "map": f"{pm.name}-{pm.id}",
+    meta = {"kind": "learned", "config": tracking.to_plain(cfg), "map": map_name,
             "policy": model.tracked_name}
     with tracking.tracked_output(root, "learned", id_, meta) as tmp:
         write_tables(df, tmp)

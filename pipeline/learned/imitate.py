@@ -40,6 +40,26 @@ class ImitationSettings:
     max_frames: PositiveInt = 300
     record_every: PositiveInt = 1
     seed: NonNegativeInt = 0
+    threads: PositiveInt | None = None
+
+
+class EpochLine:
+    """One line per epoch (the train loss, seconds): the imitation's progress in logs."""
+
+    def __new__(cls, label: str):
+        import lightning as L
+
+        class _Line(L.Callback):
+            def on_fit_start(self, trainer, pl_module):
+                self.t0 = time.perf_counter()
+
+            def on_train_epoch_end(self, trainer, pl_module):
+                loss = trainer.callback_metrics.get("train_loss")
+                print(f"[imitate] {label}: epoch {trainer.current_epoch + 1}/{trainer.max_epochs} train loss "
+                      f"{float(loss) if loss is not None else float('nan'):.4f} "
+                      f"({time.perf_counter() - self.t0:.0f} s)", flush=True)
+
+        return _Line()
 
 
 def identity(cfg: DictConfig) -> str:
@@ -79,7 +99,7 @@ def rollout(venv: NavigateVectorEnv, expert, learner, seed: int, max_frames: int
     return np.concatenate(frames), np.concatenate(labels), np.concatenate(masks), outcome
 
 
-def fit(model, trainer_node, data, epochs: int, batch_size: int, seed: int) -> float:
+def fit(model, trainer_node, data, epochs: int, batch_size: int, seed: int, label: str = "fit") -> float:
     """`epochs` of the project's Lightning trainer on `data` (frames, labels, masks); returns the wall time."""
     import lightning as L
     import torch
@@ -89,7 +109,7 @@ def fit(model, trainer_node, data, epochs: int, batch_size: int, seed: int) -> f
     ds = TensorDataset(torch.from_numpy(frames), torch.from_numpy(labels).float(), torch.from_numpy(masks))
     loader = DataLoader(ds, batch_size=batch_size, shuffle=True, generator=torch.Generator().manual_seed(seed))
     L.seed_everything(seed, verbose=False)
-    trainer = build(trainer_node, "trainer", max_epochs=int(epochs))
+    trainer = build(trainer_node, "trainer", max_epochs=int(epochs), callbacks=[EpochLine(label)])
     t0 = time.perf_counter()
     trainer.fit(model, loader)
     return time.perf_counter() - t0
@@ -117,6 +137,8 @@ def run(cfg: DictConfig) -> dict:
     if final.is_dir() and tracking.is_complete(final) and not cfg.force:
         print(f"imitate: up to date -> {final}")
         return {"path": final, "id": id_}
+    if s.threads is not None:
+        torch.set_num_threads(s.threads)
     torch.manual_seed(s.seed)
     model = build(cfg.model, "model", image_shape=(*obj.camera.shape, 3))
     venv = NavigateVectorEnv(s.agents, objects_=obj, autoreset=False)
@@ -129,7 +151,8 @@ def run(cfg: DictConfig) -> dict:
                       record_every=s.record_every)
         data = new[:3] if data is None else tuple(np.concatenate([a, b]) for a, b in zip(data, new[:3]))
         t_roll = time.perf_counter() - t0
-        t_fit = fit(model, cfg.trainer, data, s.epochs if r == 0 else s.round_epochs, s.batch_size, s.seed + r)
+        t_fit = fit(model, cfg.trainer, data, s.epochs if r == 0 else s.round_epochs, s.batch_size, s.seed + r,
+                    label=f"round {r}")
         success = float(np.mean(new[3] == 1))
         rounds.append({"round": r, "actor": "expert" if r == 0 else "learner", "new_frames": len(new[0]),
                        "frames": len(data[0]), "actor_success": success, "rollout_s": t_roll, "fit_s": t_fit})
@@ -144,13 +167,19 @@ def run(cfg: DictConfig) -> dict:
 
 
 def load_policy_model(ref, models_dir):
-    """A trained imitation network by path, name-id, id or name (the only one of that name)."""
+    """A trained imitation network by path, name-id, id or name (`imitation`: the one the current
+    conf/imitate.yaml makes, as a map's name means the current train config's; another name: the only one)."""
     import torch
 
     from pipeline.learned.network import VelocityPolicy
 
+    def expected(name: str) -> str | None:  # the name means what the current imitate config makes
+        from pipeline.config import compose
+
+        return identity(compose("imitate", [f"name={name}"])) if name == "imitation" else None
+
     folder = tracking.resolve(Path(models_dir), ref, kind="imitation policy", field="policies.imitation",
-                              command="python -m pipeline.learned.imitate")
+                              command="python -m pipeline.learned.imitate", expected=expected)
     m = tracking.read_manifest(folder)
     hp = dict(m["hparams"])
     hp["image_shape"] = tuple(hp["image_shape"])
