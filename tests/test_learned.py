@@ -155,3 +155,24 @@ def test_ppo_runs_on_the_vector_environment_through_sb3(tmp_path):
     assert (out["path"] / "model.zip").is_file()
     curve = np.loadtxt(out["path"] / "curve.csv", delimiter=",", skiprows=1, ndmin=2)
     assert len(curve) >= 1 and set(curve[:, 1]) <= {0.0, 1.0}  # starts 1.1 units from the target: episodes end
+
+
+def test_trunk_from_a_perception_map_is_copied_and_stays_frozen():
+    """`load_trunk` copies the map's blocks; with `freeze_trunk` a training step changes the head only."""
+    from pipeline.perception.network import PerceptionMap
+
+    pm = PerceptionMap(filters=(4, 8, 8), uncertainty="none")
+    model = VelocityPolicy(filters=(4, 8, 8), hidden=8, freeze_trunk=True)
+    model.load_trunk(pm)
+    for a, b in zip(model.features.state_dict().values(), pm.features.state_dict().values()):
+        assert torch.equal(a, b)
+    opt = model.configure_optimizers()
+    head0 = [p.clone() for p in model.head.parameters()]
+    trunk0 = {k: v.clone() for k, v in model.features.state_dict().items()}
+    model.train()
+    model.on_train_epoch_start()
+    images = torch.randint(0, 255, (8, 60, 100, 3), dtype=torch.uint8)
+    model.loss((images, torch.randn(8, HEADS, 2), torch.ones(8, HEADS, dtype=torch.bool))).backward()
+    opt.step()
+    assert all(torch.equal(v, trunk0[k]) for k, v in model.features.state_dict().items())  # BN stats too
+    assert any(not torch.equal(a, b) for a, b in zip(model.head.parameters(), head0))

@@ -79,6 +79,21 @@ def _attack_net(name, pm, model):
     return HeadNet(model, 0) if name == "imitated" else pm.net
 
 
+def load_map(ref, models_dir):
+    """The perception map `maps.clean`: a tracked map (name, name-id, id, folder), or a training checkpoint
+    (`.ckpt`, e.g. a map whose build has not finished: its best epoch so far), named by its file."""
+    from pipeline.perception.maps import PerceptionMapPredictor, load_perception_map
+    from pipeline.perception.network import PerceptionMap
+
+    path = Path(str(ref))
+    if path.suffix == ".ckpt":
+        if not path.is_file():
+            raise ConfigError("maps.clean", f"no checkpoint {path}")
+        model = PerceptionMap.load_from_checkpoint(path, map_location="cpu")
+        return PerceptionMapPredictor(model, manifest={"name": "checkpoint", "id": path.stem}, device="cpu")
+    return load_perception_map(ref, models_dir, device="cpu")
+
+
 def rows(agent: str, condition: str, res: dict, induced=(np.nan, np.nan)) -> dict:
     from pipeline.sim.metrics import wilson
 
@@ -100,13 +115,12 @@ def run(cfg: DictConfig) -> dict:
     from pipeline.learned.report import switching_figure, write_tables
     from pipeline.learned.rollouts import PolicyAttack, run_policy
     from pipeline.perception.adversary import proposition1_direction
-    from pipeline.perception.maps import load_perception_map
     from pipeline.sim import starts as st
 
     check(cfg)
     obj, s = objects_from(cfg), build(cfg.learned, "learned")
     needs_map = set(s.agents_list) - {"imitated"}
-    pm = load_perception_map(cfg.maps.clean, cfg.paths.models_dir, device="cpu") if needs_map else None
+    pm = load_map(cfg.maps.clean, cfg.paths.models_dir) if needs_map else None
     map_name = f"{pm.name}-{pm.id}" if pm is not None else None
     model = load_policy_model(cfg.policies.imitation, cfg.paths.models_dir)
     id_ = tracking.content_id(tracking.to_plain(cfg.learned), tracking.to_plain(cfg.scene),

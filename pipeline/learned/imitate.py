@@ -41,6 +41,7 @@ class ImitationSettings:
     record_every: PositiveInt = 1
     seed: NonNegativeInt = 0
     threads: PositiveInt | None = None
+    trunk_from: str | None = None
 
 
 class EpochLine:
@@ -141,6 +142,10 @@ def run(cfg: DictConfig) -> dict:
         torch.set_num_threads(s.threads)
     torch.manual_seed(s.seed)
     model = build(cfg.model, "model", image_shape=(*obj.camera.shape, 3))
+    if s.trunk_from is not None:
+        from pipeline.learned.evaluate import load_map
+
+        model.load_trunk(load_map(s.trunk_from, cfg.paths.models_dir).model)
     venv = NavigateVectorEnv(s.agents, objects_=obj, autoreset=False)
     expert = Expert(obj.controller, obj.plant, obj.scene, venv.core.period)
     data, rounds = None, []

@@ -2,7 +2,7 @@
 
 The trunk is the map's (:func:`pipeline.perception.network.conv_blocks`: Conv(3x3)[-BN]-ReLU-MaxPool blocks on
 the frame scaled to [-0.5, 0.5], with the two CoordConv channels), optionally initialised from a trained map's
-weights (`trunk_from`). The head (Flatten, Dropout, Linear-ReLU, Linear) predicts `3` velocities, each `(N, 2)`
+weights (`imitation.trunk_from`; `freeze_trunk`: kept as the map learned it). The head (Flatten, Dropout, Linear-ReLU, Linear) predicts `3` velocities, each `(N, 2)`
 in units of `u_max`: head 0 the expert's action (the end-to-end policy), heads 1 and 2 the hybrid controller's
 flow in mode 1 and mode 2 (the two policies of the learned hybrid policy). The loss is the MSE of each head on the
 frames where its label is defined (the mode's flow set), weights equal.
@@ -29,12 +29,13 @@ class VelocityPolicy(L.LightningModule):
     def __init__(self, image_shape: tuple[int, int, int] = (60, 100, 3),
                  filters: Annotated[Sequence[int], Range(ge=1), NonEmpty()] = (16, 32, 64),
                  batch_norm: bool = True, coord_channels: bool = True, hidden: PositiveInt = 128,
-                 dropout: Annotated[float, Range(ge=0, lt=1)] = 0.1, lr: Positive = 2e-3, u_max: Positive = 10.0):
+                 dropout: Annotated[float, Range(ge=0, lt=1)] = 0.1, lr: Positive = 2e-3, u_max: Positive = 10.0,
+                 freeze_trunk: bool = False):
         super().__init__()
         self.save_hyperparameters()
         h, w, _ = image_shape
         self.image_shape, self.u_max, self.lr = tuple(image_shape), float(u_max), float(lr)
-        self.coord_channels = bool(coord_channels)
+        self.coord_channels, self.freeze_trunk = bool(coord_channels), bool(freeze_trunk)
         cols = torch.linspace(-0.5, 0.5, w).view(1, 1, 1, w).expand(1, 1, h, w)
         rows = torch.linspace(-0.5, 0.5, h).view(1, 1, h, 1).expand(1, 1, h, w)
         self.register_buffer("coords", torch.cat([cols, rows], 1).contiguous(), persistent=False)
@@ -60,8 +61,14 @@ class VelocityPolicy(L.LightningModule):
         return self.normalised(images) * self.u_max
 
     def load_trunk(self, perception_model) -> None:
-        """Initialise the trunk from a trained perception map's (same blocks and input channels)."""
+        """Initialise the trunk from a trained perception map's (same blocks and input channels); with
+        `freeze_trunk` it stays as the map learned it (no gradient, BatchNorm in eval mode)."""
         self.features.load_state_dict(perception_model.features.state_dict())
+        self.features.requires_grad_(not self.freeze_trunk)
+
+    def on_train_epoch_start(self) -> None:
+        if self.freeze_trunk:
+            self.features.eval()
 
     def loss(self, batch) -> torch.Tensor:
         images, labels, mask = batch  # (B, H, W, 3) uint8, (B, HEADS, 2) world units, (B, HEADS) bool
@@ -78,7 +85,7 @@ class VelocityPolicy(L.LightningModule):
         self.log("val_loss", self.loss(batch), prog_bar=True)
 
     def configure_optimizers(self):
-        return torch.optim.Adam(self.parameters(), lr=self.lr)
+        return torch.optim.Adam([p for p in self.parameters() if p.requires_grad], lr=self.lr)
 
     @torch.no_grad()
     def act(self, images, head: int | torch.Tensor = 0) -> torch.Tensor:
