@@ -176,3 +176,19 @@ def test_trunk_from_a_perception_map_is_copied_and_stays_frozen():
     opt.step()
     assert all(torch.equal(v, trunk0[k]) for k, v in model.features.state_dict().items())  # BN stats too
     assert any(not torch.equal(a, b) for a, b in zip(model.head.parameters(), head0))
+
+
+def test_table_rows_count_outcomes_with_wilson_intervals(tmp_path):
+    import pandas as pd
+
+    from pipeline.learned.evaluate import rows
+    from pipeline.learned.report import write_tables
+
+    res = {"outcome": np.array(["reached", "stalled", "reached", "collided"]), "time": np.array([3.0, np.nan, 5.0,
+                                                                                                 np.nan])}
+    r = rows("imitated", "near K, clean", res, (0.5, 0.7))
+    assert (r["reached"], r["stalled"], r["collided"], r["timed_out"]) == (0.5, 0.25, 0.25, 0.0)
+    lo, hi = (float(v) for v in r["reached_ci"].strip("[]").split(","))
+    assert lo < 0.5 < hi and r["median_time_s"] == 4.0
+    write_tables(pd.DataFrame([r]), tmp_path)
+    assert "| imitated | near K, clean | 4 | 50% |" in (tmp_path / "tab_learned.md").read_text()

@@ -122,10 +122,12 @@ def run(cfg: DictConfig) -> dict:
     needs_map = set(s.agents_list) - {"imitated"}
     pm = load_map(cfg.maps.clean, cfg.paths.models_dir) if needs_map else None
     map_name = f"{pm.name}-{pm.id}" if pm is not None else None
-    model = load_policy_model(cfg.policies.imitation, cfg.paths.models_dir)
+    learned = set(s.agents_list) & {"imitated", "learned_hybrid"}
+    model = load_policy_model(cfg.policies.imitation, cfg.paths.models_dir) if learned else None
+    policy_name = model.tracked_name if model is not None else None
     id_ = tracking.content_id(tracking.to_plain(cfg.learned), tracking.to_plain(cfg.scene),
                               tracking.to_plain(cfg.controllers), tracking.to_plain(cfg.sim), map_name,
-                              model.tracked_name, tracking.code_version(*CODE))
+                              policy_name, tracking.code_version(*CODE))
     root = Path(cfg.paths.outputs_dir) / "learned"
     if (root / f"learned-{id_}").is_dir() and not cfg.force:
         print(f"learned: up to date -> {root / f'learned-{id_}'}")
@@ -147,10 +149,11 @@ def run(cfg: DictConfig) -> dict:
                   f"stalled {table[-1]['stalled']:.0%} collided {table[-1]['collided']:.0%}")
     df = pd.DataFrame(table)
     meta = {"kind": "learned", "config": tracking.to_plain(cfg), "map": map_name,
-            "policy": model.tracked_name}
+            "policy": policy_name}
     with tracking.tracked_output(root, "learned", id_, meta) as tmp:
         write_tables(df, tmp)
-        switching_figure(obj, model, tmp / "fig_switching_set.png", s.grid)
+        if model is not None:
+            switching_figure(obj, model, tmp / "fig_switching_set.png", s.grid)
     print(df[["agent", "condition", "reached", "reached_ci", "stalled", "collided", "induced_along"]]
           .to_string(index=False))
     return {"path": root / f"learned-{id_}", "table": df}

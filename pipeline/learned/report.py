@@ -8,6 +8,8 @@ import numpy as np
 import pandas as pd
 import torch
 
+from pipeline.sweep import markdown
+
 COLUMNS = ["agent", "condition", "n", "reached", "reached_ci", "collided", "collided_ci", "stalled", "stalled_ci",
            "left_view", "timed_out", "median_time_s", "induced_along", "induced_norm"]
 
@@ -19,7 +21,7 @@ def write_tables(df: pd.DataFrame, folder: Path) -> None:
         show[c] = (100 * show[c]).map(lambda v: f"{v:.0f}%")
     for c in ("median_time_s", "induced_along", "induced_norm"):
         show[c] = show[c].map(lambda v: "" if not np.isfinite(v) else f"{v:.3g}")
-    (folder / "tab_learned.md").write_text(show.to_markdown(index=False) + "\n")
+    (folder / "tab_learned.md").write_text(markdown(show))
 
 
 def switching_values(obj, model, grid) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
