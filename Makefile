@@ -35,6 +35,10 @@ dagger: $(STAMP) ## DAgger-style rounds: data -> train -> closed loop with the m
 generalisation: $(STAMP) ## maps on every cloud level (issue 11): authors + clean_paper maps, tab_perception_generalisation
 	$(PY) -m pipeline.paper --config-name paper_generalisation $(ARGS)
 
+learned: $(STAMP) ## learned end-to-end policies (SPEC §6): imitate the hybrid controller (BC + DAgger; ARGS), then compare them with the paper's architecture (LEARNED_ARGS) in outputs/learned/
+	$(PY) -m pipeline.learned.imitate $(ARGS)
+	$(PY) -m pipeline.learned.evaluate $(LEARNED_ARGS)
+
 simulate: $(STAMP) ## closed-loop simulation demo on the true state (Hydra: make simulate ARGS="controller=smooth")
 	$(PY) -m pipeline.simulate $(ARGS)
 
@@ -52,6 +56,7 @@ errormap: $(STAMP) ## epsilon-error maps, Lipschitz estimate and Assumption-1 co
 
 bracket: $(STAMP) ## the closed loop bracketed: certified eps_lo and falsified eps_hi per controller and start cell (outputs/bracket/)
 	$(PY) -m pipeline.bracket hydra.run.dir=outputs/bracket/default $(ARGS)
+
 certify: $(STAMP) ## certified error maps: sound bounds of the perception error over cells (SPEC 5.1-5.3; docs/certify.md)
 	$(PY) -m pipeline.certify $(ARGS)
 
@@ -76,4 +81,4 @@ lint: $(STAMP) ## ruff
 clean: ## remove generated data and outputs (keeps .venv)
 	rm -rf data/datasets outputs/* && touch outputs/.gitkeep
 
-.PHONY: help setup run paper multi dagger generalisation simulate data verify-data train errormap certify bracket experiments test test-all bench lint clean
+.PHONY: help setup run paper multi dagger generalisation learned simulate data verify-data train errormap certify bracket experiments test test-all bench lint clean

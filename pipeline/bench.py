@@ -19,7 +19,7 @@ import time
 
 import torch
 
-AREAS = ("sim", "data", "train", "errormap", "experiments")
+AREAS = ("sim", "data", "train", "errormap", "experiments", "envs")
 
 
 @functools.cache

@@ -1,0 +1,140 @@
+"""The batched core of the Gymnasium environments (SPEC §6): N agents, one step = one camera frame.
+
+One step of every agent is one frame of the sampled loop of :func:`pipeline.sim.simulate` (SPEC §1, §3.3): the
+action (the velocity `u`, or `(v, ω)` for the unicycle) is clipped to the vehicle's limits and held for the
+frame, the plant integrates it exactly in `every` steps of `dt` (`plant.step`, the experiments' own
+integration), arrival (`|p - p_T| <= δ`), collision (`|p - c_i| < r_i`, judged first, as the simulator's
+monitor does) and leaving the camera's view are checked after every step of `dt`, and an agent that stops stays
+where it stopped. Then the camera renders the next frame of every agent in one batched call (with the clouds;
+a frame lost with probability `p_fail` repeats the last image, as the simulator holds the last estimate).
+
+Reward per step (`env.*`, SPEC §6): `progress * (|p_k - p_T| - |p_{k+1} - p_T|) + arrival * [arrived]
+- collision * [collided or left the view]`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.schema import NonNegative, checked
+from pipeline.sim.metrics import StallMonitor
+from pipeline.sim.monitor import ArrivalCollision
+
+RUNNING, ARRIVED, COLLIDED, EXITED, TRUNCATED = 0, 1, 2, 3, 4
+OUTCOMES = ("running", "arrived", "collided", "left_view", "truncated")
+
+
+@checked("env")
+@dataclass(frozen=True)
+class EnvSettings:
+    """`env`: the shaped reward of SPEC §6 and what the agent observes.
+
+    `progress`: reward per world unit gained towards the target; `arrival`: bonus on arrival; `collision`: penalty
+    on a collision or on leaving the camera's view; `observe_heading`: the unicycle's observation is a Dict of the
+    frame and its true heading (`cos θ, sin θ`) instead of the frame alone."""
+
+    progress: NonNegative = 1.0
+    arrival: NonNegative = 10.0
+    collision: NonNegative = 10.0
+    observe_heading: bool = False
+
+
+class NavigationCore:
+    """N agents of the sampled loop (see the module docstring); no Gymnasium API here."""
+
+    def __init__(self, n: int, *, scene, plant, camera, u_max: float, dt: float, every: int, frames: int,
+                 delta: float, occlusion=None, p_fail: float = 0.0, settings: EnvSettings | None = None):
+        self.n, self.scene, self.plant, self.camera = n, scene, plant, camera
+        self.u_max, self.dt, self.every, self.frames, self.delta = float(u_max), dt, every, frames, delta
+        self.occlusion = occlusion if occlusion is not None and getattr(occlusion, "active", False) else None
+        self.p_fail, self.settings = float(p_fail), settings or EnvSettings()
+        self.period = dt * every
+        # the simulator's stop sets (arrival, collision) on the plant's position
+        self._monitor = ArrivalCollision(scene, plant, n, delta=delta, stop_on_success=True,
+                                         stall=StallMonitor(n, 1.0, 1.0, dt))
+        (self.x0, self.x1), (self.y0, self.y1) = scene.bounds
+        self.c = np.zeros((n, plant.dim))
+        self.k = np.zeros(n, dtype=np.int64)
+        self.images = np.zeros((n, *camera.shape, 3), dtype=np.uint8)
+
+    # ------------------------------------------------------------------------------------ helpers
+    def position(self, c=None) -> np.ndarray:
+        return self.plant.position(self.c if c is None else c)
+
+    def distance(self, c=None) -> np.ndarray:
+        p = self.position(c)
+        return np.hypot(p[:, 0] - self.scene.p_T[0], p[:, 1] - self.scene.p_T[1])
+
+    def render(self, c: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """The camera's frames of the states `c` (one batched call, clouds drawn from `rng`)."""
+        heading = c[:, 2] if self.plant.heading else None
+        return self.camera.render(self.position(c), None, occlusion=self.occlusion, rng=rng, heading=heading)
+
+    def clip(self, action) -> np.ndarray:
+        """The held input: `|u| <= u_max` by scaling (the controllers' saturation); `(v, ω)`: each clipped."""
+        a = np.asarray(action, dtype=float).reshape(self.n, self.plant.inputs)
+        a = np.where(np.isfinite(a), a, 0.0)
+        if self.plant.heading:
+            om = getattr(self.plant, "omega_max", None)
+            return np.column_stack([np.clip(a[:, 0], -self.u_max, self.u_max),
+                                    a[:, 1] if om is None else np.clip(a[:, 1], -om, om)])
+        norm = np.hypot(a[:, 0], a[:, 1])
+        scale = np.where(norm > self.u_max, self.u_max / np.maximum(norm, 1e-300), 1.0)
+        return a * scale[:, None]
+
+    def outside(self, c) -> np.ndarray:
+        p = self.position(c)
+        return (p[:, 0] < self.x0) | (p[:, 0] > self.x1) | (p[:, 1] < self.y0) | (p[:, 1] > self.y1)
+
+    # --------------------------------------------------------------------------------------- API
+    def reset(self, idx: np.ndarray, c0: np.ndarray, rng: np.random.Generator) -> None:
+        """Agents `idx` start at the states `c0` `(len(idx), n)`; their first frame is always delivered."""
+        self.c[idx] = c0
+        self.k[idx] = 0
+        self.images[idx] = self.render(self.c[idx], rng)
+
+    def step(self, action, rng: np.random.Generator):
+        """One frame of every agent: `(reward, code)` per agent (`code` in OUTCOMES' order: why it stopped, if)."""
+        w = self.clip(action)
+        d0 = self.distance()
+        code = np.zeros(self.n, dtype=np.int8)
+        active = np.ones(self.n, dtype=bool)
+        mon = self._monitor
+        for _ in range(self.every):
+            c1 = self.plant.step(self.c, w, self.dt)
+            self.c[active] = c1[active]
+            hit, arrived, out = mon._collides(self.c), mon._arrived(self.c), self.outside(self.c)
+            new = active & (hit | arrived | out)
+            if new.any():
+                code[new] = np.where(hit[new], COLLIDED, np.where(arrived[new], ARRIVED, EXITED))
+                active &= ~new
+                if not active.any():
+                    break
+        self.k += 1
+        code[(code == RUNNING) & (self.k >= self.frames)] = TRUNCATED
+        s = self.settings
+        reward = s.progress * (d0 - self.distance()) + s.arrival * (code == ARRIVED) \
+            - s.collision * ((code == COLLIDED) | (code == EXITED))
+        self._next_frames(code, rng)
+        return reward, code
+
+    def _next_frames(self, code, rng) -> None:
+        """The next frame of the running agents (a lost frame, `p_fail`, repeats the last image), then the final
+        frame of the agents that stopped (drawn after them, so the running agents' clouds are the simulator's)."""
+        running = code == RUNNING
+        fresh = running & (rng.random(self.n) >= self.p_fail) if self.p_fail > 0 else running
+        if fresh.all():
+            self.images = self.render(self.c, rng)
+        elif fresh.any():
+            idx = np.flatnonzero(fresh)
+            self.images[idx] = self.render(self.c[idx], rng)
+        if not running.all():
+            idx = np.flatnonzero(~running)
+            self.images[idx] = self.render(self.c[idx], rng)
+
+    def info(self) -> dict[str, np.ndarray]:
+        """The true state of every agent (SPEC §6: `info` carries it)."""
+        return {"state": self.c.copy(), "position": self.position().copy(), "t": self.k * self.period,
+                "distance": self.distance()}

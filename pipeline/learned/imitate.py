@@ -1,0 +1,201 @@
+"""Stage: imitation of the hybrid controller from camera frames, BC + DAgger (`python -m pipeline.learned.imitate`).
+
+Round 0 rolls the expert (the hybrid controller at the true state) out in the vector environment from
+`imitation.agents` random starts and records every `record_every`-th frame with its labels
+(:class:`pipeline.learned.expert.Expert`: the expert's action, its mode carried along, and each mode's flow);
+the network (:class:`pipeline.learned.network.VelocityPolicy`) is fitted for `epochs` with the project's
+Lightning trainer (the `trainer` node). Each DAgger round rolls the *learner* out from fresh starts, the expert
+labelling the frames it visits (its mode carried along the learner's trajectory, initialised by §3.3's rule),
+adds them to the data and fits `round_epochs` more. Output: `outputs/models/<name>-<id>/` with `model.pt`
+(weights), the manifest (config, per-round data sizes, the learner's success in each round, wall times).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+from omegaconf import DictConfig, OmegaConf
+
+from pipeline import tracking
+from pipeline.cli import stage_main
+from pipeline.config import build
+from pipeline.envs.navigate import NavigateVectorEnv, objects_from
+from pipeline.errors import ConfigError
+from pipeline.schema import NonNegativeInt, PositiveInt, checked
+
+CODE = ("envs", "learned", "control", "render", "plants", "sim", "hybrid", "perception")
+
+
+@checked("imitation")
+@dataclass(frozen=True)
+class ImitationSettings:
+    agents: PositiveInt = 200
+    rounds: NonNegativeInt = 2
+    epochs: PositiveInt = 6
+    round_epochs: PositiveInt = 3
+    batch_size: PositiveInt = 128
+    max_frames: PositiveInt = 300
+    record_every: PositiveInt = 1
+    seed: NonNegativeInt = 0
+    threads: PositiveInt | None = None
+    trunk_from: str | None = None
+
+
+class EpochLine:
+    """One line per epoch (the train loss, seconds): the imitation's progress in logs."""
+
+    def __new__(cls, label: str):
+        import lightning as L
+
+        class _Line(L.Callback):
+            def on_fit_start(self, trainer, pl_module):
+                self.t0 = time.perf_counter()
+
+            def on_train_epoch_end(self, trainer, pl_module):
+                loss = trainer.callback_metrics.get("train_loss")
+                print(f"[imitate] {label}: epoch {trainer.current_epoch + 1}/{trainer.max_epochs} train loss "
+                      f"{float(loss) if loss is not None else float('nan'):.4f} "
+                      f"({time.perf_counter() - self.t0:.0f} s)", flush=True)
+
+        return _Line()
+
+
+def identity(cfg: DictConfig) -> str:
+    """The id of the weights: the config that determines them (not paths, not where it runs) and the code."""
+    plain = OmegaConf.to_container(cfg, resolve=False)
+    for key in ("paths", "hydra", "force", "name"):
+        plain.pop(key, None)
+    trainer = {k: v for k, v in plain.pop("trainer", {}).items()
+               if k not in ("accelerator", "devices", "strategy", "num_nodes", "enable_progress_bar",
+                            "default_root_dir", "log_every_n_steps")}
+    return tracking.content_id(plain, trainer, tracking.code_version(*CODE))
+
+
+def rollout(venv: NavigateVectorEnv, expert, learner, seed: int, max_frames: int, record_every: int):
+    """Frames, labels and masks along the trajectories of `learner` (None: the expert acts), and the outcomes."""
+    from pipeline.envs.core import OUTCOMES
+
+    obs, info = venv.reset(seed=seed)
+    expert.policy.x = None
+    if learner is not None and hasattr(learner, "reset"):
+        learner.reset(obs)
+    frames, labels, masks = [], [], []
+    outcome = np.zeros(venv.num_envs, dtype=np.int8)
+    for k in range(max_frames):
+        alive = ~venv.done
+        lab, mask = expert.labels(info["state"])
+        if k % record_every == 0:
+            frames.append(obs[alive])
+            labels.append(lab[alive])
+            masks.append(mask[alive])
+        action = lab[:, 0] if learner is None else learner.act(obs)
+        obs, _, term, trunc, info = venv.step(action)
+        outcome[(term | trunc) & (outcome == 0)] = info["outcome"][(term | trunc) & (outcome == 0)]
+        if venv.done.all():
+            break
+    outcome[outcome == 0] = OUTCOMES.index("truncated")
+    return np.concatenate(frames), np.concatenate(labels), np.concatenate(masks), outcome
+
+
+def fit(model, trainer_node, data, epochs: int, batch_size: int, seed: int, label: str = "fit") -> float:
+    """`epochs` of the project's Lightning trainer on `data` (frames, labels, masks); returns the wall time."""
+    import lightning as L
+    import torch
+    from torch.utils.data import DataLoader, TensorDataset
+
+    frames, labels, masks = data
+    ds = TensorDataset(torch.from_numpy(frames), torch.from_numpy(labels).float(), torch.from_numpy(masks))
+    loader = DataLoader(ds, batch_size=batch_size, shuffle=True, generator=torch.Generator().manual_seed(seed))
+    L.seed_everything(seed, verbose=False)
+    trainer = build(trainer_node, "trainer", max_epochs=int(epochs), callbacks=[EpochLine(label)])
+    t0 = time.perf_counter()
+    trainer.fit(model, loader)
+    return time.perf_counter() - t0
+
+
+def check(cfg: DictConfig) -> None:
+    """Preflight: every object built (no rollout, no training)."""
+    objects_from(cfg)
+    build(cfg.imitation, "imitation")
+    if cfg.get("vehicle") is not None and cfg.vehicle._target_.endswith("Unicycle"):
+        raise ConfigError("vehicle", "imitation is implemented for the single integrator (vehicle=integrator)")
+
+
+def run(cfg: DictConfig) -> dict:
+    import torch
+
+    from pipeline.learned.expert import Expert
+    from pipeline.learned.policies import ImitatedPolicy
+
+    check(cfg)
+    obj, s = objects_from(cfg), build(cfg.imitation, "imitation")
+    id_ = identity(cfg)
+    root = Path(cfg.paths.models_dir)
+    final = root / f"{cfg.name}-{id_}"
+    if final.is_dir() and tracking.is_complete(final) and not cfg.force:
+        print(f"imitate: up to date -> {final}")
+        return {"path": final, "id": id_}
+    if s.threads is not None:
+        torch.set_num_threads(s.threads)
+    torch.manual_seed(s.seed)
+    model = build(cfg.model, "model", image_shape=(*obj.camera.shape, 3))
+    if s.trunk_from is not None:
+        from pipeline.learned.evaluate import load_map
+
+        model.load_trunk(load_map(s.trunk_from, cfg.paths.models_dir).model)
+    venv = NavigateVectorEnv(s.agents, objects_=obj, autoreset=False)
+    expert = Expert(obj.controller, obj.plant, obj.scene, venv.core.period)
+    data, rounds = None, []
+    for r in range(s.rounds + 1):
+        t0 = time.perf_counter()
+        learner = None if r == 0 else ImitatedPolicy(model)
+        new = rollout(venv, expert, learner, seed=s.seed * 1000 + r, max_frames=s.max_frames,
+                      record_every=s.record_every)
+        data = new[:3] if data is None else tuple(np.concatenate([a, b]) for a, b in zip(data, new[:3]))
+        t_roll = time.perf_counter() - t0
+        t_fit = fit(model, cfg.trainer, data, s.epochs if r == 0 else s.round_epochs, s.batch_size, s.seed + r,
+                    label=f"round {r}")
+        success = float(np.mean(new[3] == 1))
+        rounds.append({"round": r, "actor": "expert" if r == 0 else "learner", "new_frames": len(new[0]),
+                       "frames": len(data[0]), "actor_success": success, "rollout_s": t_roll, "fit_s": t_fit})
+        print(f"imitate: round {r} ({rounds[-1]['actor']}): {len(new[0])} new frames, {len(data[0])} in all, "
+              f"actor success {success:.1%}, rollout {t_roll:.0f} s, fit {t_fit:.0f} s")
+    meta = {"kind": "imitation", "config": tracking.to_plain(cfg), "rounds": rounds,
+            "hparams": dict(model.hparams), "settings": asdict(s)}
+    with tracking.tracked_output(root, str(cfg.name), id_, meta) as tmp:
+        torch.save(model.state_dict(), tmp / "model.pt")
+    print(f"imitate: -> {final}")
+    return {"path": final, "id": id_, "rounds": rounds}
+
+
+def load_policy_model(ref, models_dir):
+    """A trained imitation network by path, name-id, id or name (`imitation`: the one the current
+    conf/imitate.yaml makes, as a map's name means the current train config's; another name: the only one)."""
+    import torch
+
+    from pipeline.learned.network import VelocityPolicy
+
+    def expected(name: str) -> str | None:  # the name means what the current imitate config makes
+        from pipeline.config import compose
+
+        return identity(compose("imitate", [f"name={name}"])) if name == "imitation" else None
+
+    folder = tracking.resolve(Path(models_dir), ref, kind="imitation policy", field="policies.imitation",
+                              command="python -m pipeline.learned.imitate", expected=expected)
+    m = tracking.read_manifest(folder)
+    hp = dict(m["hparams"])
+    hp["image_shape"] = tuple(hp["image_shape"])
+    model = VelocityPolicy(**hp)
+    model.load_state_dict(torch.load(folder / "model.pt", map_location="cpu"))
+    model.eval()
+    model.tracked_name = folder.name
+    return model
+
+
+main = stage_main("imitate", run="pipeline.learned.imitate:run", check="pipeline.learned.imitate:check")
+
+if __name__ == "__main__":
+    main()

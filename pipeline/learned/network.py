@@ -1,0 +1,100 @@
+"""The imitation network (SPEC §6): the perception map's trunk with a velocity head.
+
+The trunk is the map's (:func:`pipeline.perception.network.conv_blocks`: Conv(3x3)[-BN]-ReLU-MaxPool blocks on
+the frame scaled to [-0.5, 0.5], with the two CoordConv channels), optionally initialised from a trained map's
+weights (`imitation.trunk_from`; `freeze_trunk`: kept as the map learned it). The head (Flatten, Dropout, Linear-ReLU, Linear) predicts `3` velocities, each `(N, 2)`
+in units of `u_max`: head 0 the expert's action (the end-to-end policy), heads 1 and 2 the hybrid controller's
+flow in mode 1 and mode 2 (the two policies of the learned hybrid policy). The loss is the MSE of each head on the
+frames where its label is defined (the mode's flow set), weights equal.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Annotated
+
+import lightning as L
+import torch
+from torch import nn
+
+from pipeline.perception.network import conv_blocks
+from pipeline.schema import NonEmpty, Positive, PositiveInt, Range
+
+HEADS = 3  # expert action, mode-1 flow, mode-2 flow
+
+
+class VelocityPolicy(L.LightningModule):
+    """`forward(uint8 NHWC frames) -> (N, HEADS, 2)` velocities in world units per second."""
+
+    def __init__(self, image_shape: tuple[int, int, int] = (60, 100, 3),
+                 filters: Annotated[Sequence[int], Range(ge=1), NonEmpty()] = (16, 32, 64),
+                 batch_norm: bool = True, coord_channels: bool = True, hidden: PositiveInt = 128,
+                 dropout: Annotated[float, Range(ge=0, lt=1)] = 0.1, lr: Positive = 2e-3, u_max: Positive = 10.0,
+                 freeze_trunk: bool = False):
+        super().__init__()
+        self.save_hyperparameters()
+        h, w, _ = image_shape
+        self.image_shape, self.u_max, self.lr = tuple(image_shape), float(u_max), float(lr)
+        self.coord_channels, self.freeze_trunk = bool(coord_channels), bool(freeze_trunk)
+        cols = torch.linspace(-0.5, 0.5, w).view(1, 1, 1, w).expand(1, 1, h, w)
+        rows = torch.linspace(-0.5, 0.5, h).view(1, 1, h, 1).expand(1, 1, h, w)
+        self.register_buffer("coords", torch.cat([cols, rows], 1).contiguous(), persistent=False)
+        self.features = conv_blocks(3 + 2 * self.coord_channels, [int(f) for f in filters], batch_norm)
+        fh, fw = h, w
+        for _ in filters:
+            fh, fw = fh // 2, fw // 2
+        self.head = nn.Sequential(nn.Flatten(), nn.Dropout(dropout), nn.Linear(int(filters[-1]) * fh * fw, hidden),
+                                  nn.ReLU(inplace=True), nn.Linear(hidden, 2 * HEADS))
+
+    def prepare(self, images: torch.Tensor) -> torch.Tensor:
+        x = images.permute(0, 3, 1, 2).to(torch.float32)
+        x = x * (1.0 / 255.0) - 0.5 if images.dtype == torch.uint8 else x - 0.5
+        if self.coord_channels:
+            x = torch.cat([x, self.coords.expand(len(x), -1, -1, -1)], 1)
+        return x
+
+    def normalised(self, images: torch.Tensor) -> torch.Tensor:
+        """Velocities in units of `u_max` `(N, HEADS, 2)` (images: uint8 in [0, 255] or float in [0, 1])."""
+        return self.head(self.features(self.prepare(images))).view(-1, HEADS, 2)
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        return self.normalised(images) * self.u_max
+
+    def load_trunk(self, perception_model) -> None:
+        """Initialise the trunk from a trained perception map's (same blocks and input channels); with
+        `freeze_trunk` it stays as the map learned it (no gradient, BatchNorm in eval mode)."""
+        self.features.load_state_dict(perception_model.features.state_dict())
+        self.features.requires_grad_(not self.freeze_trunk)
+
+    def on_train_epoch_start(self) -> None:
+        if self.freeze_trunk:
+            self.features.eval()
+
+    def loss(self, batch) -> torch.Tensor:
+        images, labels, mask = batch  # (B, H, W, 3) uint8, (B, HEADS, 2) world units, (B, HEADS) bool
+        err = (self.normalised(images) - labels / self.u_max).pow(2).sum(-1)
+        m = mask.to(err.dtype)
+        return ((err * m).sum(0) / m.sum(0).clamp_min(1.0)).sum()
+
+    def training_step(self, batch, batch_idx):
+        loss = self.loss(batch)
+        self.log("train_loss", loss, prog_bar=True)
+        return loss
+
+    def validation_step(self, batch, batch_idx):
+        self.log("val_loss", self.loss(batch), prog_bar=True)
+
+    def configure_optimizers(self):
+        return torch.optim.Adam([p for p in self.parameters() if p.requires_grad], lr=self.lr)
+
+    @torch.no_grad()
+    def act(self, images, head: int | torch.Tensor = 0) -> torch.Tensor:
+        """World velocities `(N, 2)` of head `head` (an int, or a per-row tensor of heads), in eval mode."""
+        was = self.training
+        self.eval()
+        x = torch.as_tensor(images)
+        out = self(x)
+        self.train(was)
+        if isinstance(head, int):
+            return out[:, head]
+        return out[torch.arange(len(out)), head]

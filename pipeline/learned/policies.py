@@ -1,0 +1,41 @@
+"""Learned policies over the environments' frames (same interface as :mod:`pipeline.envs.policies`).
+
+- :class:`ImitatedPolicy`: the end-to-end policy `π(θ)`: head 0 of the imitation network (a feedback continuous
+  in the image: Proposition 1 applies to it).
+- :class:`LearnedHybridPolicy`: heads 1 and 2 (the imitated flows of mode 1 and 2), switched by §3.3's hysteresis
+  on the perception map's estimate `m = l(θ)` (the HyRL idea through the camera): the mode logic is the hybrid
+  controller's own (:class:`pipeline.envs.policies.ArchitecturePolicy`), the velocity the network's.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from pipeline.envs.policies import ArchitecturePolicy, _images
+
+
+class ImitatedPolicy:
+    name = "imitated"
+
+    def __init__(self, model, head: int = 0):
+        self.model, self.head = model, head
+
+    def reset(self, obs, idx=None) -> None:
+        pass
+
+    def act(self, obs, restarted=None) -> np.ndarray:
+        return self.model.act(torch.from_numpy(np.ascontiguousarray(_images(obs))), self.head).double().numpy()
+
+
+class LearnedHybridPolicy(ArchitecturePolicy):
+    """The mode by the hysteresis on the map's estimate; the velocity by the imitated flow of that mode."""
+
+    def __init__(self, model, perception_map, controller, plant, scene, period: float):
+        super().__init__(perception_map, controller, plant, scene, period, name="learned_hybrid")
+        self.model = model
+
+    def act(self, obs, restarted=None) -> np.ndarray:
+        super().act(obs, restarted)  # the hybrid logic on the map's estimate (its mode jumps)
+        q = torch.from_numpy(np.asarray(self.mode, dtype=np.int64))
+        return self.model.act(torch.from_numpy(np.ascontiguousarray(_images(obs))), q).double().numpy()

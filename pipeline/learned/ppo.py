@@ -1,0 +1,138 @@
+"""Reinforcement learning baseline (SPEC §6): stable-baselines3 PPO with a CNN policy on the batched vector
+environment (`python -m pipeline.learned.ppo`; docs/learned.md states the budget).
+
+:class:`SB3VecEnv` adapts :class:`pipeline.envs.NavigateVectorEnv` (N agents in one batched plant and render call,
+same-step autoreset) to SB3's `VecEnv` interface (a list of per-agent infos, `terminal_observation` in the info of
+an agent that stopped, `TimeLimit.truncated` on the horizon). The trained model is written to
+`outputs/models/ppo-<id>/` (id: this config and the code), with the learning curve (`curve.csv`: mean episode
+return and success per rollout).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from omegaconf import DictConfig
+from stable_baselines3.common.vec_env import VecEnv
+
+from pipeline import tracking
+from pipeline.cli import stage_main
+from pipeline.config import build
+from pipeline.envs.navigate import NavigateVectorEnv, objects_from
+from pipeline.schema import NonNegativeInt, Positive, PositiveInt, checked
+
+
+class SB3VecEnv(VecEnv):
+    """SB3's VecEnv over one batched :class:`NavigateVectorEnv` (autoreset on)."""
+
+    def __init__(self, venv: NavigateVectorEnv):
+        self.venv = venv
+        self.render_mode = None
+        self._actions = None
+        super().__init__(venv.num_envs, venv.single_observation_space, venv.single_action_space)
+
+    def reset(self):
+        seed = self._seeds[0]
+        obs, _ = self.venv.reset(seed=seed)
+        self._reset_seeds()
+        return obs
+
+    def step_async(self, actions):
+        self._actions = np.asarray(actions)
+
+    def step_wait(self):
+        obs, reward, term, trunc, info = self.venv.step(self._actions)
+        done = term | trunc
+        infos = [{} for _ in range(self.num_envs)]
+        for i in np.flatnonzero(done):
+            infos[i] = {"terminal_observation": info["final_obs"][i], "TimeLimit.truncated": bool(trunc[i]),
+                        "is_success": bool(info["outcome"][i] == 1)}
+        return obs, reward.astype(np.float32), done, infos
+
+    def close(self):
+        pass
+
+    def get_attr(self, attr_name, indices=None):
+        return [getattr(self, attr_name, None)] * len(self._indices(indices))
+
+    def set_attr(self, attr_name, value, indices=None):
+        setattr(self, attr_name, value)
+
+    def env_method(self, method_name, *args, indices=None, **kwargs):
+        raise NotImplementedError("SB3VecEnv: the agents are one batched environment")
+
+    def env_is_wrapped(self, wrapper_class, indices=None):
+        return [False] * len(self._indices(indices))
+
+    def _indices(self, indices):
+        if indices is None:
+            return range(self.num_envs)
+        return [indices] if isinstance(indices, int) else indices
+
+
+@checked("ppo")
+@dataclass(frozen=True)
+class PPOSettings:
+    """`ppo`: `num_envs` agents of the vector environment, `total_timesteps` agent-steps in all (the budget),
+    PPO's `n_steps` per agent per rollout, `batch_size`, `n_epochs`, `learning_rate`, `seed`, torch `threads`."""
+
+    num_envs: PositiveInt = 64
+    total_timesteps: PositiveInt = 200_000
+    n_steps: PositiveInt = 64
+    batch_size: PositiveInt = 256
+    n_epochs: PositiveInt = 4
+    learning_rate: Positive = 3e-4
+    seed: NonNegativeInt = 0
+    threads: PositiveInt | None = None
+
+
+def check(cfg: DictConfig) -> None:
+    objects_from(cfg)
+    build(cfg.ppo, "ppo")
+
+
+def run(cfg: DictConfig) -> dict:
+    import torch
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    check(cfg)
+    obj, s = objects_from(cfg), build(cfg.ppo, "ppo")
+    if s.threads is not None:
+        torch.set_num_threads(s.threads)
+    id_ = tracking.content_id(tracking.to_plain(cfg.ppo), tracking.to_plain(cfg.scene), tracking.to_plain(cfg.env),
+                              tracking.to_plain(cfg.occlusion), tracking.code_version("envs", "learned"))
+    env = SB3VecEnv(NavigateVectorEnv(s.num_envs, objects_=obj))
+    curve = []
+
+    class Curve(BaseCallback):
+        def _on_step(self) -> bool:
+            for info in self.locals["infos"]:
+                if "is_success" in info:
+                    curve.append((self.num_timesteps, float(info["is_success"])))
+            return True
+
+    model = PPO("CnnPolicy", env, n_steps=s.n_steps, batch_size=s.batch_size, n_epochs=s.n_epochs,
+                learning_rate=s.learning_rate, seed=s.seed, verbose=0, device="cpu")
+    t0 = time.perf_counter()
+    model.learn(total_timesteps=s.total_timesteps, callback=Curve())
+    wall = time.perf_counter() - t0
+    done = np.array(curve) if curve else np.zeros((0, 2))
+    rate = float(done[-min(len(done), 200):, 1].mean()) if len(done) else float("nan")
+    meta = {"kind": "ppo", "config": tracking.to_plain(cfg.ppo), "wall_s": wall, "episodes": len(done),
+            "success_last_200": rate}
+    with tracking.tracked_output(Path(cfg.paths.models_dir), "ppo", id_, meta) as tmp:
+        model.save(tmp / "model.zip")
+        np.savetxt(tmp / "curve.csv", done, delimiter=",", header="timesteps,success", comments="")
+    print(f"ppo: {s.total_timesteps} agent-steps in {wall:.0f} s, {len(done)} episodes, success of the last 200 "
+          f"{rate:.1%} -> {Path(cfg.paths.models_dir) / f'ppo-{id_}'}")
+    return {"path": Path(cfg.paths.models_dir) / f"ppo-{id_}", "success": rate, "wall_s": wall}
+
+
+main = stage_main("ppo", run="pipeline.learned.ppo:run", check="pipeline.learned.ppo:check")
+
+if __name__ == "__main__":
+    main()

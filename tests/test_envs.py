@@ -1,0 +1,124 @@
+"""The Gymnasium environments (SPEC §6): the API checker, the simulator's trajectories, the vector environment."""
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+import pipeline.envs as envs
+from pipeline.envs.core import ARRIVED, COLLIDED
+from pipeline.envs.policies import ArchitecturePolicy, RandomPolicy
+from pipeline.errors import ConfigError
+
+
+class CentroidMap:
+    """The bright (robot) pixels' intensity centroid in world units: a deterministic stand-in perception map."""
+
+    def __init__(self, camera):
+        self.camera = camera
+
+    def predict(self, images):
+        g = np.clip(np.asarray(images, float).mean(-1) - 150.0, 0.0, None)
+        h, w = g.shape[1:]
+        tot = g.sum((1, 2)) + 1e-12
+        u = (g.sum(1) * (np.arange(w) + 0.5)).sum(1) / tot
+        v = (g.sum(2) * (np.arange(h) + 0.5)).sum(1) / tot
+        return self.camera.pixel_to_world(np.stack([u, v], 1))
+
+
+@pytest.mark.parametrize("env_id", list(envs.IDS))
+def test_check_env_passes_for_every_id(env_id):
+    env = gym.make(env_id)
+    check_env(env.unwrapped, skip_render_check=False)
+    obs, info = env.reset(seed=3)
+    assert env.observation_space.contains(obs) and info["outcome"] == "running"
+    assert env.render().shape == (*env.unwrapped.objects.camera.shape, 3) if env.render_mode else True
+
+
+def test_unicycle_observes_its_heading_when_asked():
+    env = gym.make("hycontrol/NavigateUnicycle-v0", overrides=["env.observe_heading=true"])
+    check_env(env.unwrapped)
+    obs, info = env.reset(seed=0)
+    th = info["state"][2]
+    np.testing.assert_allclose(obs["heading"], [np.cos(th), np.sin(th)], atol=1e-6)
+
+
+@pytest.mark.parametrize("overrides, field", [(["occlusion=foo"], "occlusion"), (["env.progres=1"], "env.progres"),
+                                              (["env.arrival=-1"], "env.arrival"),
+                                              (["camera.period=0.013"], "camera.period")])
+def test_bad_override_is_one_line_naming_the_field(overrides, field):
+    with pytest.raises(ConfigError) as err:
+        gym.make("hycontrol/Navigate-v0", overrides=overrides)
+    assert err.value.field == field and "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize("scene", ["default", "field"])
+def test_trajectories_equal_the_simulators_for_the_same_policy(scene):
+    """The paper's architecture (a map + the hybrid law) through the vector environment and through
+    `pipeline.sim.simulate` with the camera in the loop: the same positions at every frame, the same outcome."""
+    from pipeline.perception.measure import CameraMeasure
+    from pipeline.sim import simulate
+
+    venv = envs.make_vector("hycontrol/Navigate-v0", 6, overrides=[f"scene={scene}"], autoreset=False)
+    o = venv.objects
+    pm = CentroidMap(o.camera)
+    starts = np.array([[-12.0, 2.0], [-37.0, -17.0], [-40.0, 20.0], [10.0, -20.0], [-20.0, 0.3], [30.0, 25.0]])
+    res = simulate(o.scene, o.controller, starts, measure=CameraMeasure(o.camera, pm), dt=o.sim.dt,
+                   horizon=o.sim.horizon, camera_period=o.camera_settings.period, record_every=5, seed=0)
+    policy = ArchitecturePolicy(pm, o.controller, o.plant, o.scene, venv.core.period)
+    obs, _ = venv.reset(seed=0, options={"start": starts})
+    p, code = [venv.core.position().copy()], np.zeros(len(starts), dtype=int)
+    ended = np.zeros(len(starts), dtype=bool)
+    for _ in range(venv.core.frames):
+        obs, r, term, trunc, info = venv.step(policy.act(obs))
+        code[(term | trunc) & ~ended] = info["outcome"][(term | trunc) & ~ended]
+        ended |= term | trunc
+        p.append(venv.core.position().copy())
+        if ended.all():
+            break
+    p = np.array(p)
+    assert (code == ARRIVED).sum() >= 5
+    np.testing.assert_array_equal(code == ARRIVED, res.metrics["success"])
+    np.testing.assert_array_equal(code == COLLIDED, res.metrics["collision"])
+    t_env = np.argmax((p[:, :, 0] - 40.0) ** 2 + p[:, :, 1] ** 2 <= 1.0, axis=0)  # frames to arrival
+    for a in np.flatnonzero(code == ARRIVED):
+        k = t_env[a]  # the frames before the arrival frame are the simulator's, to rounding
+        np.testing.assert_allclose(p[:k, a], res.p[:k, a], atol=1e-9)
+        assert abs(k * venv.core.period - res.metrics["time_to_target"][a]) < venv.core.period
+
+
+def test_random_agent_and_the_hybrid_policy_through_gymnasium_make():
+    env = gym.make("hycontrol/Navigate-v0")
+    rand = RandomPolicy(env.action_space, seed=0)
+    obs, _ = env.reset(seed=1)
+    total, n = 0.0, 0
+    while True:
+        obs, r, term, trunc, info = env.step(rand.act(obs[None])[0])
+        total, n = total + r, n + 1
+        if term or trunc:
+            break
+    assert info["outcome"] in ("arrived", "collided", "left_view", "truncated") and np.isfinite(total)
+    o = env.unwrapped.objects
+    policy = ArchitecturePolicy(CentroidMap(o.camera), o.controller, o.plant, o.scene, env.unwrapped.core.period)
+    obs, info = env.reset(seed=1, options={"start": [-12.0, 2.0]})
+    d0, total = info["distance"], 0.0
+    while True:
+        obs, r, term, trunc, info = env.step(policy.act(obs[None])[0])
+        total += r
+        if term or trunc:
+            break
+    assert info["outcome"] == "arrived" and info["is_success"]
+    # the shaped reward: progress telescopes to the distance gained, plus the arrival bonus
+    assert total == pytest.approx(d0 - info["distance"] + o.settings.arrival)
+
+
+def test_vector_env_autoresets_and_reports_the_final_state():
+    venv = envs.make_vector("hycontrol/Navigate-v0", 4)
+    obs, info = venv.reset(seed=0, options={"start": [[39.5, 0.0], [-40.0, 0.0], [0.0, 4.3], [-49.8, 0.0]]})
+    obs, r, term, trunc, info = venv.step(np.array([[10.0, 0.0], [0.0, 0.0], [0.0, -10.0], [-10.0, 0.0]]))
+    assert term.tolist() == [True, False, True, True]
+    assert info["outcome"].tolist() == [1, 0, 2, 3]
+    assert info["_final_obs"].tolist() == [True, False, True, True]
+    assert np.hypot(*(info["final_state"][0] - [40.0, 0.0])) <= 1.0
+    assert r[0] > 0 and r[2] < -5 and r[3] < -5
+    assert not np.allclose(info["state"][0], info["final_state"][0])  # restarted elsewhere

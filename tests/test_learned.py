@@ -1,0 +1,194 @@
+"""Learned policies (SPEC §6): the expert's labels, the imitation stage, one evaluation code for every agent."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+import pipeline.envs as envs
+from pipeline.envs.core import ARRIVED
+from pipeline.learned.expert import Expert, mode_flows
+from pipeline.learned.network import HEADS, VelocityPolicy
+from pipeline.learned.policies import ImitatedPolicy, LearnedHybridPolicy
+from pipeline.learned.rollouts import HeadNet, PolicyAttack, run_policy
+from pipeline.perception.adversary import proposition1_direction
+from tests.test_envs import CentroidMap
+
+
+def test_expert_rolled_out_in_the_env_is_the_simulators_hybrid_controller_on_the_true_state():
+    """The expert's action (head 0) carries its mode along its own trajectory: rolled out in the environment it
+    is the simulator's hybrid controller on the true state, frame for frame."""
+    from pipeline.sim import simulate
+
+    venv = envs.make_vector("hycontrol/Navigate-v0", 4, autoreset=False)
+    o = venv.objects
+    starts = np.array([[-12.0, 2.0], [-30.0, -0.2], [-20.0, 0.1], [10.0, 20.0]])
+    res = simulate(o.scene, o.controller, starts, dt=o.sim.dt, horizon=o.sim.horizon,
+                   camera_period=o.camera_settings.period, record_every=5)
+    expert = Expert(o.controller, o.plant, o.scene, venv.core.period)
+    _, info = venv.reset(seed=0, options={"start": starts})
+    p = [info["position"].copy()]
+    for _ in range(60):
+        labels, mask = expert.labels(info["state"])
+        assert labels.shape == (4, HEADS, 2) and mask[:, 0].all()
+        _, _, term, trunc, info = venv.step(labels[:, 0])
+        p.append(info["position"].copy())
+    p = np.array(p)
+    k = min(len(p), len(res.p))
+    live = ~np.isnan(res.metrics["time_to_target"]) & (res.metrics["time_to_target"] > k * 0.05)
+    np.testing.assert_allclose(p[:k, live], res.p[:k, live], atol=1e-9)
+    np.testing.assert_allclose(p[:k, ~live][:5], res.p[:k, ~live][:5], atol=1e-9)
+
+
+def test_each_modes_flow_passes_the_obstacle_on_its_own_side():
+    """Just behind the obstacle, on the line b = 0: mode 1 steers below it (b < 0), mode 2 above; both are in their
+    flow sets there; far from the obstacle the two flows agree."""
+    o = envs.objects()
+    a = np.linspace(-18.0, -12.0, 6)
+    p = o.scene.covering(0).from_frame(a, np.zeros_like(a))
+    flows, inside = mode_flows(o.controller, p, np.zeros(len(p), dtype=np.int64), 0.05)
+    eb = np.asarray(o.scene.e_b)
+    assert inside.all()
+    across = flows @ eb  # (N, 2): the velocity across the axis in each mode
+    assert np.all(across[:, 0] <= 0) and np.all(across[:, 1] >= 0)
+    assert across[-1, 0] < -1.0 and across[-1, 1] > 1.0  # next to the diamond: each mode turns to its side
+    far, inside = mode_flows(o.controller, np.array([[-45.0, 25.0]]), np.zeros(1, dtype=np.int64), 0.05)
+    np.testing.assert_allclose(far[:, 0], far[:, 1])
+
+
+def _tiny_model(seed=0):
+    torch.manual_seed(seed)
+    return VelocityPolicy(filters=(4, 8, 8), hidden=8, u_max=10.0)
+
+
+def test_policy_network_masks_the_loss_of_heads_without_labels():
+    model = _tiny_model().eval()  # no dropout: the same outputs each call
+    images = torch.randint(0, 255, (5, 60, 100, 3), dtype=torch.uint8)
+    labels = torch.randn(5, HEADS, 2)
+    mask = torch.ones(5, HEADS, dtype=torch.bool)
+    mask[:, 2] = False
+    base = model.loss((images, labels, mask))
+    labels2 = labels.clone()
+    labels2[:, 2] += 100.0  # a masked head's label does not count
+    assert torch.allclose(model.loss((images, labels2, mask)), base)
+    labels2[:, 1] += 100.0
+    assert model.loss((images, labels2, mask)) > base + 1.0
+
+
+def test_attack_on_the_imitated_policy_pushes_its_velocity_across_the_axis():
+    """PGD on the policy's own network at κ: its velocity moves along d = -sign(b) e_b on every frame."""
+    o = envs.objects()
+    model = _tiny_model(3)
+    a = np.linspace(-30.0, -15.0, 8)
+    p = o.scene.covering(0).from_frame(a, np.tile([0.3, -0.3], 4))
+    images = o.camera.render(p)
+    att = PolicyAttack(HeadNet(model, 0), proposition1_direction(o.scene), kappa=4.0, steps=3)
+    out = att(images, p, np.ones(len(p), dtype=bool))
+    assert np.abs(out.astype(int) - images.astype(int)).max() <= 4
+    along, norm = att.summary()
+    assert along > 0 and norm >= along
+
+
+def test_one_evaluation_code_runs_the_architecture_and_the_learned_policies():
+    """From starts near K: the map + hybrid reaches; a (random-weight) imitated and learned hybrid policy run
+    through the same code; outcomes are classes of the documented set."""
+    o = envs.objects()
+    from pipeline.envs.policies import ArchitecturePolicy
+
+    pm = CentroidMap(o.camera)
+    near = o.scene.covering(0).from_frame(np.array([-20.0, -30.0]), np.array([0.2, -0.2]))
+    hybrid = ArchitecturePolicy(pm, o.controller, o.plant, o.scene, 0.05)
+    res = run_policy(o, hybrid, near, frames=200)
+    assert (res["outcome"] == "reached").all() and np.all(res["time"] > 0)
+    model = _tiny_model()
+    for policy in (ImitatedPolicy(model), LearnedHybridPolicy(model, pm, o.controller, o.plant, o.scene, 0.05)):
+        res = run_policy(o, policy, near, frames=30)
+        assert set(res["outcome"]) <= {"reached", "collided", "left_view", "stalled", "timed_out"}
+    assert ARRIVED == 1
+
+
+def test_imitation_stage_writes_a_tracked_policy_that_reloads(tmp_path):
+    from pipeline.cli import compose
+    from pipeline.learned.imitate import load_policy_model, run
+
+    cfg = compose("imitate", ["imitation.agents=4", "imitation.rounds=1", "imitation.epochs=1",
+                              "imitation.round_epochs=1", "imitation.max_frames=6", "model.filters=[4,8,8]",
+                              "model.hidden=8", f"paths.models_dir={tmp_path}",
+                              f"paths.output_dir={tmp_path}"])
+    out = run(cfg)
+    assert out["path"].name == f"imitation-{out['id']}" and len(out["rounds"]) == 2
+    assert out["rounds"][1]["frames"] > out["rounds"][0]["frames"]
+    model = load_policy_model(out["id"], tmp_path)
+    images = torch.randint(0, 255, (3, 60, 100, 3), dtype=torch.uint8)
+    assert model.act(images).shape == (3, 2)
+    assert run(cfg)["path"] == out["path"]  # up to date: same id, nothing retrained
+
+
+@pytest.mark.parametrize("module, arg, field", [("pipeline.learned.imitate", "imitation.agents=0", "imitation.agents"),
+                                                ("pipeline.learned.imitate", "imitation.foo=1", "imitation.foo"),
+                                                ("pipeline.learned.evaluate", "learned.kappa=-1", "learned.kappa"),
+                                                ("pipeline.learned.evaluate", "learned.agents_list=[ppo]",
+                                                 "learned.agents_list")])
+def test_bad_keys_are_one_line_and_exit_2(module, arg, field):
+    out = subprocess.run([sys.executable, "-m", module, arg], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 2, out.stderr
+    lines = [ln for ln in out.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and field in lines[0], out.stderr
+
+
+def test_ppo_runs_on_the_vector_environment_through_sb3(tmp_path):
+    """SB3's PPO on the batched environment (a few agent-steps): episodes end, the model and its curve are written."""
+    from pipeline.cli import compose
+    from pipeline.learned.ppo import SB3VecEnv, run
+
+    venv = envs.make_vector("hycontrol/Navigate-v0", 3)
+    env = SB3VecEnv(venv)
+    obs = env.reset()
+    obs, r, done, infos = env.step(np.array([[10.0, 0.0], [0.0, 0.0], [-10.0, 0.0]]))
+    assert obs.shape == (3, 60, 100, 3) and r.dtype == np.float32 and len(infos) == 3
+    cfg = compose("ppo", ["ppo.num_envs=4", "ppo.total_timesteps=32", "ppo.n_steps=8", "ppo.batch_size=16",
+                          "ppo.n_epochs=1", "init=points", "init.points=[[39.0,0.5]]",
+                          f"paths.models_dir={tmp_path}", f"paths.output_dir={tmp_path}"])
+    out = run(cfg)
+    assert (out["path"] / "model.zip").is_file()
+    curve = np.loadtxt(out["path"] / "curve.csv", delimiter=",", skiprows=1, ndmin=2)
+    assert len(curve) >= 1 and set(curve[:, 1]) <= {0.0, 1.0}  # starts 1.1 units from the target: episodes end
+
+
+def test_trunk_from_a_perception_map_is_copied_and_stays_frozen():
+    """`load_trunk` copies the map's blocks; with `freeze_trunk` a training step changes the head only."""
+    from pipeline.perception.network import PerceptionMap
+
+    pm = PerceptionMap(filters=(4, 8, 8), uncertainty="none")
+    model = VelocityPolicy(filters=(4, 8, 8), hidden=8, freeze_trunk=True)
+    model.load_trunk(pm)
+    for a, b in zip(model.features.state_dict().values(), pm.features.state_dict().values()):
+        assert torch.equal(a, b)
+    opt = model.configure_optimizers()
+    head0 = [p.clone() for p in model.head.parameters()]
+    trunk0 = {k: v.clone() for k, v in model.features.state_dict().items()}
+    model.train()
+    model.on_train_epoch_start()
+    images = torch.randint(0, 255, (8, 60, 100, 3), dtype=torch.uint8)
+    model.loss((images, torch.randn(8, HEADS, 2), torch.ones(8, HEADS, dtype=torch.bool))).backward()
+    opt.step()
+    assert all(torch.equal(v, trunk0[k]) for k, v in model.features.state_dict().items())  # BN stats too
+    assert any(not torch.equal(a, b) for a, b in zip(model.head.parameters(), head0))
+
+
+def test_table_rows_count_outcomes_with_wilson_intervals(tmp_path):
+    import pandas as pd
+
+    from pipeline.learned.evaluate import rows
+    from pipeline.learned.report import write_tables
+
+    res = {"outcome": np.array(["reached", "stalled", "reached", "collided"]), "time": np.array([3.0, np.nan, 5.0,
+                                                                                                 np.nan])}
+    r = rows("imitated", "near K, clean", res, (0.5, 0.7))
+    assert (r["reached"], r["stalled"], r["collided"], r["timed_out"]) == (0.5, 0.25, 0.25, 0.0)
+    lo, hi = (float(v) for v in r["reached_ci"].strip("[]").split(","))
+    assert lo < 0.5 < hi and r["median_time_s"] == 4.0
+    write_tables(pd.DataFrame([r]), tmp_path)
+    assert "| imitated | near K, clean | 4 | 50% |" in (tmp_path / "tab_learned.md").read_text()
