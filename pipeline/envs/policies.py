@@ -19,7 +19,8 @@ from pipeline.hybrid.sampled import frame_update
 from pipeline.sim.closed_loop import SampledLoop
 
 
-def _images(obs):
+def frames(obs):
+    """The camera frames of an observation (the image of a `Dict` observation)."""
     return obs["image"] if isinstance(obs, dict) else obs
 
 
@@ -38,7 +39,7 @@ class ArchitecturePolicy:
         return self._est[idx]
 
     def estimate(self, obs) -> np.ndarray:
-        est = np.asarray(self.map.predict(_images(obs)), dtype=float)
+        est = np.asarray(self.map.predict(frames(obs)), dtype=float)
         if self.plant.heading and est.shape[1] == 2:
             raise ValueError("a unicycle's architecture policy needs a pose map (x, y, θ)")
         return est[:, : self.plant.dim]
@@ -88,5 +89,5 @@ class RandomPolicy:
         pass
 
     def act(self, obs, restarted=None) -> np.ndarray:
-        n = len(_images(obs))
+        n = len(frames(obs))
         return self.rng.uniform(self.low, self.high, (n, len(self.low)))

@@ -79,21 +79,6 @@ def _attack_net(name, pm, model):
     return HeadNet(model, 0) if name == "imitated" else pm.net
 
 
-def load_map(ref, models_dir):
-    """The perception map `maps.clean`: a tracked map (name, name-id, id, folder), or a training checkpoint
-    (`.ckpt`, e.g. a map whose build has not finished: its best epoch so far), named by its file."""
-    from pipeline.perception.maps import PerceptionMapPredictor, load_perception_map
-    from pipeline.perception.network import PerceptionMap
-
-    path = Path(str(ref))
-    if path.suffix == ".ckpt":
-        if not path.is_file():
-            raise ConfigError("maps.clean", f"no checkpoint {path}")
-        model = PerceptionMap.load_from_checkpoint(path, map_location="cpu")
-        return PerceptionMapPredictor(model, manifest={"name": "checkpoint", "id": path.stem}, device="cpu")
-    return load_perception_map(ref, models_dir, device="cpu")
-
-
 def rows(agent: str, condition: str, res: dict, induced=(np.nan, np.nan)) -> dict:
     from pipeline.sim.metrics import wilson
 
@@ -112,6 +97,7 @@ def rows(agent: str, condition: str, res: dict, induced=(np.nan, np.nan)) -> dic
 
 def run(cfg: DictConfig) -> dict:
     from pipeline.learned.imitate import load_policy_model
+    from pipeline.learned.policies import load_map
     from pipeline.learned.report import switching_figure, write_tables
     from pipeline.learned.rollouts import PolicyAttack, run_policy
     from pipeline.perception.adversary import proposition1_direction

@@ -143,7 +143,7 @@ def run(cfg: DictConfig) -> dict:
     torch.manual_seed(s.seed)
     model = build(cfg.model, "model", image_shape=(*obj.camera.shape, 3))
     if s.trunk_from is not None:
-        from pipeline.learned.evaluate import load_map
+        from pipeline.learned.policies import load_map
 
         model.load_trunk(load_map(s.trunk_from, cfg.paths.models_dir).model)
     venv = NavigateVectorEnv(s.agents, objects_=obj, autoreset=False)

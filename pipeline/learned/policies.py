@@ -9,10 +9,13 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import torch
 
-from pipeline.envs.policies import ArchitecturePolicy, _images
+from pipeline.envs.policies import ArchitecturePolicy, frames
+from pipeline.errors import ConfigError
 
 
 class ImitatedPolicy:
@@ -25,7 +28,7 @@ class ImitatedPolicy:
         pass
 
     def act(self, obs, restarted=None) -> np.ndarray:
-        return self.model.act(torch.from_numpy(np.ascontiguousarray(_images(obs))), self.head).double().numpy()
+        return self.model.act(torch.from_numpy(np.ascontiguousarray(frames(obs))), self.head).double().numpy()
 
 
 class LearnedHybridPolicy(ArchitecturePolicy):
@@ -38,4 +41,19 @@ class LearnedHybridPolicy(ArchitecturePolicy):
     def act(self, obs, restarted=None) -> np.ndarray:
         super().act(obs, restarted)  # the hybrid logic on the map's estimate (its mode jumps)
         q = torch.from_numpy(np.asarray(self.mode, dtype=np.int64))
-        return self.model.act(torch.from_numpy(np.ascontiguousarray(_images(obs))), q).double().numpy()
+        return self.model.act(torch.from_numpy(np.ascontiguousarray(frames(obs))), q).double().numpy()
+
+
+def load_map(ref, models_dir):
+    """The perception map `maps.clean`: a tracked map (name, name-id, id, folder), or a training checkpoint
+    (`.ckpt`, e.g. a map whose build has not finished: its best epoch so far), named by its file."""
+    from pipeline.perception.maps import PerceptionMapPredictor, load_perception_map
+    from pipeline.perception.network import PerceptionMap
+
+    path = Path(str(ref))
+    if path.suffix == ".ckpt":
+        if not path.is_file():
+            raise ConfigError("maps.clean", f"no checkpoint {path}")
+        model = PerceptionMap.load_from_checkpoint(path, map_location="cpu")
+        return PerceptionMapPredictor(model, manifest={"name": "checkpoint", "id": path.stem}, device="cpu")
+    return load_perception_map(ref, models_dir, device="cpu")
