@@ -14,14 +14,12 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import ClassVar
 
-import pandas as pd
-
 from pipeline import tracking
 from pipeline.config import build
 from pipeline.control import Scene
 from pipeline.errors import ConfigError
 from pipeline.experiments.context import Context
-from pipeline.experiments.multi.fields import summarise_field
+from pipeline.experiments.multi.fields import field_results
 from pipeline.experiments.results import Results
 from pipeline.experiments.scenario import Scenario, agent_rows
 from pipeline.schema import NonNegative, NonNegativeInt, Positive, PositiveInt
@@ -96,12 +94,7 @@ class DenseFields(Scenario):
                         arrays[f"p_{ctrl}"] = res.p[:, : self.n_drawn]
                     frames.append(agent_rows(res, scene=label, condition=cond, obstacles=scene.n_obstacles))
             print(f"[experiments] {self.id}: {label} done ({j + 1}/{len(scenes)})", flush=True)
-        metrics = pd.concat(frames, ignore_index=True)
-        table = summarise_field(metrics, ["condition", "controller"], ctx.seed)
-        per_scene = summarise_field(metrics, ["scene", "condition", "controller"], ctx.seed)
-        return Results({"metrics": metrics, "summary": table, "per_scene": per_scene}, arrays,
-                       {"scenes": [s for s, _ in scenes], "first": scenes[0][1].config(),
-                        "vehicle": ctx.vehicle.name})
+        return field_results(frames, arrays, scenes, ctx.seed, vehicle=ctx.vehicle.name)
 
 
 __all__ = ["DenseFields", "dense_scenes"]

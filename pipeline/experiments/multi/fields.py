@@ -71,6 +71,16 @@ def summarise_field(metrics: pd.DataFrame, by: list[str], seed: int, delta_pract
     return pd.concat([table, pd.DataFrame(extra)], axis=1)
 
 
+def field_results(frames: list[pd.DataFrame], arrays: dict, scenes: list, seed: int, **info) -> Results:
+    """The per-agent rows of a run over several fields, summarised pooled and per scene (`scenes`: (label,
+    scene) pairs; `info`: further facts for the figures)."""
+    metrics = pd.concat(frames, ignore_index=True)
+    table = summarise_field(metrics, ["condition", "controller"], seed)
+    per_scene = summarise_field(metrics, ["scene", "condition", "controller"], seed)
+    return Results({"metrics": metrics, "summary": table, "per_scene": per_scene}, arrays,
+                   {"scenes": [s for s, _ in scenes], "first": scenes[0][1].config(), **info})
+
+
 # ------------------------------------------------------------------------------------------ the cells
 @dataclass(kw_only=True)
 class MultiCells(Scenario):
@@ -196,11 +206,7 @@ class MultiMonteCarlo(Scenario):
                         res = ctx.simulate(ctx.controller(ctrl, scene=scene), x0, scene=scene, record=False)
                     frames.append(agent_rows(res, scene=label, condition=cond, obstacles=scene.n_obstacles))
             print(f"[experiments] {self.id}: {label} done ({j + 1}/{len(scenes)})", flush=True)
-        metrics = pd.concat(frames, ignore_index=True)
-        table = summarise_field(metrics, ["condition", "controller"], ctx.seed)
-        per_scene = summarise_field(metrics, ["scene", "condition", "controller"], ctx.seed)
-        return Results({"metrics": metrics, "summary": table, "per_scene": per_scene}, arrays,
-                       {"scenes": [s for s, _ in scenes], "first": scenes[0][1].config()})
+        return field_results(frames, arrays, scenes, ctx.seed)
 
 
 # -------------------------------------------------------------------------------- camera in the loop
@@ -251,5 +257,5 @@ class MultiCamera(Scenario):
         return Results({"metrics": metrics, "summary": table}, arrays, {"occlusion": self.occlusion})
 
 
-__all__ = ["MultiAdversarial", "MultiCamera", "MultiCells", "MultiMonteCarlo", "check_map_scene", "field_scenes", "summarise_field",
+__all__ = ["MultiAdversarial", "MultiCamera", "MultiCells", "MultiMonteCarlo", "check_map_scene", "field_results", "field_scenes", "summarise_field",
            "wilson"]
