@@ -192,3 +192,23 @@ def test_table_rows_count_outcomes_with_wilson_intervals(tmp_path):
     assert lo < 0.5 < hi and r["median_time_s"] == 4.0
     write_tables(pd.DataFrame([r]), tmp_path)
     assert "| imitated | near K, clean | 4 | 50% |" in (tmp_path / "tab_learned.md").read_text()
+
+
+class _Creep:
+    """A policy that creeps along +x at `speed` units/s (no camera needed)."""
+
+    def __init__(self, speed):
+        self.speed = speed
+
+    def act(self, obs):
+        return np.tile(np.array([self.speed, 0.0], np.float32), (len(obs), 1))
+
+
+@pytest.mark.parametrize(("share", "expected"), [(0.2, "stalled"), (0.05, "timed_out")])
+def test_the_stall_class_follows_the_sims_share_of_u_max_when_stall_speed_is_null(share, expected):
+    """`sim.stall_speed: null` (the default) means `sim.stall_share` of `u_max` (10): a vehicle creeping at 1 unit/s
+    is stalled under a threshold of 2, still moving under 0.5 (before the fix: a TypeError from None * float)."""
+    o = envs.objects([f"sim.stall_share={share}", "sim.stall_time=1.0", "sim.horizon=2.0"])
+    assert o.sim.stall_speed is None
+    res = run_policy(o, _Creep(1.0), np.array([[-45.0, 20.0], [-45.0, -20.0]]))
+    assert list(res["outcome"]) == [expected, expected]

@@ -24,6 +24,7 @@ from pipeline.bracket.loop import OUTCOMES, FrameLoop
 from pipeline.config import build
 from pipeline.errors import ConfigError
 from pipeline.experiments.report import markdown_table
+from pipeline.sim.simulator import stall_threshold
 
 
 def objects(cfg: DictConfig):
@@ -81,8 +82,7 @@ def bracket_rows(name, law, scene, bs, sim, camera, emap, starts):
         by_map = certified_starts(cert, starts)
         stats["error_map"] = {**cert.stats, "certified_starts": int(by_map.sum())}
     loop = FrameLoop(scene, law, period=camera.period, horizon=sim.horizon, delta=bs.goal_radius,
-                     stall_speed=sim.stall_speed if sim.stall_speed is not None
-                     else sim.stall_share * (getattr(law, "u_max", None) or 10.0), stall_time=sim.stall_time)
+                     stall_speed=stall_threshold(sim, law), stall_time=sim.stall_time)
     search = Search(n_dirs=bs.n_dirs, lookahead=bs.lookahead, commit=bs.commit, tail=bs.tail,
                     n_random=bs.n_random, seed=bs.seed)
     centres = np.stack([(starts[:, 0] + starts[:, 1]) / 2, (starts[:, 2] + starts[:, 3]) / 2], axis=1)

@@ -128,8 +128,7 @@ def run(cfg: DictConfig) -> dict:
             conditions.append((f"near K, pixel attack κ={s.kappa:g}", near,
                                PolicyAttack(_attack_net(name, pm, model), direction, s.kappa, s.attack_steps)))
         for cond, x0, attack in conditions:
-            res = run_policy(obj, policy, x0, seed=s.seed, attack=attack, stall_speed=obj.sim.stall_speed,
-                             stall_time=obj.sim.stall_time)
+            res = run_policy(obj, policy, x0, seed=s.seed, attack=attack)
             table.append(rows(name, cond, res, attack.summary() if attack else (np.nan, np.nan)))
             print(f"learned: {name:15s} {cond:28s} reached {table[-1]['reached']:.0%} "
                   f"stalled {table[-1]['stalled']:.0%} collided {table[-1]['collided']:.0%}")

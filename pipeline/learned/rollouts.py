@@ -24,6 +24,7 @@ from torch import nn
 
 from pipeline.envs.core import OUTCOMES
 from pipeline.envs.navigate import NavigateVectorEnv
+from pipeline.sim.simulator import stall_threshold
 
 CLASSES = ("reached", "collided", "left_view", "stalled", "timed_out")
 
@@ -70,8 +71,11 @@ class PolicyAttack:
 
 
 def run_policy(obj, policy, starts: np.ndarray, *, seed: int = 0, attack: PolicyAttack | None = None,
-               frames: int | None = None, stall_speed: float = 0.25, stall_time: float = 5.0) -> dict:
-    """Every start's episode under `policy`: `outcome` (CLASSES), `time` (s, NaN unless reached), `paths`."""
+               frames: int | None = None) -> dict:
+    """Every start's episode under `policy`: `outcome` (CLASSES), `time` (s, NaN unless reached), `paths`. The
+    stall speed and window are the run's `sim` (:func:`pipeline.sim.simulator.stall_threshold`: `sim.stall_speed`,
+    or `sim.stall_share` of the controller's `u_max` when it is null)."""
+    stall_speed, stall_time = stall_threshold(obj.sim, obj.controller), obj.sim.stall_time
     venv = NavigateVectorEnv(len(starts), objects_=obj, autoreset=False)
     obs, info = venv.reset(seed=seed, options={"start": np.asarray(starts, float)})
     if hasattr(policy, "x"):
