@@ -27,6 +27,8 @@ from pipeline.cli import CONF_DIR, REPO_ROOT, stage_main
 from pipeline.config import compose, settings
 from pipeline.errors import ConfigError, PipelineError
 from pipeline.experiments.report import write_index
+from pipeline.jobs import Job
+from pipeline.paper_profile import Runner
 from pipeline.lineage import (
     dataset_identity,
     debug_overrides,
@@ -35,7 +37,7 @@ from pipeline.lineage import (
     map_recipe,
     write_lock,
 )
-from pipeline.schema import NonEmpty, Option, Pattern
+from pipeline.schema import NonEmpty, Option, Pattern, PositiveInt
 
 
 @dataclass(frozen=True)
@@ -58,6 +60,7 @@ class PaperSettings:
     experiments: list[Annotated[str, Option("experiment")]]
     args: StageArgs
     stop_on_error: bool
+    workers: PositiveInt | None
     lock: Annotated[str, Pattern(r"[^/]+\.yaml", "a file name ending in .yaml")]
 
 
@@ -189,40 +192,38 @@ def run(cfg) -> dict:
             models_root / lock["maps"][n].name, [*paths, *args["errormap"]])) for n in errormaps}
 
     lock: dict[str, dict[str, Path]] = {"datasets": {}, "maps": {}, "errormaps": {}, "experiments": {}}
-    groups: dict[tuple[str, ...], list[str]] = {}  # maps of the same model overrides: one multirun each
-    for name in maps:
-        groups.setdefault(tuple(map_recipe(name)[1]), []).append(map_recipe(name)[0])
-    jobs = {"data": lambda: [["-m", f"data={','.join(datasets)}", *paths, *args["data"]]],
-            "train": lambda: [["-m", f"data={','.join(r)}", *extra, *paths, *args["train"]]
-                              for extra, r in groups.items()],
-            "errormap": lambda: [[f"maps=[{','.join(lock['maps'][m].name for m in errormaps)}]", *paths,
-                                  *args["errormap"]]]}
+    runner = Runner(cfg, timings, stop)
+    jobs = {"data": lambda: [Job("data", ["-m", f"data={','.join(datasets)}", *paths, *args["data"]], "data")],
+            "train": lambda: [Job("train", [f"data={map_recipe(n)[0]}", *map_recipe(n)[1], *paths, *args["train"]],
+                                  f"train {n}") for n in maps],
+            "errormap": lambda: [Job("errormap", [f"maps=[{lock['maps'][m].name}]", *paths, *args["errormap"]],
+                                     f"errormap {m}") for m in errormaps]}
     for stage, kind, names, folders in (("data", "datasets", datasets, dataset_folders),
                                         ("train", "maps", maps, map_folders),
                                         ("errormap", "errormaps", errormaps, errormap_folders)):
         if not names:
             continue
         found = up_to_date(stage, folders)
-        for argv in jobs[stage]() if found is None else []:  # up to date: not started
-            run_stage(stage, argv, timings, stop)
+        if found is None:  # up to date: not started
+            runner.stage(stage, jobs[stage]())
         lock[kind] = found or folders()
     map_refs = {n: f.name for n, f in lock["maps"].items()}
     em_refs = {n: f.name for n, f in lock["errormaps"].items()}
     if cfg.experiments:
-        lock["experiments"] = _experiments(cfg, list(cfg.experiments), paths, args, map_refs, em_refs, lock,
-                                           timings, stop)
+        lock["experiments"] = _experiments(cfg, list(cfg.experiments), paths, args, map_refs, em_refs, lock, runner)
     lock = {k: {n: f for n, f in v.items() if tracking.is_complete(f)} for k, v in lock.items()}
     lock_path = write_lock(Path(cfg.paths.paper_dir) / cfg.lock, lock, debug=cfg.get("debug") or "none")
     if (Path(cfg.paths.paper_dir) / "index").is_dir():
         write_index(Path(cfg.paths.paper_dir))
     total = time.perf_counter() - t0
+    runner.write_profile(total)
     line = ", ".join(f"{k} {v:.0f} s" for k, v in timings.items()) or "every stage up to date"
     print(f"\n[paper] done in {total / 60:.1f} min ({line}); see {cfg.paths.paper_dir}/index.md; inputs pinned in "
           f"{lock_path}")
     return {"timings": timings, "total": total, "lock": lock_path, "maps": map_refs, "errormaps": em_refs}
 
 
-def _experiments(cfg, experiments, paths, args, map_refs, em_refs, lock, timings, stop) -> dict[str, Path]:
+def _experiments(cfg, experiments, paths, args, map_refs, em_refs, lock, runner) -> dict[str, Path]:
     """The experiments stage with every input pinned, unless the same command ran before and everything it wrote is
     still there; `{experiment: results folder}` from the paper folder's index."""
     pins = experiment_pins(compose("experiments", paths), map_refs, em_refs)
@@ -233,7 +234,8 @@ def _experiments(cfg, experiments, paths, args, map_refs, em_refs, lock, timings
     stamp = paper_dir / f".{Path(cfg.lock).stem}.experiments.json"  # what the last run was started with
     if not experiments_up_to_date(stamp, argv, experiments, lock):
         stamp.unlink(missing_ok=True)
-        if run_stage("experiments", argv, timings, stop):
+        one = [Job("experiments", [f"experiment={e}", *argv[2:]], f"experiments {e}") for e in experiments]
+        if runner.stage("experiments", one):
             stamp.write_text(json.dumps({"stamp": experiments_stamp(argv, lock)}) + "\n")
     out = {}
     for exp in experiments:

@@ -46,6 +46,7 @@ from pipeline.errormap.writers import write_outputs
 from pipeline.errors import ConfigError, DatasetError, ModelError
 from pipeline.lineage import debug_overrides, errormap_settings, rerun_command, resolve_dataset, resolve_map
 from pipeline.perception.maps import load_perception_map
+from pipeline.profiling import phase, record
 from pipeline.render import load_occlusion
 
 
@@ -179,7 +180,8 @@ def run_one(cfg: DictConfig, *, perception_map=None, camera=None, occlusions: Ma
     t_train = time.perf_counter() - t0
     sample_err_vec = sample_pred - samples
     margin = operational_margin(settings.get("operational_margin", "auto"), plan.camera)
-    results, fields, operational = _compute_levels(plan, samples, sample_err_vec, margin, progress)
+    with phase("error fields"):
+        results, fields, operational = _compute_levels(plan, samples, sample_err_vec, margin, progress)
     settings = _coverage_marks(settings, plan.levels, results, fields, operational)
     summary = _summary(cfg, plan, settings, results, samples, sample_err_vec, t_train, margin, operational)
 
@@ -189,6 +191,7 @@ def run_one(cfg: DictConfig, *, perception_map=None, camera=None, occlusions: Ma
     with tracking.tracked_output(plan.root, pmap.name, plan.id, meta) as tmp:
         write_outputs(tmp, summary, fields, results, plan.scene, plan.arena, settings, samples, sample_err_vec)
     print(f"errormap: wrote {final}")
+    record(f"errormap {pmap.name}", train_samples=round(t_train, 3))
     return {"path": final, "summary": summary, "skipped": False, "fields": fields}
 
 

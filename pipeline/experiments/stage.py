@@ -33,6 +33,7 @@ from pipeline.experiments.scenario import Scenario
 from pipeline.lineage import pinned_folders
 from pipeline.perception.maps import load_perception_map, resolve_device
 from pipeline.plants import SingleIntegrator
+from pipeline.profiling import phase, record
 from pipeline.progress import progress
 
 # the code whose changes change the numbers (figures.py and report.py only draw)
@@ -112,8 +113,8 @@ def run(cfg) -> dict:
         print(f"[experiments] {scen.id}: re-using cached results {folder}")
     else:
         print(f"[experiments] {scen.id}: computing {folder.name} ...", flush=True)
-        with progress(desc=f"[experiments] {scen.id}", unit="runs") as ctx.bar:  # one step per simulation
-            res = scen.compute(ctx)
+        with progress(desc=f"[experiments] {scen.id}", unit="runs") as ctx.bar, phase("compute"):
+            res = scen.compute(ctx)  # one bar step per simulation
         ctx.bar = None
         with tracking.tracked_output(root, scen.id, cid, {"kind": "experiment", "code_version": key_parts["code"],
                                                           **key_parts}) as tmp:
@@ -128,9 +129,11 @@ def run(cfg) -> dict:
         files = [paper_dir / f for it in entry["items"] for f in it["files"]]
         print(f"[experiments] {scen.id}: its {len(files)} files in {paper_dir} are up to date (drawn from "
               f"{folder.name}; nothing redrawn)")
+        record(f"experiments {scen.id}", cached=cached, drawn=False)
         return {"id": scen.id, "cache": folder, "cached": cached, "results": res, "files": files}
     out = Outputs(paper_dir, scen.id)
-    resolve(scen.figures)(scen, ctx, res, out)
+    with phase("draw"):
+        resolve(scen.figures)(scen, ctx, res, out)
     # the raw per-agent metrics of the scenario, next to its figures
     if "metrics" in res.tables:
         res.tables["metrics"].to_csv(paper_dir / f"metrics_{scen.id}.csv", index=False)
@@ -142,6 +145,7 @@ def run(cfg) -> dict:
     (paper_dir / "index" / f"{scen.id}.json").write_text(json.dumps(entry, indent=2) + "\n")
     index = write_index(paper_dir, FIGURES)
     files = [f for it in out.items for f in it["files"]]
+    record(f"experiments {scen.id}", cached=cached, drawn=True)
     print(f"[experiments] {scen.id}: {len(files)} files in {paper_dir} ({time.perf_counter() - t0:.0f} s); "
           f"index {index}", file=sys.stdout)
     return {"id": scen.id, "cache": folder, "cached": cached, "results": res, "files": [paper_dir / f for f in files]}

@@ -16,6 +16,7 @@ from typing import Literal
 import numpy as np
 
 from pipeline.errors import ConfigError
+from pipeline.profiling import phase
 from pipeline.schema import NonNegative, Positive, checked
 
 
@@ -80,9 +81,11 @@ class CameraMeasure:
         if isinstance(self.perception_map, OracleMap):
             return np.array(c, dtype=float)
         posed = c.shape[1] == 3
-        imgs = self.camera.render(c[:, :2], None, occlusion=self.occlusion, rng=rng,
-                                  heading=c[:, 2] if posed else None)
-        est, n_gated = gated_predict(self.perception_map, imgs, self.gate, frame)
+        with phase("render"):
+            imgs = self.camera.render(c[:, :2], None, occlusion=self.occlusion, rng=rng,
+                                      heading=c[:, 2] if posed else None)
+        with phase("inference"):
+            est, n_gated = gated_predict(self.perception_map, imgs, self.gate, frame)
         if posed and (self.heading == "imu" or est.shape[1] == 2):
             est = np.column_stack([est[:, :2], c[:, 2] + rng.normal(0.0, self.heading_noise, len(c))])
         self.frames += 1
@@ -126,8 +129,10 @@ class FollowerTarget:
         lead = self.leader.position(t, idx)
         if isinstance(self.perception_map, OracleMap):
             return np.array(lead, dtype=float)
-        imgs = self.camera.render(lead, p, occlusion=self.occlusion, rng=rng)
-        est, n_gated = gated_predict(self.perception_map, imgs, self.gate, frame)
+        with phase("render"):
+            imgs = self.camera.render(lead, p, occlusion=self.occlusion, rng=rng)
+        with phase("inference"):
+            est, n_gated = gated_predict(self.perception_map, imgs, self.gate, frame)
         self.images += len(p)
         self.gated += n_gated
         return est

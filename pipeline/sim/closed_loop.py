@@ -25,7 +25,7 @@ import numpy as np
 
 from pipeline.hybrid import HybridSystem, State
 from pipeline.hybrid.system import row_norm
-from pipeline.sim.disturbances import NoDisturbance
+from pipeline.sim.disturbances import NoDisturbance, PerAgent
 
 # measure(c_true (n, dim), idx (n,), frame, rng) -> measured states (n, dim), before the disturbance
 Measure = Callable[[np.ndarray, np.ndarray, int, np.random.Generator], np.ndarray]
@@ -80,9 +80,11 @@ class _Loop(HybridSystem):
     def _logic(self, x: State) -> dict:
         return {k: x.d[k] for k in self.controller.logic}
 
-    def _disturb(self, c: np.ndarray, frame: int, rng) -> np.ndarray:
-        """The disturbance on the position part of a measured state (SPEC §3.5)."""
-        e = self.disturbance(self.plant.position(c), frame, rng, self.scene)
+    def _disturb(self, c: np.ndarray, frame: int, rng, idx: np.ndarray | None = None) -> np.ndarray:
+        """The disturbance on the position part of a measured state (SPEC §3.5); `idx`: the agents of `c` in the
+        batch, where only some are measured (a per-agent disturbance reads it)."""
+        args = (idx,) if idx is not None and isinstance(self.disturbance, PerAgent) else ()
+        e = self.disturbance(self.plant.position(c), frame, rng, self.scene, *args)
         if c.shape[1] == 2:
             return e
         return np.column_stack([e, np.zeros((len(c), c.shape[1] - 2))])
@@ -176,7 +178,7 @@ class SampledLoop(_Loop):
 
     def _perceive(self, c, idx, frame, rng):
         m = self.measure(c, idx, frame, rng)
-        return m if self.exact else m + self._disturb(c, frame, rng)
+        return m if self.exact else m + self._disturb(c, frame, rng, idx)
 
     def initial(self, c0, rng):
         """The first frame (always delivered: a vehicle starts with an estimate) and the law's initial state."""

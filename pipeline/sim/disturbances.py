@@ -95,3 +95,30 @@ class WorldAlternating(Disturbance):
     def __call__(self, p, frame, rng, scene):
         sign = 1.0 if frame % 2 == 0 else -1.0
         return np.broadcast_to(sign * self.m * np.asarray(self.direction), p.shape).copy()
+
+
+class PerAgent(Disturbance):
+    """Several conditions in one batch (issue 30): agents `[s_k, s_k + sizes[k])` get `parts[k]`, as if each group
+    ran alone. Exact for deterministic parts (every agent's arc is its own: the solvers step each agent by its own
+    step); a random part draws from the shared stream in another order than a run of its own.
+    `rows` restricts it to the agents a sampled loop measures this frame (their indices in the batch)."""
+
+    name = "per_agent"
+
+    def __init__(self, parts: list[Disturbance], sizes: list[int]):
+        if len(parts) != len(sizes):
+            raise ValueError(f"{len(parts)} disturbances for {len(sizes)} groups")
+        self.parts = list(parts)
+        self.owner = np.repeat(np.arange(len(parts)), np.asarray(sizes, dtype=int))
+
+    def __call__(self, p, frame, rng, scene, idx: np.ndarray | None = None):
+        owner = self.owner if idx is None else self.owner[idx]
+        if len(owner) != len(p):
+            raise ValueError(f"{len(p)} positions for {len(owner)} agents of the batch")
+        out = np.zeros_like(p, dtype=float)
+        for k, part in enumerate(self.parts):
+            mine = owner == k
+            if mine.any():
+                out[mine] = part(p[mine], frame, rng, scene)
+        return out
+

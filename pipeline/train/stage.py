@@ -42,6 +42,7 @@ from pipeline.train.checks import check
 from pipeline.train.evaluate import evaluate, fit_clean_gate
 from pipeline.train.figures import curves as plot_curves
 from pipeline.train.figures import scatter
+from pipeline.profiling import phase, record
 from pipeline.train.settings import UncertaintyEval
 from pipeline.train.uncertainty import calibrate, fit_variance_head
 
@@ -66,7 +67,8 @@ def _threads(cfg) -> int:
     if str(tc.get("accelerator", "auto")) == "cpu" and "ddp" in str(tc.get("strategy", "")):
         devices = tc.get("devices", 1)
         procs = devices if isinstance(devices, int) and devices > 0 else 1
-    return max(1, (os.cpu_count() or 1) // procs)
+    # torch's own default: every core, or OMP_NUM_THREADS where the launcher set it (make paper's jobs side by side)
+    return max(1, torch.get_num_threads() // procs)
 
 
 def _build(node, field: str, **kwargs):
@@ -133,14 +135,17 @@ def run(cfg) -> dict:
     model = _model(cfg, s.seed, shape, arena, name, ds)
     dm.pose = model.pose
     trainer, ckpt_cb = _trainer(cfg, work)
-    fit_s = _fit(cfg, trainer, model, dm, work, f"{name}-{id_}")
+    with phase("fit"):
+        fit_s = _fit(cfg, trainer, model, dm, work, f"{name}-{id_}")
     if not trainer.is_global_zero:  # DDP: rank 0 evaluates the test split once and writes the map
         return {"id": id_, "name": name, "path": str(final), "skipped": False, "rank": trainer.global_rank}
 
     best_path = ckpt_cb.best_model_path
-    model, predictor, variance_fit = _best_map(cfg, s.seed, model, best_path, ds)
+    with phase("uncertainty head"):
+        model, predictor, variance_fit = _best_map(cfg, s.seed, model, best_path, ds)
     hparams = {k: v for k, v in tracking.to_plain_lenient(model.hparams).items() if k not in ("image_shape", "arena")}
-    calibration, test_metrics, test_pred = _evaluate(cfg, s, model, predictor, ds, variance_fit)
+    with phase("evaluate"):
+        calibration, test_metrics, test_pred = _evaluate(cfg, s, model, predictor, ds, variance_fit)
     metrics = _metrics(cfg, trainer, ckpt_cb, ds, fit_s, calibration, test_metrics)
     meta = {"kind": "perception_map", "dataset_id": ds.id, "dataset_name": ds.name, "seed": s.seed,
             "model": hparams, "trainer": tracking.to_plain(cfg.trainer),
@@ -160,6 +165,7 @@ def run(cfg) -> dict:
         line += f"; heading error mean {metrics['test_split']['heading']['mean_deg']:.2f} deg"
     print(f"[train] {name}-{id_}: test MAE px ({line}); {metrics['epochs']} epochs in {fit_s:.0f} s "
           f"-> {final} ({time.perf_counter() - t_start:.0f} s total)")
+    record(f"train {name}")
     return {"id": id_, "name": name, "path": str(final), "skipped": False, "metrics": metrics,
             "epochs": len(curves)}
 

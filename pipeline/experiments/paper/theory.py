@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from types import SimpleNamespace
 from typing import Annotated, ClassVar
 
 import numpy as np
@@ -19,6 +20,7 @@ from pipeline.experiments.results import Results, summarise
 from pipeline.experiments.scenario import Points, Scenario, practical_success
 from pipeline.schema import Interval, NonEmpty, NonNegative, Positive, PositiveInt, Range
 from pipeline.sim import simulate, starts
+from pipeline.sim.disturbances import PerAgent
 from pipeline.sim.metrics import wilson
 from pipeline.sim.settings import FailureRate, TimeModel
 
@@ -103,32 +105,46 @@ class RobustnessSweep(Scenario):
         return {"controllers": list(self.controllers), "disturbances": list(self.disturbances), "occlusions": []}
 
     def sweep(self, ctx: Context, scene, label: str) -> pd.DataFrame:
+        """One row per (disturbance, ε, controller). Every ε > 0 of a disturbance runs in one batch per controller
+        (`PerAgent`: each start keeps its own ε, and its arc is the one a run of its own gives); ε = 0 runs
+        alone (the undisturbed loop is integrated without frames)."""
         n = ctx.n(self.n_agents)
+        x0 = {eps: starts.NearK(n=n, seed=ctx.seed, band=max(eps, self.min_band), a_range=list(self.a_range))(scene)
+              for eps in self.eps}
         rows = []
         for dist in self.disturbances:
-            for eps in self.eps:
-                ctx.label = f"{label} {dist} eps={eps:g}"
-                band = max(eps, self.min_band)
-                x0 = starts.NearK(n=n, seed=ctx.seed, band=band, a_range=list(self.a_range))(scene)
+            for group in ([e for e in self.eps if e == 0], [e for e in self.eps if e > 0]):
+                if not group:
+                    continue
+                ctx.label = f"{label} {dist} eps={','.join(f'{e:g}' for e in group)}"
+                d = None if group[0] == 0 else PerAgent([ctx.disturbance(dist, eps=e) for e in group], [n] * len(group))
                 for ctrl in self.controllers:
-                    d = ctx.disturbance(dist, eps=eps) if eps > 0 else None
-                    res = ctx.simulate(ctx.controller(ctrl, scene=scene), x0, scene=scene, disturbance=d, record=False,
-                                       model=self.time_model)
-                    s, c = int(res.metrics["success"].sum()), int(res.metrics["collision"].sum())
-                    sp = int(practical_success(res, ctx.delta, eps).sum())
-                    lo, hi = wilson(s, n)
-                    plo, phi = wilson(sp, n)
-                    rows.append({"scene": label, "disturbance": dist, "eps": eps, "controller": ctrl, "n": n,
-                                 "success_rate": s / n, "success_lo": float(lo), "success_hi": float(hi),
-                                 "practical_success_rate": sp / n, "practical_lo": float(plo),
-                                 "practical_hi": float(phi), "collision_rate": c / n,
-                                 "stalled": float(np.mean(res.metrics["outcome"] == "stalled")),
-                                 "mean_jumps": float(res.metrics["jumps"].mean())})
-        return pd.DataFrame(rows)
+                    res = ctx.simulate(ctx.controller(ctrl, scene=scene), np.concatenate([x0[e] for e in group]),
+                                       scene=scene, disturbance=d, record=False, model=self.time_model)
+                    for k, eps in enumerate(group):
+                        m = {key: np.asarray(v)[k * n:(k + 1) * n] for key, v in res.metrics.items()
+                             if np.ndim(v) and len(v) == len(group) * n}
+                        rows.append(self._row(label, dist, eps, ctrl, n, m, ctx.delta))
+        order = {(d, e, c): i for i, (d, e, c) in enumerate((d, e, c) for d in self.disturbances for e in self.eps
+                                                             for c in self.controllers)}
+        return pd.DataFrame(sorted(rows, key=lambda r: order[(r["disturbance"], r["eps"], r["controller"])]))
+
+    @staticmethod
+    def _row(label: str, dist: str, eps: float, ctrl: str, n: int, m: dict, delta: float) -> dict:
+        s, c = int(m["success"].sum()), int(m["collision"].sum())
+        sp = int(practical_success(SimpleNamespace(metrics=m), delta, eps).sum())
+        lo, hi = wilson(s, n)
+        plo, phi = wilson(sp, n)
+        return {"scene": label, "disturbance": dist, "eps": eps, "controller": ctrl, "n": n,
+                "success_rate": s / n, "success_lo": float(lo), "success_hi": float(hi),
+                "practical_success_rate": sp / n, "practical_lo": float(plo), "practical_hi": float(phi),
+                "collision_rate": c / n, "stalled": float(np.mean(m["outcome"] == "stalled")),
+                "mean_jumps": float(m["jumps"].mean())}
 
     def runs(self) -> int:
-        """Simulations of one sweep (the progress total): disturbance x eps x controller."""
-        return len(self.disturbances) * len(self.eps) * len(self.controllers)
+        """Simulations of one sweep (the progress total): disturbance x (ε = 0, every ε > 0) x controller."""
+        groups = int(any(e == 0 for e in self.eps)) + int(any(e > 0 for e in self.eps))
+        return len(self.disturbances) * groups * len(self.controllers)
 
     def compute(self, ctx: Context) -> Results:
         ctx.expect(self.runs())

@@ -1,0 +1,161 @@
+"""Stage jobs of `make paper` run side by side (issue 30): `workers` processes at a time, each on its share of the
+cores, each job's wall and CPU time measured, and the profile of the run written beside the paper's index.
+
+On a 2-core CPU two single-threaded jobs do more than one job on two threads: the maps are small convolutions and
+the closed loops are mostly Python, so a second thread adds little to one job (`make bench`, section `jobs`).
+With one worker a job's output streams to the terminal as before; with several, each job writes
+`<log_dir>/<label>.log` and the orchestrator prints one line when a job starts and one when it ends (and the
+log's last lines when it fails). Jobs start longest first, by the walls the previous run's profile recorded.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from pipeline.errors import PipelineError
+from pipeline.profiling import ENV as PROFILE_ENV
+
+TAIL_LINES = 25  # lines of a failed job's log printed with its failure
+
+
+@dataclass(frozen=True)
+class Job:
+    """`python -m pipeline.<stage> <argv>` (or `python -m <module> <argv>`), called `label` in the logs and the
+    profile."""
+
+    stage: str
+    argv: list[str]
+    label: str
+    module: str | None = None
+
+    @property
+    def command(self) -> list[str]:
+        return [sys.executable, "-m", self.module or f"pipeline.{self.stage}", *self.argv]
+
+
+@dataclass
+class Done:
+    job: Job
+    rc: int
+    wall: float
+    cpu: float
+    log: Path | None = None
+    phases: dict = field(default_factory=dict)
+
+
+def threads_per_job(workers: int) -> int:
+    """The cores each of `workers` side-by-side jobs gets (at least one)."""
+    return max(1, (os.cpu_count() or 1) // max(1, workers))
+
+
+def _env(threads: int | None, profile: Path | None) -> dict:
+    env = dict(os.environ)
+    if threads is not None:  # torch, OpenMP and BLAS read these when they start
+        env.update(OMP_NUM_THREADS=str(threads), MKL_NUM_THREADS=str(threads))
+    if profile is not None:
+        env[PROFILE_ENV] = str(profile)
+    return env
+
+
+def _reap(procs: dict) -> tuple[int, int, float] | None:
+    """Wait for any of `procs` (pid -> ...) to end: (pid, exit code, CPU seconds of that child), or None."""
+    try:
+        pid, status, usage = os.wait4(-1, 0)
+    except ChildProcessError:
+        return None
+    rc = os.waitstatus_to_exitcode(status)
+    return pid, rc, usage.ru_utime + usage.ru_stime
+
+
+def run_jobs(jobs: list[Job], *, workers: int, tag: str, stop: bool, log_dir: Path,
+             profile: Path | None = None, order: dict[str, float] | None = None) -> list[Done]:
+    """Run `jobs`, `workers` at a time (longest first by `order`: label -> expected seconds). A failure prints
+    its log's tail and raises `PipelineError` (`stop`: the other running jobs are ended first) or is returned.
+    Ctrl-C reaches every job (each says so in one line) and ends the run with exit code 130."""
+    from pipeline.cli import REPO_ROOT
+
+    order = order or {}
+    queue = deque(sorted(jobs, key=lambda j: -order.get(j.label, 0.0)))
+    parallel = workers > 1 and len(jobs) > 1
+    threads = threads_per_job(min(workers, len(jobs))) if parallel else None
+    env = _env(threads, profile)
+    if parallel:
+        log_dir.mkdir(parents=True, exist_ok=True)
+        print(f"[{tag}] {len(jobs)} jobs, {min(workers, len(jobs))} at a time on {threads} thread(s) each; "
+              f"logs in {log_dir}", flush=True)
+    running: dict[int, tuple[Job, subprocess.Popen, float, Path | None]] = {}
+    done: list[Done] = []
+    try:
+        while queue or running:
+            while queue and len(running) < (workers if parallel else 1):
+                job = queue.popleft()
+                cmd = job.command
+                log = log_dir / f"{job.label.replace(' ', '_')}.log" if parallel else None
+                if parallel:
+                    print(f"[{tag}] start {job.label}", flush=True)
+                    out = open(log, "w", encoding="utf-8")  # noqa: SIM115 - closed when the job ends
+                else:
+                    print(f"\n[{tag}] === {job.label}: {' '.join(cmd[1:])}", flush=True)
+                    out = None
+                proc = subprocess.Popen(cmd, cwd=REPO_ROOT, env=env, stdout=out, stderr=subprocess.STDOUT if out else None)
+                if out is not None:
+                    out.close()
+                running[proc.pid] = (job, proc, time.perf_counter(), log)
+            reaped = _reap(running)
+            if reaped is None or reaped[0] not in running:
+                continue
+            pid, rc, cpu = reaped
+            job, proc, t0, log = running.pop(pid)
+            proc.returncode = rc  # reaped here: Popen must not wait for it again
+            d = Done(job, rc, time.perf_counter() - t0, cpu, log)
+            done.append(d)
+            if parallel:
+                print(f"[{tag}] {'done' if rc == 0 else 'FAILED'} {job.label}: {d.wall:.0f} s wall, "
+                      f"{d.cpu:.0f} s CPU ({len(done)}/{len(jobs)})", flush=True)
+            if rc == 130:
+                raise KeyboardInterrupt
+            if rc != 0:
+                if log is not None:
+                    tail = log.read_text(encoding="utf-8", errors="replace").splitlines()[-TAIL_LINES:]
+                    print("\n".join(f"    {line}" for line in tail), flush=True)
+                msg = (f"stage {job.stage} failed for {job.label} (exit {rc}); fix it and re-run `make {tag}` "
+                       "(done stages are re-used)")
+                if stop:
+                    _end(running)
+                    raise PipelineError(msg)
+                print(f"[{tag}] {msg}", flush=True)
+    except KeyboardInterrupt:  # the jobs got the Ctrl-C too and said so in their one line: say nothing more
+        _end(running)
+        raise SystemExit(130) from None
+    return done
+
+
+def _end(running: dict) -> None:
+    for _job, proc, _t0, _log in running.values():
+        proc.terminate()
+    for _job, proc, _t0, _log in running.values():
+        try:
+            proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+    running.clear()
+
+
+def read_phases(profile: Path) -> dict[str, dict]:
+    """The phases each job recorded in `profile` (JSON lines of :func:`pipeline.profiling.record`), by job name."""
+    out: dict[str, dict] = {}
+    if profile.is_file():
+        for line in profile.read_text(encoding="utf-8").splitlines():
+            try:
+                row = json.loads(line)
+            except ValueError:
+                continue
+            out[row["job"]] = row
+    return out

@@ -1,0 +1,101 @@
+"""The profile of a `make paper` run (issue 30): by stage and by job, wall and CPU time and what dominates.
+
+`Runner.stage` runs a stage's jobs side by side (:mod:`pipeline.jobs`) and keeps each job's wall and CPU time;
+the jobs record their own phases (:mod:`pipeline.profiling`: rendering and inference inside the closed loops,
+computing and drawing a bundle, fitting a map, ...). `write_profile` joins both into `profile.md` (a table a
+reader can quote: every later speed claim names its row) and `profile.json` (the walls, which the next run uses
+to start the longest jobs first) in the paper's folder.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+
+import pandas as pd
+
+from pipeline.experiments.report import markdown_table
+from pipeline.jobs import Done, Job, read_phases, run_jobs
+
+NESTED = ("render", "inference")  # phases timed inside another (the closed loop's frames inside `compute`)
+COLUMNS = ("stage", "job", "wall s", "CPU s", "CPU / wall", "start-up and rest", "fit", "uncertainty head",
+           "evaluate", "error fields", "compute", "render", "inference", "draw", "cached")  # others follow
+
+
+class Runner:
+    """Runs the stages of one `make paper` (or `make multi`) and profiles them."""
+
+    def __init__(self, cfg, timings: dict[str, float], stop: bool, tag: str = "paper"):
+        self.paper_dir = Path(cfg.paths.paper_dir)
+        self.name = Path(str(cfg.lock)).stem.removesuffix(".lock")  # paper, multi, ...
+        self.workers = int(cfg.get("workers") or os.cpu_count() or 1)
+        self.timings, self.stop, self.tag = timings, stop, tag
+        self.log_dir = _log_dir(self.paper_dir)
+        self.phases_file = self.log_dir / "phases.jsonl"
+        self.done: list[tuple[str, Done]] = []
+
+    def _order(self) -> dict[str, float]:
+        try:
+            return json.loads((self.paper_dir / f"{self.name}.profile.json").read_text())["walls"]
+        except (OSError, ValueError, KeyError):
+            return {}
+
+    def stage(self, stage: str, jobs: list[Job]) -> bool:
+        """Run `jobs` (`self.workers` at a time); the stage's elapsed wall goes to `timings[stage]`."""
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        t0 = time.perf_counter()
+        done = run_jobs(jobs, workers=self.workers, tag=self.tag, stop=self.stop, log_dir=self.log_dir,
+                        profile=self.phases_file, order=self._order())
+        self.timings[stage] = self.timings.get(stage, 0.0) + time.perf_counter() - t0
+        self.done += [(stage, d) for d in done]
+        return all(d.rc == 0 for d in done)
+
+    def table(self) -> pd.DataFrame:
+        phases = read_phases(self.phases_file)
+        rows = []
+        for stage, d in self.done:
+            rec = phases.get(d.job.label, {})
+            ph = rec.get("phases", {})
+            row = {"stage": stage, "job": d.job.label, "wall s": d.wall, "CPU s": d.cpu,
+                   "CPU / wall": d.cpu / d.wall if d.wall else float("nan")}
+            row.update({k: v for k, v in ph.items()})
+            row["start-up and rest"] = d.wall - sum(v for k, v in ph.items() if k not in NESTED)
+            if "cached" in rec:
+                row["cached"] = rec["cached"]
+            rows.append(row)
+        df = pd.DataFrame(rows)
+        return df[[c for c in COLUMNS if c in df] + [c for c in df if c not in COLUMNS]]
+
+    def write_profile(self, total: float) -> Path | None:
+        """`<name>.profile.md` and `.json` in the paper's folder (nothing when no job ran)."""
+        if not self.done:
+            return None
+        table = self.table()
+        self.paper_dir.mkdir(parents=True, exist_ok=True)
+        stages = ", ".join(f"{k} {v:.0f} s" for k, v in self.timings.items())
+        md = [f"# Profile of `make {self.name}`", "",
+              f"{total / 60:.1f} min in all ({stages}); {self.workers} job(s) side by side on "
+              f"{os.cpu_count()} cores. Seconds per job: wall and CPU (all its threads), and the phases it "
+              "timed (render and inference are inside compute: the closed loop's camera frames); "
+              "`start-up and rest` is the wall outside the timed phases (imports, config, loading, writing).", "",
+              markdown_table(table.round(1)), "",
+              f"Job logs: `{self.log_dir}`.", ""]
+        path = self.paper_dir / f"{self.name}.profile.md"
+        path.write_text("\n".join(md))
+        walls = {**self._order(), **{d.job.label: round(d.wall, 1) for _s, d in self.done}}
+        (self.paper_dir / f"{self.name}.profile.json").write_text(
+            json.dumps({"total_s": round(total, 1), "stages": self.timings, "walls": walls}, indent=2) + "\n")
+        print(f"[{self.tag}] profile: {path}", flush=True)
+        return path
+
+
+def _log_dir(paper_dir: Path) -> Path:
+    """The paper job's Hydra run folder when there is one (its logs beside its config), else beside the paper."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        return Path(HydraConfig.get().runtime.output_dir) / "jobs"
+    except Exception:  # noqa: BLE001 - not under @hydra.main
+        return paper_dir.parent / "runs" / "jobs"

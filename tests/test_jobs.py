@@ -1,0 +1,110 @@
+"""Jobs side by side (`pipeline.jobs`, issue 30) and the profile of a run (`pipeline.paper_profile`).
+
+The jobs are small Python modules written to a temporary folder (on PYTHONPATH): they report what they see
+(their thread budget, each other) through files, so every property is checked without timing anything.
+"""
+
+from __future__ import annotations
+
+import json
+import textwrap
+from types import SimpleNamespace
+
+import pytest
+
+from pipeline import jobs as jobs_mod
+from pipeline.errors import PipelineError
+from pipeline.jobs import Job, read_phases, run_jobs, threads_per_job
+from pipeline.paper_profile import Runner
+
+CHILD = textwrap.dedent('''
+    import os, sys, time
+    from pathlib import Path
+    from pipeline.profiling import phase, record
+    out, me, other, rc = Path(sys.argv[1]), sys.argv[2], sys.argv[3], int(sys.argv[4])
+    with phase("compute"):
+        (out / f"{me}.threads").write_text(os.environ.get("OMP_NUM_THREADS", "unset"))
+        with open(out / "order.txt", "a") as fh:
+            fh.write(me + "\\n")
+        if other != "-":  # wait for the other job's marker: only jobs that run side by side both finish
+            (out / f"{me}.started").write_text("")
+            t0 = time.time()
+            while not (out / f"{other}.started").exists():
+                if time.time() - t0 > 60:
+                    sys.exit(5)
+                time.sleep(0.02)
+    print(f"{me}: the last line of my log")
+    record(f"job {me}", cached=False)
+    sys.exit(rc)
+''')
+
+
+@pytest.fixture
+def child(tmp_path, monkeypatch):
+    pkg = tmp_path / "mods"
+    pkg.mkdir()
+    (pkg / "fake_stage.py").write_text(CHILD)
+    monkeypatch.setenv("PYTHONPATH", f"{pkg}")
+    out = tmp_path / "out"
+    out.mkdir()
+
+    def job(me, other="-", rc=0):
+        return Job("fake", [str(out), me, other, str(rc)], f"job {me}", module="fake_stage")
+
+    return job, out
+
+
+def test_two_workers_run_side_by_side_on_their_share_of_the_cores(child, tmp_path):
+    job, out = child
+    done = run_jobs([job("a", "b"), job("b", "a")], workers=2, tag="t", stop=True, log_dir=tmp_path / "logs")
+    assert sorted(d.job.label for d in done) == ["job a", "job b"] and all(d.rc == 0 for d in done)
+    assert (out / "a.threads").read_text() == str(threads_per_job(2))
+    assert all(d.log is not None and "the last line of my log" in d.log.read_text() for d in done)
+    assert all(d.wall > 0 and d.cpu > 0 for d in done)
+
+
+def test_one_worker_keeps_every_core_and_runs_the_longest_job_first(child, tmp_path):
+    job, out = child
+    run_jobs([job("short"), job("long")], workers=1, tag="t", stop=True, log_dir=tmp_path / "logs",
+             order={"job long": 100.0, "job short": 1.0})
+    assert (out / "order.txt").read_text().split() == ["long", "short"]
+    assert (out / "long.threads").read_text() == "unset"  # one job at a time: the process's own default
+
+
+def test_a_failed_job_raises_with_its_label_and_its_log_tail(child, tmp_path, capsys):
+    job, _ = child
+    with pytest.raises(PipelineError, match="job bad"):
+        run_jobs([job("good"), job("bad", rc=3)], workers=2, tag="t", stop=True, log_dir=tmp_path / "logs")
+    assert "bad: the last line of my log" in capsys.readouterr().out
+
+
+def test_without_stop_a_failure_is_returned_and_the_others_finish(child, tmp_path):
+    job, _ = child
+    done = run_jobs([job("bad", rc=3), job("good")], workers=2, tag="t", stop=False, log_dir=tmp_path / "logs")
+    assert {d.job.label: d.rc for d in done} == {"job bad": 3, "job good": 0}
+
+
+def test_the_profile_joins_walls_and_the_phases_each_job_recorded(child, tmp_path, monkeypatch):
+    job, _ = child
+    monkeypatch.setattr("pipeline.paper_profile._log_dir", lambda paper_dir: tmp_path / "logs")
+    cfg = SimpleNamespace(paths=SimpleNamespace(paper_dir=str(tmp_path / "paper")), lock="paper.lock.yaml",
+                          get=lambda key, default=None: {"workers": 2}.get(key, default))
+    timings: dict[str, float] = {}
+    runner = Runner(cfg, timings, stop=True)
+    assert runner.stage("experiments", [job("a", "b"), job("b", "a")])
+    phases = read_phases(runner.phases_file)
+    assert set(phases) == {"job a", "job b"} and "compute" in phases["job a"]["phases"]
+    table = runner.table()
+    row = table.set_index("job").loc["job a"]
+    assert row["start-up and rest"] == pytest.approx(row["wall s"] - row["compute"])
+    assert 0 <= row["compute"] <= row["wall s"]
+    path = runner.write_profile(total=timings["experiments"])
+    assert "| experiments | job a |" in path.read_text()
+    walls = json.loads((tmp_path / "paper" / "paper.profile.json").read_text())["walls"]
+    assert set(walls) == {"job a", "job b"}
+    assert runner._order() == walls  # the next run starts the longest job first
+
+
+def test_threads_per_job_never_drops_below_one(monkeypatch):
+    monkeypatch.setattr(jobs_mod.os, "cpu_count", lambda: 2)
+    assert [threads_per_job(w) for w in (1, 2, 3, 8)] == [2, 1, 1, 1]
