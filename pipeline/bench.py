@@ -40,6 +40,28 @@ def ceiling_gflops(device: str = "cpu", quick: bool = False) -> float:
     return 2 * n**3 / best / 1e9
 
 
+def _worker(fn, args, threads: int, barrier, queue) -> None:
+    torch.set_num_threads(threads)
+    barrier.wait()  # every worker starts its timed work together
+    queue.put(fn(*args))
+
+
+def side_by_side(fn, args: tuple, workers: int = 2, threads: int = 1) -> list:
+    """`fn(*args)` in `workers` processes at once, `threads` torch threads each (how `make paper` runs its jobs:
+    `pipeline.jobs`); the list of their results. `fn` must be importable (a module-level function)."""
+    import multiprocessing as mp
+
+    ctx = mp.get_context("spawn")
+    barrier, queue = ctx.Barrier(workers), ctx.Queue()
+    procs = [ctx.Process(target=_worker, args=(fn, args, threads, barrier, queue)) for _ in range(workers)]
+    for p in procs:
+        p.start()
+    out = [queue.get() for _ in procs]
+    for p in procs:
+        p.join()
+    return out
+
+
 def ceiling_rows(quick: bool = False) -> list[dict]:
     rows = []
     for dev in ["cpu"] + (["cuda"] if torch.cuda.is_available() else []):

@@ -539,7 +539,7 @@ def test_paper_keeps_its_maps_when_a_quick_experiment_trains_another(tmp_path):
     root = tmp_path / "root"
     data = ["data.splits.train=256", "data.splits.val=32", "data.splits.test=32"]
     q = lambda xs: "[" + ",".join(f"'{x}'" for x in xs) + "]"  # noqa: E731 - quoted override list
-    args = [f"paths.root_dir={root}", "datasets=[clean]", "maps=[clean]", "errormaps=[clean]",
+    args = [f"paths.root_dir={root}", "datasets=[clean]", "maps=[clean_keypoint]", "errormaps=[clean_keypoint]",
             "experiments=[perception_closeness]", f"args.data={q(data)}",
             f"args.train={q(['trainer=debug', 'eval_levels=[none]', *data])}",
             f"args.errormap={q(['grid.step=4.0', 'occlusion_levels=[none]', 'train_samples=64'])}",
@@ -547,8 +547,8 @@ def test_paper_keeps_its_maps_when_a_quick_experiment_trains_another(tmp_path):
     first = _cli("pipeline.paper", *args, timeout=900)
     assert first.returncode == 0, first.stderr[-3000:]
     lock = yaml.safe_load((root / "outputs" / "paper" / "paper.lock.yaml").read_text())
-    map_folder = lock["maps"]["clean"]["folder"]
-    side = _cli("pipeline.train", "data=clean", "trainer=debug", "datamodule.limit_train_samples=64", "eval_levels=[none]",
+    map_folder = lock["maps"]["clean_keypoint"]["folder"]
+    side = _cli("pipeline.train", "data=clean", "model=keypoint", "trainer=debug", "datamodule.limit_train_samples=64", "eval_levels=[none]",
                 *data, f"paths.root_dir={root}", f"hydra.run.dir={tmp_path / 'side'}", timeout=600)
     assert side.returncode == 0, side.stderr[-2000:]
     assert len(list((root / "outputs" / "models").glob(f"{map_folder.rsplit('-', 1)[0]}-*"))) == 2
@@ -560,7 +560,7 @@ def test_paper_keeps_its_maps_when_a_quick_experiment_trains_another(tmp_path):
     assert again.stdout.count("; not started") == 4, again.stdout[-3000:]
     assert figure.stat().st_mtime_ns == drawn
     lock2 = yaml.safe_load((root / "outputs" / "paper" / "paper.lock.yaml").read_text())
-    assert lock2["maps"]["clean"]["folder"] == map_folder
+    assert lock2["maps"]["clean_keypoint"]["folder"] == map_folder
     assert lock2["experiments"] == lock["experiments"]  # nothing recomputed with the side map
     index = (root / "outputs" / "paper" / "index.md").read_text()
     assert map_folder in index and "paper.lock.yaml" in index

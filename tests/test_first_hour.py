@@ -119,7 +119,7 @@ def test_every_bench_area_imports_and_its_maps_predict_positions():
     ("pipeline.experiments", ["experiment=robustness_sweep", "scale=-1"], "scale"),
     ("pipeline.data", ["data.seed=-1"], "data.seed"),
     ("pipeline.train", ["data=clean"], "dataset clean-"),  # a missing input, too
-    ("pipeline.experiments", ["experiment=noise_failure"], "perception map 'clean'"),  # a missing map
+    ("pipeline.experiments", ["experiment=noise_failure"], "perception map 'clean_keypoint'"),  # a missing map
     ("pipeline.paper", ["debug=huge"], "debug"),
 ])
 def test_config_errors_answer_before_torch_is_imported(tmp_path, module, args, field):
@@ -299,7 +299,7 @@ def test_a_follower_farther_than_the_arena_diagonal_is_rejected(tmp_path):
 
 def test_the_missing_map_hint_of_the_experiments_stage_is_a_valid_override(tmp_path):
     """The experiments stage's `maps` is a mapping: the hint must say `maps.clean=<name-id>` (`maps=<...>` crashed)."""
-    side = tmp_path / "outputs" / "models" / "clean-aaaaaaaaaa"
+    side = tmp_path / "outputs" / "models" / "clean_keypoint-aaaaaaaaaa"
     side.mkdir(parents=True)
     (side / "manifest.json").write_text('{"id": "aaaaaaaaaa", "created": "1"}')
     proc = _cli("pipeline.experiments", "experiment=noise_failure", f"paths.root_dir={tmp_path}")
@@ -414,12 +414,12 @@ def test_debug_tiny_shrinks_every_stage_and_each_finds_the_tiny_upstream_by_id()
 
 
 def test_a_name_resolves_to_the_map_of_the_same_debug_size(tmp_path):
-    """In a `debug=tiny` run, `maps.clean=clean` means the tiny map (and the hint says so)."""
+    """In a `debug=tiny` run, `maps.clean=clean_keypoint` means the tiny map (and the hint says so)."""
     from pipeline.experiments.context import Context
     from pipeline.lineage import expected_map_id
 
-    tiny = expected_map_id("clean", ["debug=tiny"])
-    folder = tmp_path / "outputs" / "models" / f"clean-{tiny}"
+    tiny = expected_map_id("clean_keypoint", ["debug=tiny"])
+    folder = tmp_path / "outputs" / "models" / f"clean_keypoint-{tiny}"
     folder.mkdir(parents=True)
     (folder / "manifest.json").write_text(json.dumps({"id": tiny, "created": "1"}))
     ctx = Context(compose("experiments", ["experiment=noise_failure", "debug=tiny", f"paths.root_dir={tmp_path}"]))
@@ -427,9 +427,9 @@ def test_a_name_resolves_to_the_map_of_the_same_debug_size(tmp_path):
     big = Context(compose("experiments", ["experiment=noise_failure", f"paths.root_dir={tmp_path}"]))
     from pipeline.errors import ModelError
 
-    with pytest.raises(ModelError, match="python -m pipeline.train data=clean"):
+    with pytest.raises(ModelError, match="python -m pipeline.train data=clean model=keypoint"):
         big.map_folder("clean")
-    with pytest.raises(ModelError, match="python -m pipeline.train data=occluded debug=tiny"):
+    with pytest.raises(ModelError, match="python -m pipeline.train data=occluded model=keypoint debug=tiny"):
         ctx.map_folder("occluded")
 
 

@@ -29,7 +29,7 @@ class Coverage:
     """Assumption 1's coverage set: radius `r_cov` (null: unlimited), which estimate of `L` enters it, the ε sweep
     and the ε values whose coverage sets are drawn."""
 
-    r_cov: Positive | None = 1.0
+    r_cov: Positive | None = 2.0
     lipschitz: Literal["max", "p99"] = "max"
     eps: Annotated[list[NonNegative], NonEmpty()] | None = None
     eps_marks: list[NonNegative] | None = None

@@ -17,7 +17,7 @@ class ExperimentSettings:
     folder | true: the paper folder | auto; docs/experiments.md)."""
 
     perception: Literal["cnn", "oracle"] = "cnn"
-    maps: dict[str, str] = field(default_factory=lambda: {"clean": "clean", "occluded": "occluded",
+    maps: dict[str, str] = field(default_factory=lambda: {"clean": "clean_keypoint", "occluded": "occluded_keypoint",
                                                           "authors": "authors", "clean_paper": "clean_paper",
                                                           "field_heavy": "field_heavy_keypoint",
                                                           "unicycle_pose": "unicycle_pose",

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from torch.utils.data import BatchSampler, DataLoader, RandomSampler
 
-from pipeline.bench import ceiling_gflops
+from pipeline.bench import ceiling_gflops, side_by_side
 from pipeline.config import build, compose
 from pipeline.perception import bench as infer_bench
 from pipeline.perception.network import PerceptionMap
@@ -78,6 +78,41 @@ def _maps():
     yield "plain 32/64/128", lambda: PerceptionMap(filters=(32, 64, 128), **plain)
 
 
+def job_rate(kind: str, model_overrides: tuple[str, ...], batch: int, steps: int, seed: int = 0) -> float:
+    """img/s of one training job (`kind`: raw | lightning) of the map `python -m pipeline.train <overrides>`
+    builds, on random images (what `side_by_side` runs in each worker)."""
+    torch.manual_seed(seed)
+    model = build(compose("train", list(model_overrides)).model, "model")
+    images, pos = _data(batch * 8, seed)
+    return (raw_loop if kind == "raw" else lightning_fit)(model, images, pos, batch, steps)
+
+
+def schedule_rows(quick: bool = False) -> list[dict]:
+    """Training as `make paper` runs it (docs/speed.md): two jobs side by side on one thread each, at the
+    training batch, for make paper's map (keypoint head) and the paper's network (`model=paper`, batch 128 of
+    `trainer=paper`), beside one job on every core; aggregate img/s as a share of the fp32 ceiling."""
+    peak = ceiling_gflops("cpu", quick)
+    steps = 3 if quick else 60
+    rows = []
+    for tag, overrides, batch in (("make paper's map (keypoint head)", ("model=keypoint",), 32),
+                                  ("paper's network (model=paper)", ("model=paper",), 128)):
+        flops = 3 * build(compose("train", list(overrides)).model, "model").flops_per_image()
+        alone = job_rate("raw", overrides, batch, steps)
+        raw = sum(side_by_side(job_rate, ("raw", overrides, batch, steps)))
+        lit = sum(side_by_side(job_rate, ("lightning", overrides, batch, steps)))
+        rows += [
+            {"section": "train", "case": f"{tag}, batch {batch}: one raw loop on every core", "value": alone,
+             "unit": "img/s", "note": f"{flops * alone / 1e9 / peak:.0%} of ceiling"},
+            {"section": "train", "case": f"{tag}, batch {batch}: 2 raw loops side by side (1 thread each)",
+             "value": raw, "unit": "img/s", "note": f"sum of both; {raw / alone:.2f}x one loop on every core"},
+            {"section": "train", "case": f"{tag}, batch {batch}: 2 Lightning fits side by side", "value": lit,
+             "unit": "img/s", "note": f"Lightning / raw {lit / raw:.2f}x (target >= 0.90x)"},
+            {"section": "train", "case": f"cpu: training side by side / ceiling, {tag}", "value": flops * lit / 1e9 / peak,
+             "unit": "x", "note": "target >= 0.60x (3x fwd FLOPs)"},
+        ]
+    return rows
+
+
 def bench(quick: bool = False) -> list[dict]:
     torch.set_num_threads(torch.get_num_threads())
     batch, steps = (64, 3) if quick else (128, 40)
@@ -101,4 +136,4 @@ def bench(quick: bool = False) -> list[dict]:
             {"section": "train", "case": f"cpu: training / ceiling, {tag}", "value": gflops / peak, "unit": "x",
              "note": "target >= 0.60x" if tag.startswith("default") else ""},
         ]
-    return rows + infer_bench.bench(quick=quick, ceiling=lambda dev: ceiling_gflops(dev, quick))
+    return rows + schedule_rows(quick) + infer_bench.bench(quick=quick, ceiling=lambda dev: ceiling_gflops(dev, quick))
