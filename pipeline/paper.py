@@ -28,7 +28,6 @@ from pipeline.config import compose, settings
 from pipeline.errors import ConfigError, PipelineError
 from pipeline.experiments.report import write_index
 from pipeline.jobs import Job
-from pipeline.paper_profile import Runner
 from pipeline.lineage import (
     dataset_identity,
     debug_overrides,
@@ -37,6 +36,7 @@ from pipeline.lineage import (
     map_recipe,
     write_lock,
 )
+from pipeline.paper_profile import Runner
 from pipeline.schema import NonEmpty, Option, Pattern, PositiveInt
 
 

@@ -18,7 +18,6 @@ from __future__ import annotations
 import copy
 import json
 import logging
-import os
 import shutil
 import sys
 import time
@@ -37,12 +36,12 @@ from pipeline.data import open_dataset
 from pipeline.errors import ConfigError, ModelError, PipelineError
 from pipeline.lineage import debug_overrides, rerun_command, resolve_dataset, train_dataset_id
 from pipeline.perception.maps import PerceptionMapPredictor, resolve_device
+from pipeline.profiling import phase, record
 from pipeline.train.certified import CertifiedTerm
 from pipeline.train.checks import check
 from pipeline.train.evaluate import evaluate, fit_clean_gate
 from pipeline.train.figures import curves as plot_curves
 from pipeline.train.figures import scatter
-from pipeline.profiling import phase, record
 from pipeline.train.settings import UncertaintyEval
 from pipeline.train.uncertainty import calibrate, fit_variance_head
 
