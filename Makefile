@@ -48,8 +48,8 @@ data: $(STAMP) ## render the tracked camera datasets (clean, occluded, leader_fo
 verify-data: $(STAMP) ## re-hash every dataset and report missing/altered files
 	$(PY) -m pipeline.data.verify $(ARGS)
 
-train: $(STAMP) ## train the perception maps on clean and occluded data
-	$(PY) -m pipeline.train -m data=clean,occluded $(ARGS)
+train: $(STAMP) ## train make paper's perception maps (keypoint head) on clean and occluded data (make run trains them side by side)
+	$(PY) -m pipeline.train -m data=clean,occluded model=keypoint $(ARGS)
 
 errormap: $(STAMP) ## epsilon-error maps, Lipschitz estimate and Assumption-1 coverage
 	$(PY) -m pipeline.errormap $(ARGS)

@@ -47,7 +47,7 @@ class Dean:
 @checked("")
 @dataclass(frozen=True)
 class ErrorMapSettings:
-    maps: str | Annotated[list[str], NonEmpty()] = field(default_factory=lambda: ["clean", "occluded"])
+    maps: str | Annotated[list[str], NonEmpty()] = field(default_factory=lambda: ["clean_keypoint", "occluded_keypoint"])
     occlusion_levels: str | Annotated[list[str], NonEmpty(distinct=True)] = field(
         default_factory=lambda: ["none", "heavy"])
     grid: Grid = field(default_factory=Grid)

@@ -21,7 +21,7 @@ class UncertaintyEval:
     gate_px: Positive = 3.0
     clean_false_alarm: OpenShare = 0.1
     gate_per_val: NonNegativeInt = 3
-    gate_confidence: Annotated[float, Range(ge=0.5, lt=1)] = 0.95
+    gate_confidence: Annotated[float, Range(ge=0.5, lt=1)] = 0.99
 
 
 @checked("")
