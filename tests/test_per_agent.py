@@ -22,7 +22,8 @@ def scene() -> Scene:
 
 
 def _run(scene, ctrl, x0, dist, model):
-    return simulate(scene, ctrl, x0, disturbance=dist, dt=0.01, horizon=8.0, camera_period=0.05, seed=0,
+    # a short horizon: the arcs near K under the adversary are where the batch could differ (and the costly part)
+    return simulate(scene, ctrl, x0, disturbance=dist, dt=0.01, horizon=1.5, camera_period=0.05, seed=0,
                     record=False, model=model)
 
 
@@ -30,9 +31,9 @@ def _run(scene, ctrl, x0, dist, model):
 @pytest.mark.parametrize("cls", [HybridController, SmoothController])
 def test_a_batch_of_conditions_equals_the_runs_of_each(scene, model, cls):
     ctrl = cls(scene=scene)
-    groups = [(Adversarial(0.25), NearK(n=5, seed=0, band=0.25)(scene)),
-              (Adversarial(1.0), NearK(n=5, seed=1, band=1.0)(scene)),
-              (Alternating(0.5), NearK(n=4, seed=2, band=0.5)(scene))]
+    groups = [(Adversarial(0.25), NearK(n=3, seed=0, band=0.25, a_range=[-14.0, -12.0])(scene)),
+              (Adversarial(1.0), NearK(n=3, seed=1, band=1.0, a_range=[-14.0, -12.0])(scene)),
+              (Alternating(0.5), NearK(n=2, seed=2, band=0.5, a_range=[-14.0, -12.0])(scene))]
     batch = _run(scene, ctrl, np.concatenate([x for _, x in groups]),
                  PerAgent([d for d, _ in groups], [len(x) for _, x in groups]), model)
     start = 0
