@@ -64,14 +64,22 @@ def _env(threads: int | None, profile: Path | None) -> dict:
     return env
 
 
+POLL = 0.05  # seconds between looks at the running jobs
+
+
 def _reap(procs: dict) -> tuple[int, int, float] | None:
-    """Wait for any of `procs` (pid -> ...) to end: (pid, exit code, CPU seconds of that child), or None."""
-    try:
-        pid, status, usage = os.wait4(-1, 0)
-    except ChildProcessError:
-        return None
-    rc = os.waitstatus_to_exitcode(status)
-    return pid, rc, usage.ru_utime + usage.ru_stime
+    """Wait for one of `procs` (pid -> ...) to end: (pid, exit code, CPU seconds of that child); None when none is
+    left. Only these pids are waited for: other children of the process (a test runner's) are left alone."""
+    while procs:
+        for pid in list(procs):
+            try:
+                done, status, usage = os.wait4(pid, os.WNOHANG)
+            except ChildProcessError:
+                return pid, -1, 0.0
+            if done:
+                return pid, os.waitstatus_to_exitcode(status), usage.ru_utime + usage.ru_stime
+        time.sleep(POLL)
+    return None
 
 
 def run_jobs(jobs: list[Job], *, workers: int, tag: str, stop: bool, log_dir: Path,
