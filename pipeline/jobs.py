@@ -1,8 +1,9 @@
 """Stage jobs of `make paper` run side by side (issue 30): `workers` processes at a time, each on its share of the
-cores, each job's wall and CPU time measured, and the profile of the run written beside the paper's index.
+cores, each job's wall and CPU time measured (`pipeline.paper_profile` writes them into the run's profile).
 
 On a 2-core CPU two single-threaded jobs do more than one job on two threads: the maps are small convolutions and
-the closed loops are mostly Python, so a second thread adds little to one job (`make bench`, section `jobs`).
+the closed loops are mostly Python, so a second thread adds little to one job (`make bench`: the rows "side by
+side" of the sections train and infer; docs/speed.md).
 With one worker a job's output streams to the terminal as before; with several, each job writes
 `<log_dir>/<label>.log` and the orchestrator prints one line when a job starts and one when it ends (and the
 log's last lines when it fails). Jobs start longest first, by the walls the previous run's profile recorded.
@@ -10,7 +11,6 @@ log's last lines when it fails). Jobs start longest first, by the walls the prev
 
 from __future__ import annotations
 
-import json
 import os
 import subprocess
 import sys
@@ -82,7 +82,7 @@ def _reap(procs: dict) -> tuple[int, int, float] | None:
     return None
 
 
-def run_jobs(jobs: list[Job], *, workers: int, tag: str, stop: bool, log_dir: Path,
+def run_jobs(jobs: list[Job], *, workers: int, tag: str, stop: bool, log_dir: Path | None = None,
              profile: Path | None = None, order: dict[str, float] | None = None) -> list[Done]:
     """Run `jobs`, `workers` at a time (longest first by `order`: label -> expected seconds). A failure prints
     its log's tail and raises `PipelineError` (`stop`: the other running jobs are ended first) or is returned.
@@ -92,6 +92,8 @@ def run_jobs(jobs: list[Job], *, workers: int, tag: str, stop: bool, log_dir: Pa
     order = order or {}
     queue = deque(sorted(jobs, key=lambda j: -order.get(j.label, 0.0)))
     parallel = workers > 1 and len(jobs) > 1
+    if parallel and log_dir is None:
+        raise ValueError("jobs side by side write logs: log_dir is needed")
     threads = threads_per_job(min(workers, len(jobs))) if parallel else None
     env = _env(threads, profile)
     if parallel:
@@ -154,16 +156,3 @@ def _end(running: dict) -> None:
         except subprocess.TimeoutExpired:
             proc.kill()
     running.clear()
-
-
-def read_phases(profile: Path) -> dict[str, dict]:
-    """The phases each job recorded in `profile` (JSON lines of :func:`pipeline.profiling.record`), by job name."""
-    out: dict[str, dict] = {}
-    if profile.is_file():
-        for line in profile.read_text(encoding="utf-8").splitlines():
-            try:
-                row = json.loads(line)
-            except ValueError:
-                continue
-            out[row["job"]] = row
-    return out

@@ -12,7 +12,6 @@ A smoke run (`debug=tiny`) writes its figures, index and lock to `outputs/debug/
 from __future__ import annotations
 
 import json
-import subprocess
 import sys
 import time
 from dataclasses import asdict, dataclass, field
@@ -23,11 +22,11 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from pipeline import tracking
-from pipeline.cli import CONF_DIR, REPO_ROOT, stage_main
+from pipeline.cli import CONF_DIR, stage_main
 from pipeline.config import compose, settings
 from pipeline.errors import ConfigError, PipelineError
 from pipeline.experiments.report import write_index
-from pipeline.jobs import Job
+from pipeline.jobs import Job, run_jobs
 from pipeline.lineage import (
     dataset_identity,
     debug_overrides,
@@ -102,24 +101,13 @@ def experiment_pins(experiments_cfg, map_refs: dict[str, str], em_refs: dict[str
 
 def run_stage(stage: str, argv: list[str], timings: dict, stop: bool, *, tag: str = "paper",
               label: str | None = None) -> bool:
-    """Run `python -m pipeline.<stage> <argv>` as its own Hydra job; its time goes to `timings[label or stage]`.
-    A failure raises (`stop`) or prints one line; `tag` names the orchestrator (`[paper]`, `make paper`)."""
-    cmd = [sys.executable, "-m", f"pipeline.{stage}", *argv]
-    print(f"\n[{tag}] === {label or stage}: {' '.join(cmd[1:])}", flush=True)
-    ts = time.perf_counter()
-    try:
-        proc = subprocess.run(cmd, cwd=REPO_ROOT, check=False)
-    except KeyboardInterrupt:  # Ctrl-C reached the stage too, which said so in its one line: say nothing more
-        raise SystemExit(130) from None
+    """Run `python -m pipeline.<stage> <argv>` alone, its output on the terminal (`make dagger`'s rounds); its time
+    goes to `timings[label or stage]`. A failure raises (`stop`) or prints one line (:func:`pipeline.jobs.run_jobs`)."""
     key = label or stage
+    ts = time.perf_counter()
+    done = run_jobs([Job(stage, argv, key)], workers=1, tag=tag, stop=stop)
     timings[key] = timings.get(key, 0.0) + time.perf_counter() - ts
-    if proc.returncode != 0:
-        msg = f"stage {stage} failed (exit {proc.returncode}); fix it and re-run `make {tag}` (done stages are re-used)"
-        if stop:
-            raise PipelineError(msg)
-        print(f"[{tag}] {msg}", flush=True)
-        return False
-    return True
+    return all(d.rc == 0 for d in done)
 
 
 def up_to_date(stage: str, expected) -> dict[str, Path] | None:

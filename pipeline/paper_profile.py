@@ -17,11 +17,12 @@ from pathlib import Path
 import pandas as pd
 
 from pipeline.experiments.report import markdown_table
-from pipeline.jobs import Done, Job, read_phases, run_jobs
+from pipeline.jobs import Done, Job, run_jobs
+from pipeline.profiling import read_phases
 
 NESTED = ("render", "inference")  # phases timed inside another (the closed loop's frames inside `compute`)
 COLUMNS = ("stage", "job", "wall s", "CPU s", "CPU / wall", "start-up and rest", "fit", "uncertainty head",
-           "evaluate", "error fields", "compute", "render", "inference", "draw", "cached")  # others follow
+           "evaluate", "train samples", "error fields", "compute", "render", "inference", "draw", "cached")  # others follow
 
 
 class Runner:

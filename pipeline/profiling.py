@@ -32,11 +32,6 @@ def phase(name: str):
         _TIMES[name] += time.perf_counter() - t0
 
 
-def phases() -> dict[str, float]:
-    """Seconds per phase since the process started (or since :func:`reset`)."""
-    return dict(_TIMES)
-
-
 def reset() -> None:
     _TIMES.clear()
 
@@ -49,3 +44,17 @@ def record(job: str, **extra) -> None:
         with open(path, "a", encoding="utf-8") as fh:  # one short line per write: appends do not interleave
             fh.write(line + "\n")
     reset()
+
+
+def read_phases(path) -> dict[str, dict]:
+    """What each job recorded in `path` (the JSON lines of :func:`record`), by job name; {} without the file."""
+    out: dict[str, dict] = {}
+    if os.path.isfile(path):
+        with open(path, encoding="utf-8") as fh:
+            for line in fh:
+                try:
+                    row = json.loads(line)
+                except ValueError:  # a line cut by a killed job
+                    continue
+                out[row["job"]] = row
+    return out

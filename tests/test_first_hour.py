@@ -240,7 +240,7 @@ def test_ctrl_c_during_make_paper_is_the_stage_s_one_line_only(monkeypatch, caps
     def interrupted_wait(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(sp, "run", interrupted_wait)
+    monkeypatch.setattr(sp, "Popen", interrupted_wait)
     with pytest.raises(SystemExit) as exit_:
         paper.run_stage("data", ["data=clean"], {}, stop=True)
     assert exit_.value.code == 130

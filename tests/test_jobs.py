@@ -15,8 +15,9 @@ import pytest
 
 from pipeline import jobs as jobs_mod
 from pipeline.errors import PipelineError
-from pipeline.jobs import Job, read_phases, run_jobs, threads_per_job
+from pipeline.jobs import Job, run_jobs, threads_per_job
 from pipeline.paper_profile import Runner
+from pipeline.profiling import read_phases
 
 CHILD = textwrap.dedent('''
     import os, sys, time

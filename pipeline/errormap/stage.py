@@ -175,8 +175,9 @@ def run_one(cfg: DictConfig, *, perception_map=None, camera=None, occlusions: Ma
     progress = bool(settings.get("progress", True))  # a bar on a terminal, one line every few seconds in a log
 
     t0 = time.perf_counter()
-    samples, sample_pred = _train_samples(ds, pmap.predict, settings.get("train_samples"), int(settings["batch"]),
-                                          settings["seed"], progress)
+    with phase("train samples"):
+        samples, sample_pred = _train_samples(ds, pmap.predict, settings.get("train_samples"), int(settings["batch"]),
+                                              settings["seed"], progress)
     t_train = time.perf_counter() - t0
     sample_err_vec = sample_pred - samples
     margin = operational_margin(settings.get("operational_margin", "auto"), plan.camera)
@@ -191,7 +192,7 @@ def run_one(cfg: DictConfig, *, perception_map=None, camera=None, occlusions: Ma
     with tracking.tracked_output(plan.root, pmap.name, plan.id, meta) as tmp:
         write_outputs(tmp, summary, fields, results, plan.scene, plan.arena, settings, samples, sample_err_vec)
     print(f"errormap: wrote {final}")
-    record(f"errormap {pmap.name}", train_samples=round(t_train, 3))
+    record(f"errormap {pmap.name}")
     return {"path": final, "summary": summary, "skipped": False, "fields": fields}
 
 

@@ -101,7 +101,7 @@ class PerAgent(Disturbance):
     """Several conditions in one batch (issue 30): agents `[s_k, s_k + sizes[k])` get `parts[k]`, as if each group
     ran alone. Exact for deterministic parts (every agent's arc is its own: the solvers step each agent by its own
     step); a random part draws from the shared stream in another order than a run of its own.
-    `rows` restricts it to the agents a sampled loop measures this frame (their indices in the batch)."""
+    `idx` (the loop passes it): the batch indices of the agents in `p`, where a sampled loop measures only some."""
 
     name = "per_agent"
 
