@@ -21,7 +21,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from pipeline.errors import ConfigError, PipelineError
 from pipeline.repo import CONF_DIR, REPO_ROOT
-from pipeline.schema import check_value, type_hints
+from pipeline.schema import CHECKED_KEYWORDS, check_value, type_hints
 from pipeline.signatures import signature
 
 META_KEYS = {"_target_", "_partial_", "_convert_", "_recursive_", "_args_", "name"}
@@ -66,10 +66,12 @@ def build(node, path: str, /, **kwargs):
         node = OmegaConf.create(node)
     if "_target_" not in node:
         raise ConfigError(path, "needs a `_target_` (pick one of the options of its config group)")
-    check_node(node, path, given=set(kwargs))
+    check_node(node, path)
     sig = signature(str(node["_target_"]))
     drop = [k for k in node.keys() if k == "name" and sig is not None and "name" not in sig.params]
     clean = OmegaConf.masked_copy(node, [k for k in node.keys() if k not in drop]) if drop else node
+    keys = frozenset(str(k) for k in clean.keys()) - META_KEYS if sig is not None else frozenset()
+    token = CHECKED_KEYWORDS.set((str(node["_target_"]).rpartition(".")[2], keys))  # its constructor skips them
     try:
         # partial first: Hydra would turn a dataclass keyword (a Scene) into a config node
         obj = instantiate(clean, _partial_=True, _convert_="all", _recursive_=False)(**kwargs)
@@ -88,6 +90,8 @@ def build(node, path: str, /, **kwargs):
         raise ConfigError(path, str(err).splitlines()[0]) from None
     except (TypeError, ValueError) as err:
         raise ConfigError(path, f"invalid parameters for {node['_target_']}: {err}") from None
+    finally:
+        CHECKED_KEYWORDS.reset(token)
     if drop and hasattr(type(obj), "name") and not isinstance(type(obj).name, property):
         obj.name = str(node["name"])  # the label of the node (a controller's row in a table)
     return obj
@@ -98,7 +102,7 @@ def _walk(node, path: str = "") -> Iterable[tuple[str, DictConfig]]:
     if isinstance(node, DictConfig):
         yield path, node
         for k in node.keys():
-            if k == "hydra" and not path:
+            if (k == "hydra" and not path) or _is_alias(node, k):
                 continue
             try:
                 child = node._get_node(k)._dereference_node() if OmegaConf.is_interpolation(node, k) else node[k]
@@ -111,6 +115,16 @@ def _walk(node, path: str = "") -> Iterable[tuple[str, DictConfig]]:
                 yield from _walk(child, f"{path}[{i}]")
 
 
+def _is_alias(node: DictConfig, key) -> bool:
+    """`hybrid: ${controller}`: a node interpolated from another, checked where it is written."""
+    if not OmegaConf.is_interpolation(node, key):
+        return False
+    try:
+        return isinstance(node._get_node(key)._dereference_node(), DictConfig)
+    except Exception:  # noqa: BLE001 - unresolvable here (hydra:...)
+        return False
+
+
 def _plain_value(node: DictConfig, key):
     """A node's value as plain Python, or `...` when it cannot be resolved here (`${hydra:...}` outside a run)."""
     try:
@@ -120,14 +134,20 @@ def _plain_value(node: DictConfig, key):
     return OmegaConf.to_container(value, resolve=True) if isinstance(value, DictConfig | ListConfig) else value
 
 
-def check_node(node: DictConfig, path: str, given: Iterable[str] = ()) -> None:
-    """The keys and values of one `_target_` node against its target's signature (`given`: keywords the caller
-    passes itself)."""
+_CHECKED_NODES: set[tuple[str, str]] = set()  # (path, the node's values): checked once per process
+
+
+def check_node(node: DictConfig, path: str) -> None:
+    """The keys and values of one `_target_` node against its target's signature; a node with the same path and
+    values checked before in this process (the preflight's, then the stage's build) is not checked again."""
     try:
         sig = signature(str(node["_target_"]))
     except ConfigError as err:
         raise ConfigError(f"{path}._target_" if path else "_target_", err.reason) from None
     if sig is None:
+        return
+    seen = (path, repr({k: _plain_value(node, k) for k in node.keys()}))
+    if seen in _CHECKED_NODES:
         return
     for k in node.keys():
         if k in META_KEYS:
@@ -141,6 +161,7 @@ def check_node(node: DictConfig, path: str, given: Iterable[str] = ()) -> None:
         if value is ... or (isinstance(value, dict) and "_target_" in value):
             continue  # checked as its own node
         check_value(value, sig.params[k], where)
+    _CHECKED_NODES.add(seen)
 
 
 def settings(cfg: DictConfig, cls):

@@ -17,7 +17,7 @@ import yaml
 from pipeline import identity, tracking
 from pipeline.config import compose
 from pipeline.errors import ConfigError, DatasetError
-from pipeline.render import load_occlusion
+from pipeline.render import Occlusion, load_occlusion
 from pipeline.repo import CONF_DIR
 
 COMMANDS = {
@@ -72,9 +72,10 @@ def map_command(name: str) -> str:
 
 
 # ------------------------------------------------------------------------------------------ datasets
-def dataset_identity(cfg) -> tuple[str, str, dict]:
-    """(name, id, recipe) of the dataset a composed config's `data` recipe renders: its parent dataset and its
-    map in the loop resolved to `name-id`s (which the recipe then holds, so they are in the id)."""
+def dataset_identity(cfg) -> tuple[str, str, dict, Occlusion]:
+    """(name, id, recipe, cloud level) of the dataset a composed config's `data` recipe renders: its parent dataset
+    and its map in the loop resolved to `name-id`s (which the recipe then holds, so they are in the id); the level
+    built from `occlusions` (once: the data stage renders with it)."""
     recipe = tracking.to_plain(cfg.data)
     sampling = recipe.get("sampling") or {}
     debug = debug_overrides(cfg)
@@ -90,9 +91,9 @@ def dataset_identity(cfg) -> tuple[str, str, dict]:
                                     overrides=debug).name
         except DatasetError as err:
             raise ConfigError("data.sampling.closed_loop.map", str(err)) from None
-    occlusion = load_occlusion(recipe.get("occlusion", "none"), cfg.occlusions, field="data.occlusion").config()
-    id_ = identity.dataset_id(recipe, tracking.to_plain(cfg.scene), tracking.to_plain(cfg.render), occlusion)
-    return recipe["name"], id_, recipe
+    occlusion = load_occlusion(recipe.get("occlusion", "none"), cfg.occlusions, field="data.occlusion")
+    id_ = identity.dataset_id(recipe, tracking.to_plain(cfg.scene), tracking.to_plain(cfg.render), occlusion.config())
+    return recipe["name"], id_, recipe, occlusion
 
 
 def expected_dataset_id(name: str, overrides=()) -> str | None:
@@ -109,7 +110,7 @@ def train_dataset_id(cfg) -> tuple[str, str]:
         folder = resolve_dataset(cfg.dataset, cfg.paths.datasets_dir, debug_overrides(cfg))
         name, _, id_ = folder.name.rpartition("-")
         return name, id_
-    name, id_, _ = dataset_identity(cfg)
+    name, id_, _, _ = dataset_identity(cfg)
     return name, id_
 
 

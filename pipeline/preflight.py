@@ -177,4 +177,19 @@ def _check_job(config_name: str, job: list[str], check: Callable[[DictConfig], N
     check_schema(cfg, added)
     check_paths(cfg.get("paths"))
     if check is not None:
-        check(cfg)
+        _PREPARED[_job_key(cfg)] = check(cfg)
+
+
+_PREPARED: dict[str, object] = {}  # what the preflight's check built, by the job's config (without `hydra`)
+_MISSING = object()
+
+
+def _job_key(cfg: DictConfig) -> str:
+    return OmegaConf.to_yaml(OmegaConf.masked_copy(cfg, [k for k in cfg.keys() if k != "hydra"]))
+
+
+def prepared(cfg: DictConfig, check: Callable[[DictConfig], object]):
+    """What the preflight's `check` built for this job's config in this process (a stage's run uses it: each value
+    built and checked once), or `check(cfg)` now (a job the preflight did not reach, a call from Python)."""
+    got = _PREPARED.pop(_job_key(cfg), _MISSING)
+    return check(cfg) if got is _MISSING else got

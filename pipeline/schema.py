@@ -1,19 +1,14 @@
-"""The schema of a config node is the signature of its `_target_` (read by :mod:`pipeline.signatures`):
-parameter names, annotated types, defaults.
+"""The schema of a config node is the signature of its `_target_` (:mod:`pipeline.signatures`).
 
-:func:`check_value` checks a value against an annotation (numbers, strings, booleans, `Literal` choices,
-`X | None`, lists and tuples, mappings, dataclasses, whose keys and field types are checked recursively, and
-`Annotated[X, rule]` with a declared rule: a :class:`Range`, :class:`NonEmpty`, :class:`Pattern`,
-:class:`Ascending`, :class:`Node`, :class:`Option`; the aliases below name the ones that recur), raising one
-:class:`ConfigError` naming the key.
-
-An object built from Python (a test, a notebook, another object) checks its arguments the same way:
-:func:`checked` on a class checks every argument of its constructor before it runs, :func:`check_fields` the
-fields of a dataclass instance. The objects themselves keep only their cross-field rules (`lam < chi - 1`).
+:func:`check_value` checks a value against an annotation (numbers, strings, booleans, `Literal`, `X | None`, lists,
+tuples, mappings, dataclasses key by key, `Annotated[X, rule]` with the rules below), raising one
+:class:`ConfigError` naming the key. An object built from Python checks its arguments the same way (:func:`checked`
+on its class, :func:`check_fields` on a dataclass instance); objects keep only their cross-field rules.
 """
 from __future__ import annotations
 
 import collections.abc
+import contextvars
 import dataclasses
 import functools
 import inspect
@@ -33,11 +28,10 @@ from pipeline.repo import CONF_DIR
 
 
 # ------------------------------------------------------------------------------------------------ rules
+# a rule of `Annotated[X, rule]`: `holds(value)`, and `describe(words of X)` for the message
 @dataclass(frozen=True)
 class Range:
-    """A number's admissible interval, declared in a signature: `Annotated[float, Range(gt=0)]` (see the aliases
-    below); on a list, every element's (`Annotated[tuple[int, int, int], Range(ge=0, le=255)]`). The config
-    checks it at composition, :func:`checked` when an object is built from Python."""
+    """A number's interval (on a list: every element's)."""
 
     gt: float | None = None
     ge: float | None = None
@@ -70,8 +64,7 @@ class NonEmpty:
         return len(v) > 0 and (not self.distinct or len({repr(x) for x in v}) == len(v))
 
     def describe(self, inner: str) -> str:
-        body = inner.removeprefix("a list of ")
-        return f"a non-empty list of {'distinct ' if self.distinct else ''}{body}"
+        return f"a non-empty list of {'distinct ' if self.distinct else ''}{inner.removeprefix('a list of ')}"
 
 
 @dataclass(frozen=True)
@@ -90,7 +83,7 @@ class Pattern:
 
 @dataclass(frozen=True)
 class Ascending:
-    """A list of numbers in increasing order (`[min, max]` with `min < max`; `strict=False`: `min <= max`)."""
+    """Numbers in increasing order (`[min, max]` with `min < max`; `strict=False`: `<=`)."""
 
     strict: bool = True
 
@@ -124,8 +117,7 @@ class Option:
         return (CONF_DIR / self.group / f"{v}.yaml").is_file()
 
     def describe(self, inner: str) -> str:
-        names = sorted(p.stem for p in (CONF_DIR / self.group).glob("*.yaml"))
-        return f"an option of conf/{self.group}/ ({', '.join(names)})"
+        return f"an option of conf/{self.group}/ ({', '.join(sorted(p.stem for p in (CONF_DIR / self.group).glob('*.yaml')))})"
 
 
 Positive = Annotated[float, Range(gt=0)]
@@ -142,9 +134,6 @@ Name = Annotated[str, Pattern(r"[^./\\\s](?:[^/\\]*[^/\\\s])?",
                               "a non-empty folder-safe name (no '/', '\\', leading '.' or surrounding spaces)")]
 Device = Annotated[str, Pattern(r"auto|cpu|cuda(?::\d+)?", "auto, cpu, cuda or cuda:N")]
 RULES = (Range, NonEmpty, Pattern, Ascending, Node, Option)
-ALIASES = {"Positive": Positive, "NonNegative": NonNegative, "Share": Share, "OpenShare": OpenShare,
-           "PositiveInt": PositiveInt, "NonNegativeInt": NonNegativeInt, "Pair": Pair, "Interval": Interval,
-           "RGB": RGB, "Name": Name, "Device": Device}
 
 
 # ---------------------------------------------------------------------------------------------- types
@@ -313,8 +302,19 @@ def check_fields(obj, prefix: str) -> None:
             check_value(getattr(obj, f.name), hints.get(f.name), f"{prefix}.{f.name}" if prefix else f.name)
 
 
+# (target's name, keywords) that `pipeline.config.build` has checked in the target's node: a value is checked
+# once, where its node is, not again by the constructor it is passed to (the target's own @checked call only)
+CHECKED_KEYWORDS: contextvars.ContextVar[tuple[str, frozenset]] = contextvars.ContextVar(
+    "checked_keywords", default=("", frozenset()))
+
+
 def _check_arguments(sig: inspect.Signature, source, prefix: str, objects, args, kwargs) -> None:
-    """The arguments of one call (bound to `sig`) against the annotations of `source` (but `objects`)."""
+    """The arguments of one call (bound to `sig`) against the annotations of `source` (but `objects`, and the
+    keywords the target's config node checked already: :data:`CHECKED_KEYWORDS`, consumed by this call)."""
+    target, done = CHECKED_KEYWORDS.get()
+    if target and target == getattr(source, "__qualname__", "").split(".")[0]:
+        CHECKED_KEYWORDS.set(("", frozenset()))
+        objects = (*objects, *done)
     try:
         bound = sig.bind(*args, **kwargs)
     except TypeError:  # let the call itself say what is missing or unknown

@@ -33,3 +33,63 @@ def test_hysteresis_variant_is_the_rebuilt_controller(chi, share, seed):
 def test_a_bad_variant_is_one_error_naming_the_field(chi, lam, field):
     with pytest.raises(ConfigError, match=field.replace(".", r"\.")):
         BASE.with_hysteresis(chi, lam)
+
+
+# ------------------------------------------------------------------------------- each value checked once per run
+def _count_checks(monkeypatch, module: str, argv: list[str], counted) -> int:
+    """Run the stage `module` in this process (preflight, then Hydra's run) and count the checks of the values
+    `counted(path)` selects: every `check_value` on such a path (at composition, in a build, in a constructor)."""
+    import importlib
+    import sys
+
+    import pipeline.config
+    import pipeline.schema as schema
+
+    monkeypatch.setattr(pipeline.config, "_CHECKED_NODES", set(), raising=False)  # a fresh process: nothing checked yet
+    seen = []
+    original = schema.check_value
+
+    def spy(value, tp, path):
+        if counted(path):
+            seen.append(path)
+        return original(value, tp, path)
+
+    for mod in [m for m in list(sys.modules.values()) if getattr(m, "check_value", None) is original]:
+        monkeypatch.setattr(mod, "check_value", spy)
+    monkeypatch.setattr(schema, "check_value", spy)
+    monkeypatch.setattr(sys, "argv", [module, *argv])
+    importlib.import_module(f"{module}.__main__").main()
+    return len(seen)
+
+
+def test_an_experiments_run_checks_the_controllers_chi_at_most_three_times(monkeypatch, tmp_path):
+    """`controller.chi`: its type and range (at composition, in the preflight's build, in the run's) and its
+    cross-field rule `lam < chi - 1` (each construction) together at most 3 times (issue 27: about 8 before)."""
+    import functools
+
+    built = []
+    init = HybridController.__init__
+
+    @functools.wraps(init)
+    def counting_init(self, *args, **kwargs):
+        built.append(1)
+        init(self, *args, **kwargs)
+
+    monkeypatch.setattr(HybridController, "__init__", counting_init)
+    n = _count_checks(monkeypatch, "pipeline.experiments",
+                      ["debug=tiny", "experiment=monte_carlo", "perception=oracle", f"paths.outputs_dir={tmp_path}",
+                       f"hydra.run.dir={tmp_path / 'run'}"],
+                      lambda path: path in ("controller.chi", "controllers.hybrid.chi"))
+    assert any((tmp_path / "experiments").glob("monte_carlo-*")), "the run did not compute"
+    assert n + len(built) <= 3, f"chi checked {n} times and its rule {len(built)} times"
+
+
+def test_a_data_run_checks_its_occlusion_level_at_most_three_times(monkeypatch, tmp_path):
+    """The recipe's cloud level (`occluded`: heavy_mix), at composition, resolving the dataset's id and rendering:
+    at most 3 checks (issue 27: 10 before)."""
+    n = _count_checks(monkeypatch, "pipeline.data",
+                      ["debug=tiny", "data=occluded", f"paths.datasets_dir={tmp_path}",
+                       f"hydra.run.dir={tmp_path / 'run'}"],
+                      lambda path: path in ("occlusions.heavy_mix.probability", "occlusion.probability"))
+    assert any(tmp_path.glob("occluded-*")), "the run did not render"
+    assert 1 <= n <= 3, f"the level checked {n} times"

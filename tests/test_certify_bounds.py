@@ -323,3 +323,54 @@ def test_adaptive_splitting_tightens_and_stays_sound(camera, trained):
     emp, violations, worst = sampled_errors(predict, camera, cells, lo1, hi1, 32, 0, progress=False)
     assert violations == 0 and worst[0] <= 0, worst
     assert np.all(eps1 + SLACK >= emp)
+
+
+# ------------------------------------------------------------------------------------------- keypoint head
+def test_softmax_mean_max_is_the_maximum_over_the_box():
+    """The threshold solution is the exact maximum: no sampled score vector gets above it, and a vertex reaches it."""
+    from pipeline.certify.keypoint import softmax_mean_max
+
+    rng = np.random.default_rng(0)
+    n, m = 6, 7
+    lo = torch.as_tensor(rng.normal(0, 2, (n, m)))
+    hi = lo + torch.as_tensor(rng.uniform(0, 3, (n, m)))
+    v = torch.as_tensor(rng.normal(0, 1, (n, m)))
+    best = softmax_mean_max(lo, hi, v)
+    corners = torch.as_tensor(np.array(np.meshgrid(*[[0, 1]] * m)).reshape(m, -1).T, dtype=torch.float64)
+    s = lo[:, None] + corners[None] * (hi - lo)[:, None]  # every vertex of every box
+    vals = (torch.softmax(s, -1) * v[:, None]).sum(-1)
+    torch.testing.assert_close(best, vals.amax(-1))
+    inside = lo[:, None] + torch.rand(n, 500, m, dtype=torch.float64) * (hi - lo)[:, None]
+    assert bool(((torch.softmax(inside, -1) * v[:, None]).sum(-1) <= best[:, None] + 1e-12).all())
+
+
+def _keypoint_map(seed: int, trained_on=None, camera=None):
+    torch.manual_seed(seed)
+    m = PerceptionMap(filters=(4, 8, 8), uncertainty="none", dropout=0.0, position_head="keypoint", clamp=False)
+    if trained_on is None:
+        with torch.no_grad():
+            m.features[0].weight.mul_(4.0)
+            m.head.score.weight.mul_(4.0)
+        return m.eval()
+    rng = np.random.default_rng(seed)
+    p = np.column_stack([rng.uniform(-47, 47, 768), rng.uniform(-27, 27, 768)])
+    x, y = torch.from_numpy(camera.render(p)), torch.as_tensor(p, dtype=torch.float32)
+    opt = torch.optim.Adam(m.parameters(), lr=3e-3)
+    for _ in range(trained_on):
+        idx = torch.as_tensor(rng.integers(0, len(p), 64))
+        loss = torch.nn.functional.mse_loss(m.position_outputs(m.prepare(x[idx])), m.targets(y[idx]))
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    return m.eval()
+
+
+@settings(max_examples=6, deadline=None, phases=PHASES)
+@given(seed=st.integers(0, 10_000), side=st.sampled_from([0.05, 0.25, 1.0]), mode=st.sampled_from(["ibp", "forward"]),
+       trained_steps=st.sampled_from([None, 60]))
+def test_bound_contains_sampled_errors_keypoint_head(camera, seed, side, mode, trained_steps):
+    """The keypoint head's bound holds on random and briefly trained maps (float64: the check of the bound itself)."""
+    rng = np.random.default_rng(seed)
+    c, h, cells = _cells(rng, 16, side, lo=(-50 + side, -30 + side), hi=(50 - side, 30 - side))
+    _check(_keypoint_map(seed % 7, trained_steps, camera), camera, cells, c, h, _samples(rng, c, h, 24), mode,
+           torch.float64)

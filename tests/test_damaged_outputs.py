@@ -187,7 +187,7 @@ def test_every_checkpoint_the_train_stage_saves_gets_its_digest(tmp_path, monkey
 def test_a_file_where_the_dataset_folder_should_be_is_one_line_in_the_data_stage(tmp_path):
     from pipeline.lineage import dataset_identity
 
-    name, id_, _ = dataset_identity(compose("data", ["data=clean", "debug=tiny", f"paths.root_dir={tmp_path}"]))
+    name, id_, _, _ = dataset_identity(compose("data", ["data=clean", "debug=tiny", f"paths.root_dir={tmp_path}"]))
     blocker = tmp_path / "data" / "datasets" / f"{name}-{id_}"
     blocker.parent.mkdir(parents=True)
     blocker.write_text("not a folder")

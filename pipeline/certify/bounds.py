@@ -9,6 +9,7 @@ import torch
 from pipeline.certify.cone import concretize, forward, gather, pad
 from pipeline.certify.crown import backward
 from pipeline.certify.deployed import Deployed, Static, deployed, static_pass
+from pipeline.certify.keypoint import keypoint_range
 from pipeline.certify.renderer import pixel_window
 
 MODES = ("ibp", "forward", "crown")
@@ -94,7 +95,8 @@ def certified_error_bound(prep: Prepared, cells: torch.Tensor, mode: str = "crow
     """Sound bounds of `e = l(h(p)) - p` over each cell `cells (N, 4) = (x0, x1, y0, y1)` (world units) for
     every image the camera renders there (uint8 rounding included; under `prep.kappa`, every image within
     `kappa` levels of it). `mode`: `ibp` (intervals), `forward` (linear forms in the position, forward only),
-    `crown` (forward, then the backward pass; the tightest)."""
+    `crown` (forward, then the backward pass; the tightest). A keypoint head (:mod:`.keypoint`) is bounded from
+    the intervals of the last block's activations (`crown` is `forward` there: no backward pass through it)."""
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
     net = prep.net
@@ -103,6 +105,9 @@ def certified_error_bound(prep: Prepared, cells: torch.Tensor, mode: str = "crow
     pw = pixel_window(prep.camera, cells, prep.kappa, symbolic=mode != "ibp")
     lo, hi = pw.lo.to(dtype), pw.hi.to(dtype)
     cone = forward(net, prep.static, pw.origin, lo, hi, ibp=mode == "ibp")
+    if net.keypoint is not None:
+        z_lo, z_hi = keypoint_range(net, prep.static, cone)
+        return ErrorBound(*_error_range(prep, cells.to(z_lo.dtype), z_lo[..., None], z_hi[..., None]))
     win, out_lo, out_hi = _head(prep, cone)
     wp, wn = win.clamp(min=0)[:, :, None], win.clamp(max=0)[:, :, None]  # (N, 2, 1, C, pr, pc)
     z_lo = (wp * cone.lo[:, None] + wn * cone.hi[:, None]).flatten(3).sum(-1)  # (N, 2, S)

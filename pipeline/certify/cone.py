@@ -108,6 +108,8 @@ class Cone:
     origin: torch.Tensor
     lo: torch.Tensor
     hi: torch.Tensor
+    g: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None  # the last block's ReLU window before its
+    # pooling (what a keypoint head reads): its origin `(N, 2)` and forms `(N, S, C, h, w)`
 
 
 def _relu(lo, hi, ibp: bool):
@@ -194,7 +196,7 @@ def _block(net: Deployed, static_padded, k: int, origin, lo, hi, ibp: bool):
     mask = (((pr >= 0) & (pr < grid[0]))[:, :, None] & ((pc >= 0) & (pc < grid[1]))[:, None, :])[:, None]
     mask = mask.to(p_lo.dtype)
     rec = Block(origin, size, h_lo, h_hi, bias, lam, slope, shift, parity, a_lo, a_hi, member, dominant, umax, mask)
-    return rec, p_origin, p_lo * mask[:, None], p_hi * mask[:, None]
+    return rec, p_origin, p_lo * mask[:, None], p_hi * mask[:, None], (out_origin, r_lo, r_hi)
 
 
 def forward(net: Deployed, static: Static, origin: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor,
@@ -202,8 +204,8 @@ def forward(net: Deployed, static: Static, origin: torch.Tensor, lo: torch.Tenso
     """Forms of the pixels `lo, hi (N, S, 3, Kr, Kc)` at window `origin (N, 2)` through every block."""
     padded = tuple([pad(t) for t in maps] for maps in (static.inputs_lo, static.inputs_hi, static.post_lo,
                                                           static.post_hi))
-    blocks = []
+    blocks, g = [], None
     for k in range(net.levels):
-        rec, origin, lo, hi = _block(net, padded, k, origin, lo, hi, ibp)
+        rec, origin, lo, hi, g = _block(net, padded, k, origin, lo, hi, ibp)
         blocks.append(rec)
-    return Cone(blocks, origin, lo, hi)
+    return Cone(blocks, origin, lo, hi, g)

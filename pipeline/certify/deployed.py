@@ -41,6 +41,9 @@ class Deployed:
     half_range: torch.Tensor
     clamp: bool
     grids: list[tuple[int, int]]  # each block's input grid (H_k, W_k); grids[-1]: the pooled features' grid
+    # the keypoint head (`position_head: keypoint`) instead of the flat one: its 1x1 convolution's weight `(3, C)`
+    # and bias `(3,)` (score, dx, dy), the cells' centres `cx (w,)`, `cy (h,)` and size `(sx, -sy)`, normalised
+    keypoint: tuple[torch.Tensor, ...] | None = None
 
     @property
     def levels(self) -> int:
@@ -60,13 +63,13 @@ def deployed(model, dtype: torch.dtype = torch.float32) -> Deployed:
     """The position map `model` (a `PerceptionMap` with the flat head and no hidden layer) as :class:`Deployed`.
 
     Differentiable in the model's parameters; BatchNorm uses its running statistics (eval mode) whatever
-    `model.training` is. Raises `ConfigError` for the parts the bounds do not cover (keypoint head, pose
-    outputs, a hidden layer)."""
-    if getattr(model, "keypoint", False) or getattr(model, "pose", False):
-        raise ConfigError("certify.maps", "the certified bound covers position maps with the flat head "
-                                          "(model.position_head=flat, model.outputs=position)")
-    lin = [m for m in model.head if isinstance(m, nn.Linear)]
-    if len(lin) != 1:
+    `model.training` is. Raises `ConfigError` for the parts the bounds do not cover (pose outputs, a hidden
+    layer)."""
+    if getattr(model, "pose", False):
+        raise ConfigError("certify.maps", "the certified bound covers position maps (model.outputs=position)")
+    keypoint = bool(getattr(model, "keypoint", False))
+    lin = [] if keypoint else [m for m in model.head if isinstance(m, nn.Linear)]
+    if not keypoint and len(lin) != 1:
         raise ConfigError("certify.maps", "the certified bound covers a flat head without a hidden layer "
                                           "(model.hidden=0)")
     mods = list(model.features)
@@ -85,10 +88,19 @@ def deployed(model, dtype: torch.dtype = torch.float32) -> Deployed:
     for _ in blocks:
         grids.append((grids[-1][0] // 2, grids[-1][1] // 2))
     c_last = weights[-1].shape[0]
-    head_w = lin[0].weight.reshape(lin[0].out_features, c_last, *grids[-1])
     cast = lambda t: t.to(dtype)  # noqa: E731
-    return Deployed([cast(t) for t in weights], [cast(t) for t in biases], cast(head_w), cast(lin[0].bias),
-                    cast(model.center), cast(model.half_range), bool(model.clamp), grids)
+    kp = None
+    if keypoint:
+        head = model.head
+        if tuple(head.grid) != grids[-2]:
+            raise ConfigError("certify.maps", f"the keypoint head's grid {tuple(head.grid)} is not the last block's "
+                                              f"{grids[-2]}")
+        head_w, head_b = head.score.weight[:, :, 0, 0], head.score.bias
+        kp = (cast(head_w), cast(head_b), cast(head.cx.flatten()), cast(head.cy.flatten()), cast(head.cell.flatten()))
+    else:
+        head_w, head_b = lin[0].weight.reshape(lin[0].out_features, c_last, *grids[-1]), lin[0].bias
+    return Deployed([cast(t) for t in weights], [cast(t) for t in biases], cast(head_w), cast(head_b),
+                    cast(model.center), cast(model.half_range), bool(model.clamp), grids, kp)
 
 
 def _conv_interval(lo, hi, w, b, level0: bool):

@@ -17,7 +17,7 @@ from pipeline.config import build
 from pipeline.data.recipe import SPLITS, Recipe
 from pipeline.data.render import LABELS, label_columns, shard_name
 from pipeline.errors import ConfigError
-from pipeline.render import Camera, Occlusion, load_occlusion
+from pipeline.render import Camera, Occlusion
 
 
 @dataclass
@@ -95,9 +95,8 @@ def _map(recipe: Recipe, cfg, camera: Camera) -> dict:
 
 def plan(cfg: DictConfig) -> Plan:
     """Validate the whole config (ConfigError naming the field), resolve the inputs by id, compute the id."""
-    name, id_, recipe_cfg = lineage.dataset_identity(cfg)
+    name, id_, recipe_cfg, occlusion = lineage.dataset_identity(cfg)
     recipe = build(recipe_cfg, "data")  # the parents' references already resolved to name-ids
-    occlusion = load_occlusion(recipe.occlusion, cfg.occlusions, field="data.occlusion")
     scene_cfg, render_cfg = tracking.to_plain(cfg.scene), tracking.to_plain(cfg.render)
     camera = build(render_cfg, "render", scene=build(scene_cfg, "scene"))
     recipe.check_arena(camera.arena)
@@ -112,8 +111,9 @@ def plan(cfg: DictConfig) -> Plan:
                 **inputs)
 
 
-def check(cfg: DictConfig) -> None:
-    """Preflight: the recipe, its scene, camera and clouds, and its inputs by id (nothing rendered)."""
-    plan(cfg)
+def check(cfg: DictConfig) -> Plan:
+    """Preflight: the recipe, its scene, camera and clouds, and its inputs by id (nothing rendered); the run
+    uses the plan (:func:`pipeline.preflight.prepared`)."""
+    return plan(cfg)
 
 

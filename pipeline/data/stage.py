@@ -17,11 +17,12 @@ import time
 from omegaconf import DictConfig
 
 from pipeline import tracking
-from pipeline.data.plan import Plan, plan
+from pipeline.data.plan import Plan, check
 from pipeline.data.render import render_into
 from pipeline.data.sampling import split_pool
 from pipeline.errors import ConfigError
 from pipeline.lineage import rerun_command
+from pipeline.preflight import prepared
 
 
 def _visits(p: Plan) -> tuple[object, dict]:
@@ -49,7 +50,7 @@ def run(cfg: DictConfig) -> dict:
     Returns `{"id", "name", "path", "counts", "parents", "skipped", "seconds"}`.
     """
     t0 = time.perf_counter()
-    p = plan(cfg)
+    p = prepared(cfg, check)  # the preflight's plan, when it checked this job
     out = {"id": p.id, "name": p.recipe.name, "path": p.path, "counts": p.counts, "parents": dict(p.parents)}
     if tracking.exists(p.path, "dataset") and not cfg.force:
         tracking.check_intact(p.path, "dataset", f"{rerun_command('data', [f'data={p.recipe.name}'], cfg)} force=true")

@@ -19,8 +19,9 @@ def build_scenario(cfg) -> Scenario:
     return scen
 
 
-def check(cfg) -> None:
-    """Preflight: the scenario, every object it uses and its inputs (maps and error maps, by id)."""
+def check(cfg) -> tuple[Scenario, Context]:
+    """Preflight: the scenario, every object it uses and its inputs (maps and error maps, by id); returns the
+    scenario and its context (no map loaded), which the run uses (:func:`pipeline.preflight.prepared`)."""
     scen = build_scenario(cfg)
     ctx = Context(cfg)
     scen.check(ctx)
@@ -29,3 +30,4 @@ def check(cfg) -> None:
         ctx.check_heading(kind)
     for kind in getattr(scen, "errormaps", ()):
         ctx.error_map(kind)
+    return scen, ctx

@@ -26,15 +26,23 @@ class Composed:
 
     def controller(self, name: str = "hybrid", scene: Scene | None = None, **params):
         """The controller `controllers.<name>` of the composed config (hybrid: the run's `controller`), on the
-        vehicle's steering scene of `scene` (the unicycle's look-ahead point: every disc inflated, SPEC §3.7)."""
+        vehicle's steering scene of `scene` (the unicycle's look-ahead point: every disc inflated, SPEC §3.7). The
+        run's own controllers are built once (the preflight's, reused by the computation)."""
+        scene = scene or self.scene
+        built = self.__dict__.setdefault("_built", {})
+        done = built.get(("controller", name)) if not params else None
+        if done is not None and done[0] is scene:
+            return done[1]
         node = self._node("controllers", name)
         node = node if not params else {**tracking.to_plain(node), **params}
         try:
             ctrl = build(node, "controller" if name == "hybrid" else f"controllers.{name}",
-                         scene=self.vehicle.steering_scene(scene or self.scene))
+                         scene=self.vehicle.steering_scene(scene))
         except ConfigError as err:
             raise explain_steering(self.vehicle, err) from None
         ctrl.name = name
+        if not params:
+            built["controller", name] = (scene, ctrl)
         return ctrl
 
     def disturbance(self, name: str, **params):
@@ -58,7 +66,10 @@ class Composed:
     def occlusion(self, level: str | None):
         if level is None:
             return None
-        occ = load_occlusion(level, self.cfg.occlusions, field="experiment.occlusion")
+        built = self.__dict__.setdefault("_built", {})
+        if ("occlusion", level) not in built:
+            built["occlusion", level] = load_occlusion(level, self.cfg.occlusions, field="experiment.occlusion")
+        occ = built["occlusion", level]
         return occ if occ.active else None
 
     def other_scene(self) -> tuple[str, Scene]:

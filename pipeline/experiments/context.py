@@ -45,3 +45,7 @@ class Context(Composed, MapsById, Runs):
         self._maps: dict = {}
         self.bar = None  # the stage's progress (pipeline.progress): one step per simulation (a batch of agents)
         self.label = ""  # what the scenario is at (a sweep's cell), shown with each step
+
+    def load_map_with(self, load_map) -> None:
+        """Load maps with `load_map` from now on (the run's context is the preflight's, which loads none)."""
+        self._load_map = load_map

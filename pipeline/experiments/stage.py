@@ -24,7 +24,7 @@ from hydra.core.hydra_config import HydraConfig
 
 from pipeline import tracking
 from pipeline.config import resolve
-from pipeline.experiments.checks import build_scenario, check
+from pipeline.experiments.checks import check
 from pipeline.experiments.context import Context
 from pipeline.experiments.redraw import drawing_key, drawn_entry
 from pipeline.experiments.report import FIGURES, Outputs, write_index
@@ -33,6 +33,7 @@ from pipeline.experiments.scenario import Scenario
 from pipeline.lineage import pinned_folders
 from pipeline.perception.maps import load_perception_map, resolve_device
 from pipeline.plants import SingleIntegrator
+from pipeline.preflight import prepared
 from pipeline.profiling import phase, record
 from pipeline.progress import progress
 
@@ -98,10 +99,9 @@ def cache_key(cfg, scen: Scenario, ctx: Context) -> dict:
 
 def run(cfg) -> dict:
     t0 = time.perf_counter()
-    check(cfg)
+    scen, ctx = prepared(cfg, check)  # the preflight's, when it checked this job
     resolve_device(cfg.get("device", "auto"))  # `device=cuda` without a GPU: one line, before any work
-    scen = build_scenario(cfg)
-    ctx = Context(cfg, load_map=load_perception_map)
+    ctx.load_map_with(load_perception_map)
     key_parts = cache_key(cfg, scen, ctx)
     cid = tracking.content_id(key_parts)
     root = Path(cfg.paths.outputs_dir) / "experiments"

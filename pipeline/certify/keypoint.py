@@ -1,0 +1,64 @@
+"""Bounds through the keypoint head (`model.position_head: keypoint`, :mod:`pipeline.perception.keypoint`).
+
+The head reads the last block's ReLU map `g` before its pooling: a 1x1 convolution gives per cell a score `s_c` and
+an offset, and the position is the softmax-weighted mean `z = sum_c a_c v_c` of the cells' centres plus offsets
+`v_c`. From intervals of `g` (the cone's forms concretized over the cell; the static image's values elsewhere) the
+1x1 convolution gives intervals `s_c in [l_c, u_c]`, `v_c in [vl_c, vu_c]`, and since `a_c >= 0`,
+`z <= max_{s in box} sum_c softmax(s)_c vu_c`. That maximum is exact (:func:`softmax_mean_max`): at the optimum
+`z*` every cell with `vu_c > z*` has its largest score and every other its smallest, so it is one of the `n`
+threshold assignments of the cells sorted by `vu`. The lower bound is the same on `-vl`.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from pipeline.certify.cone import MARGIN, concretize, pad
+
+
+def softmax_mean_max(s_lo: torch.Tensor, s_hi: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """`max sum_c softmax(s)_c v_c` over `s_lo <= s <= s_hi` (`(N, n)` each -> `(N,)`), computed in float64."""
+    s_lo, s_hi, v = s_lo.double(), s_hi.double(), v.double()
+    order = v.argsort(-1, descending=True)
+    v, lo, hi = v.gather(-1, order), s_lo.gather(-1, order), s_hi.gather(-1, order)
+    m = hi.amax(-1, keepdim=True)
+    eu, el = torch.exp(hi - m), torch.exp(lo - m)
+    top_w, top_v = eu.cumsum(-1), (eu * v).cumsum(-1)  # the first k cells at their largest score
+    rest_w = el.sum(-1, keepdim=True) - el.cumsum(-1)  # the others at their smallest
+    rest_v = (el * v).sum(-1, keepdim=True) - (el * v).cumsum(-1)
+    vals = (top_v + rest_v) / (top_w + rest_w)
+    return torch.nan_to_num(vals, nan=float("-inf")).amax(-1).clamp(max=v[:, 0])  # never above the largest v
+
+
+def keypoint_range(net, static, cone) -> tuple[torch.Tensor, torch.Tensor]:
+    """Lower and upper bounds `(N, 2)` (float64) of the keypoint head's normalised position over each cell."""
+    w, b, cx, cy, cell = net.keypoint
+    origin, f_lo, f_hi = cone.g
+    g_lo, g_hi = concretize(f_lo, f_hi)  # (N, C, h, wd): the window's ReLU outputs
+    wp, wn = w.clamp(min=0), w.clamp(max=0)
+
+    def conv1(lo, hi):  # interval 1x1 convolution (channels on dim -3)
+        k_lo = torch.einsum("kc,...chw->...khw", wp, lo) + torch.einsum("kc,...chw->...khw", wn, hi)
+        k_hi = torch.einsum("kc,...chw->...khw", wp, hi) + torch.einsum("kc,...chw->...khw", wn, lo)
+        return k_lo + b.view(-1, 1, 1), k_hi + b.view(-1, 1, 1)
+
+    st_lo, st_hi = conv1(static.post_lo[-1], static.post_hi[-1])  # (3, H, W): the static image's outputs
+    win_lo, win_hi = conv1(g_lo, g_hi)  # (N, 3, h, wd)
+    n, _, h, wd = win_lo.shape
+    height, width = st_lo.shape[-2:]
+    rows = (origin[:, 0, None] + MARGIN + torch.arange(h))[:, :, None]
+    cols = (origin[:, 1, None] + MARGIN + torch.arange(wd))[:, None, :]
+    idx = torch.arange(n)[:, None, None]
+    k_lo, k_hi = (pad(t).expand(n, -1, -1, -1).clone() for t in (st_lo, st_hi))
+    k_lo[idx, :, rows, cols] = win_lo.permute(0, 2, 3, 1)  # the window over the static outputs
+    k_hi[idx, :, rows, cols] = win_hi.permute(0, 2, 3, 1)
+    crop = (slice(None), slice(None), slice(MARGIN, MARGIN + height), slice(MARGIN, MARGIN + width))
+    k_lo, k_hi = k_lo[crop], k_hi[crop]
+    s_lo, s_hi = k_lo[:, 0].flatten(1), k_hi[:, 0].flatten(1)
+    out_lo, out_hi = [], []
+    for axis, centre in ((0, cx.view(1, width)), (1, cy.view(height, 1))):
+        a, c = k_lo[:, 1 + axis] * cell[axis], k_hi[:, 1 + axis] * cell[axis]
+        v_lo, v_hi = (centre + torch.minimum(a, c)).flatten(1), (centre + torch.maximum(a, c)).flatten(1)
+        out_hi.append(softmax_mean_max(s_lo, s_hi, v_hi))
+        out_lo.append(-softmax_mean_max(s_lo, s_hi, -v_lo))
+    return torch.stack(out_lo, 1), torch.stack(out_hi, 1)  # float64: no rounding below the bound
