@@ -292,21 +292,3 @@ def hydra_error_line(err: BaseException) -> str:
         return f"{m.group(1).split('=')[0].lstrip('+')}: invalid value in {m.group(1)!r}"
     lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
     return " ".join(lines[:2]) if lines else type(err).__name__
-
-
-def override_value(value) -> str:
-    """A plain value (from a composed node) in Hydra's override syntax, for passing a node to another job:
-    `null`, `true`, numbers, quoted strings, `[...]`, `{key:value,...}`."""
-    if value is None:
-        return "null"
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, int | float):
-        return repr(value)
-    if isinstance(value, str):
-        return "'" + value.replace("'", "\\'") + "'"  # the caller checks the round trip (backslashes)
-    if isinstance(value, list | tuple):
-        return "[" + ",".join(override_value(v) for v in value) + "]"
-    if isinstance(value, dict):
-        return "{" + ",".join(f"{k}:{override_value(v)}" for k, v in value.items()) + "}"
-    raise TypeError(f"override_value: cannot write {type(value).__name__} {value!r}")

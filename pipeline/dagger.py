@@ -27,7 +27,7 @@ from omegaconf import DictConfig
 
 from pipeline import identity, tracking
 from pipeline.cli import stage_main
-from pipeline.config import build, compose, hydra_error_line, override_value
+from pipeline.config import build, compose, hydra_error_line
 from pipeline.data.plan import plan
 from pipeline.errors import ConfigError, PipelineError
 from pipeline.experiments.report import markdown_table
@@ -242,6 +242,24 @@ def run(cfg) -> dict:
 
 
 main = stage_main("dagger", run="pipeline.dagger:run", check="pipeline.dagger:check")
+
+
+def override_value(value) -> str:
+    """A plain value (from a composed node) in Hydra's override syntax, for passing a node to another job:
+    `null`, `true`, numbers, quoted strings, `[...]`, `{key:value,...}`."""
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int | float):
+        return repr(value)
+    if isinstance(value, str):
+        return "'" + value.replace("'", "\\'") + "'"  # the caller checks the round trip (backslashes)
+    if isinstance(value, list | tuple):
+        return "[" + ",".join(override_value(v) for v in value) + "]"
+    if isinstance(value, dict):
+        return "{" + ",".join(f"{k}:{override_value(v)}" for k, v in value.items()) + "}"
+    raise TypeError(f"override_value: cannot write {type(value).__name__} {value!r}")
 
 
 if __name__ == "__main__":

@@ -365,8 +365,8 @@ def _keypoint_map(seed: int, trained_on=None, camera=None):
     return m.eval()
 
 
-@settings(max_examples=6, deadline=None, phases=PHASES)
-@given(seed=st.integers(0, 10_000), side=st.sampled_from([0.05, 0.25, 1.0]), mode=st.sampled_from(["ibp", "forward"]),
+@settings(max_examples=10, deadline=None, phases=PHASES)
+@given(seed=st.integers(0, 10_000), side=st.sampled_from([0.05, 0.25, 1.0]), mode=st.sampled_from(["ibp", "forward", "crown"]),
        trained_steps=st.sampled_from([None, 60]))
 def test_bound_contains_sampled_errors_keypoint_head(camera, seed, side, mode, trained_steps):
     """The keypoint head's bound holds on random and briefly trained maps (float64: the check of the bound itself)."""
@@ -374,3 +374,25 @@ def test_bound_contains_sampled_errors_keypoint_head(camera, seed, side, mode, t
     c, h, cells = _cells(rng, 16, side, lo=(-50 + side, -30 + side), hi=(50 - side, 30 - side))
     _check(_keypoint_map(seed % 7, trained_steps, camera), camera, cells, c, h, _samples(rng, c, h, 24), mode,
            torch.float64)
+
+
+@pytest.fixture(scope="module")
+def trained_keypoint(camera):
+    return _keypoint_map(1, 150, camera)
+
+
+@pytest.mark.parametrize("kappa", [0.0, 3.0])
+def test_pgd_cannot_pass_the_keypoint_bound_and_crown_is_tighter(camera, trained_keypoint, kappa):
+    """A joint PGD over the position and the admissible image stays below the keypoint head's bound; the backward
+    passes (`crown`) never loosen the forward bound and tighten it on most cells."""
+    rng = np.random.default_rng(5)
+    _, _, cells = _cells(rng, 12, 0.25, lo=(-45, -25), hi=(45, 25))
+    prep = prepare(trained_keypoint, camera, kappa, torch.float64)
+    with torch.no_grad():
+        fwd, b = (certified_error_bound(prep, torch.as_tensor(cells), m) for m in ("forward", "crown"))
+    assert torch.all(b.upper <= fwd.upper + 1e-9) and torch.all(b.lower >= fwd.lower - 1e-9)
+    assert (b.eps < fwd.eps - 1e-6).float().mean() > 0.5
+    worst = _pgd_worst(trained_keypoint, camera, cells, kappa)
+    limit = torch.cat([b.upper, -b.lower], 1)
+    assert torch.all(worst <= limit + SLACK), (worst - limit).max()
+    assert (worst / limit.abs().clamp(min=1e-6)).max() > 0.1  # the attack is not idle

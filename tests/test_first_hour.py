@@ -375,7 +375,7 @@ def test_every_scenario_key_the_docs_override_is_declared_in_its_bundle():
 
 
 def _yaml_value(v) -> str:
-    from pipeline.config import override_value
+    from pipeline.dagger import override_value
 
     return override_value(v)
 

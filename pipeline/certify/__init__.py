@@ -16,14 +16,17 @@ so that a training loss can use the bound::
 - What the bound covers: every image the camera renders for a position of the cell, the `uint8` rounding
   included (`±0.5` level on fractional-coverage pixels), and under `kappa > 0` every image within `kappa`
   levels of it per pixel and channel (clipped to `[0, 255]`: the pixel attack's set).
-- Models: position maps (`PerceptionMap`, flat head without a hidden layer, any filters, BatchNorm and
-  CoordConv or not, `clamp` or not). Float32 by default; pass `dtype=torch.float64` to `prepare` for bounds
+- Models: position maps (`PerceptionMap`, any filters, BatchNorm and CoordConv or not, `clamp` or not) with the
+  flat head without a hidden layer, or the keypoint head (:mod:`.keypoint`: its outputs bounded on the last
+  block's window, forward and, with `crown`, by a backward pass per output; the softmax-weighted mean bounded
+  exactly over their intervals). Pose maps are not covered. Float32 by default; pass `dtype=torch.float64` to `prepare` for bounds
   free of the bound computation's own float32 rounding (the deployed network itself runs in float32).
 - Cost: one static pass per `prepare`; per cell only the cone of activations the robot's pixels reach
   (:mod:`.cone`), batched over cells (no per-cell Python).
 
 Modules: :mod:`.renderer` (the camera inside the bound), :mod:`.deployed` (the folded network, the static
-pass), :mod:`.cone` (forward forms through the cone), :mod:`.crown` (backward pass), :mod:`.bounds` (the API).
+pass), :mod:`.cone` (forward forms through the cone), :mod:`.crown` (backward pass), :mod:`.keypoint` (the
+keypoint head), :mod:`.bounds` (the API).
 """
 
 from pipeline.certify.bounds import MODES, ErrorBound, Prepared, certified_error_bound, prepare

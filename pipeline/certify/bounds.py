@@ -13,6 +13,7 @@ from pipeline.certify.keypoint import keypoint_range
 from pipeline.certify.renderer import pixel_window
 
 MODES = ("ibp", "forward", "crown")
+KEYPOINT_CHUNK = 4  # cells per backward pass through a keypoint head (6 per window neuron each; small is fastest)
 
 
 @dataclass
@@ -96,17 +97,21 @@ def certified_error_bound(prep: Prepared, cells: torch.Tensor, mode: str = "crow
     every image the camera renders there (uint8 rounding included; under `prep.kappa`, every image within
     `kappa` levels of it). `mode`: `ibp` (intervals), `forward` (linear forms in the position, forward only),
     `crown` (forward, then the backward pass; the tightest). A keypoint head (:mod:`.keypoint`) is bounded from
-    the intervals of the last block's activations (`crown` is `forward` there: no backward pass through it)."""
+    the intervals of its outputs on the last block's window (`crown`: the tighter of the forward and the backward
+    bounds of each)."""
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
     net = prep.net
+    if net.keypoint is not None and mode == "crown" and len(cells) > KEYPOINT_CHUNK:  # a backward pass per output
+        parts = [certified_error_bound(prep, c, mode) for c in torch.as_tensor(cells).split(KEYPOINT_CHUNK)]
+        return ErrorBound(torch.cat([b.lower for b in parts]), torch.cat([b.upper for b in parts]))
     dtype = net.head_w.dtype
     cells = torch.as_tensor(cells)
     pw = pixel_window(prep.camera, cells, prep.kappa, symbolic=mode != "ibp")
     lo, hi = pw.lo.to(dtype), pw.hi.to(dtype)
     cone = forward(net, prep.static, pw.origin, lo, hi, ibp=mode == "ibp")
     if net.keypoint is not None:
-        z_lo, z_hi = keypoint_range(net, prep.static, cone)
+        z_lo, z_hi = keypoint_range(net, prep.static, cone, (lo, hi) if mode == "crown" else None)
         return ErrorBound(*_error_range(prep, cells.to(z_lo.dtype), z_lo[..., None], z_hi[..., None]))
     win, out_lo, out_hi = _head(prep, cone)
     wp, wn = win.clamp(min=0)[:, :, None], win.clamp(max=0)[:, :, None]  # (N, 2, 1, C, pr, pc)

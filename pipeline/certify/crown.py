@@ -36,6 +36,13 @@ def _back_block(rec: Block, weight: torch.Tensor, lam: torch.Tensor, const: torc
     changed = extract(aligned, rec.parity, osize)
     static_lam = aligned - _embed(changed, aligned, rec.parity)
     const = _add(const, _static(static_lam, rec.pool_lo, rec.pool_hi))
+    return _back_relu_conv(rec, weight, changed, const, level0)
+
+
+def _back_relu_conv(rec: Block, weight: torch.Tensor, changed: torch.Tensor, const: torch.Tensor, level0: bool):
+    """`changed (N, P, C', h + 2, w + 2)` on block `rec`'s ReLU outputs (its pre-activation window) -> on its
+    changed input window."""
+    n, p = changed.shape[:2]
     # ReLU: lower side lam * y for positive coefficients, upper slope * y + shift for negative ones
     const = _add(const, (changed.clamp(max=0) * rec.shift[:, None]).flatten(2).sum(-1))
     lam_y = torch.where(changed >= 0, changed * rec.lam[:, None], changed * rec.slope[:, None])
@@ -68,3 +75,16 @@ def backward(net, cone: Cone, lam: torch.Tensor, const: torch.Tensor, pix_lo: to
     # pixels: lam (N, P, 3, Kr, Kc); forms (N, S, 3, Kr, Kc)
     form = (lam.clamp(min=0)[:, :, None] * pix_lo[:, None] + lam.clamp(max=0)[:, :, None] * pix_hi[:, None])
     return form.flatten(3).sum(-1) + const  # (N, P, S)
+
+
+def backward_from_relu(net, cone: Cone, lam: torch.Tensor, const: torch.Tensor, pix_lo: torch.Tensor,
+                       pix_hi: torch.Tensor):
+    """As :func:`backward`, from `lam (N, P, C, h, w)` on the last block's ReLU window before its pooling (`cone.g`,
+    what a keypoint head reads)."""
+    const = torch.cat([const[..., None], const.new_zeros((*const.shape, pix_lo.shape[1] - 1))], -1)
+    last = net.levels - 1
+    lam, const = _back_relu_conv(cone.blocks[last], net.weights[last], lam, const, last == 0)
+    for k in reversed(range(last)):
+        lam, const = _back_block(cone.blocks[k], net.weights[k], lam, const, k == 0)
+    form = (lam.clamp(min=0)[:, :, None] * pix_lo[:, None] + lam.clamp(max=0)[:, :, None] * pix_hi[:, None])
+    return form.flatten(3).sum(-1) + const

@@ -76,6 +76,7 @@ def write_table(path: Path, summary: dict) -> None:
                     f"{'yes' if r['theorem1']['holds'] else 'no'} ({r['theorem1']['margin_c_minus_r']:.3g}) | "
                     f"{e['n']} | {r['depth']} | {r['seconds']:.0f} |")
     path.write_text(f"# Certified error map of {summary['name']}-{summary['model']['id']}\n\n"
-                    f"Cells of {summary['cell']:g} units over the operational set, mode {summary['mode']}, "
+                    f"Position head {summary['model'].get('position_head', 'flat')}; "
+                    f"cells of {summary['cell']:g} units over the operational set, mode {summary['mode']}, "
                     f"tolerance {summary['tolerance']:g}, max depth {summary['max_depth']}.\n\n"
                     + "\n".join(rows) + "\n")

@@ -2,8 +2,8 @@
 
 The head reads the last block's ReLU map `g` before its pooling: a 1x1 convolution gives per cell a score `s_c` and
 an offset, and the position is the softmax-weighted mean `z = sum_c a_c v_c` of the cells' centres plus offsets
-`v_c`. From intervals of `g` (the cone's forms concretized over the cell; the static image's values elsewhere) the
-1x1 convolution gives intervals `s_c in [l_c, u_c]`, `v_c in [vl_c, vu_c]`, and since `a_c >= 0`,
+`v_c`. The 1x1 convolution of the cone's linear forms of `g` (in the position, over the cell; the static image's
+values elsewhere), concretized, gives intervals `s_c in [l_c, u_c]`, `v_c in [vl_c, vu_c]`, and since `a_c >= 0`,
 `z <= max_{s in box} sum_c softmax(s)_c vu_c`. That maximum is exact (:func:`softmax_mean_max`): at the optimum
 `z*` every cell with `vu_c > z*` has its largest score and every other its smallest, so it is one of the `n`
 threshold assignments of the cells sorted by `vu`. The lower bound is the same on `-vl`.
@@ -14,6 +14,7 @@ from __future__ import annotations
 import torch
 
 from pipeline.certify.cone import MARGIN, concretize, pad
+from pipeline.certify.crown import backward_from_relu
 
 
 def softmax_mean_max(s_lo: torch.Tensor, s_hi: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
@@ -30,20 +31,41 @@ def softmax_mean_max(s_lo: torch.Tensor, s_hi: torch.Tensor, v: torch.Tensor) ->
     return torch.nan_to_num(vals, nan=float("-inf")).amax(-1).clamp(max=v[:, 0])  # never above the largest v
 
 
-def keypoint_range(net, static, cone) -> tuple[torch.Tensor, torch.Tensor]:
-    """Lower and upper bounds `(N, 2)` (float64) of the keypoint head's normalised position over each cell."""
+def _window_crown(net, cone, pix_lo, pix_hi) -> tuple[torch.Tensor, torch.Tensor]:
+    """The window's head outputs (score, dx, dy) bounded by backward passes from each of them to the pixels
+    (:func:`.crown.backward_from_relu`): `(N, 3, h, w)` lower and upper, bias excluded."""
+    w = net.keypoint[0]
+    _, f_lo, _ = cone.g
+    n, _, c, h, wd = f_lo.shape
+    at = torch.eye(h * wd, dtype=w.dtype, device=w.device).view(h * wd, 1, h, wd)
+    lam = (w[:, None, :, None, None] * at[None]).flatten(0, 1)  # (3 h wd, C, h, wd): one output at one place
+    lam = torch.cat([lam, -lam])
+    forms = backward_from_relu(net, cone, lam.expand(n, *lam.shape), lam.new_zeros((n, len(lam))), pix_lo, pix_hi)
+    low = forms[..., 0] - forms[..., 1:].abs().sum(-1)  # (N, P): each lower-bound form's minimum over the cell
+    half = len(lam) // 2
+    return low[:, :half].view(n, 3, h, wd), -low[:, half:].view(n, 3, h, wd)
+
+
+def keypoint_range(net, static, cone, pixels=None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Lower and upper bounds `(N, 2)` (float64) of the keypoint head's normalised position over each cell;
+    `pixels` (the pixel forms `lo, hi`): the window's outputs also by backward passes (the tighter side of each)."""
     w, b, cx, cy, cell = net.keypoint
-    origin, f_lo, f_hi = cone.g
-    g_lo, g_hi = concretize(f_lo, f_hi)  # (N, C, h, wd): the window's ReLU outputs
+    origin, f_lo, f_hi = cone.g  # the window's ReLU outputs, forms (N, S, C, h, wd)
     wp, wn = w.clamp(min=0), w.clamp(max=0)
 
-    def conv1(lo, hi):  # interval 1x1 convolution (channels on dim -3)
-        k_lo = torch.einsum("kc,...chw->...khw", wp, lo) + torch.einsum("kc,...chw->...khw", wn, hi)
-        k_hi = torch.einsum("kc,...chw->...khw", wp, hi) + torch.einsum("kc,...chw->...khw", wn, lo)
-        return k_lo + b.view(-1, 1, 1), k_hi + b.view(-1, 1, 1)
+    def conv1(lo, hi):  # 1x1 convolution of bounds (channels on dim -3), no bias
+        return (torch.einsum("kc,...chw->...khw", wp, lo) + torch.einsum("kc,...chw->...khw", wn, hi),
+                torch.einsum("kc,...chw->...khw", wp, hi) + torch.einsum("kc,...chw->...khw", wn, lo))
 
-    st_lo, st_hi = conv1(static.post_lo[-1], static.post_hi[-1])  # (3, H, W): the static image's outputs
-    win_lo, win_hi = conv1(g_lo, g_hi)  # (N, 3, h, wd)
+    bias = b.view(-1, 1, 1)
+    st_lo, st_hi = (t + bias for t in conv1(static.post_lo[-1], static.post_hi[-1]))  # (3, H, W): static outputs
+    # the window's outputs: the convolution on the forms first (the position `t` moves every channel together),
+    # then their range over the cell
+    win_lo, win_hi = concretize(*conv1(f_lo, f_hi))  # (N, 3, h, wd)
+    if pixels is not None:
+        c_lo, c_hi = _window_crown(net, cone, *pixels)
+        win_lo, win_hi = torch.maximum(win_lo, c_lo), torch.minimum(win_hi, c_hi)
+    win_lo, win_hi = win_lo + bias, win_hi + bias
     n, _, h, wd = win_lo.shape
     height, width = st_lo.shape[-2:]
     rows = (origin[:, 0, None] + MARGIN + torch.arange(h))[:, :, None]

@@ -121,7 +121,9 @@ def run(cfg: DictConfig, *, perception_map=None, camera=None) -> dict:
             full[op] = v
             fields[f"{k}_{float(kappa):g}"] = full.reshape(*shape, *v.shape[1:])
         _say(pmap.name, r)
-    summary = {"id": id_, "name": pmap.name, "model": {"ref": str(cfg.maps), "id": str(pmap.id), "name": pmap.name},
+    head = "keypoint" if getattr(pmap.model, "keypoint", False) else "flat"
+    summary = {"id": id_, "name": pmap.name, "model": {"ref": str(cfg.maps), "id": str(pmap.id), "name": pmap.name,
+                                                       "position_head": head},
                "cell": float(s["cell"]), "n_cells": int(op.sum()), "operational_margin": margin,
                "mode": s["mode"], "tolerance": s["tolerance"], "max_depth": s["max_depth"], "samples": s["samples"],
                "margin_c_minus_r": margin_cr, "torch_threads": int(s["threads"]), "kappas": levels}
