@@ -215,45 +215,12 @@ def test_single_linear_layer_on_the_renderer_is_exact(camera, seed):
 
 
 # ----------------------------------------------------------------------------------------------- PGD
-def _pgd_worst(model, camera, cells, kappa, steps=25, seed=0):
-    """Largest / smallest `e_j` a joint ascent over the position and the admissible image finds per cell: the
-    window's pixels anywhere between the relaxation's pixel bounds at `t` (rounding and `kappa` included)."""
-    cells_t = torch.as_tensor(cells)
-    pw = pixel_window(camera, cells_t, kappa)
-    n, kr, kc = len(cells), *pw.lo.shape[-2:]
-    net = FoldedPerceptionNet(model)
-    m = 8
-    base = np.zeros((60 + 2 * m, 100 + 2 * m, 3))
-    base[m:-m, m:-m] = np.clip(camera.background.astype(float), 0, 255)
-    r = (pw.origin[:, 0, None] + m + torch.arange(kr))[:, :, None].expand(n, kr, kc)
-    c = (pw.origin[:, 1, None] + m + torch.arange(kc))[:, None, :].expand(n, kr, kc)
-    cen = torch.as_tensor((cells[:, [0, 2]] + cells[:, [1, 3]]) / 2)
-    hw = torch.as_tensor((cells[:, [1, 3]] - cells[:, [0, 2]]) / 2)
-    found = []
-    for sign, j in ((1, 0), (1, 1), (-1, 0), (-1, 1)):
-        g = torch.Generator().manual_seed(seed)
-        t = (torch.rand(n, 2, generator=g, dtype=torch.float64) * 2 - 1).requires_grad_(True)
-        th = torch.randn(n, 3, kr, kc, generator=g, dtype=torch.float64).requires_grad_(True)
-        opt = torch.optim.Adam([t, th], lr=0.2)
-        best = torch.full((n,), -np.inf, dtype=torch.float64)
-        for _ in range(steps):
-            tt = t.clamp(-1, 1)
-            lo, hi = (f[:, 0] + f[:, 1] * tt[:, 0, None, None, None] + f[:, 2] * tt[:, 1, None, None, None]
-                      for f in (pw.lo, pw.hi))
-            win = lo + torch.sigmoid(th) * (hi - lo)  # (n, 3, kr, kc)
-            img = torch.as_tensor(base).expand(n, *base.shape).clone()
-            img[torch.arange(n)[:, None, None], r, c] = win.permute(0, 2, 3, 1)
-            img = img[:, m:-m, m:-m]
-            inview = (r >= m) & (r < 60 + m) & (c >= m) & (c < 100 + m)
-            assert torch.all(win.permute(0, 2, 3, 1)[~inview].abs() < 1e-9)  # outside the image: padding only
-            e = net(img.float())[:, :2].double() - (cen + hw * tt)
-            obj = sign * e[:, j]
-            best = torch.maximum(best, obj.detach())
-            opt.zero_grad()
-            (-obj.sum()).backward()
-            opt.step()
-        found.append(best)
-    return torch.stack(found, 1)  # (n, 4): max e_x, max e_y, max -e_x, max -e_y
+def _pgd_worst(model, camera, cells, kappa):
+    """Largest / smallest `e_j` the joint PGD over the position and the admissible image reaches per cell
+    (`pipeline.certify.attack`, the certify stage's attack)."""
+    from pipeline.certify.attack import pgd_worst
+
+    return pgd_worst(model, camera, cells, kappa, steps=25, seed=0)
 
 
 @pytest.mark.parametrize("kappa", [0.0, 3.0])

@@ -34,6 +34,9 @@ def test_certify_tiny_end_to_end(tiny_maps, tmp_path):
         assert r["theorem1"]["holds"] == (float(eps.max()) < s["margin_c_minus_r"])
     r0 = s["kappas"]["0"]
     assert r0["soundness"]["violations"] == 0 and r0["soundness"]["samples"] == 4 * s["n_cells"]
+    for r in s["kappas"].values():  # the PGD attack ran on 4 cells per kappa and stayed below every bound
+        assert r["pgd"]["cells"] == 4 and r["pgd"]["violations"] == 0 and r["pgd"]["counterexample"] is None
+        assert 0 < r["pgd"]["share_max"] <= 1 + 1e-6
     emp = cells["emp_0"][cells["operational"]]
     assert np.all(cells["eps_0"][cells["operational"]] >= emp)  # the bound holds the sampled maximum
     assert np.all(cells["eps_1"][cells["operational"]] >= cells["eps_0"][cells["operational"]] - 1e-6)
@@ -50,6 +53,7 @@ def test_certify_tiny_end_to_end(tiny_maps, tmp_path):
 @pytest.mark.parametrize("override, field", [
     ("tolerance=-1", "tolerance"), ("kappas=[]", "kappas"), ("mode=exact", "mode"), ("max_depth=-1", "max_depth"),
     ("region=[[1,0],[0,1]]", "region"), ("samples=0", "samples"), ("dtype=half", "dtype"), ("cell=0", "cell"),
+    ("pgd_cells=-1", "pgd_cells"), ("pgd_steps=0", "pgd_steps"),
 ])
 def test_bad_settings_are_one_line(override, field, tmp_path):
     from pipeline.certify.checks import check

@@ -64,17 +64,22 @@ def write_figures(folder: Path, fields: dict, summary: dict, arena, formats) -> 
     return out
 
 
+def _pgd(a: dict | None) -> str:
+    return f"{a['violations']} of {4 * a['cells']} / max {a['share_max']:.0%}, median {a['share_median']:.0%}" \
+        if a else "-"
+
+
 def write_table(path: Path, summary: dict) -> None:
     head = ("| κ | certified mean | p95 | max | sampled p95 | sampled max | tightness median | p95 | "
-            "max ε̄ < c - r | cells | depth counts | seconds |")
-    rows = [head, "|" + "---|" * 12]
+            "max ε̄ < c - r | PGD: past the bound / reach of it | cells | depth counts | seconds |")
+    rows = [head, "|" + "---|" * 13]
     for k, r in summary["kappas"].items():
         e, emp, t = r["eps_bar"], r.get("eps_emp"), r.get("tightness")
         f = lambda d, key: f"{d[key]:.3g}" if d else "-"  # noqa: E731
         rows.append(f"| {k} | {e['mean']:.3g} | {e['p95']:.3g} | {e['max']:.3g} | {f(emp, 'p95')} | "
                     f"{f(emp, 'max')} | {f(t, 'median')} | {f(t, 'p95')} | "
                     f"{'yes' if r['theorem1']['holds'] else 'no'} ({r['theorem1']['margin_c_minus_r']:.3g}) | "
-                    f"{e['n']} | {r['depth']} | {r['seconds']:.0f} |")
+                    f"{_pgd(r.get('pgd'))} | {e['n']} | {r['depth']} | {r['seconds']:.0f} |")
     path.write_text(f"# Certified error map of {summary['name']}-{summary['model']['id']}\n\n"
                     f"Position head {summary['model'].get('position_head', 'flat')}; "
                     f"cells of {summary['cell']:g} units over the operational set, mode {summary['mode']}, "

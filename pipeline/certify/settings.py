@@ -19,6 +19,8 @@ class CertifySettings:
     tolerance: Positive = 1.0
     max_depth: NonNegativeInt = 0
     samples: PositiveInt = 16
+    pgd_cells: NonNegativeInt = 256
+    pgd_steps: PositiveInt = 25
     operational_margin: Literal["auto"] | NonNegative = "auto"
     region: list[list[float]] | None = None
     batch: PositiveInt = 1024

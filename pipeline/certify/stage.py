@@ -20,6 +20,7 @@ import torch
 from omegaconf import DictConfig
 
 from pipeline import identity, tracking
+from pipeline.certify.attack import pgd_check
 from pipeline.certify.bounds import prepare
 from pipeline.certify.figures import write_figures, write_table
 from pipeline.certify.settings import CertifySettings
@@ -76,6 +77,11 @@ def _per_kappa(prep, pmap, camera, cells, s, margin_cr, progress: bool):
                    soundness={"samples": int(len(cells) * s["samples"]), "violations": violations,
                               "worst_excess": worst[0], "counterexample": worst[1] if worst[0] > 0 else None})
         arrays.update(emp=emp)
+    if s["pgd_cells"] > 0:  # an attacker on the bound: PGD over the position and the admissible images
+        t2 = time.perf_counter()
+        out["pgd"] = pgd_check(pmap.model, camera, cells, lower, upper, prep.kappa, s["pgd_cells"], s["pgd_steps"],
+                               s["seed"])
+        out["pgd"]["seconds"] = time.perf_counter() - t2
     return out, arrays
 
 
@@ -143,6 +149,9 @@ def _say(name: str, r: dict) -> None:
     emp = f"; sampled p95 {r['eps_emp']['p95']:.3g}, max {r['eps_emp']['max']:.3g}; tightness median " \
           f"{r['tightness']['median']:.3g}; {r['soundness']['violations']} of {r['soundness']['samples']} sampled " \
           f"errors outside their bound" if "eps_emp" in r else ""
+    a = r.get("pgd")
+    emp += f"; PGD on {a['cells']} cells: {a['violations']} past their bound, reaching at most " \
+           f"{a['share_max']:.0%} of it (median {a['share_median']:.0%})" if a else ""
     print(f"certify: {name} [kappa {r['kappa']:g}]: certified eps over the operational set mean {e['mean']:.3g}, "
           f"p95 {e['p95']:.3g}, max {e['max']:.3g} (c - r = {r['theorem1']['margin_c_minus_r']:.3g}: "
           f"{'holds' if r['theorem1']['holds'] else 'not shown'}){emp}; {r['seconds']:.0f} s")

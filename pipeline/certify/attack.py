@@ -1,0 +1,74 @@
+"""A PGD attack on the certified bound (SPEC §5.1: a bound is sound or it is not a bound).
+
+Per cell a joint ascent over the position `p = c + h t` (`t in [-1, 1]^2`) and every image the relaxation admits
+there (the window's pixels anywhere between the renderer's pixel bounds at `t`, rounding and `kappa` included;
+every other pixel the static image), through the map as deployed (`FoldedPerceptionNet`), for each of the four
+directions `±e_x`, `±e_y`. The largest error it reaches must stay below the cell's certified bound; its share of
+the bound says how tight the bound is against an attacker rather than against uniform samples.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from pipeline.certify.renderer import pixel_window
+from pipeline.perception.network import FoldedPerceptionNet
+
+PAD = 8  # the window may reach this far outside the image (padding, never read by the network)
+
+
+def pgd_worst(model, camera, cells, kappa: float = 0.0, steps: int = 25, seed: int = 0) -> torch.Tensor:
+    """`(N, 4)`: the largest `e_x`, `e_y`, `-e_x`, `-e_y` the attack reaches per cell `cells (N, 4)`."""
+    cells = torch.as_tensor(cells, dtype=torch.float64)
+    pw = pixel_window(camera, cells, kappa)
+    n, (kr, kc) = len(cells), pw.lo.shape[-2:]
+    net = FoldedPerceptionNet(model)
+    h, w = camera.height, camera.width
+    base = torch.zeros((h + 2 * PAD, w + 2 * PAD, 3), dtype=torch.float64)
+    base[PAD:-PAD, PAD:-PAD] = torch.as_tensor(np.asarray(camera.background, dtype=np.float64))
+    r = (pw.origin[:, 0, None] + PAD + torch.arange(kr))[:, :, None].expand(n, kr, kc)
+    c = (pw.origin[:, 1, None] + PAD + torch.arange(kc))[:, None, :].expand(n, kr, kc)
+    centre = (cells[:, [0, 2]] + cells[:, [1, 3]]) / 2
+    half = (cells[:, [1, 3]] - cells[:, [0, 2]]) / 2
+    found = []
+    for sign, j in ((1, 0), (1, 1), (-1, 0), (-1, 1)):
+        g = torch.Generator().manual_seed(int(seed))
+        t = (torch.rand(n, 2, generator=g, dtype=torch.float64) * 2 - 1).requires_grad_(True)
+        th = torch.randn(n, 3, kr, kc, generator=g, dtype=torch.float64).requires_grad_(True)
+        opt = torch.optim.Adam([t, th], lr=0.2)
+        best = torch.full((n,), -np.inf, dtype=torch.float64)
+        for _ in range(steps):
+            tt = t.clamp(-1, 1)
+            lo, hi = (f[:, 0] + f[:, 1] * tt[:, 0, None, None, None] + f[:, 2] * tt[:, 1, None, None, None]
+                      for f in (pw.lo.double(), pw.hi.double()))
+            win = lo + torch.sigmoid(th) * (hi - lo)  # (n, 3, kr, kc): an admissible window
+            img = base.expand(n, *base.shape).clone()
+            img[torch.arange(n)[:, None, None], r, c] = win.permute(0, 2, 3, 1)
+            e = net(img[:, PAD:-PAD, PAD:-PAD].float())[:, :2].double() - (centre + half * tt)
+            obj = sign * e[:, j]
+            best = torch.maximum(best, obj.detach())
+            opt.zero_grad()
+            (-obj.sum()).backward()
+            opt.step()
+        found.append(best)
+    return torch.stack(found, 1)
+
+
+def pgd_check(model, camera, cells: np.ndarray, lower: np.ndarray, upper: np.ndarray, kappa: float, n_cells: int,
+              steps: int, seed: int, batch: int = 64) -> dict:
+    """The attack on `n_cells` cells drawn at random (seeded) against their bounds `lower, upper (N, 2)`: how many
+    directions it pushes past the bound (`violations`, with the worst as a counterexample), and how far towards
+    the bound it gets (`share`: the attack's largest error over the bound, per direction, max and median)."""
+    rng = np.random.default_rng([int(seed), 7919])
+    pick = np.sort(rng.choice(len(cells), size=min(int(n_cells), len(cells)), replace=False))
+    worst = torch.cat([pgd_worst(model, camera, cells[pick[s:s + batch]], kappa, steps, seed)
+                       for s in range(0, len(pick), batch)]).numpy()
+    limit = np.concatenate([upper[pick], -lower[pick]], 1)
+    excess = worst - limit
+    share = worst / np.maximum(np.abs(limit), 1e-9)
+    k = np.unravel_index(np.argmax(excess), excess.shape)
+    return {"cells": int(len(pick)), "steps": int(steps), "violations": int((excess > 0).sum()),
+            "worst_excess": float(excess[k]), "share_max": float(share.max()), "share_median": float(np.median(share)),
+            "counterexample": {"cell": cells[pick[k[0]]].tolist(), "direction": ["+x", "+y", "-x", "-y"][k[1]],
+                               "error": float(worst[k])} if excess[k] > 0 else None}
