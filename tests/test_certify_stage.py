@@ -41,6 +41,14 @@ def test_certify_tiny_end_to_end(tiny_maps, tmp_path):
     assert np.all(cells["eps_0"][cells["operational"]] >= emp)  # the bound holds the sampled maximum
     assert np.all(cells["eps_1"][cells["operational"]] >= cells["eps_0"][cells["operational"]] - 1e-6)
     assert s["margin_c_minus_r"] == pytest.approx(2 * np.sqrt(2) * 4 - 4)
+    from pipeline.bracket.errors import CellTable
+
+    for k in s["kappas"]:  # the cell table the bracket reads (bracket.error_map=<this folder>: kappa 0's)
+        t = np.loadtxt(folder / f"error_map_kappa{k}.csv", delimiter=",", skiprows=1)
+        assert len(t) == s["n_cells"]
+        np.testing.assert_array_equal(np.sort(t[:, 4]), np.sort(cells[f"eps_{k}"][cells["operational"]]))
+    np.testing.assert_array_equal(CellTable(folder).cells, np.loadtxt(folder / "error_map_kappa0.csv", delimiter=",",
+                                                                      skiprows=1))
     table = (folder / "table.md").read_text()
     assert f"{r0['eps_bar']['p95']:.3g}" in table
     for f in ("certified_error_map.png", "tightness_map.png", "coverage_curve.png"):

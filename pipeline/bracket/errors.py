@@ -1,7 +1,8 @@
 """The error bound `ε̄` the certificate takes (SPEC §5.3-5.4): uniform, or the certified error map's cell table.
 
 A table (CSV or parquet) with one row per cell of positions: `x0, x1, y0, y1, eps_bar` (world units; the
-certified error map of `pipeline.certify` writes this). A grid cell of the abstraction gets the largest
+certified error map of `pipeline.certify` writes one per `kappa`, `error_map_kappa<κ>.csv`), or a certify output's
+folder (its `kappa = 0` table); `bracket.error_map` also takes the folder's `name-id` under `paths.certified_dir`. A grid cell of the abstraction gets the largest
 `eps_bar` of the table cells it meets; a grid cell that no table cell covers gets `inf` (it cannot be
 certified), so a map certified only on part of the arena certifies only runs that stay there.
 """
@@ -38,9 +39,13 @@ class CellTable:
 
         if isinstance(table, (str, Path)):
             path = Path(table)
+            if path.is_dir():  # a certified error map's folder (pipeline.certify): its table at kappa 0
+                path = path / "error_map_kappa0.csv"
             if not path.is_file():
-                raise ConfigError("bracket.error_map", f"no such file: {path}")
-            table = pd.read_parquet(path) if path.suffix == ".parquet" else pd.read_csv(path)
+                raise ConfigError("bracket.error_map", f"no such file: {path}" + (
+                    " (a certify output's folder holds error_map_kappa0.csv when its kappas include 0)"
+                    if path.name == "error_map_kappa0.csv" else ""))
+            table = pd.read_parquet(path) if path.suffix == ".parquet" else pd.read_csv(path, float_precision="round_trip")
         missing = [c for c in COLUMNS if c not in table.columns]
         if missing:
             raise ConfigError("bracket.error_map", f"needs columns {list(COLUMNS)}, missing {missing}")

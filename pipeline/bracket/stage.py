@@ -40,7 +40,11 @@ def objects(cfg: DictConfig):
     sim, camera = build(cfg.sim, "sim"), build(cfg.camera, "camera")
     if camera.period is None:
         raise ConfigError("camera.period", "the bracket needs a frame period (the sampled loop), got null")
-    emap = CellTable(bs.error_map) if bs.error_map else None
+    emap = None
+    if bs.error_map:
+        ref = Path(bs.error_map)
+        named = Path(cfg.paths.certified_dir) / bs.error_map  # a certify output by name-id
+        emap = CellTable(named if not ref.exists() and "/" not in bs.error_map and named.is_dir() else ref)
     return scene, laws, bs, sim, camera, emap
 
 

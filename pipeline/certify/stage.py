@@ -117,11 +117,12 @@ def run(cfg: DictConfig, *, perception_map=None, camera=None) -> dict:
     margin_cr = float(cov.c - cov.obstacle_radius)
     torch.set_num_threads(int(s["threads"]))
     dtype = torch.float64 if s["dtype"] == "float64" else torch.float32
-    levels, fields = {}, {"x": xs, "y": ys, "operational": op.reshape(shape)}
+    levels, tables, fields = {}, {}, {"x": xs, "y": ys, "operational": op.reshape(shape)}
     for kappa in s["kappas"]:
         prep = prepare(pmap.model, camera, float(kappa), dtype)
         r, arrays = _per_kappa(prep, pmap, camera, cells[op], s, margin_cr, bool(s["progress"]))
         levels[f"{float(kappa):g}"] = r
+        tables[f"{float(kappa):g}"] = np.column_stack([cells[op], arrays["eps"]])
         for k, v in arrays.items():
             full = np.full((len(cells), *v.shape[1:]), np.nan)
             full[op] = v
@@ -139,6 +140,9 @@ def run(cfg: DictConfig, *, perception_map=None, camera=None) -> dict:
         (tmp / "summary.json").write_text(json.dumps(summary, indent=2))
         np.savez_compressed(tmp / "cells.npz", **fields)
         write_table(tmp / "table.md", summary)
+        for k, t in tables.items():  # the cell table `python -m pipeline.bracket bracket.error_map=<this folder>` reads
+            np.savetxt(tmp / f"error_map_kappa{k}.csv", t, delimiter=",", header="x0,x1,y0,y1,eps_bar", comments="",
+                       fmt="%.17g")
         write_figures(tmp, fields, summary, arena, s["formats"])
     print(f"certify: wrote {final}")
     return {"path": final, "summary": summary, "skipped": False}
