@@ -16,22 +16,31 @@ TINY = ["bracket.cell=4.0", "bracket.start_cell=20", "bracket.eps=[0.1,0.25]", "
 def test_tiny_bracket_run(tmp_path):
     from pipeline.bracket.stage import run
 
-    cfg = compose("bracket", [*TINY, f"paths.output_dir={tmp_path}"])
+    cfg = compose("bracket", [*TINY, f"paths.outputs_dir={tmp_path}", f"paths.output_dir={tmp_path / 'run'}"])
     out = run(cfg)
-    df = pd.read_csv(tmp_path / "bracket.csv")
+    folder = out["path"]
+    assert folder.parent == tmp_path / "bracket" and folder.name.startswith("bracket-") and not out["skipped"]
+    df = pd.read_csv(folder / "bracket.csv")
     n = len(df) // 3
     assert list(df.controller.unique()) == ["hybrid", "smooth", "cbf"] and len(df) == 3 * n
     # soundness: no start cell certified at an ε the falsifier broke (the stage's own check, re-read from disk)
     assert not (df.eps_lo > df.eps_hi).any()
     assert (df.eps_lo.dropna().isin([0.1, 0.25])).all()
-    tab = (tmp_path / "table.md").read_text()
+    tab = (folder / "table.md").read_text()
     assert tab.count("\n| ") == 3 and "soundness" in tab
-    paths = np.load(tmp_path / "counterexamples.npz")
+    paths = np.load(folder / "counterexamples.npz")
     falsified = np.isfinite(df.eps_hi.to_numpy()) & (df.adversary != "start in obstacle").to_numpy()
     for name in ("hybrid", "smooth", "cbf"):
         rows = falsified[df.controller == name]
         assert np.isfinite(paths[name][:, rows]).all()  # every counterexample comes with its path
     assert out["table"].shape[0] == 3
+    # lineage: the same config is the same folder, not recomputed; what changes the numbers changes the id
+    again = run(cfg)
+    assert again["skipped"] and again["path"] == folder
+    pd.testing.assert_frame_equal(again["bracket"], df)
+    other = run(compose("bracket", [*TINY, "bracket.eps=[0.1]", f"paths.outputs_dir={tmp_path}",
+                                    f"paths.output_dir={tmp_path / 'run'}"]))
+    assert other["path"] != folder and not other["skipped"]
 
 
 @pytest.mark.parametrize("override,field", [

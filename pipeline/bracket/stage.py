@@ -9,6 +9,7 @@ largest uniform ε certified; NaN: none), `certified_map` (certified with the er
 
 from __future__ import annotations
 
+import hashlib
 import json
 import time
 from pathlib import Path
@@ -17,6 +18,7 @@ import numpy as np
 import pandas as pd
 from omegaconf import DictConfig
 
+from pipeline import tracking
 from pipeline.bracket.certify_loop import certified_starts, certify
 from pipeline.bracket.errors import CellTable, Uniform
 from pipeline.bracket.falsifier import Search, falsify
@@ -131,9 +133,29 @@ def table(df: pd.DataFrame, scene, eps_list, with_map: bool = False) -> pd.DataF
     return pd.DataFrame(out)
 
 
+CODE = ("bracket", "control", "sim", "plants.py")  # the code the bracket's numbers depend on (its id)
+
+
+def bracket_id(cfg: DictConfig, bs, emap) -> tuple[str, dict]:
+    """The output's id: what determines its bytes (the scene, the compared laws' nodes, the camera period, the sim,
+    the bracket's settings, the error map's cells and bounds, the code); and the manifest's record of it."""
+    laws = {n: tracking.to_plain(cfg.controller if n == "hybrid" else cfg.controllers[n]) for n in bs.controllers}
+    parts = {"scene": tracking.to_plain(cfg.scene), "controllers": laws, "camera": tracking.to_plain(cfg.camera),
+             "sim": tracking.to_plain(cfg.sim), "bracket": {**tracking.to_plain(cfg.bracket), "error_map": None},
+             "error_map": None if emap is None else hashlib.sha256(np.ascontiguousarray(emap.cells).tobytes()).hexdigest(),
+             "code": tracking.code_version(*CODE)}
+    return tracking.content_id(parts), {**parts, "error_map_ref": bs.error_map}
+
+
 def run(cfg: DictConfig) -> dict:
     scene, laws, bs, sim, camera, emap = objects(cfg)
-    run_dir = Path(cfg.paths.output_dir)
+    id_, meta = bracket_id(cfg, bs, emap)
+    final = Path(cfg.paths.bracket_dir) / f"bracket-{id_}"
+    if tracking.is_complete(final) and not cfg.get("force", False):
+        df = pd.read_csv(final / "bracket.csv")
+        print(f"bracket: {final} is complete (force=true to recompute)\n{(final / 'table.md').read_text()}")
+        return {"bracket": df, "table": None, "stats": json.loads((final / "certificate.json").read_text()),
+                "path": final, "skipped": True}
     starts = start_cells(scene, bs.start_cell)
     frames, stats, paths = [], {}, {}
     for name, law in laws.items():
@@ -144,20 +166,15 @@ def run(cfg: DictConfig) -> dict:
               f"cells, falsified {int(np.isfinite(rows.eps_hi).sum())}/{len(rows)}", flush=True)
     df = pd.concat(frames, ignore_index=True)
     tab = table(df, scene, bs.eps, with_map=emap is not None)
-    tmp = run_dir.with_name(run_dir.name + ".tmp")
-    tmp.mkdir(parents=True, exist_ok=True)
-    df.to_csv(tmp / "bracket.csv", index=False)
-    (tmp / "table.md").write_text(markdown_table(tab) + "\n")
-    (tmp / "certificate.json").write_text(json.dumps(stats, indent=1, default=float))
-    np.savez_compressed(tmp / "counterexamples.npz", **{k: v.astype(np.float32) for k, v in paths.items()})
     from pipeline.bracket.figures import bracket_figure  # matplotlib: not imported by the preflight
 
-    bracket_figure(scene, df, paths, bs, tmp / "bracket", bs.formats)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    for f in tmp.iterdir():
-        f.replace(run_dir / f.name)
-    tmp.rmdir()
+    with tracking.tracked_output(final.parent, "bracket", id_, {"kind": "bracket", "recipe": meta}) as tmp:
+        df.to_csv(tmp / "bracket.csv", index=False)
+        (tmp / "table.md").write_text(markdown_table(tab) + "\n")
+        (tmp / "certificate.json").write_text(json.dumps(stats, indent=1, default=float))
+        np.savez_compressed(tmp / "counterexamples.npz", **{k: v.astype(np.float32) for k, v in paths.items()})
+        bracket_figure(scene, df, paths, bs, tmp / "bracket", bs.formats)
     print(markdown_table(tab))
-    print(f"bracket -> {run_dir}")
-    return {"bracket": df, "table": tab, "stats": stats, "run_dir": run_dir}
+    print(f"bracket -> {final}")
+    return {"bracket": df, "table": tab, "stats": stats, "path": final, "skipped": False}
 
