@@ -31,19 +31,31 @@ def softmax_mean_max(s_lo: torch.Tensor, s_hi: torch.Tensor, v: torch.Tensor) ->
     return torch.nan_to_num(vals, nan=float("-inf")).amax(-1).clamp(max=v[:, 0])  # never above the largest v
 
 
-def _window_crown(net, cone, pix_lo, pix_hi) -> tuple[torch.Tensor, torch.Tensor]:
+CROWN_PLACES = 12  # window places per cell bounded by backward passes: those of the largest forward upper scores
+
+
+def _window_crown(net, cone, pix_lo, pix_hi, score_hi) -> tuple[torch.Tensor, torch.Tensor]:
     """The window's head outputs (score, dx, dy) bounded by backward passes from each of them to the pixels
-    (:func:`.crown.backward_from_relu`): `(N, 3, h, w)` lower and upper, bias excluded."""
+    (:func:`.crown.backward_from_relu`) at the `CROWN_PLACES` places of each cell's window with the largest forward
+    upper score `score_hi (N, h, w)` (where the attention can go; elsewhere `-inf, inf`): `(N, 3, h, w)` lower and
+    upper, bias excluded."""
     w = net.keypoint[0]
     _, f_lo, _ = cone.g
     n, _, c, h, wd = f_lo.shape
-    at = torch.eye(h * wd, dtype=w.dtype, device=w.device).view(h * wd, 1, h, wd)
-    lam = (w[:, None, :, None, None] * at[None]).flatten(0, 1)  # (3 h wd, C, h, wd): one output at one place
-    lam = torch.cat([lam, -lam])
-    forms = backward_from_relu(net, cone, lam.expand(n, *lam.shape), lam.new_zeros((n, len(lam))), pix_lo, pix_hi)
+    k = min(CROWN_PLACES, h * wd)
+    places = score_hi.flatten(1).topk(k, -1).indices  # (N, K)
+    at = torch.eye(h * wd, dtype=w.dtype, device=w.device)[places].view(n, 1, k, 1, h, wd)
+    lam = (w.view(1, 3, 1, c, 1, 1) * at).flatten(1, 2)  # (N, 3 K, C, h, wd): one output at one place
+    lam = torch.cat([lam, -lam], 1)
+    forms = backward_from_relu(net, cone, lam, lam.new_zeros(lam.shape[:2]), pix_lo, pix_hi)
     low = forms[..., 0] - forms[..., 1:].abs().sum(-1)  # (N, P): each lower-bound form's minimum over the cell
-    half = len(lam) // 2
-    return low[:, :half].view(n, 3, h, wd), -low[:, half:].view(n, 3, h, wd)
+    half = lam.shape[1] // 2
+    lo = torch.full((n, 3, h * wd), float("-inf"), dtype=low.dtype, device=low.device)
+    hi = torch.full_like(lo, float("inf"))
+    idx = places[:, None].expand(n, 3, k)
+    lo.scatter_(2, idx, low[:, :half].view(n, 3, k))
+    hi.scatter_(2, idx, -low[:, half:].view(n, 3, k))
+    return lo.view(n, 3, h, wd), hi.view(n, 3, h, wd)
 
 
 def keypoint_range(net, static, cone, pixels=None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -63,7 +75,7 @@ def keypoint_range(net, static, cone, pixels=None) -> tuple[torch.Tensor, torch.
     # then their range over the cell
     win_lo, win_hi = concretize(*conv1(f_lo, f_hi))  # (N, 3, h, wd)
     if pixels is not None:
-        c_lo, c_hi = _window_crown(net, cone, *pixels)
+        c_lo, c_hi = _window_crown(net, cone, *pixels, win_hi[:, 0])
         win_lo, win_hi = torch.maximum(win_lo, c_lo), torch.minimum(win_hi, c_hi)
     win_lo, win_hi = win_lo + bias, win_hi + bias
     n, _, h, wd = win_lo.shape
