@@ -26,6 +26,7 @@ from pipeline.cli import CONF_DIR, stage_main
 from pipeline.config import compose, settings
 from pipeline.errors import ConfigError, PipelineError
 from pipeline.experiments.report import write_index
+from pipeline.identity import certify_id
 from pipeline.jobs import Job, run_jobs
 from pipeline.lineage import (
     dataset_identity,
@@ -46,6 +47,7 @@ class StageArgs:
     data: list[str] = field(default_factory=list)
     train: list[str] = field(default_factory=list)
     errormap: list[str] = field(default_factory=list)
+    certify: list[str] = field(default_factory=list)
     experiments: list[str] = field(default_factory=list)
 
 
@@ -56,6 +58,7 @@ class PaperSettings:
     datasets: Annotated[list[Annotated[str, Option("data")]], NonEmpty()]
     maps: list[str]
     errormaps: list[str]
+    certify: list[str]
     experiments: list[Annotated[str, Option("experiment")]]
     args: StageArgs
     stop_on_error: bool
@@ -85,8 +88,9 @@ def check(cfg: DictConfig) -> None:
     missing = {name for name in maps if map_recipe(name)[0] not in datasets}
     if missing:
         raise ConfigError("maps", f"{sorted(missing)} are trained on datasets not among {datasets}")
-    if set(s.errormaps) - set(maps):
-        raise ConfigError("errormaps", f"{sorted(set(s.errormaps) - set(maps))} are not among the maps {maps}")
+    for key in ("errormaps", "certify"):
+        if set(getattr(s, key)) - set(maps):
+            raise ConfigError(key, f"{sorted(set(getattr(s, key)) - set(maps))} are not among the maps {maps}")
 
 
 def experiment_pins(experiments_cfg, map_refs: dict[str, str], em_refs: dict[str, str]) -> list[str]:
@@ -179,7 +183,7 @@ def run(cfg) -> dict:
         return {n: Path(cfg.paths.errormaps_dir) / "-".join(expected_errormap_id(
             models_root / lock["maps"][n].name, [*paths, *args["errormap"]])) for n in errormaps}
 
-    lock: dict[str, dict[str, Path]] = {"datasets": {}, "maps": {}, "errormaps": {}, "experiments": {}}
+    lock: dict[str, dict[str, Path]] = {"datasets": {}, "maps": {}, "errormaps": {}, "certified": {}, "experiments": {}}
     runner = Runner(cfg, timings, stop)
     jobs = {"data": lambda: [Job("data", ["-m", f"data={','.join(datasets)}", *paths, *args["data"]], "data")],
             "train": lambda: [Job("train", [f"data={map_recipe(n)[0]}", *map_recipe(n)[1], *paths, *args["train"]],
@@ -195,6 +199,8 @@ def run(cfg) -> dict:
         if found is None:  # up to date: not started
             runner.stage(stage, jobs[stage]())
         lock[kind] = found or folders()
+    if cfg.get("certify"):
+        lock["certified"] = _certified(cfg, list(cfg.certify), paths, args, lock, runner)
     map_refs = {n: f.name for n, f in lock["maps"].items()}
     em_refs = {n: f.name for n, f in lock["errormaps"].items()}
     if cfg.experiments:
@@ -209,6 +215,26 @@ def run(cfg) -> dict:
     print(f"\n[paper] done in {total / 60:.1f} min ({line}); see {cfg.paths.paper_dir}/index.md; inputs pinned in "
           f"{lock_path}")
     return {"timings": timings, "total": total, "lock": lock_path, "maps": map_refs, "errormaps": em_refs}
+
+
+def _certified(cfg, names, paths, args, lock, runner) -> dict[str, Path]:
+    """The certify stage (docs/certify.md) on the maps `names` this run built: not started when every certified
+    error map the current certify config makes for them is there."""
+    argv = {n: [f"maps={lock['maps'][n].name}", *paths, *args["certify"]] for n in names}
+
+    def folders():
+        out = {}
+        for n, a in argv.items():
+            c = compose("certify", a)
+            s = tracking.to_plain({k: c[k] for k in c.keys() if k not in ("paths", "hydra")})
+            m = tracking.read_manifest(lock["maps"][n])
+            out[n] = Path(cfg.paths.certified_dir) / f"{m['name']}-{certify_id(s, m['id'], m['scene'], m['arena'])}"
+        return out
+
+    found = up_to_date("certify", folders)
+    if found is None:
+        runner.stage("certify", [Job("certify", argv[n], f"certify {n}") for n in names])
+    return found or folders()
 
 
 def _experiments(cfg, experiments, paths, args, map_refs, em_refs, lock, runner) -> dict[str, Path]:

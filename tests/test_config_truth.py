@@ -543,6 +543,8 @@ def test_paper_keeps_its_maps_when_a_quick_experiment_trains_another(tmp_path):
             "experiments=[perception_closeness]", f"args.data={q(data)}",
             f"args.train={q(['trainer=debug', 'eval_levels=[none]', *data])}",
             f"args.errormap={q(['grid.step=4.0', 'occlusion_levels=[none]', 'train_samples=64'])}",
+            "certify=[clean_keypoint]",
+            f"args.certify={q(['cell=2.0', 'region=[[30.0,46.0],[-6.0,6.0]]', 'kappas=[0.0]', 'samples=2', 'pgd_cells=2', 'pgd_steps=2'])}",
             f"args.experiments={q(['debug=tiny'])}", f"hydra.run.dir={tmp_path / 'run1'}"]
     first = _cli("pipeline.paper", *args, timeout=900)
     assert first.returncode == 0, first.stderr[-3000:]
@@ -557,11 +559,13 @@ def test_paper_keeps_its_maps_when_a_quick_experiment_trains_another(tmp_path):
     again = _cli("pipeline.paper", *args[:-1], f"hydra.run.dir={tmp_path / 'run2'}", timeout=900)
     assert again.returncode == 0, again.stderr[-3000:]
     # nothing changed for the paper (issue 32): no stage is started, no figure redrawn
-    assert again.stdout.count("; not started") == 4, again.stdout[-3000:]
+    assert again.stdout.count("; not started") == 5, again.stdout[-3000:]
+    assert "certify: up to date" in again.stdout  # the certified error map the paper computed is the one expected
     assert figure.stat().st_mtime_ns == drawn
     lock2 = yaml.safe_load((root / "outputs" / "paper" / "paper.lock.yaml").read_text())
     assert lock2["maps"]["clean_keypoint"]["folder"] == map_folder
     assert lock2["experiments"] == lock["experiments"]  # nothing recomputed with the side map
+    assert lock2["certified"] == lock["certified"] and lock["certified"]["clean_keypoint"]["folder"]
     index = (root / "outputs" / "paper" / "index.md").read_text()
     assert map_folder in index and "paper.lock.yaml" in index
 
@@ -606,3 +610,15 @@ def test_the_code_hashed_into_each_id_covers_the_modules_that_compute_it():
     assert imported and all(covered(m, identity.MAP_CODE) for m in imported), imported
     assert all(covered(m, identity.dataset_code({"sampling": {"mode": "closed_loop", "closed_loop": {"map": "x"}}}))
                for m in imported), imported
+
+
+@pytest.mark.parametrize("override, field", [("certify=[occluded_keypoint]", "certify"),
+                                             ("errormaps=[unicycle_pose]", "errormaps"), ("args.certify=3", "args.certify")])
+def test_paper_lists_only_maps_it_builds(override, field):
+    """The certify and errormap stages of make paper take maps of its `maps` list: one line naming the key."""
+    from pipeline.paper import check
+    from pipeline.preflight import preflight
+
+    with pytest.raises(ConfigError) as err:
+        preflight("paper", ["maps=[clean_keypoint]", "datasets=[clean]", "errormaps=[clean_keypoint]", override], check)
+    assert err.value.field == field and "\n" not in str(err.value)
