@@ -12,7 +12,7 @@ from pipeline.schema import NonEmpty, NonNegative, NonNegativeInt, Positive, Pos
 @checked("")
 @dataclass(frozen=True)
 class CertifySettings:
-    maps: str = "clean"
+    maps: str = "clean_keypoint"
     cell: Positive = 0.25
     mode: Literal["ibp", "forward", "crown"] = "crown"
     kappas: Annotated[list[NonNegative], NonEmpty(distinct=True)] = field(default_factory=lambda: [0.0, 1.0])
