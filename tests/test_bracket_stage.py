@@ -49,6 +49,7 @@ def test_tiny_bracket_run(tmp_path):
     ("bracket.cell=-1", "bracket.cell"),
     ("bracket.controllers=[hybrid,pid]", "bracket.controllers"),
     ("bracket.error_map=/nonexistent/map.csv", "bracket.error_map"),
+    ("bracket.error_map=clean_keypoint-0000000000", "bracket.error_map"),  # a certify output by name-id, not built
     ("camera.period=null", "camera.period"),
 ])
 def test_bad_bracket_input_is_one_config_error(tmp_path, override, field):

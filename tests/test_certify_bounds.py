@@ -79,13 +79,16 @@ def _amplified(seed, filters=(4, 8, 8), gain=8.0):
 def trained(camera):
     """A small map fitted for a few seconds (errors of a few units, ReLUs that switch with the robot)."""
     torch.manual_seed(0)
-    rng = np.random.default_rng(0)
-    m = PerceptionMap(filters=(4, 8, 8), uncertainty="none", dropout=0.0)
+    return _fit(PerceptionMap(filters=(4, 8, 8), uncertainty="none", dropout=0.0), camera, 0, 150)
+
+
+def _fit(m, camera, seed: int, steps: int):
+    """`m` fitted for `steps` Adam steps on 768 rendered positions (seeded), in eval mode."""
+    rng = np.random.default_rng(seed)
     p = np.column_stack([rng.uniform(-47, 47, 768), rng.uniform(-27, 27, 768)])
-    x = torch.from_numpy(camera.render(p))
-    y = torch.as_tensor(p, dtype=torch.float32)
+    x, y = torch.from_numpy(camera.render(p)), torch.as_tensor(p, dtype=torch.float32)
     opt = torch.optim.Adam(m.parameters(), lr=3e-3)
-    for _ in range(150):
+    for _ in range(steps):
         idx = torch.as_tensor(rng.integers(0, len(p), 64))
         loss = torch.nn.functional.mse_loss(m.position_outputs(m.prepare(x[idx])), m.targets(y[idx]))
         opt.zero_grad()
@@ -319,17 +322,7 @@ def _keypoint_map(seed: int, trained_on=None, camera=None):
             m.features[0].weight.mul_(4.0)
             m.head.score.weight.mul_(4.0)
         return m.eval()
-    rng = np.random.default_rng(seed)
-    p = np.column_stack([rng.uniform(-47, 47, 768), rng.uniform(-27, 27, 768)])
-    x, y = torch.from_numpy(camera.render(p)), torch.as_tensor(p, dtype=torch.float32)
-    opt = torch.optim.Adam(m.parameters(), lr=3e-3)
-    for _ in range(trained_on):
-        idx = torch.as_tensor(rng.integers(0, len(p), 64))
-        loss = torch.nn.functional.mse_loss(m.position_outputs(m.prepare(x[idx])), m.targets(y[idx]))
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-    return m.eval()
+    return _fit(m, camera, seed, trained_on)
 
 
 @settings(max_examples=10, deadline=None, phases=PHASES)

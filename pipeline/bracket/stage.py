@@ -45,8 +45,12 @@ def objects(cfg: DictConfig):
     emap = None
     if bs.error_map:
         ref = Path(bs.error_map)
-        named = Path(cfg.paths.certified_dir) / bs.error_map  # a certify output by name-id
-        emap = CellTable(named if not ref.exists() and "/" not in bs.error_map and named.is_dir() else ref)
+        if not ref.exists() and "/" not in bs.error_map and not ref.suffix:  # a certify output by name-id
+            ref = Path(cfg.paths.certified_dir) / bs.error_map
+            if not ref.is_dir():
+                raise ConfigError("bracket.error_map", f"certified error map {bs.error_map} is not built under "
+                                                       f"{ref.parent}; run `python -m pipeline.certify` on its map")
+        emap = CellTable(ref)
     return scene, laws, bs, sim, camera, emap
 
 
