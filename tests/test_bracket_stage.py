@@ -73,3 +73,23 @@ def test_settings_defaults_are_the_yaml():
     node = yaml.safe_load((CONF_DIR / "bracket.yaml").read_text())["bracket"]
     node.pop("_target_")
     assert node == asdict(BracketSettings())
+
+
+def test_a_file_where_the_bracket_folder_should_be_is_one_line(tmp_path):
+    """The tracked output's folder taken by a file: one line naming it, exit 2 (issue 27's rule, in this stage)."""
+    import shutil
+    import subprocess
+    import sys
+
+    from pipeline.bracket.stage import run
+    from pipeline.cli import REPO_ROOT
+
+    args = [*TINY, "bracket.controllers=[cbf]", f"paths.outputs_dir={tmp_path}"]
+    folder = run(compose("bracket", [*args, f"paths.output_dir={tmp_path / 'run'}"]))["path"]
+    shutil.rmtree(folder)
+    folder.write_text("x")
+    proc = subprocess.run([sys.executable, "-m", "pipeline.bracket", *args, f"hydra.run.dir={tmp_path / 'cli'}"],
+                          cwd=REPO_ROOT, capture_output=True, text=True, timeout=300)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1 and "a file where" in lines[0] and str(folder) in lines[0], \
+        proc.stderr[-2000:]

@@ -78,3 +78,21 @@ def test_bad_key_on_the_command_line_is_one_line_exit_2(tmp_path):
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2 and len(lines) == 1 and "tolerence" in lines[0], proc.stderr
     assert not (tmp_path / "outputs" / "certified").exists()
+
+
+def test_a_file_where_the_certified_folder_should_be_is_one_line(tiny_maps, tmp_path):
+    """The certified error map's folder taken by a file: one line naming it, exit 2 (issue 27's rule)."""
+    import shutil
+
+    from pipeline.certify.stage import run
+
+    root, ids = tiny_maps
+    folder = run(_cfg(tiny_maps, tmp_path, "kappas=[0.0]"))["path"]
+    shutil.rmtree(folder)
+    folder.write_text("x")
+    proc = subprocess.run([sys.executable, "-m", "pipeline.certify", "debug=tiny", f"maps={ids['clean']}",
+                           f"paths.models_dir={root / 'models'}", f"paths.certified_dir={tmp_path / 'certified'}",
+                           "progress=false", "kappas=[0.0]", f"hydra.run.dir={tmp_path / 'cli'}"],
+                          cwd=REPO_ROOT, capture_output=True, text=True, timeout=300)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1 and "a file where" in lines[0], proc.stderr[-2000:]
