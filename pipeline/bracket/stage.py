@@ -24,7 +24,7 @@ from pipeline.bracket.errors import CellTable, Uniform
 from pipeline.bracket.falsifier import Search, falsify
 from pipeline.bracket.loop import OUTCOMES, FrameLoop
 from pipeline.config import build
-from pipeline.errors import ConfigError
+from pipeline.errors import ConfigError, DatasetError
 from pipeline.experiments.report import markdown_table
 from pipeline.sim.simulator import stall_threshold
 
@@ -43,13 +43,14 @@ def objects(cfg: DictConfig):
     if camera.period is None:
         raise ConfigError("camera.period", "the bracket needs a frame period (the sampled loop), got null")
     emap = None
-    if bs.error_map:
+    if bs.error_map:  # a cell table, or a certify output (folder, name-id or id) resolved as every tracked input
         ref = Path(bs.error_map)
-        if not ref.exists() and "/" not in bs.error_map and not ref.suffix:  # a certify output by name-id
-            ref = Path(cfg.paths.certified_dir) / bs.error_map
-            if not ref.is_dir():
-                raise ConfigError("bracket.error_map", f"certified error map {bs.error_map} is not built under "
-                                                       f"{ref.parent}; run `python -m pipeline.certify` on its map")
+        if not ref.is_file():
+            try:
+                ref = tracking.resolve(Path(cfg.paths.certified_dir), bs.error_map, kind="certified error map",
+                                       field="bracket.error_map", expected=lambda name: None)
+            except DatasetError as err:
+                raise ConfigError("bracket.error_map", str(err)) from None
         emap = CellTable(ref)
     return scene, laws, bs, sim, camera, emap
 
