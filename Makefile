@@ -37,6 +37,7 @@ generalisation: $(STAMP) ## maps on every cloud level (issue 11): authors + clea
 
 learned: $(STAMP) ## learned end-to-end policies (SPEC §6): imitate the hybrid controller (BC + DAgger; ARGS), then compare them with the paper's architecture (LEARNED_ARGS) in outputs/learned/
 	$(PY) -m pipeline.learned.imitate $(ARGS)
+	$(PY) -m pipeline.learned.imitate --config-name imitate_heavy $(ARGS)
 	$(PY) -m pipeline.learned.evaluate $(LEARNED_ARGS)
 
 simulate: $(STAMP) ## closed-loop simulation demo on the true state (Hydra: make simulate ARGS="controller=smooth")

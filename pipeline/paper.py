@@ -23,7 +23,7 @@ from omegaconf import DictConfig
 
 from pipeline import tracking
 from pipeline.cli import CONF_DIR, stage_main
-from pipeline.config import compose, settings
+from pipeline.config import build, compose, settings
 from pipeline.errors import ConfigError, PipelineError
 from pipeline.experiments.report import write_index
 from pipeline.identity import certify_id
@@ -49,6 +49,8 @@ class StageArgs:
     errormap: list[str] = field(default_factory=list)
     certify: list[str] = field(default_factory=list)
     experiments: list[str] = field(default_factory=list)
+    imitate: list[str] = field(default_factory=list)
+    learned: list[str] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -60,6 +62,7 @@ class PaperSettings:
     errormaps: list[str]
     certify: list[str]
     experiments: list[Annotated[str, Option("experiment")]]
+    learned: list[Annotated[str, Pattern(r"imitate(_\w+)?", "the name of an imitation config (imitate, imitate_<x>)")]]
     args: StageArgs
     stop_on_error: bool
     workers: PositiveInt | None
@@ -91,6 +94,9 @@ def check(cfg: DictConfig) -> None:
     for key in ("errormaps", "certify"):
         if set(getattr(s, key)) - set(maps):
             raise ConfigError(key, f"{sorted(set(getattr(s, key)) - set(maps))} are not among the maps {maps}")
+    missing = [c for c in s.learned if not (CONF_DIR / f"{c}.yaml").is_file()]
+    if missing:
+        raise ConfigError("learned", f"no imitation config conf/{missing[0]}.yaml")
 
 
 def experiment_pins(experiments_cfg, map_refs: dict[str, str], em_refs: dict[str, str]) -> list[str]:
@@ -183,7 +189,8 @@ def run(cfg) -> dict:
         return {n: Path(cfg.paths.errormaps_dir) / "-".join(expected_errormap_id(
             models_root / lock["maps"][n].name, [*paths, *args["errormap"]])) for n in errormaps}
 
-    lock: dict[str, dict[str, Path]] = {"datasets": {}, "maps": {}, "errormaps": {}, "certified": {}, "experiments": {}}
+    lock: dict[str, dict[str, Path]] = {"datasets": {}, "maps": {}, "errormaps": {}, "certified": {}, "experiments": {},
+                                        "learned": {}}
     runner = Runner(cfg, timings, stop)
     jobs = {"data": lambda: [Job("data", ["-m", f"data={','.join(datasets)}", *paths, *args["data"]], "data")],
             "train": lambda: [Job("train", [f"data={map_recipe(n)[0]}", *map_recipe(n)[1], *paths, *args["train"]],
@@ -205,6 +212,8 @@ def run(cfg) -> dict:
     em_refs = {n: f.name for n, f in lock["errormaps"].items()}
     if cfg.experiments:
         lock["experiments"] = _experiments(cfg, list(cfg.experiments), paths, args, map_refs, em_refs, lock, runner)
+    if cfg.get("learned"):
+        lock["learned"] = _learned(cfg, list(cfg.learned), paths, args, map_refs, runner)
     lock = {k: {n: f for n, f in v.items() if tracking.is_complete(f)} for k, v in lock.items()}
     lock_path = write_lock(Path(cfg.paths.paper_dir) / cfg.lock, lock, debug=cfg.get("debug") or "none")
     if (Path(cfg.paths.paper_dir) / "index").is_dir():
@@ -235,6 +244,57 @@ def _certified(cfg, names, paths, args, lock, runner) -> dict[str, Path]:
     if found is None:
         runner.stage("certify", [Job("certify", argv[n], f"certify {n}") for n in names])
     return found or folders()
+
+
+def _learned(cfg, configs, paths, args, map_refs, runner) -> dict[str, Path]:
+    """`make learned`'s stages (docs/learned.md) after the experiments: the imitation of each config of `configs`
+    (conf/imitate*.yaml; its trunk pinned to the map this run built), then the comparison with every map and
+    network pinned; each not started when what its current config makes is there. The comparison's table and
+    figure are copied into the paper folder (`tab_learned.md`, `fig_learned_switching_set.png`)."""
+    import shutil
+
+    from pipeline.learned.evaluate import inputs, learned_id
+    from pipeline.learned.imitate import identity
+
+    paths = [p for p in paths if not p.startswith("debug=")]  # their tiny sizes are args (conf/debug/paper/)
+    def trunk_pin(config: str) -> list[str]:
+        trunk = compose(config, [*paths, *args["imitate"]]).imitation.trunk_from
+        return [f"imitation.trunk_from={map_refs[trunk]}"] if trunk in map_refs else []
+
+    argv = {c: [*trunk_pin(c), *paths, *args["imitate"]] for c in configs}
+    composed = {c: compose(c, a) for c, a in argv.items()}
+    policies = {c: Path(k.paths.models_dir) / f"{k.name}-{identity(k)}" for c, k in composed.items()}
+    if up_to_date("imitate", lambda: policies) is None:
+        runner.stage("imitate", [Job("imitate", ["--config-name", c, *a], f"imitate {c}",
+                                     module="pipeline.learned.imitate") for c, a in argv.items()])
+    kinds = compose("learned", paths).maps
+    pins = [f"maps.{k}={map_refs[str(n)]}" for k, n in kinds.items() if str(n) in map_refs]
+    pins += [f"policies.imitation{'' if c == 'imitate' else '_clouds'}={policies[c]}" for c in configs
+             if c in ("imitate", "imitate_heavy")]
+    learned_argv = [*pins, *paths, *args["learned"]]
+
+    def comparison() -> dict[str, Path]:
+        k = compose("learned", learned_argv)
+        folders = inputs(k, build(k.learned, "learned"))
+        return {"comparison": Path(k.paths.outputs_dir) / "learned" / f"learned-{learned_id(k, folders)}"}
+
+    found = up_to_date("learned", comparison)
+    if found is None:
+        runner.stage("learned", [Job("learned", learned_argv, "learned", module="pipeline.learned.evaluate")])
+        try:
+            found = comparison()
+        except PipelineError:
+            found = {}
+    out = {**{f"policy {c}": f for c, f in policies.items()}, **found}
+    folder = found.get("comparison")
+    if folder is not None and tracking.is_complete(folder):
+        paper_dir = Path(cfg.paths.paper_dir)
+        paper_dir.mkdir(parents=True, exist_ok=True)
+        for src, dst in (("tab_learned.md", "tab_learned.md"), ("fig_switching_set.png", "fig_learned_switching_set.png")):
+            same = (paper_dir / dst).is_file() and (paper_dir / dst).read_bytes() == (folder / src).read_bytes()
+            if (folder / src).is_file() and not same:  # unchanged: not rewritten (its time says when it was made)
+                shutil.copyfile(folder / src, paper_dir / dst)
+    return out
 
 
 def _experiments(cfg, experiments, paths, args, map_refs, em_refs, lock, runner) -> dict[str, Path]:

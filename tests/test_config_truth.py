@@ -545,7 +545,10 @@ def test_paper_keeps_its_maps_when_a_quick_experiment_trains_another(tmp_path):
             f"args.errormap={q(['grid.step=4.0', 'occlusion_levels=[none]', 'train_samples=64'])}",
             "certify=[clean_keypoint]",
             f"args.certify={q(['cell=2.0', 'region=[[30.0,46.0],[-6.0,6.0]]', 'kappas=[0.0]', 'samples=2', 'pgd_cells=2', 'pgd_steps=2'])}",
-            f"args.experiments={q(['debug=tiny'])}", f"hydra.run.dir={tmp_path / 'run1'}"]
+            f"args.experiments={q(['debug=tiny'])}", "learned=[imitate]",
+            f"args.imitate={q(['imitation.agents=2', 'imitation.rounds=0', 'imitation.epochs=1', 'imitation.max_frames=4', 'model.hidden=8'])}",
+            f"args.learned={q(['learned.agents=2', 'learned.near_k=2', 'learned.agents_list=[hybrid,imitated]', 'learned.attack_list=[imitated]', 'learned.clouds_list=[]', 'learned.cloud_attack_list=[]', 'learned.attack_steps=1', 'sim.horizon=1', 'learned.grid=[5,4]'])}",
+            f"hydra.run.dir={tmp_path / 'run1'}"]
     first = _cli("pipeline.paper", *args, timeout=900)
     assert first.returncode == 0, first.stderr[-3000:]
     lock = yaml.safe_load((root / "outputs" / "paper" / "paper.lock.yaml").read_text())
@@ -559,13 +562,19 @@ def test_paper_keeps_its_maps_when_a_quick_experiment_trains_another(tmp_path):
     again = _cli("pipeline.paper", *args[:-1], f"hydra.run.dir={tmp_path / 'run2'}", timeout=900)
     assert again.returncode == 0, again.stderr[-3000:]
     # nothing changed for the paper (issue 32): no stage is started, no figure redrawn
-    assert again.stdout.count("; not started") == 5, again.stdout[-3000:]
+    assert again.stdout.count("; not started") == 7, again.stdout[-3000:]  # the learned stage's two too
     assert "certify: up to date" in again.stdout  # the certified error map the paper computed is the one expected
     assert figure.stat().st_mtime_ns == drawn
     lock2 = yaml.safe_load((root / "outputs" / "paper" / "paper.lock.yaml").read_text())
     assert lock2["maps"]["clean_keypoint"]["folder"] == map_folder
     assert lock2["experiments"] == lock["experiments"]  # nothing recomputed with the side map
     assert lock2["certified"] == lock["certified"] and lock["certified"]["clean_keypoint"]["folder"]
+    assert lock2["learned"] == lock["learned"] and set(lock["learned"]) == {"policy imitate", "comparison"}
+    learned = yaml.safe_load((root / "outputs" / "models" / lock["learned"]["policy imitate"]["folder"] /
+                              "manifest.json").read_text())  # its trunk: the paper's own map
+    assert learned["config"]["imitation"]["trunk_from"] == map_folder
+    table = (root / "outputs" / "paper" / "tab_learned.md").read_text()
+    assert "| imitated | near K, pixel attack κ=1 | 2 |" in table
     index = (root / "outputs" / "paper" / "index.md").read_text()
     assert map_folder in index and "paper.lock.yaml" in index
 

@@ -115,8 +115,8 @@ def test_imitation_stage_writes_a_tracked_policy_that_reloads(tmp_path):
 
     cfg = compose("imitate", ["imitation.agents=4", "imitation.rounds=1", "imitation.epochs=1",
                               "imitation.round_epochs=1", "imitation.max_frames=6", "model.filters=[4,8,8]",
-                              "model.hidden=8", f"paths.models_dir={tmp_path}",
-                              f"paths.output_dir={tmp_path}"])
+                              "model.hidden=8", "imitation.trunk_from=null", "model.freeze_trunk=false",
+                              f"paths.models_dir={tmp_path}", f"paths.output_dir={tmp_path}"])
     out = run(cfg)
     assert out["path"].name == f"imitation-{out['id']}" and len(out["rounds"]) == 2
     assert out["rounds"][1]["frames"] > out["rounds"][0]["frames"]
@@ -129,13 +129,33 @@ def test_imitation_stage_writes_a_tracked_policy_that_reloads(tmp_path):
 @pytest.mark.parametrize("module, arg, field", [("pipeline.learned.imitate", "imitation.agents=0", "imitation.agents"),
                                                 ("pipeline.learned.imitate", "imitation.foo=1", "imitation.foo"),
                                                 ("pipeline.learned.evaluate", "learned.kappa=-1", "learned.kappa"),
-                                                ("pipeline.learned.evaluate", "learned.agents_list=[ppo]",
+                                                ("pipeline.learned.evaluate", "learned.agents_list=[dqn]",
                                                  "learned.agents_list")])
 def test_bad_keys_are_one_line_and_exit_2(module, arg, field):
     out = subprocess.run([sys.executable, "-m", module, arg], capture_output=True, text=True, timeout=120)
     assert out.returncode == 2, out.stderr
     lines = [ln for ln in out.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and field in lines[0], out.stderr
+
+
+def test_the_imitation_id_follows_its_trunk_map_and_a_missing_one_is_one_line(tmp_path):
+    """The trunk's map is an input of the weights: its id (not the name in the config) enters the imitation's id;
+    a trunk map that is not built is one line naming the map and the command that builds it, exit 2, before any
+    rollout."""
+    from pipeline.cli import compose
+    from pipeline.learned.imitate import identity
+
+    ids = []
+    for stem in ("a", "b"):
+        (tmp_path / f"{stem}.ckpt").write_bytes(b"")
+        ids.append(identity(compose("imitate", [f"imitation.trunk_from={tmp_path / f'{stem}.ckpt'}",
+                                                f"paths.models_dir={tmp_path}"])))
+    assert ids[0] != ids[1]
+    out = subprocess.run([sys.executable, "-m", "pipeline.learned.imitate", f"paths.models_dir={tmp_path / 'none'}",
+                          f"paths.output_dir={tmp_path}"], capture_output=True, text=True, timeout=120)
+    lines = [ln for ln in out.stderr.splitlines() if ln.strip()]
+    assert out.returncode == 2 and len(lines) == 1 and "perception map 'clean_keypoint'" in lines[0], out.stderr
+    assert "python -m pipeline.train data=clean model=keypoint" in lines[0]
 
 
 def test_ppo_runs_on_the_vector_environment_through_sb3(tmp_path):
@@ -212,3 +232,123 @@ def test_the_stall_class_follows_the_sims_share_of_u_max_when_stall_speed_is_nul
     assert o.sim.stall_speed is None
     res = run_policy(o, _Creep(1.0), np.array([[-45.0, 20.0], [-45.0, -20.0]]))
     assert list(res["outcome"]) == [expected, expected]
+
+
+def test_a_policy_reading_the_keypoint_copies_the_maps_head_and_is_its_position_through_the_mlp():
+    """`reads: keypoint`: the map's trunk and keypoint head copied and frozen, the velocity a function of the
+    map's normalised position alone (two frames the map puts at the same place get the same velocity); a map
+    without a keypoint head is one ConfigError naming `model.reads`."""
+    from pipeline.errors import ConfigError
+    from pipeline.perception.network import PerceptionMap
+
+    torch.manual_seed(0)
+    pm = PerceptionMap(filters=(4, 8, 8), position_head="keypoint", uncertainty="none").eval()
+    model = VelocityPolicy(filters=(4, 8, 8), hidden=8, freeze_trunk=True, reads="keypoint")
+    model.load_trunk(pm)
+    for a, b in zip(model.keypoint.state_dict().values(), pm.head.state_dict().values()):
+        assert torch.equal(a, b)
+    assert not any(p.requires_grad for p in [*model.features.parameters(), *model.keypoint.parameters()])
+    images = torch.randint(0, 255, (4, 60, 100, 3), dtype=torch.uint8)
+    model.eval()
+    z = pm.position_outputs(pm.prepare(images))
+    np.testing.assert_allclose(model.normalised(images).reshape(4, -1).detach(), model.head(z).detach(), atol=1e-5)
+    with pytest.raises(ConfigError, match="model.reads"):
+        VelocityPolicy(filters=(4, 8, 8), hidden=8, reads="keypoint").load_trunk(
+            PerceptionMap(filters=(4, 8, 8), uncertainty="none"))
+
+
+def test_worst_cloud_on_a_policy_picks_for_each_live_agent_the_cloud_its_network_likes_least():
+    """The worst cloud through a decision network: each live agent's frame is replaced by the candidate that
+    pushes the network's output furthest along `d` (here an output that grows with the image's brightness along
+    `d`: the brightest cloud, brighter than the clear frame); a stopped agent's frame is left alone."""
+    from pipeline.learned.rollouts import PolicyWorstCloud
+    from pipeline.render import Occlusion
+
+    o = envs.objects()
+    p = np.array([[-20.0, 0.3], [10.0, 5.0], [-30.0, -0.2]])
+    clear = o.camera.render(p)
+    d = np.array([[0.0, 1.0]] * 3)
+    bright = lambda images: images.reshape(len(images), -1).mean(1, dtype=np.float64)[:, None] * d[:1]  # noqa: E731
+    clouds = Occlusion(name="heavy", probability=1.0, blobs=(5, 9), radius=(8.0, 20.0), opacity=(0.65, 0.95),
+                       aspect=(0.5, 1.0), softness=0.5, color=(185, 205, 255), bank=16, seed=3)
+    hook = PolicyWorstCloud(o.camera, clouds, bright, lambda q: d[: len(q)], candidates=3, seed=1)
+    alive = np.array([True, False, True])
+    out = hook(clear, p, alive)
+    assert np.array_equal(out[1], clear[1]) and not np.array_equal(out[0], clear[0])
+    along, norm = hook.summary()
+    assert along > 0 and norm >= along  # the chosen clouds brighten the frame: the output moves along d
+    again = PolicyWorstCloud(o.camera, clouds, lambda images: -bright(images), lambda q: d[: len(q)], candidates=3,
+                             seed=1)
+    darkest = again(clear, p, alive)
+    assert bright(out[[0, 2]])[:, 1].min() >= bright(darkest[[0, 2]])[:, 1].max() - 1e-9
+
+
+def test_the_ppo_agent_acts_as_sb3_predicts_and_its_attack_net_is_that_action(tmp_path):
+    """The PPO agent of the comparison is SB3's deterministic action (frames channel-first inside, clipped), and
+    the network the pixel attack differentiates gives that action on float frames."""
+    from stable_baselines3 import PPO
+
+    from pipeline.learned.ppo import PPOPolicy, SB3VecEnv
+
+    env = SB3VecEnv(envs.make_vector("hycontrol/Navigate-v0", 2))
+    model = PPO("CnnPolicy", env, n_steps=8, batch_size=16, n_epochs=1, seed=0, device="cpu")
+    with torch.no_grad():  # a bias that pushes the mean action past the bound: clipped like SB3's
+        model.policy.action_net.bias.copy_(torch.tensor([30.0, -0.5]))
+    obs = env.reset()
+    agent = PPOPolicy(model, u_max=10.0)
+    np.testing.assert_allclose(agent.act(obs), model.predict(obs, deterministic=True)[0], atol=1e-5)
+    assert np.all(agent.act(obs)[:, 0] == 10.0)
+    net_out = agent.net(torch.from_numpy(obs).float()).detach().numpy()
+    np.testing.assert_allclose(net_out, agent.act(obs), atol=1e-6)
+
+
+def test_make_learned_end_to_end_on_tiny_maps_with_clouds_and_the_worst_cloud(tiny_maps, tmp_path):
+    """`make learned` on tiny maps: the clean and the clouded imitation (each trunk from its map), then the
+    comparison with every row (clean, pixel attack, the clouds' level, the worst cloud), tracked by id: a second
+    run is up to date, and another clouded network changes the id."""
+    from pipeline.cli import compose
+    from pipeline.learned.evaluate import run as evaluate
+    from pipeline.learned.imitate import run as imitate
+
+    root, ids = tiny_maps
+    tiny = ["imitation.agents=3", "imitation.rounds=1", "imitation.epochs=1", "imitation.round_epochs=1",
+            "imitation.max_frames=4", "model.hidden=8", f"paths.models_dir={root / 'models'}",
+            f"paths.output_dir={tmp_path}"]
+    clean = imitate(compose("imitate", [*tiny, f"imitation.trunk_from={ids['clean']}"]))
+    heavy = imitate(compose("imitate_heavy", [*tiny, f"imitation.trunk_from={ids['occluded']}",
+                                              "model.reads=features"]))  # the tiny maps' heads are flat
+    assert clean["id"] != heavy["id"] and heavy["path"].name.startswith("imitation_heavy-")
+    args = [f"maps.clean={ids['clean']}", f"maps.occluded={ids['occluded']}", f"policies.imitation={clean['path']}",
+            f"policies.imitation_clouds={heavy['path']}", "learned.agents=2", "learned.near_k=2",
+            "learned.agents_list=[hybrid,imitated]", "learned.attack_list=[imitated]",
+            "learned.clouds_list=[hybrid,learned_hybrid]", "learned.cloud_attack_list=[imitated,hybrid]",
+            "learned.candidates=2", "learned.attack_steps=1", "sim.horizon=1", "learned.grid=[5,4]",
+            f"paths.models_dir={root / 'models'}", f"paths.outputs_dir={tmp_path / 'out'}",
+            f"paths.output_dir={tmp_path}"]
+    out = evaluate(compose("learned", args))
+    df = out["table"]
+    got = set(zip(df.agent, df.condition))
+    assert got == {("hybrid", "random, clean"), ("hybrid", "near K, clean"), ("imitated", "random, clean"),
+                   ("imitated", "near K, clean"), ("imitated", "near K, pixel attack κ=1"),
+                   ("hybrid", "random, heavy clouds"), ("hybrid", "near K, heavy clouds"),
+                   ("learned_hybrid", "random, heavy clouds"), ("learned_hybrid", "near K, heavy clouds"),
+                   ("imitated", "near K, worst of 2 heavy clouds"), ("hybrid", "near K, worst of 2 heavy clouds")}
+    worst = df[df.condition.str.startswith("near K, worst")]
+    assert np.all(np.isfinite(worst.induced_norm)) and np.all(worst.induced_norm >= worst.induced_along)
+    assert (df.n == 2).all() and np.allclose(df[["reached", "collided", "stalled", "left_view", "timed_out"]]
+                                             .sum(1), 1.0)
+    import json
+
+    manifest = json.loads((out["path"] / "manifest.json").read_text())
+    assert manifest["inputs"]["model_clouds"] == heavy["path"].name
+    assert manifest["inputs"]["map_clouds"] == ids["occluded"]
+    assert evaluate(compose("learned", args))["path"] == out["path"] and "table" not in \
+        evaluate(compose("learned", args))
+    other = imitate(compose("imitate_heavy", [*tiny, f"imitation.trunk_from={ids['occluded']}", "imitation.seed=1",
+                                              "model.reads=features"]))
+    from pipeline.config import build
+    from pipeline.learned.evaluate import inputs, learned_id
+
+    for pin, same in ((heavy["path"], True), (other["path"], False)):
+        cfg = compose("learned", [*args, f"policies.imitation_clouds={pin}"])
+        assert (out["path"].name == f"learned-{learned_id(cfg, inputs(cfg, build(cfg.learned, 'learned')))}") == same

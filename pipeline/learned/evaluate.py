@@ -1,7 +1,10 @@
 """Stage `make learned` (`python -m pipeline.learned.evaluate`): the paper's architecture (perception map +
 hybrid / smooth / CBF), the imitated end-to-end policy and the learned hybrid policy through one evaluation code
 (:mod:`pipeline.learned.rollouts`), from random starts and from starts near `K`, on clean frames and near `K`
-under the pixel attack at `κ` on each agent's own network; and the imitated policy's switching set over the arena.
+under the pixel attack at `κ` on each agent's own network; under the `clouds` level's clouds (random and near `K`:
+the architecture with the occlusion-trained map `maps.occluded`, the learned policies imitated on clouded frames,
+`policies.imitation_clouds`) and near `K` under the worst of `candidates` such clouds per frame on each agent's
+own network; and the imitated policy's switching set over the arena.
 
 Writes `outputs/learned/learned-<id>/`: `tab_learned.csv`/`.md` (success, collision, stall, left-view rates with
 95% Wilson intervals, median time to target, the attack's mean induced output change), `fig_switching_set.png`,
@@ -25,7 +28,8 @@ from pipeline.envs.navigate import objects_from
 from pipeline.errors import ConfigError
 from pipeline.schema import Interval, Kappa, NonNegativeInt, Positive, PositiveInt, checked
 
-AGENTS = ("hybrid", "smooth", "cbf", "imitated", "learned_hybrid")
+AGENTS = ("hybrid", "smooth", "cbf", "imitated", "learned_hybrid")  # the default lists; `ppo` when a PPO model is given
+Agent = Literal["hybrid", "smooth", "cbf", "imitated", "learned_hybrid", "ppo"]
 CODE = ("envs", "learned", "control", "render", "plants", "sim", "hybrid", "perception")
 
 
@@ -39,23 +43,26 @@ class LearnedSettings:
     kappa: Kappa = 1.0
     attack_steps: NonNegativeInt = 2
     seed: NonNegativeInt = 7
-    agents_list: list[Literal["hybrid", "smooth", "cbf", "imitated", "learned_hybrid"]] = \
-        field(default_factory=lambda: list(AGENTS))
-    attack_list: list[Literal["hybrid", "smooth", "cbf", "imitated", "learned_hybrid"]] = \
-        field(default_factory=lambda: list(AGENTS))
+    agents_list: list[Agent] = field(default_factory=lambda: list(AGENTS))
+    attack_list: list[Agent] = field(default_factory=lambda: list(AGENTS))
     grid: tuple[PositiveInt, PositiveInt] = (101, 61)
+    clouds_list: list[Agent] = field(default_factory=lambda: list(AGENTS))
+    cloud_attack_list: list[Agent] = field(default_factory=lambda: ["hybrid", "imitated", "learned_hybrid"])
+    candidates: PositiveInt = 4
 
 
 def check(cfg: DictConfig) -> None:
     objects_from(cfg)
-    build(cfg.learned, "learned")
+    s = build(cfg.learned, "learned")
+    build(cfg.clouds, "clouds")
+    inputs(cfg, s)  # every map and network found
     for name in ("smooth", "cbf"):
         build(cfg.controllers[name], f"controllers.{name}", scene=build(cfg.scene, "scene"))
     if cfg.vehicle._target_.endswith("Unicycle"):
         raise ConfigError("vehicle", "the learned policies are evaluated on the single integrator")
 
 
-def _policies(cfg, obj, pm, model, names):
+def _policies(cfg, obj, pm, model, names, ppo=None):
     from pipeline.envs.policies import ArchitecturePolicy
     from pipeline.learned.policies import ImitatedPolicy, LearnedHybridPolicy
 
@@ -68,15 +75,75 @@ def _policies(cfg, obj, pm, model, names):
             out[name] = ArchitecturePolicy(pm, law, obj.plant, obj.scene, period, name=f"map+{name}")
         elif name == "imitated":
             out[name] = ImitatedPolicy(model)
+        elif name == "ppo":
+            out[name] = ppo
         else:
             out[name] = LearnedHybridPolicy(model, pm, obj.controller, obj.plant, obj.scene, period)
     return out
 
 
-def _attack_net(name, pm, model):
+def _attack_net(name, pm, model, ppo=None):
     from pipeline.learned.rollouts import HeadNet
 
-    return HeadNet(model, 0) if name == "imitated" else pm.net
+    return HeadNet(model, 0) if name == "imitated" else ppo.net if name == "ppo" else pm.net
+
+
+def _decision(name, pm, model, ppo=None):
+    """What the worst cloud pushes along `d`: an end-to-end policy's velocity, or the map's estimate."""
+    import torch
+
+    if name == "imitated":
+        return lambda images: model.act(torch.from_numpy(np.ascontiguousarray(images)), 0).double().numpy()
+    return ppo.act if name == "ppo" else pm.predict
+
+
+def _needs(s) -> dict[str, list[str]]:
+    """The agents each input serves: the clean rows' and the clouded rows'."""
+    return {"": list(s.agents_list), "_clouds": [*s.clouds_list, *s.cloud_attack_list]}
+
+
+def inputs(cfg, s) -> dict[str, Path | None]:
+    """The folders of the maps and networks the agents of `s` read (a map's training `.ckpt` file), resolved
+    without loading them (a name means the one its current config makes): {"map", "model", "map_clouds",
+    "model_clouds", "ppo"}, None where no agent reads it."""
+    from pipeline.learned.imitate import policy_folder
+    from pipeline.learned.ppo import ppo_folder
+    from pipeline.lineage import resolve_map
+
+    out = {}
+    for key, agents in _needs(s).items():
+        map_ref, field_ = (cfg.maps.clean, "maps.clean") if not key else (cfg.maps.occluded, "maps.occluded")
+        policy_ref = cfg.policies.imitation if not key else cfg.policies.imitation_clouds
+        needs_map = bool(set(agents) - {"imitated", "ppo"})
+        ckpt = str(map_ref).endswith(".ckpt")
+        out["map" + key] = None if not needs_map else Path(str(map_ref)) if ckpt else \
+            resolve_map(map_ref, cfg.paths.models_dir, field=field_)
+        out["model" + key] = policy_folder(policy_ref, cfg.paths.models_dir, field=f"policies.imitation{key}") \
+            if set(agents) & {"imitated", "learned_hybrid"} else None
+    every = {a for agents in _needs(s).values() for a in agents}
+    out["ppo"] = ppo_folder(cfg.policies.ppo, cfg.paths.models_dir) if "ppo" in every else None
+    return out
+
+
+def learned_id(cfg, folders: dict) -> str:
+    """The comparison's id: its settings, scene, laws, sim, clouds, the inputs (by folder name) and the code."""
+    names = {k: None if v is None else v.name for k, v in folders.items()}
+    return tracking.content_id(tracking.to_plain(cfg.learned), tracking.to_plain(cfg.scene),
+                               tracking.to_plain(cfg.controllers), tracking.to_plain(cfg.sim),
+                               tracking.to_plain(cfg.clouds), names, tracking.code_version(*CODE))
+
+
+def _load(cfg, folders: dict) -> dict:
+    from pipeline.learned.imitate import load_policy_model
+    from pipeline.learned.policies import load_map
+
+    from pipeline.learned.ppo import PPOPolicy, load_ppo
+
+    models = Path(cfg.paths.models_dir)
+    out = {k: None if v is None else load_map(v, models) if k.startswith("map") else load_policy_model(v, models)
+           for k, v in folders.items() if k != "ppo"}
+    out["ppo"] = PPOPolicy(load_ppo(folders["ppo"], models), cfg.controller.u_max) if folders["ppo"] else None
+    return out
 
 
 def rows(agent: str, condition: str, res: dict, induced=(np.nan, np.nan)) -> dict:
@@ -96,8 +163,6 @@ def rows(agent: str, condition: str, res: dict, induced=(np.nan, np.nan)) -> dic
 
 
 def run(cfg: DictConfig) -> dict:
-    from pipeline.learned.imitate import load_policy_model
-    from pipeline.learned.policies import load_map
     from pipeline.learned.report import switching_figure, write_tables
     from pipeline.learned.rollouts import PolicyAttack, run_policy
     from pipeline.perception.adversary import proposition1_direction
@@ -105,36 +170,33 @@ def run(cfg: DictConfig) -> dict:
 
     check(cfg)
     obj, s = objects_from(cfg), build(cfg.learned, "learned")
-    needs_map = set(s.agents_list) - {"imitated"}
-    pm = load_map(cfg.maps.clean, cfg.paths.models_dir) if needs_map else None
-    map_name = f"{pm.name}-{pm.id}" if pm is not None else None
-    learned = set(s.agents_list) & {"imitated", "learned_hybrid"}
-    model = load_policy_model(cfg.policies.imitation, cfg.paths.models_dir) if learned else None
-    policy_name = model.tracked_name if model is not None else None
-    id_ = tracking.content_id(tracking.to_plain(cfg.learned), tracking.to_plain(cfg.scene),
-                              tracking.to_plain(cfg.controllers), tracking.to_plain(cfg.sim), map_name,
-                              policy_name, tracking.code_version(*CODE))
+    folders = inputs(cfg, s)
+    id_ = learned_id(cfg, folders)
     root = Path(cfg.paths.outputs_dir) / "learned"
-    if (root / f"learned-{id_}").is_dir() and not cfg.force:
+    if tracking.is_complete(root / f"learned-{id_}") and not cfg.force:
         print(f"learned: up to date -> {root / f'learned-{id_}'}")
         return {"path": root / f"learned-{id_}"}
+    got = _load(cfg, folders)
     random = st.Random(n=s.agents, seed=s.seed, margin=2.0)(obj.scene)
     near = st.NearK(n=s.near_k, seed=s.seed, band=s.band, a_range=list(s.a_range))(obj.scene)
     direction = proposition1_direction(obj.scene)
+    pm, model = got["map"], got["model"]
     table = []
-    for name, policy in _policies(cfg, obj, pm, model, s.agents_list).items():
+    for name, policy in _policies(cfg, obj, pm, model, s.agents_list, got["ppo"]).items():
         conditions = [("random, clean", random, None), ("near K, clean", near, None)]
         if name in s.attack_list:
-            conditions.append((f"near K, pixel attack κ={s.kappa:g}", near,
-                               PolicyAttack(_attack_net(name, pm, model), direction, s.kappa, s.attack_steps)))
+            conditions.append((f"near K, pixel attack κ={s.kappa:g}", near, PolicyAttack(
+                _attack_net(name, pm, model, got["ppo"]), direction, s.kappa, s.attack_steps)))
         for cond, x0, attack in conditions:
             res = run_policy(obj, policy, x0, seed=s.seed, attack=attack)
             table.append(rows(name, cond, res, attack.summary() if attack else (np.nan, np.nan)))
             print(f"learned: {name:15s} {cond:28s} reached {table[-1]['reached']:.0%} "
-                  f"stalled {table[-1]['stalled']:.0%} collided {table[-1]['collided']:.0%}")
+                  f"stalled {table[-1]['stalled']:.0%} collided {table[-1]['collided']:.0%}", flush=True)
+    table += _clouded(cfg, obj, s, got, random, near, direction)
     df = pd.DataFrame(table)
-    meta = {"kind": "learned", "config": tracking.to_plain(cfg), "map": map_name,
-            "policy": policy_name}
+    names = {k: None if v is None else v.name for k, v in folders.items()}
+    meta = {"kind": "learned", "config": tracking.to_plain(cfg), "map": names["map"], "policy": names["model"],
+            "inputs": names}
     with tracking.tracked_output(root, "learned", id_, meta) as tmp:
         write_tables(df, tmp)
         if model is not None:
@@ -142,6 +204,35 @@ def run(cfg: DictConfig) -> dict:
     print(df[["agent", "condition", "reached", "reached_ci", "stalled", "collided", "induced_along"]]
           .to_string(index=False))
     return {"path": root / f"learned-{id_}", "table": df}
+
+
+def _clouded(cfg, obj, s, got, random, near, direction) -> list[dict]:
+    """The rows under the `clouds` level: its random clouds (random starts and near K) for `clouds_list`, and
+    near K the worst of `candidates` of its clouds per frame on each agent's own network for `cloud_attack_list`."""
+    from dataclasses import replace
+
+    from pipeline.learned.rollouts import PolicyWorstCloud, run_policy
+
+    clouds = build(cfg.clouds, "clouds")
+    level = cfg.clouds.get("name", "clouds")
+    cloudy = replace(obj, occlusion=clouds)
+    pm, model = got["map_clouds"], got["model_clouds"]
+    out = []
+    agents = [*dict.fromkeys([*s.clouds_list, *s.cloud_attack_list])]
+    for name, policy in _policies(cfg, obj, pm, model, agents, got["ppo"]).items():
+        conditions = []
+        if name in s.clouds_list:
+            conditions += [(f"random, {level} clouds", cloudy, random, None), (f"near K, {level} clouds", cloudy, near, None)]
+        if name in s.cloud_attack_list:
+            conditions.append((f"near K, worst of {s.candidates} {level} clouds", obj, near,
+                               PolicyWorstCloud(obj.camera, clouds, _decision(name, pm, model, got["ppo"]), direction,
+                                                s.candidates, s.seed)))
+        for cond, o, x0, attack in conditions:
+            res = run_policy(o, policy, x0, seed=s.seed, attack=attack)
+            out.append(rows(name, cond, res, attack.summary() if attack else (np.nan, np.nan)))
+            print(f"learned: {name:15s} {cond:28s} reached {out[-1]['reached']:.0%} "
+                  f"stalled {out[-1]['stalled']:.0%} collided {out[-1]['collided']:.0%}", flush=True)
+    return out
 
 
 main = stage_main("learned", run="pipeline.learned.evaluate:run", check="pipeline.learned.evaluate:check")

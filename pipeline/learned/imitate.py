@@ -24,9 +24,12 @@ from pipeline.cli import stage_main
 from pipeline.config import build
 from pipeline.envs.navigate import NavigateVectorEnv, objects_from
 from pipeline.errors import ConfigError
+from pipeline.repo import CONF_DIR
 from pipeline.schema import NonNegativeInt, PositiveInt, checked
 
-CODE = ("envs", "learned", "control", "render", "plants", "sim", "hybrid", "perception")
+# the code that makes the weights (not the evaluation's: `make learned` evaluates without retraining)
+CODE = ("envs", "learned/imitate", "learned/expert", "learned/network", "learned/policies", "control", "render",
+        "plants", "sim", "hybrid", "perception")
 
 
 @checked("imitation")
@@ -63,15 +66,31 @@ class EpochLine:
         return _Line()
 
 
+def trunk_source(cfg: DictConfig) -> str | None:
+    """The folder name of the perception map whose trunk initialises the network (`imitation.trunk_from`
+    resolved as a map name means: the map the current train config makes), or the checkpoint's file name."""
+    ref = cfg.imitation.get("trunk_from")
+    if ref is None:
+        return None
+    if str(ref).endswith(".ckpt"):
+        if not Path(str(ref)).is_file():
+            raise ConfigError("imitation.trunk_from", f"no checkpoint {ref}")
+        return Path(str(ref)).name
+    from pipeline.lineage import resolve_map
+
+    return resolve_map(ref, cfg.paths.models_dir, field="imitation.trunk_from").name
+
+
 def identity(cfg: DictConfig) -> str:
-    """The id of the weights: the config that determines them (not paths, not where it runs) and the code."""
+    """The id of the weights: the config that determines them (not paths, not where it runs), the trunk's map
+    (by its id: a name means the map the current train config makes) and the code."""
     plain = OmegaConf.to_container(cfg, resolve=False)
     for key in ("paths", "hydra", "force", "name"):
         plain.pop(key, None)
     trainer = {k: v for k, v in plain.pop("trainer", {}).items()
                if k not in ("accelerator", "devices", "strategy", "num_nodes", "enable_progress_bar",
                             "default_root_dir", "log_every_n_steps")}
-    return tracking.content_id(plain, trainer, tracking.code_version(*CODE))
+    return tracking.content_id(plain, trainer, trunk_source(cfg), tracking.code_version(*CODE))
 
 
 def rollout(venv: NavigateVectorEnv, expert, learner, seed: int, max_frames: int, record_every: int):
@@ -117,9 +136,10 @@ def fit(model, trainer_node, data, epochs: int, batch_size: int, seed: int, labe
 
 
 def check(cfg: DictConfig) -> None:
-    """Preflight: every object built (no rollout, no training)."""
+    """Preflight: every object built and the trunk's map found (no rollout, no training)."""
     objects_from(cfg)
     build(cfg.imitation, "imitation")
+    trunk_source(cfg)
     if cfg.get("vehicle") is not None and cfg.vehicle._target_.endswith("Unicycle"):
         raise ConfigError("vehicle", "imitation is implemented for the single integrator (vehicle=integrator)")
 
@@ -171,20 +191,35 @@ def run(cfg: DictConfig) -> dict:
     return {"path": final, "id": id_, "rounds": rounds}
 
 
-def load_policy_model(ref, models_dir):
-    """A trained imitation network by path, name-id, id or name (`imitation`: the one the current
-    conf/imitate.yaml makes, as a map's name means the current train config's; another name: the only one)."""
+def policy_folder(ref, models_dir, field: str = "policies.imitation") -> Path:
+    """The folder of a trained imitation network by path, name-id, id or name (a name means the network its config
+    makes now: `imitation` the one of conf/imitate.yaml, `imitation_<x>` the one of conf/imitate_<x>.yaml, as a
+    map's name means the current train config's; another name: the only one)."""
+    def config_of(name: str) -> str | None:
+        config = "imitate" + name.removeprefix("imitation")
+        return config if name.startswith("imitation") and (CONF_DIR / f"{config}.yaml").is_file() else None
+
+    def expected(name: str) -> str | None:  # the name means what its imitate config makes now
+        from pipeline.config import compose
+
+        config = config_of(name)
+        return None if config is None else identity(compose(config, [f"paths.models_dir={Path(models_dir).resolve()}"]))
+
+    def command(name: str) -> str:
+        config = config_of(name)
+        return "python -m pipeline.learned.imitate" + (f" --config-name {config}" if config not in (None, "imitate") else "")
+
+    return tracking.resolve(Path(models_dir), ref, kind="imitation policy", field=field, command=command,
+                            expected=expected)
+
+
+def load_policy_model(ref, models_dir, field: str = "policies.imitation"):
+    """The trained imitation network :func:`policy_folder` finds, in eval mode."""
     import torch
 
     from pipeline.learned.network import VelocityPolicy
 
-    def expected(name: str) -> str | None:  # the name means what the current imitate config makes
-        from pipeline.config import compose
-
-        return identity(compose("imitate", [f"name={name}"])) if name == "imitation" else None
-
-    folder = tracking.resolve(Path(models_dir), ref, kind="imitation policy", field="policies.imitation",
-                              command="python -m pipeline.learned.imitate", expected=expected)
+    folder = policy_folder(ref, models_dir, field)
     m = tracking.read_manifest(folder)
     hp = dict(m["hparams"])
     hp["image_shape"] = tuple(hp["image_shape"])

@@ -2,7 +2,12 @@
 
 The trunk is the map's (:func:`pipeline.perception.network.conv_blocks`: Conv(3x3)[-BN]-ReLU-MaxPool blocks on
 the frame scaled to [-0.5, 0.5], with the two CoordConv channels), optionally initialised from a trained map's
-weights (`imitation.trunk_from`; `freeze_trunk`: kept as the map learned it). The head (Flatten, Dropout, Linear-ReLU, Linear) predicts `3` velocities, each `(N, 2)`
+weights (`imitation.trunk_from`; `freeze_trunk`: kept as the map learned it). `reads: features` (default): the
+head (Flatten, Dropout, Linear-ReLU, Linear) reads the pooled features; `reads: keypoint`: the map's keypoint
+head (:class:`pipeline.perception.keypoint.KeypointHead`, copied and frozen with the trunk) reads the last block
+before its pooling, and the head (Linear-ReLU, Linear-ReLU, Linear) reads the soft-argmax position it gives
+(on clouded frames the flat readout of a frozen trunk does not fit: docs/learned.md). Either way the policy is a
+network continuous in the image. The head predicts `3` velocities, each `(N, 2)`
 in units of `u_max`: head 0 the expert's action (the end-to-end policy), heads 1 and 2 the hybrid controller's
 flow in mode 1 and mode 2 (the two policies of the learned hybrid policy). The loss is the MSE of each head on the
 frames where its label is defined (the mode's flow set), weights equal.
@@ -11,13 +16,15 @@ frames where its label is defined (the mode's flow set), weights equal.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Annotated
+from typing import Annotated, Literal
 
 import lightning as L
 import torch
 from torch import nn
 
+from pipeline.perception.keypoint import KeypointHead
 from pipeline.perception.network import conv_blocks
+from pipeline.errors import ConfigError
 from pipeline.schema import NonEmpty, Positive, PositiveInt, Range
 
 HEADS = 3  # expert action, mode-1 flow, mode-2 flow
@@ -30,7 +37,7 @@ class VelocityPolicy(L.LightningModule):
                  filters: Annotated[Sequence[int], Range(ge=1), NonEmpty()] = (16, 32, 64),
                  batch_norm: bool = True, coord_channels: bool = True, hidden: PositiveInt = 128,
                  dropout: Annotated[float, Range(ge=0, lt=1)] = 0.1, lr: Positive = 2e-3, u_max: Positive = 10.0,
-                 freeze_trunk: bool = False):
+                 freeze_trunk: bool = False, reads: Literal["features", "keypoint"] = "features"):
         super().__init__()
         self.save_hyperparameters()
         h, w, _ = image_shape
@@ -41,10 +48,15 @@ class VelocityPolicy(L.LightningModule):
         self.register_buffer("coords", torch.cat([cols, rows], 1).contiguous(), persistent=False)
         self.features = conv_blocks(3 + 2 * self.coord_channels, [int(f) for f in filters], batch_norm)
         fh, fw = h, w
-        for _ in filters:
+        for _ in filters[:-1]:
             fh, fw = fh // 2, fw // 2
-        self.head = nn.Sequential(nn.Flatten(), nn.Dropout(dropout), nn.Linear(int(filters[-1]) * fh * fw, hidden),
-                                  nn.ReLU(inplace=True), nn.Linear(hidden, 2 * HEADS))
+        self.reads = reads
+        self.keypoint = KeypointHead(int(filters[-1]), (fh, fw)) if reads == "keypoint" else None
+        fh, fw = fh // 2, fw // 2
+        self.head = nn.Sequential(nn.Linear(2, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, hidden),
+                                  nn.ReLU(inplace=True), nn.Linear(hidden, 2 * HEADS)) if reads == "keypoint" else \
+            nn.Sequential(nn.Flatten(), nn.Dropout(dropout), nn.Linear(int(filters[-1]) * fh * fw, hidden),
+                          nn.ReLU(inplace=True), nn.Linear(hidden, 2 * HEADS))
 
     def prepare(self, images: torch.Tensor) -> torch.Tensor:
         x = images.permute(0, 3, 1, 2).to(torch.float32)
@@ -55,16 +67,26 @@ class VelocityPolicy(L.LightningModule):
 
     def normalised(self, images: torch.Tensor) -> torch.Tensor:
         """Velocities in units of `u_max` `(N, HEADS, 2)` (images: uint8 in [0, 255] or float in [0, 1])."""
-        return self.head(self.features(self.prepare(images))).view(-1, HEADS, 2)
+        x = self.prepare(images)
+        if self.keypoint is not None:
+            return self.head(self.keypoint(self.features[:-1](x))[0]).view(-1, HEADS, 2)
+        return self.head(self.features(x)).view(-1, HEADS, 2)
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         return self.normalised(images) * self.u_max
 
     def load_trunk(self, perception_model) -> None:
         """Initialise the trunk from a trained perception map's (same blocks and input channels); with
-        `freeze_trunk` it stays as the map learned it (no gradient, BatchNorm in eval mode)."""
+        `freeze_trunk` it stays as the map learned it (no gradient, BatchNorm in eval mode). `reads: keypoint`
+        copies the map's keypoint head too (a map with one)."""
         self.features.load_state_dict(perception_model.features.state_dict())
         self.features.requires_grad_(not self.freeze_trunk)
+        if self.keypoint is not None:
+            if not getattr(perception_model, "keypoint", False):
+                raise ConfigError("model.reads", "keypoint needs a trunk map with a keypoint head "
+                                                 "(imitation.trunk_from: a *_keypoint map)")
+            self.keypoint.load_state_dict(perception_model.head.state_dict())
+            self.keypoint.requires_grad_(not self.freeze_trunk)
 
     def on_train_epoch_start(self) -> None:
         if self.freeze_trunk:

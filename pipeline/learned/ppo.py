@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
 from omegaconf import DictConfig
 from stable_baselines3.common.vec_env import VecEnv
 
@@ -89,6 +90,12 @@ class PPOSettings:
     threads: PositiveInt | None = None
 
 
+def ppo_identity(cfg: DictConfig) -> str:
+    """The id of a PPO model: its settings, the scene, the reward, the clouds and the code."""
+    return tracking.content_id(tracking.to_plain(cfg.ppo), tracking.to_plain(cfg.scene), tracking.to_plain(cfg.env),
+                               tracking.to_plain(cfg.occlusion), tracking.code_version("envs", "learned/ppo"))
+
+
 def check(cfg: DictConfig) -> None:
     objects_from(cfg)
     build(cfg.ppo, "ppo")
@@ -103,8 +110,7 @@ def run(cfg: DictConfig) -> dict:
     obj, s = objects_from(cfg), build(cfg.ppo, "ppo")
     if s.threads is not None:
         torch.set_num_threads(s.threads)
-    id_ = tracking.content_id(tracking.to_plain(cfg.ppo), tracking.to_plain(cfg.scene), tracking.to_plain(cfg.env),
-                              tracking.to_plain(cfg.occlusion), tracking.code_version("envs", "learned"))
+    id_ = ppo_identity(cfg)
     env = SB3VecEnv(NavigateVectorEnv(s.num_envs, objects_=obj))
     curve = []
 
@@ -131,6 +137,58 @@ def run(cfg: DictConfig) -> dict:
           f"{rate:.1%} -> {Path(cfg.paths.models_dir) / f'ppo-{id_}'}")
     return {"path": Path(cfg.paths.models_dir) / f"ppo-{id_}", "success": rate, "wall_s": wall}
 
+
+class PPONet(torch.nn.Module):
+    """`net(float NHWC frames in [0, 255]) -> (N, 2)`: the mean action of a stable-baselines3 PPO `CnnPolicy` (its
+    frames channel-first, scaled by the policy itself), clipped to `|u_i| <= u_max` as SB3 clips its actions."""
+
+    def __init__(self, policy, u_max: float):
+        super().__init__()
+        self.policy, self.u_max = policy, float(u_max)
+
+    def forward(self, x):
+        obs = x.permute(0, 3, 1, 2)
+        features = self.policy.extract_features(obs, self.policy.pi_features_extractor)
+        mean = self.policy.action_net(self.policy.mlp_extractor.forward_actor(features))
+        return mean.clamp(-self.u_max, self.u_max)
+
+
+class PPOPolicy:
+    """The end-to-end policy PPO learned (`python -m pipeline.learned.ppo`): its deterministic (mean) action."""
+
+    name = "ppo"
+
+    def __init__(self, model, u_max: float):
+        self.net = PPONet(model.policy, u_max).eval()
+
+    def reset(self, obs, idx=None) -> None:
+        pass
+
+    @torch.no_grad()
+    def act(self, obs, restarted=None) -> np.ndarray:
+        return self.net(torch.from_numpy(np.ascontiguousarray(obs)).float()).double().numpy()
+
+
+def ppo_folder(ref, models_dir, field: str = "policies.ppo") -> Path:
+    """A trained PPO model's folder (outputs/models/ppo-<id>: path, name-id, id; `ppo`: the one the current
+    conf/ppo.yaml makes)."""
+    def expected(name: str) -> str | None:
+        from pipeline.config import compose
+
+        return ppo_identity(compose("ppo", [f"paths.models_dir={Path(models_dir).resolve()}"])) if name == "ppo" else None
+
+    return tracking.resolve(Path(models_dir), ref, kind="PPO policy", field=field,
+                            command="python -m pipeline.learned.ppo", expected=expected)
+
+
+def load_ppo(ref, models_dir, field: str = "policies.ppo"):
+    """The PPO model :func:`ppo_folder` finds."""
+    from stable_baselines3 import PPO
+
+    folder = ppo_folder(ref, models_dir, field)
+    model = PPO.load(folder / "model.zip", device="cpu")
+    model.tracked_name = folder.name
+    return model
 
 main = stage_main("ppo", run="pipeline.learned.ppo:run", check="pipeline.learned.ppo:check")
 

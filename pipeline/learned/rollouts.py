@@ -70,7 +70,43 @@ class PolicyAttack:
         return float(np.concatenate(self.along).mean()), float(np.concatenate(self.norm).mean())
 
 
-def run_policy(obj, policy, starts: np.ndarray, *, seed: int = 0, attack: PolicyAttack | None = None,
+@dataclass
+class PolicyWorstCloud:
+    """The worst cloud on `predict` (the network that turns the agent's frame into its decision: a policy's
+    velocity, or a map's estimate): each frame, per agent, the worst of `candidates` layouts of `occlusion`'s
+    clouds (:func:`pipeline.perception.attacks.worst_cloud`: the one pushing `predict`'s output furthest along
+    `d`), drawn from a generator seeded by `seed`; `along`, `norm`: the induced change per frame."""
+
+    camera: object
+    occlusion: object
+    predict: object
+    direction_fn: object
+    candidates: int = 4
+    seed: int = 0
+    along: list = field(default_factory=list)
+    norm: list = field(default_factory=list)
+
+    def __post_init__(self):
+        self.rng = np.random.default_rng(self.seed)
+
+    def __call__(self, images: np.ndarray, p: np.ndarray, alive: np.ndarray) -> np.ndarray:
+        from pipeline.perception.attacks import worst_cloud
+
+        out = images.copy()
+        idx = np.flatnonzero(alive)
+        if idx.size == 0:
+            return out
+        res = worst_cloud(self.camera, self.occlusion, p[idx], self.direction_fn(p[idx]), self.predict,
+                          candidates=self.candidates, rng=self.rng)
+        out[idx] = res.images
+        self.along.append(res.along)
+        self.norm.append(res.norm)
+        return out
+
+    summary = PolicyAttack.summary
+
+
+def run_policy(obj, policy, starts: np.ndarray, *, seed: int = 0, attack: PolicyAttack | PolicyWorstCloud | None = None,
                frames: int | None = None) -> dict:
     """Every start's episode under `policy`: `outcome` (CLASSES), `time` (s, NaN unless reached), `paths`. The
     stall speed and window are the run's `sim` (:func:`pipeline.sim.simulator.stall_threshold`: `sim.stall_speed`,
