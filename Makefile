@@ -35,9 +35,10 @@ dagger: $(STAMP) ## DAgger-style rounds: data -> train -> closed loop with the m
 generalisation: $(STAMP) ## maps on every cloud level (issue 11): authors + clean_paper maps, tab_perception_generalisation
 	$(PY) -m pipeline.paper --config-name paper_generalisation $(ARGS)
 
-learned: $(STAMP) ## learned end-to-end policies (SPEC §6): imitate the hybrid controller (BC + DAgger; ARGS), then compare them with the paper's architecture (LEARNED_ARGS) in outputs/learned/
+learned: $(STAMP) ## learned end-to-end policies (SPEC §6): imitate the hybrid controller (BC + DAgger, clean and clouded; ARGS), PPO, then compare them with the paper's architecture (LEARNED_ARGS) in outputs/learned/
 	$(PY) -m pipeline.learned.imitate $(ARGS)
 	$(PY) -m pipeline.learned.imitate --config-name imitate_heavy $(ARGS)
+	$(PY) -m pipeline.learned.ppo
 	$(PY) -m pipeline.learned.evaluate $(LEARNED_ARGS)
 
 simulate: $(STAMP) ## closed-loop simulation demo on the true state (Hydra: make simulate ARGS="controller=smooth")

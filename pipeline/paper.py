@@ -50,6 +50,7 @@ class StageArgs:
     certify: list[str] = field(default_factory=list)
     experiments: list[str] = field(default_factory=list)
     imitate: list[str] = field(default_factory=list)
+    ppo: list[str] = field(default_factory=list)
     learned: list[str] = field(default_factory=list)
 
 
@@ -62,7 +63,8 @@ class PaperSettings:
     errormaps: list[str]
     certify: list[str]
     experiments: list[Annotated[str, Option("experiment")]]
-    learned: list[Annotated[str, Pattern(r"imitate(_\w+)?", "the name of an imitation config (imitate, imitate_<x>)")]]
+    learned: list[Annotated[str, Pattern(r"imitate(_\w+)?|ppo", "the name of an imitation config (imitate, "
+                                                                  "imitate_<x>) or ppo")]]
     args: StageArgs
     stop_on_error: bool
     workers: PositiveInt | None
@@ -94,7 +96,7 @@ def check(cfg: DictConfig) -> None:
     for key in ("errormaps", "certify"):
         if set(getattr(s, key)) - set(maps):
             raise ConfigError(key, f"{sorted(set(getattr(s, key)) - set(maps))} are not among the maps {maps}")
-    missing = [c for c in s.learned if not (CONF_DIR / f"{c}.yaml").is_file()]
+    missing = [c for c in s.learned if c != "ppo" and not (CONF_DIR / f"{c}.yaml").is_file()]
     if missing:
         raise ConfigError("learned", f"no imitation config conf/{missing[0]}.yaml")
 
@@ -248,15 +250,19 @@ def _certified(cfg, names, paths, args, lock, runner) -> dict[str, Path]:
 
 def _learned(cfg, configs, paths, args, map_refs, runner) -> dict[str, Path]:
     """`make learned`'s stages (docs/learned.md) after the experiments: the imitation of each config of `configs`
-    (conf/imitate*.yaml; its trunk pinned to the map this run built), then the comparison with every map and
-    network pinned; each not started when what its current config makes is there. The comparison's table and
+    (conf/imitate*.yaml; its trunk pinned to the map this run built) and PPO (`ppo` among them; `args.ppo`), then
+    the comparison with every map and network pinned; each not started when what its current config makes is
+    there. The comparison's table and
     figure are copied into the paper folder (`tab_learned.md`, `fig_learned_switching_set.png`)."""
     import shutil
 
     from pipeline.learned.evaluate import inputs, learned_id
     from pipeline.learned.imitate import identity
+    from pipeline.learned.ppo import ppo_identity
 
     paths = [p for p in paths if not p.startswith("debug=")]  # their tiny sizes are args (conf/debug/paper/)
+    ppo = "ppo" in configs
+    configs = [c for c in configs if c != "ppo"]
     def trunk_pin(config: str) -> list[str]:
         trunk = compose(config, [*paths, *args["imitate"]]).imitation.trunk_from
         return [f"imitation.trunk_from={map_refs[trunk]}"] if trunk in map_refs else []
@@ -264,13 +270,19 @@ def _learned(cfg, configs, paths, args, map_refs, runner) -> dict[str, Path]:
     argv = {c: [*trunk_pin(c), *paths, *args["imitate"]] for c in configs}
     composed = {c: compose(c, a) for c, a in argv.items()}
     policies = {c: Path(k.paths.models_dir) / f"{k.name}-{identity(k)}" for c, k in composed.items()}
+    jobs = [Job("imitate", ["--config-name", c, *a], f"imitate {c}", module="pipeline.learned.imitate")
+            for c, a in argv.items()]
+    if ppo:
+        k = compose("ppo", [*paths, *args["ppo"]])
+        policies["ppo"] = Path(k.paths.models_dir) / f"ppo-{ppo_identity(k)}"
+        jobs.append(Job("ppo", [*paths, *args["ppo"]], "ppo", module="pipeline.learned.ppo"))
     if up_to_date("imitate", lambda: policies) is None:
-        runner.stage("imitate", [Job("imitate", ["--config-name", c, *a], f"imitate {c}",
-                                     module="pipeline.learned.imitate") for c, a in argv.items()])
+        runner.stage("imitate", jobs)
     kinds = compose("learned", paths).maps
     pins = [f"maps.{k}={map_refs[str(n)]}" for k, n in kinds.items() if str(n) in map_refs]
     pins += [f"policies.imitation{'' if c == 'imitate' else '_clouds'}={policies[c]}" for c in configs
              if c in ("imitate", "imitate_heavy")]
+    pins += [f"policies.ppo={policies['ppo']}"] if ppo else []
     learned_argv = [*pins, *paths, *args["learned"]]
 
     def comparison() -> dict[str, Path]:

@@ -130,7 +130,14 @@ def test_imitation_stage_writes_a_tracked_policy_that_reloads(tmp_path):
                                                 ("pipeline.learned.imitate", "imitation.foo=1", "imitation.foo"),
                                                 ("pipeline.learned.evaluate", "learned.kappa=-1", "learned.kappa"),
                                                 ("pipeline.learned.evaluate", "learned.agents_list=[dqn]",
-                                                 "learned.agents_list")])
+                                                 "learned.agents_list"),
+                                                ("pipeline.learned.evaluate", "learned.candidates=0", "learned.candidates"),
+                                                ("pipeline.learned.evaluate", "learned.cloud_attack_list=[dqn]",
+                                                 "learned.cloud_attack_list"),
+                                                ("pipeline.learned.evaluate", "clouds=fog", "clouds"),
+                                                ("pipeline.learned.imitate", "model.reads=pixels", "model.reads"),
+                                                ("pipeline.paper", "learned=[bogus]", "learned"),
+                                                ("pipeline.paper", "learned=[imitate_nope]", "learned")])
 def test_bad_keys_are_one_line_and_exit_2(module, arg, field):
     out = subprocess.run([sys.executable, "-m", module, arg], capture_output=True, text=True, timeout=120)
     assert out.returncode == 2, out.stderr

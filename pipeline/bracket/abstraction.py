@@ -119,7 +119,7 @@ class Abstraction:
     multi: np.ndarray | None = None  # (nodes,) edges over several frames (positions beyond P along them)
 
 
-def _cell_hits(grid: Grid, H: np.ndarray, window: int):
+def cell_hits(grid: Grid, H: np.ndarray, window: int):
     """Cells meeting the polygons `{d_j·x <= H_j}` `(N, J)`: `(rows, cells, overflow)` (overflow: a polygon
     reaching outside the grid or wider than `window` cells)."""
     xl, xh, yl, yh = -H[:, 8], H[:, 0], -H[:, 12], H[:, 4]
@@ -160,7 +160,7 @@ def _frames(grid: Grid, hP, Uq, period, frames, window, bad_cell, stop):
         if i == 0:
             Ui = Uq
         else:
-            r, c, over = _cell_hits(grid, R, window)
+            r, c, over = cell_hits(grid, R, window)
             Ui = np.full_like(Uq, -np.inf)
             np.maximum.at(Ui, r, Uq[c])
             hit = over.copy()
@@ -168,7 +168,7 @@ def _frames(grid: Grid, hP, Uq, period, frames, window, bad_cell, stop):
             one |= hit
             Ui = np.where(one[:, None], Uq, Ui)
         S = R + period * np.maximum(Ui, 0.0)
-        r, c, over = _cell_hits(grid, S, window)
+        r, c, over = cell_hits(grid, S, window)
         bad = over.copy()
         np.logical_or.at(bad, r, bad_cell[c])
         if i == 0:
@@ -218,7 +218,7 @@ def build(law, grid: Grid, eps_cells: np.ndarray, period: float, goal_radius: fl
         multi[np.arange(grid.n) * modes + q] = multi_q
         safe[np.arange(grid.n) * modes + q] = ~unsafe & ~bad_cell
         rate_U[:, q] = used
-        r, c, _ = _cell_hits(grid, E, window)
+        r, c, _ = cell_hits(grid, E, window)
         if modes == 1:
             rows_all.append(r), cols_all.append(c)
         else:

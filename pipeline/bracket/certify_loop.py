@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.bracket.abstraction import Abstraction, Grid, _cell_hits, build
+from pipeline.bracket.abstraction import Abstraction, Grid, cell_hits, build
 from pipeline.bracket.enclosures import DIRS
 from pipeline.bracket.frame import Frame
 from pipeline.bracket.winning import certified_cells, win
@@ -48,7 +48,7 @@ def certified_starts(cert: Certificate, starts: np.ndarray) -> np.ndarray:
     C = np.stack([starts[:, [0, 2]], starts[:, [1, 2]], starts[:, [1, 3]], starts[:, [0, 3]]], axis=1)
     G = cert.frame.to_grid(C.reshape(-1, 2)).reshape(-1, 4, 2)
     H = np.einsum("nkc,jc->nkj", G, DIRS).max(axis=1) + 2e-9  # the rotated square's support (closed)
-    rows, cells, over = _cell_hits(cert.grid, H, window=int(np.ceil(2 * (starts[0, 1] - starts[0, 0])
+    rows, cells, over = cell_hits(cert.grid, H, window=int(np.ceil(2 * (starts[0, 1] - starts[0, 0])
                                                                      / cert.grid.h)) + 3)
     ok = ~over
     np.logical_and.at(ok, rows, cert.certified[cells])

@@ -28,7 +28,8 @@ from pipeline.envs.navigate import objects_from
 from pipeline.errors import ConfigError
 from pipeline.schema import Interval, Kappa, NonNegativeInt, Positive, PositiveInt, checked
 
-AGENTS = ("hybrid", "smooth", "cbf", "imitated", "learned_hybrid")  # the default lists; `ppo` when a PPO model is given
+AGENTS = ("hybrid", "smooth", "cbf", "imitated", "learned_hybrid", "ppo")
+CLOUDED = ("hybrid", "smooth", "cbf", "imitated", "learned_hybrid")  # trained for clouds (not PPO: clear frames)
 Agent = Literal["hybrid", "smooth", "cbf", "imitated", "learned_hybrid", "ppo"]
 CODE = ("envs", "learned", "control", "render", "plants", "sim", "hybrid", "perception")
 
@@ -46,7 +47,7 @@ class LearnedSettings:
     agents_list: list[Agent] = field(default_factory=lambda: list(AGENTS))
     attack_list: list[Agent] = field(default_factory=lambda: list(AGENTS))
     grid: tuple[PositiveInt, PositiveInt] = (101, 61)
-    clouds_list: list[Agent] = field(default_factory=lambda: list(AGENTS))
+    clouds_list: list[Agent] = field(default_factory=lambda: list(CLOUDED))
     cloud_attack_list: list[Agent] = field(default_factory=lambda: ["hybrid", "imitated", "learned_hybrid"])
     candidates: PositiveInt = 4
 
