@@ -182,6 +182,10 @@ def test_ppo_runs_on_the_vector_environment_through_sb3(tmp_path):
     assert (out["path"] / "model.zip").is_file()
     curve = np.loadtxt(out["path"] / "curve.csv", delimiter=",", skiprows=1, ndmin=2)
     assert len(curve) >= 1 and set(curve[:, 1]) <= {0.0, 1.0}  # starts 1.1 units from the target: episodes end
+    made = (out["path"] / "model.zip").stat().st_mtime_ns
+    again = run(cfg)  # built: not trained again (make learned runs it every time)
+    assert again["path"] == out["path"] and again["wall_s"] == 0.0
+    assert (out["path"] / "model.zip").stat().st_mtime_ns == made
 
 
 def test_trunk_from_a_perception_map_is_copied_and_stays_frozen():

@@ -111,6 +111,11 @@ def run(cfg: DictConfig) -> dict:
     if s.threads is not None:
         torch.set_num_threads(s.threads)
     id_ = ppo_identity(cfg)
+    final = Path(cfg.paths.models_dir) / f"ppo-{id_}"
+    if tracking.is_complete(final) and not cfg.get("force", False):  # built: not trained again
+        print(f"ppo: up to date -> {final}")
+        return {"path": final, "success": tracking.read_manifest(final).get("success_last_200"),
+                "wall_s": 0.0}
     env = SB3VecEnv(NavigateVectorEnv(s.num_envs, objects_=obj))
     curve = []
 
