@@ -135,6 +135,7 @@ def test_imitation_stage_writes_a_tracked_policy_that_reloads(tmp_path):
                                                 ("pipeline.learned.evaluate", "learned.cloud_attack_list=[dqn]",
                                                  "learned.cloud_attack_list"),
                                                 ("pipeline.learned.evaluate", "clouds=fog", "clouds"),
+                                                ("pipeline.learned.evaluate", "vehicle=unicycle", "vehicle"),
                                                 ("pipeline.learned.imitate", "model.reads=pixels", "model.reads"),
                                                 ("pipeline.paper", "learned=[bogus]", "learned"),
                                                 ("pipeline.paper", "learned=[imitate_nope]", "learned")])

@@ -52,28 +52,38 @@ class LearnedSettings:
     candidates: PositiveInt = 4
 
 
-def check(cfg: DictConfig) -> None:
-    objects_from(cfg)
-    s = build(cfg.learned, "learned")
-    build(cfg.clouds, "clouds")
-    inputs(cfg, s)  # every map and network found
-    for name in ("smooth", "cbf"):
-        build(cfg.controllers[name], f"controllers.{name}", scene=build(cfg.scene, "scene"))
-    if cfg.vehicle._target_.endswith("Unicycle"):
+@dataclass(frozen=True)
+class Prepared:
+    """What the check builds and the run uses: the environment's objects, the settings, the clouds' level, the
+    feedback laws by agent name, the input folders (:func:`inputs`)."""
+
+    obj: object
+    settings: LearnedSettings
+    clouds: object
+    laws: dict
+    folders: dict
+
+
+def check(cfg: DictConfig) -> Prepared:
+    """Preflight: every object built and every map and network found (nothing loaded, nothing run)."""
+    obj = objects_from(cfg)
+    if obj.plant.heading:
         raise ConfigError("vehicle", "the learned policies are evaluated on the single integrator")
+    s = build(cfg.learned, "learned")
+    laws = {"hybrid": obj.controller, **{n: build(cfg.controllers[n], f"controllers.{n}", scene=obj.scene)
+                                         for n in ("smooth", "cbf")}}
+    return Prepared(obj, s, build(cfg.clouds, "clouds"), laws, inputs(cfg, s))
 
 
-def _policies(cfg, obj, pm, model, names, ppo=None):
+def _policies(obj, laws, pm, model, names, ppo=None):
     from pipeline.envs.policies import ArchitecturePolicy
     from pipeline.learned.policies import ImitatedPolicy, LearnedHybridPolicy
 
     period = obj.camera_settings.period
     out = {}
     for name in names:
-        if name in ("hybrid", "smooth", "cbf"):
-            law = obj.controller if name == "hybrid" else build(cfg.controllers[name], f"controllers.{name}",
-                                                               scene=obj.scene)
-            out[name] = ArchitecturePolicy(pm, law, obj.plant, obj.scene, period, name=f"map+{name}")
+        if name in laws:
+            out[name] = ArchitecturePolicy(pm, laws[name], obj.plant, obj.scene, period, name=f"map+{name}")
         elif name == "imitated":
             out[name] = ImitatedPolicy(model)
         elif name == "ppo":
@@ -147,6 +157,19 @@ def _load(cfg, folders: dict) -> dict:
     return out
 
 
+def _measure(name: str, policy, conditions, seed: int) -> list[dict]:
+    """One table row per condition `(label, environment objects, starts, attack or None)` of one agent."""
+    from pipeline.learned.rollouts import run_policy
+
+    out = []
+    for cond, o, x0, attack in conditions:
+        res = run_policy(o, policy, x0, seed=seed, attack=attack)
+        out.append(rows(name, cond, res, attack.summary() if attack else (np.nan, np.nan)))
+        print(f"learned: {name:15s} {cond:28s} reached {out[-1]['reached']:.0%} "
+              f"stalled {out[-1]['stalled']:.0%} collided {out[-1]['collided']:.0%}", flush=True)
+    return out
+
+
 def rows(agent: str, condition: str, res: dict, induced=(np.nan, np.nan)) -> dict:
     from pipeline.sim.metrics import wilson
 
@@ -165,13 +188,13 @@ def rows(agent: str, condition: str, res: dict, induced=(np.nan, np.nan)) -> dic
 
 def run(cfg: DictConfig) -> dict:
     from pipeline.learned.report import switching_figure, write_tables
-    from pipeline.learned.rollouts import PolicyAttack, run_policy
+    from pipeline.learned.rollouts import PolicyAttack
     from pipeline.perception.adversary import proposition1_direction
+    from pipeline.preflight import prepared
     from pipeline.sim import starts as st
 
-    check(cfg)
-    obj, s = objects_from(cfg), build(cfg.learned, "learned")
-    folders = inputs(cfg, s)
+    ready = prepared(cfg, check)  # the preflight's, when it checked this job
+    obj, s, folders = ready.obj, ready.settings, ready.folders
     id_ = learned_id(cfg, folders)
     root = Path(cfg.paths.outputs_dir) / "learned"
     if tracking.is_complete(root / f"learned-{id_}") and not cfg.force:
@@ -183,17 +206,13 @@ def run(cfg: DictConfig) -> dict:
     direction = proposition1_direction(obj.scene)
     pm, model = got["map"], got["model"]
     table = []
-    for name, policy in _policies(cfg, obj, pm, model, s.agents_list, got["ppo"]).items():
-        conditions = [("random, clean", random, None), ("near K, clean", near, None)]
+    for name, policy in _policies(obj, ready.laws, pm, model, s.agents_list, got["ppo"]).items():
+        conditions = [("random, clean", obj, random, None), ("near K, clean", obj, near, None)]
         if name in s.attack_list:
-            conditions.append((f"near K, pixel attack κ={s.kappa:g}", near, PolicyAttack(
+            conditions.append((f"near K, pixel attack κ={s.kappa:g}", obj, near, PolicyAttack(
                 _attack_net(name, pm, model, got["ppo"]), direction, s.kappa, s.attack_steps)))
-        for cond, x0, attack in conditions:
-            res = run_policy(obj, policy, x0, seed=s.seed, attack=attack)
-            table.append(rows(name, cond, res, attack.summary() if attack else (np.nan, np.nan)))
-            print(f"learned: {name:15s} {cond:28s} reached {table[-1]['reached']:.0%} "
-                  f"stalled {table[-1]['stalled']:.0%} collided {table[-1]['collided']:.0%}", flush=True)
-    table += _clouded(cfg, obj, s, got, random, near, direction)
+        table += _measure(name, policy, conditions, s.seed)
+    table += _clouded(ready, got, random, near, direction)
     df = pd.DataFrame(table)
     names = {k: None if v is None else v.name for k, v in folders.items()}
     meta = {"kind": "learned", "config": tracking.to_plain(cfg), "map": names["map"], "policy": names["model"],
@@ -207,20 +226,20 @@ def run(cfg: DictConfig) -> dict:
     return {"path": root / f"learned-{id_}", "table": df}
 
 
-def _clouded(cfg, obj, s, got, random, near, direction) -> list[dict]:
+def _clouded(ready: Prepared, got, random, near, direction) -> list[dict]:
     """The rows under the `clouds` level: its random clouds (random starts and near K) for `clouds_list`, and
     near K the worst of `candidates` of its clouds per frame on each agent's own network for `cloud_attack_list`."""
     from dataclasses import replace
 
-    from pipeline.learned.rollouts import PolicyWorstCloud, run_policy
+    from pipeline.learned.rollouts import PolicyWorstCloud
 
-    clouds = build(cfg.clouds, "clouds")
-    level = cfg.clouds.get("name", "clouds")
+    obj, s, clouds = ready.obj, ready.settings, ready.clouds
+    level = clouds.name or "clouds"
     cloudy = replace(obj, occlusion=clouds)
     pm, model = got["map_clouds"], got["model_clouds"]
     out = []
     agents = [*dict.fromkeys([*s.clouds_list, *s.cloud_attack_list])]
-    for name, policy in _policies(cfg, obj, pm, model, agents, got["ppo"]).items():
+    for name, policy in _policies(obj, ready.laws, pm, model, agents, got["ppo"]).items():
         conditions = []
         if name in s.clouds_list:
             conditions += [(f"random, {level} clouds", cloudy, random, None), (f"near K, {level} clouds", cloudy, near, None)]
@@ -228,13 +247,8 @@ def _clouded(cfg, obj, s, got, random, near, direction) -> list[dict]:
             conditions.append((f"near K, worst of {s.candidates} {level} clouds", obj, near,
                                PolicyWorstCloud(obj.camera, clouds, _decision(name, pm, model, got["ppo"]), direction,
                                                 s.candidates, s.seed)))
-        for cond, o, x0, attack in conditions:
-            res = run_policy(o, policy, x0, seed=s.seed, attack=attack)
-            out.append(rows(name, cond, res, attack.summary() if attack else (np.nan, np.nan)))
-            print(f"learned: {name:15s} {cond:28s} reached {out[-1]['reached']:.0%} "
-                  f"stalled {out[-1]['stalled']:.0%} collided {out[-1]['collided']:.0%}", flush=True)
+        out += _measure(name, policy, conditions, s.seed)
     return out
-
 
 main = stage_main("learned", run="pipeline.learned.evaluate:run", check="pipeline.learned.evaluate:check")
 

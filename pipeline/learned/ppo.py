@@ -96,9 +96,9 @@ def ppo_identity(cfg: DictConfig) -> str:
                                tracking.to_plain(cfg.occlusion), tracking.code_version("envs", "learned/ppo"))
 
 
-def check(cfg: DictConfig) -> None:
-    objects_from(cfg)
-    build(cfg.ppo, "ppo")
+def check(cfg: DictConfig):
+    """Preflight: the environment's objects and the settings, built once (the run uses them)."""
+    return objects_from(cfg), build(cfg.ppo, "ppo")
 
 
 def run(cfg: DictConfig) -> dict:
@@ -106,8 +106,9 @@ def run(cfg: DictConfig) -> dict:
     from stable_baselines3 import PPO
     from stable_baselines3.common.callbacks import BaseCallback
 
-    check(cfg)
-    obj, s = objects_from(cfg), build(cfg.ppo, "ppo")
+    from pipeline.preflight import prepared
+
+    obj, s = prepared(cfg, check)  # the preflight's, when it checked this job
     if s.threads is not None:
         torch.set_num_threads(s.threads)
     id_ = ppo_identity(cfg)
@@ -135,12 +136,12 @@ def run(cfg: DictConfig) -> dict:
     rate = float(done[-min(len(done), 200):, 1].mean()) if len(done) else float("nan")
     meta = {"kind": "ppo", "config": tracking.to_plain(cfg.ppo), "wall_s": wall, "episodes": len(done),
             "success_last_200": rate}
-    with tracking.tracked_output(Path(cfg.paths.models_dir), "ppo", id_, meta) as tmp:
+    with tracking.tracked_output(final.parent, "ppo", id_, meta) as tmp:
         model.save(tmp / "model.zip")
         np.savetxt(tmp / "curve.csv", done, delimiter=",", header="timesteps,success", comments="")
     print(f"ppo: {s.total_timesteps} agent-steps in {wall:.0f} s, {len(done)} episodes, success of the last 200 "
-          f"{rate:.1%} -> {Path(cfg.paths.models_dir) / f'ppo-{id_}'}")
-    return {"path": Path(cfg.paths.models_dir) / f"ppo-{id_}", "success": rate, "wall_s": wall}
+          f"{rate:.1%} -> {final}")
+    return {"path": final, "success": rate, "wall_s": wall}
 
 
 class PPONet(torch.nn.Module):
