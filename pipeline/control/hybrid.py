@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import copy
 import math
-from typing import Annotated
+from typing import Annotated, Literal
 
 import numpy as np
 
@@ -50,6 +50,43 @@ class Evaluation:
         return self.cell & (xd["i"] == self.i_from)
 
 
+def tangent_saturate(ua: np.ndarray, ub: np.ndarray, ba: np.ndarray, bb: np.ndarray, u_max: float):
+    """`v = (ua, ub)` brought to norm `<= u_max` keeping its component along the barrier's face first: with `n` the
+    barrier term's direction `(ba, bb)` (the wedge's outward normal; rows where it is zero are left to the radial
+    rule), `v = v_t + v_n n` becomes `u_t = v_t min(1, u_max / |v_t|)`, `u_n = sign(v_n) sqrt(u_max^2 - |u_t|^2)`.
+
+    Still a descent direction of `V_q` (`u · v = |u_t||v_t| + |u_n||v_n| > 0` for `v != 0`) at full speed, but a
+    vehicle whose perceived position enters and leaves the barrier's layer on alternate frames (the benchmark's
+    noise) keeps sliding along the face at the attraction's tangential speed instead of the radial rule's, which
+    shrinks the tangent by the barrier's size on every frame inside the layer (docs/dense.md)."""
+    nb = np.hypot(ba, bb)
+    rows = (nb > 0) & (np.hypot(ua, ub) > u_max) & np.isfinite(ua) & np.isfinite(ub)
+    if not rows.any():
+        return ua, ub
+    ua, ub = ua.copy(), ub.copy()
+    na, nbb = ba[rows] / nb[rows], bb[rows] / nb[rows]
+    va, vb = ua[rows], ub[rows]
+    vn = va * na + vb * nbb
+    ta, tb = va - vn * na, vb - vn * nbb
+    t = np.hypot(ta, tb)
+    scale = np.minimum(1.0, u_max / np.maximum(t, 1e-300))
+    ta, tb = ta * scale, tb * scale
+    un = np.sign(vn) * np.sqrt(np.maximum(0.0, u_max * u_max - (ta * ta + tb * tb)))
+    ua[rows], ub[rows] = ta + un * na, tb + un * nbb
+    return ua, ub
+
+
+def _with_tangent(pa, pb, ua, ub, push: float, u_max: float):
+    """The push-out `p` (`|p| = push`, along the wedge's outward normal) plus the attraction's `(ua, ub)` component
+    along the face, limited so that the sum stays within `u_max` (`tangent` saturation's push-out)."""
+    na, nb = pa / push, pb / push
+    vn = ua * na + ub * nb
+    ta, tb = ua - vn * na, ub - vn * nb
+    room = math.sqrt(max(0.0, u_max * u_max - push * push))
+    scale = np.minimum(1.0, room / np.maximum(np.hypot(ta, tb), 1e-300))
+    return pa + ta * scale, pb + tb * scale
+
+
 @checked("controller", objects=("scene",))
 class HybridController(Feedback):
     """The hybrid controller of the paper (SPEC §3.3) over the locally active obstacle (SPEC §3.6).
@@ -58,7 +95,10 @@ class HybridController(Feedback):
     `noise_tolerance` (`θ >= 0`, null: off): the side hysteresis of docs/dense.md, sized by the perception error the
     loop must tolerate: a mode jump (the ratio rule or `m ∈ W_q`) only where the perceived position lies past the
     line `b = 0` by at least `θ` on the side the new mode passes (`q = 1 -> 2` needs `b(m) >= θ`); elsewhere in
-    `W_q` the push-out rule applies.
+    `W_q` the push-out rule applies. `saturation`: how `-k ∇V_q` is brought to `u_max` where a barrier acts
+    (`radial`: scaled down as a whole, the paper's; `tangent`: :func:`tangent_saturate`, docs/dense.md);
+    `push_tangent` (with `tangent`): a push-out also keeps the attraction's component along the face, within
+    `u_max` (:func:`_with_tangent`).
     """
 
     name = "hybrid"
@@ -67,13 +107,18 @@ class HybridController(Feedback):
 
     def __init__(self, scene: Scene, k: Positive = 1.0, chi: Annotated[float, Range(gt=1)] = 1.1, lam: Positive = 0.09,
                  u_max: Positive | None = 10.0, push_speed: Positive | None = None, cell_hysteresis: Positive = 1.0,
-                 guard: bool = True, guard_gamma: OpenShare = 0.5, noise_tolerance: NonNegative | None = None):
+                 guard: bool = True, guard_gamma: OpenShare = 0.5, noise_tolerance: NonNegative | None = None,
+                 saturation: Literal["radial", "tangent"] = "radial", push_tangent: bool = False):
         super().__init__(scene, k=k, u_max=u_max, push_speed=push_speed)
         if not lam < chi - 1:
             raise ConfigError("controller.lam", f"must be in (0, chi - 1) = (0, {chi - 1:.6g}), got {lam!r}")
         self.chi, self.lam, self.h = float(chi), float(lam), float(cell_hysteresis)
         self.guard, self.gamma = bool(guard), float(guard_gamma)
         self.theta = None if noise_tolerance is None else float(noise_tolerance)
+        if push_tangent and saturation != "tangent":
+            raise ConfigError("controller.push_tangent", f"applies only with controller.saturation=tangent, got "
+                                                         f"saturation={saturation!r}")
+        self.saturation, self.push_tangent = saturation, bool(push_tangent)
         self.M = scene.n_obstacles
         if self.M > 1:  # SPEC §3.6's validity: V1 (every target rule), V2 (the cells), the discs in the arena
             arr = scene.arrays
@@ -248,6 +293,12 @@ class HybridController(Feedback):
                 nearest_u = (bp + a) <= (bp - a)  # u <= v: cross the u = 0 face
                 va[bad] = np.where(nearest_u, -_SQRT1_2, _SQRT1_2) * self.push_speed
                 vb[bad] = -sigma * _SQRT1_2 * self.push_speed
+                if self.push_tangent and self.u_max is not None:
+                    va[bad], vb[bad] = _with_tangent(va[bad], vb[bad], ev.ua[idx[bad]], ev.ub[idx[bad]],
+                                                     self.push_speed, self.u_max)
+            if self.saturation == "tangent" and self.u_max is not None:  # the barrier's part: none in push-outs
+                va, vb = tangent_saturate(va, vb, np.where(bad, 0.0, va - ev.ua[idx]),
+                                          np.where(bad, 0.0, vb - ev.ub[idx]), self.u_max)
             ua[idx] = va
             ub[idx] = vb
         if self.u_max is not None:
