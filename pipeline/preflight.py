@@ -152,14 +152,37 @@ def preflight(config_name: str, argv: list[str], check: Callable[[DictConfig], N
     search = _search_path(argv)
     _check_hydra_groups(config_name, argv)
     jobs = _expand(overrides)
+    failed = []
     for job in jobs:
         try:
             _check_job(config_name, [*search, *job], check)
         except ConfigError as err:  # in a sweep, which job: a key may be valid for one and not for another
             if len(jobs) == 1:
                 raise
-            raise ConfigError(err.field, f"{err.reason} (in the sweep's job `{' '.join(job)}`)") from None
+            failed.append((job, err))
+    if failed:
+        raise _sweep_error(jobs, failed)
     return len(jobs)
+
+
+def _sweep_error(jobs: list[list[str]], failed: list) -> ConfigError:
+    """One line for a sweep whose jobs fail: the first failure, and where a key is unknown to some jobs only (a
+    hybrid-only key in a sweep over `controller=hybrid,smooth,cbf`), which of the swept choices take it."""
+    job, err = failed[0]
+    common = set.intersection(*(set(j) for j in jobs))
+
+    def choice(j: list[str]) -> str:  # what the sweep varies in job j
+        return " ".join(o for o in j if o not in common)
+
+    unknown = [j for j, e in failed if e.field == err.field and "unknown key" in e.reason]
+    passed = [j for j in jobs if all(j is not f for f, _ in failed)]
+    if len(unknown) == len(failed) and passed:
+        take = ", ".join(f"`{choice(j)}`" for j in passed)
+        miss = ", ".join(f"`{choice(j)}`" for j in unknown)
+        value = next((o for o in job if o.lstrip("+").split("=")[0] == err.field), err.field)
+        return ConfigError(err.field, f"a key of the sweep's jobs {take} only, not of {miss}: sweep it over those "
+                                      f"alone (e.g. `-m {choice(passed[0])} {value}`) and the others without it")
+    return ConfigError(err.field, f"{err.reason} (in the sweep's job `{' '.join(job)}`)")
 
 
 def _check_job(config_name: str, job: list[str], check: Callable[[DictConfig], None] | None) -> None:

@@ -244,3 +244,14 @@ def test_tangent_saturation_slides_along_the_face_under_noise():
     ok_radial, _, path = _variant_runs(["controller.saturation=radial", "controller.push_tangent=false",
                                         "controller.push_speed=null"])
     assert not ok_radial.any() and np.allclose(path, 10.0)   # full speed all along, zigzagging at the face
+
+
+def test_a_key_of_some_swept_controllers_says_which_take_it():
+    """Friction 2's rest: a hybrid-only key in a sweep over every controller names the choices that take it."""
+    with pytest.raises(ConfigError) as err:
+        preflight("simulate", ["-m", "controller=hybrid,smooth,cbf", "controller.cell_hysteresis=0.5"])
+    msg = str(err.value)
+    assert msg.startswith("controller.cell_hysteresis: a key of the sweep's jobs `controller=hybrid` only")
+    assert "`controller=smooth`, `controller=cbf`" in msg and "-m controller=hybrid controller.cell_hysteresis=0.5" in msg
+    with pytest.raises(ConfigError, match="unknown key .*in the sweep's job"):  # a typo stays a typo
+        preflight("simulate", ["-m", "controller=hybrid,smooth", "controller.bogus=1"])
