@@ -255,3 +255,18 @@ def test_a_key_of_some_swept_controllers_says_which_take_it():
     assert "`controller=smooth`, `controller=cbf`" in msg and "-m controller=hybrid controller.cell_hysteresis=0.5" in msg
     with pytest.raises(ConfigError, match="unknown key .*in the sweep's job"):  # a typo stays a typo
         preflight("simulate", ["-m", "controller=hybrid,smooth", "controller.bogus=1"])
+
+
+def test_dense_camera_runs_end_to_end_from_the_benchmark_circle(tmp_path):
+    """make multi's dense_camera bundle (the camera in the loop on case6): here with a perfect map, the starts on the
+    circle of radius 7, its own figure and table in the one sequence."""
+    from pipeline.experiments.stage import run
+    cfg = compose("experiments", [f"paths.paper_dir={tmp_path / 'paper'}", f"paths.outputs_dir={tmp_path / 'out'}",
+                                  "perception=oracle", "debug=tiny", "experiment=dense_camera", "publish=true"])
+    out = run(cfg)
+    m = out["results"].tables["metrics"]
+    assert np.allclose(np.hypot(m["x0"], m["y0"]), 7.0) and set(m["controller"]) == {"hybrid", "smooth", "cbf"}
+    hyb = m[m["controller"] == "hybrid"]
+    assert hyb["success"].all() and not hyb["collision"].any()
+    assert (tmp_path / "paper" / "tab_dense_camera.md").exists()
+    assert (tmp_path / "paper" / f"{figure_stem('dense_camera')}.png").exists()

@@ -40,6 +40,7 @@ FIGURES = {
     "fig21_unicycle_field": ("unicycle_field", "not in the paper: the unicycle on the 5-disc field"),
     "fig22_dense_fields": ("dense_fields", "not in the paper: the hybrid-RL benchmark's dense clutter"),
     "fig23_dense_unicycle": ("dense_unicycle", "not in the paper: the unicycle in dense clutter"),
+    "fig24_dense_camera": ("dense_camera", "not in the paper: the camera in the loop in dense clutter"),
 }
 
 

@@ -24,6 +24,7 @@ from pipeline.errors import ConfigError
 from pipeline.experiments.context import Context
 from pipeline.experiments.results import Results, mean_ci, summarise
 from pipeline.experiments.scenario import Scenario, agent_rows
+from pipeline.schema import Positive
 from pipeline.sim import starts
 from pipeline.sim.metrics import wilson
 
@@ -215,7 +216,10 @@ class MultiCamera(Scenario):
     """The camera in the loop on the composed field with the map trained on it (`maps.field_heavy`: the field
     under heavy clouds) at cloud level `occlusion`: hybrid, smooth and CBF from `n_agents` random starts, and the
     trajectories of a few of them. The map's own scene (from its dataset's manifest) must be the composed one:
-    the camera draws the obstacles the vehicle avoids."""
+    the camera draws the obstacles the vehicle avoids. `start_radius` (null: random starts `margin` inside the arena):
+    `n_agents` starts on the circle of that radius about the goal instead (the hybrid-RL benchmark's, bundle
+    dense_camera). `benchmark_m`, `adversary_eps`: further conditions with the benchmark's noise `s (m, -m)` or
+    §3.5's adversary added to the camera's estimate (the figure draws the last condition)."""
 
     figures: ClassVar[str] = "pipeline.experiments.multi.figures:draw_multi_camera"
     controllers: list[str] = field(default_factory=lambda: ["hybrid", "smooth", "cbf"])
@@ -224,14 +228,29 @@ class MultiCamera(Scenario):
     n_agents: int = 100
     margin: float = 2.0
     n_drawn: int = 6
-    delta_practical: float = 3.0
+    delta_practical: Positive | None = 3.0
+    start_radius: Positive | None = None
+    benchmark_m: list[float] = field(default_factory=list)
+    adversary_eps: Positive | None = None
 
     @property
     def maps(self) -> tuple[str, ...]:  # type: ignore[override]
         return (self.map_kind,)
 
     def uses(self):
-        return {"controllers": list(self.controllers), "disturbances": [], "occlusions": [self.occlusion]}
+        dist = ["world_alternating"] * bool(self.benchmark_m) + ["adversarial"] * (self.adversary_eps is not None)
+        return {"controllers": list(self.controllers), "disturbances": dist, "occlusions": [self.occlusion]}
+
+    def conditions(self, ctx: Context) -> list[tuple[str, object]]:
+        """`(label, disturbance added to the camera's estimate)`: the camera alone, then each noise level."""
+        clouds = f"{self.occlusion} clouds" if self.occlusion != "none" else "clean images"
+        base = f"{clouds}, {self.map_kind} map"
+        out = [(base, None)]
+        out += [(f"{base} + benchmark m={m:g}", ctx.disturbance("world_alternating", m=m)) for m in self.benchmark_m]
+        if self.adversary_eps is not None:
+            out.append((f"{base} + adversary {self.adversary_eps:g}", ctx.disturbance("adversarial",
+                                                                                     eps=self.adversary_eps)))
+        return out
 
     def check(self, ctx: Context) -> None:
         super().check(ctx)
@@ -240,21 +259,28 @@ class MultiCamera(Scenario):
 
     def compute(self, ctx: Context) -> Results:
         self.check(ctx)
-        x0 = starts.Random(n=ctx.n(self.n_agents, minimum=4), seed=ctx.seed, margin=self.margin)(ctx.scene)
+        n = ctx.n(self.n_agents, minimum=4)
+        if self.start_radius is None:
+            x0 = starts.Random(n=n, seed=ctx.seed, margin=self.margin)(ctx.scene)
+        else:
+            x0 = starts.Circle(n=n, radius=self.start_radius)(ctx.scene, "experiment.start_radius")
         measure = ctx.camera_measure(self.map_kind, self.occlusion)
-        frames, arrays = [], {}
-        for ctrl in self.controllers:
-            res = ctx.simulate(ctx.controller(ctrl), x0, measure=measure, record=True)
-            frames.append(agent_rows(res, condition=f"{self.occlusion} clouds, {self.map_kind} map"))
-            arrays[f"p_{ctrl}"], arrays[f"m_{ctrl}"] = res.p[:, : self.n_drawn], res.m[:, : self.n_drawn]
-            err = np.hypot(*(res.m - res.p).transpose(2, 0, 1))
-            frames[-1]["perception_error_mean"] = np.nanmean(err, axis=0)
-            print(f"[experiments] {self.id}: {ctrl} done", flush=True)
+        frames, arrays, conds = [], {}, self.conditions(ctx)
+        ctx.expect(len(conds) * len(self.controllers))
+        for cond, dist in conds:
+            for ctrl in self.controllers:
+                res = ctx.simulate(ctx.controller(ctrl), x0, measure=measure, disturbance=dist, record=True)
+                frames.append(agent_rows(res, condition=cond))
+                arrays[f"p_{ctrl}"], arrays[f"m_{ctrl}"] = res.p[:, : self.n_drawn], res.m[:, : self.n_drawn]
+                err = np.hypot(*(res.m - res.p).transpose(2, 0, 1))
+                frames[-1]["perception_error_mean"] = np.nanmean(err, axis=0)
+                print(f"[experiments] {self.id}: {cond}: {ctrl} done", flush=True)
         metrics = pd.concat(frames, ignore_index=True)
         table = summarise_field(metrics, ["condition", "controller"], ctx.seed, self.delta_practical)
         table["perception_error_mean"] = metrics.groupby(["condition", "controller"], sort=False)[
             "perception_error_mean"].mean().to_numpy()
-        return Results({"metrics": metrics, "summary": table}, arrays, {"occlusion": self.occlusion})
+        return Results({"metrics": metrics, "summary": table}, arrays,
+                       {"occlusion": self.occlusion, "drawn": conds[-1][0]})
 
 
 __all__ = ["MultiAdversarial", "MultiCamera", "MultiCells", "MultiMonteCarlo", "check_map_scene", "field_results", "field_scenes", "summarise_field",

@@ -10,7 +10,7 @@ import numpy as np  # noqa: E402
 from matplotlib.patches import Circle  # noqa: E402
 
 from pipeline.control import Scene  # noqa: E402
-from pipeline.experiments.report import draw_frame  # noqa: E402
+from pipeline.experiments.report import draw_frame, figure_stem  # noqa: E402
 from pipeline.viz import legend_outside  # noqa: E402
 
 COLORS = {"hybrid": "tab:blue", "smooth": "tab:orange", "cbf": "tab:green"}
@@ -126,12 +126,14 @@ def draw_multi_camera(scen, ctx, res, out) -> None:
     t = res.tables["summary"]
     fig, ax = plt.subplots(figsize=(8, 5))
     runs = {c: res.arrays[f"p_{c}"] for c in t["controller"] if f"p_{c}" in res.arrays}
-    _field_runs(ax, ctx.scene, ctx.arena, runs, f"camera in the loop, {res.info['occlusion']} clouds, learned map")
+    clouds = f"{res.info['occlusion']} clouds" if res.info["occlusion"] != "none" else "clean images"
+    _field_runs(ax, ctx.scene, ctx.arena, runs, f"camera in the loop: {res.info.get('drawn', clouds)}")
     for c in runs:
         m = res.arrays[f"m_{c}"]
         ax.plot(m[:, :, 0].ravel(), m[:, :, 1].ravel(), ".", ms=0.8, color=COLORS.get(c), alpha=0.3)
-    out.figure(fig, "fig20_multi_camera", "Hybrid, smooth and CBF on a 5-disc field with the CNN in the loop under "
-               "heavy clouds (dots: the perceived positions).")
+    where = f"{ctx.scene.n_obstacles}-disc scene {ctx.scene.name!r}"
+    out.figure(fig, figure_stem(scen.id), f"Hybrid, smooth and CBF on the {where} with the CNN in the loop on "
+               f"{clouds} (drawn: {res.info.get('drawn', clouds)}; dots: the perceived positions).")
     out.table(columns(t, ["condition", "controller"]) .assign(perception_error_mean=t["perception_error_mean"]),
-              "tab_multi_camera", "Camera in the loop on the field (learned map, clouds): outcomes with Wilson CIs and "
-              "the mean perception error along the runs.")
+              f"tab_{scen.id}", f"Camera in the loop on the {where} (learned map, {clouds}): outcomes with Wilson CIs "
+              "and the mean perception error along the runs.")
