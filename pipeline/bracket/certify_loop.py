@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.bracket.abstraction import Abstraction, Grid, cell_hits, build
+from pipeline.bracket.abstraction import Abstraction, Grid, build, cell_hits
 from pipeline.bracket.enclosures import DIRS
 from pipeline.bracket.frame import Frame
 from pipeline.bracket.winning import certified_cells, win

@@ -59,7 +59,7 @@ def affine_range(box: np.ndarray, w: np.ndarray, c: float = 0.0) -> tuple[np.nda
     return v.min(axis=-1), v.max(axis=-1)
 
 
-def _bp_barrier_g(D: np.ndarray, k: float, gain: float, rho: float, ell: float) -> np.ndarray:
+def bp_barrier_g(D: np.ndarray, k: float, gain: float, rho: float, ell: float) -> np.ndarray:
     """`g(D) = -2 k gain B'(D/ℓ²)/ℓ² >= 0` (∞ at `D = 0`, 0 beyond the reach), decreasing in `D`."""
     s = D / ell**2
     with np.errstate(divide="ignore", invalid="ignore"):

@@ -13,9 +13,9 @@ import numpy as np
 from pipeline.bracket.enclosures import (
     BIG,
     DIRS,
-    _bp_barrier_g,
     arc_range,
     attraction_corners,
+    bp_barrier_g,
     dist_range,
     minkowski,
     sector_points,
@@ -79,8 +79,8 @@ def hybrid_support(law: HybridController, sub: np.ndarray, q: int, period: float
     k, u_max = law.k, law.u_max
     (u, v, du, dv) = wedge_ranges(sub, cov, q)
     (D_lo, D_hi), mu, nu = sq_dist_range(u, v)
-    g_lo = _bp_barrier_g(D_hi, k, cov.barrier_gain, cov.barrier_rho, cov.ell)
-    g_hi = _bp_barrier_g(D_lo, k, cov.barrier_gain, cov.barrier_rho, cov.ell)
+    g_lo = bp_barrier_g(D_hi, k, cov.barrier_gain, cov.barrier_rho, cov.ell)
+    g_hi = bp_barrier_g(D_lo, k, cov.barrier_gain, cov.barrier_rho, cov.ell)
     flow = D_hi > 0  # some perceived point outside W_q: the flow map's formula
     with np.errstate(invalid="ignore", over="ignore"):
         c1 = (np.where(mu[0] < 0, np.maximum(-BIG, g_hi * mu[0]), 0.0), np.where(mu[1] < 0, g_lo * mu[1], 0.0))
@@ -179,8 +179,8 @@ def radial_support(law, sub: np.ndarray) -> np.ndarray:
     A = attraction_corners(sub, k, cov.p_T)
     if isinstance(law, SmoothController):
         gap_lo, gap_hi = np.maximum(d_lo - R, 0.0), np.maximum(d_hi - R, 0.0)
-        g_lo = _bp_barrier_g(gap_hi**2, k, cov.barrier_gain, cov.barrier_rho, cov.ell)
-        g_hi = _bp_barrier_g(gap_lo**2, k, cov.barrier_gain, cov.barrier_rho, cov.ell)
+        g_lo = bp_barrier_g(gap_hi**2, k, cov.barrier_gain, cov.barrier_rho, cov.ell)
+        g_hi = bp_barrier_g(gap_lo**2, k, cov.barrier_gain, cov.barrier_rho, cov.ell)
         with np.errstate(invalid="ignore"):
             r_lo = np.nan_to_num(g_lo * gap_lo, nan=0.0)
             r_hi = np.where(gap_lo > 0, g_hi * gap_hi, BIG)

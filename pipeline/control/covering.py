@@ -16,7 +16,7 @@ import numpy as np
 
 from pipeline.control.scene import Covering
 
-_SQRT1_2 = np.sqrt(0.5)
+SQRT1_2 = float(np.sqrt(0.5))  # the diamond's faces are at 45 degrees: every module takes it from here
 
 
 def _check_q(q: int) -> int:
@@ -30,13 +30,13 @@ def wedge_coords(scene: Covering, q: int, points: np.ndarray) -> tuple[np.ndarra
     sigma = _check_q(q)
     a, b = scene.to_frame(points)
     bp = scene.c + sigma * b
-    return (bp + a) * _SQRT1_2, (bp - a) * _SQRT1_2
+    return (bp + a) * SQRT1_2, (bp - a) * SQRT1_2
 
 
 def wedge_axes(scene: Covering, q: int) -> tuple[np.ndarray, np.ndarray]:
     """World-frame gradients of `u` and `v` (unit vectors): du/dp, dv/dp."""
     sigma = _check_q(q)
-    return (sigma * scene.e_b + scene.e_a) * _SQRT1_2, (sigma * scene.e_b - scene.e_a) * _SQRT1_2
+    return (sigma * scene.e_b + scene.e_a) * SQRT1_2, (sigma * scene.e_b - scene.e_a) * SQRT1_2
 
 
 def sq_dist_to_wedge(scene: Covering, q: int, points: np.ndarray) -> np.ndarray:

@@ -21,8 +21,6 @@ import numpy as np
 from pipeline.control.scene import Scene
 from pipeline.schema import Positive, checked
 
-_SQRT1_2 = float(np.sqrt(0.5))
-
 
 def saturate(u: np.ndarray, u_max: float | None) -> np.ndarray:
     """Scale rows of `u` down to norm `u_max` (the vehicle's speed limit); `None` = no limit."""

@@ -25,7 +25,8 @@ from typing import Annotated, Literal
 
 import numpy as np
 
-from pipeline.control.feedback import _SQRT1_2, Feedback
+from pipeline.control.covering import SQRT1_2
+from pipeline.control.feedback import Feedback
 from pipeline.control.potentials import both_potentials_frame, fused_potentials, potential
 from pipeline.control.scene import Scene
 from pipeline.control.validity import cell_distance, check_field
@@ -291,8 +292,8 @@ class HybridController(Feedback):
                 sigma = np.where(q[idx[bad]] == 1, 1.0, -1.0)
                 bp = c + sigma * b
                 nearest_u = (bp + a) <= (bp - a)  # u <= v: cross the u = 0 face
-                va[bad] = np.where(nearest_u, -_SQRT1_2, _SQRT1_2) * self.push_speed
-                vb[bad] = -sigma * _SQRT1_2 * self.push_speed
+                va[bad] = np.where(nearest_u, -SQRT1_2, SQRT1_2) * self.push_speed
+                vb[bad] = -sigma * SQRT1_2 * self.push_speed
                 if self.push_tangent and self.u_max is not None:
                     va[bad], vb[bad] = _with_tangent(va[bad], vb[bad], ev.ua[idx[bad]], ev.ub[idx[bad]],
                                                      self.push_speed, self.u_max)
@@ -321,8 +322,8 @@ class HybridController(Feedback):
             return u, active
         sigma = np.where(xd["q"] == 1, 1.0, -1.0)
         bp = ev.c + sigma * ev.b
-        mu = np.minimum((bp + ev.a) * _SQRT1_2, 0.0)
-        mv = np.minimum((bp - ev.a) * _SQRT1_2, 0.0)
+        mu = np.minimum((bp + ev.a) * SQRT1_2, 0.0)
+        mv = np.minimum((bp - ev.a) * SQRT1_2, 0.0)
         s = np.sqrt(mu * mu + mv * mv)
         near = s > 0
         if self.u_max is not None:
@@ -330,8 +331,8 @@ class HybridController(Feedback):
         rows = np.flatnonzero(near)
         if rows.size == 0:
             return u, active
-        na = (mu[rows] - mv[rows]) * _SQRT1_2 / s[rows]  # ∇s in the frame: the outward normal of W_q
-        nb = sigma[rows] * (mu[rows] + mv[rows]) * _SQRT1_2 / s[rows]
+        na = (mu[rows] - mv[rows]) * SQRT1_2 / s[rows]  # ∇s in the frame: the outward normal of W_q
+        nb = sigma[rows] * (mu[rows] + mv[rows]) * SQRT1_2 / s[rows]
         ea, eb = ev.ea[rows], ev.eb[rows]
         n = na[:, None] * ea + nb[:, None] * eb
         beta = np.maximum(0.0, -(1.0 - self.gamma) * s[rows] / period - np.einsum("ij,ij->i", n, u[rows]))

@@ -8,10 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.control.covering import sq_dist_to_wedge_grad
+from pipeline.control.covering import SQRT1_2, sq_dist_to_wedge_grad
 from pipeline.control.scene import Covering
-
-_SQRT1_2 = np.sqrt(0.5)
 
 
 def barrier(s: np.ndarray, rho: float) -> np.ndarray:
@@ -172,8 +170,8 @@ def fused_potentials(a, b, at, bt, c, ell, reach, *, kind: str, rho: float, gain
     out = []
     for sigma in (1.0, -1.0):
         bp = c + sigma * b
-        mu = np.minimum(bp + a, 0.0) * _SQRT1_2
-        mv = np.minimum(bp - a, 0.0) * _SQRT1_2
+        mu = np.minimum(bp + a, 0.0) * SQRT1_2
+        mv = np.minimum(bp - a, 0.0) * SQRT1_2
         D = mu * mu + mv * mv
         B, dB = _barrier_masked(kind, rho, gain, ell, reach, D)
         V = B + phi

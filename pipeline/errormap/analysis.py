@@ -32,7 +32,7 @@ def operational_set(points: np.ndarray, scene: Scene, arena, margin: float = 0.0
     return inside & ~in_diamond(scene, points)
 
 
-def _dean_center(center, scene: Scene) -> np.ndarray:
+def dean_center(center, scene: Scene) -> np.ndarray:
     if center == "origin":
         return np.zeros(2)
     if center == "target":
@@ -69,7 +69,7 @@ def analyse_level(E: np.ndarray, points: np.ndarray, shape: tuple[int, int], ope
     eps_values = settings["coverage"].get("eps")
     eps_values = core.eps_sweep(eps_op) if eps_values is None else np.asarray(eps_values, dtype=float)
     eps_values = np.unique(np.concatenate([eps_values, np.asarray(settings["coverage"].get("eps_marks") or [])]))
-    center = _dean_center(settings["dean"].get("center", "origin"), scene)
+    center = dean_center(settings["dean"].get("center", "origin"), scene)
     op_idx = np.flatnonzero(operational)
     dean = core.dean_fit(E[:, op_idx].reshape(-1, 2), np.tile(points[op_idx], (k, 1)), center,
                          settings["dean"]["eps_C"])

@@ -30,9 +30,9 @@ from pipeline.control import Scene
 from pipeline.data import open_dataset
 from pipeline.errormap import estimates as core
 from pipeline.errormap.analysis import (
-    _dean_center,
     analyse_heading,
     analyse_level,
+    dean_center,
     eps_marks,
     fmt_eps,
     jsonable,
@@ -326,7 +326,7 @@ def _summary(cfg, plan: _Plan, settings, results, samples, sample_err_vec, t_tra
     and every level's numbers."""
     points, shape = plan.grid[0], plan.grid[1]
     pmap, manifest, marks = plan.pmap, plan.manifest, settings["coverage"]["eps_marks"]
-    center = _dean_center(settings["dean"].get("center", "origin"), plan.scene)
+    center = dean_center(settings["dean"].get("center", "origin"), plan.scene)
     sample_err = np.linalg.norm(sample_err_vec, axis=1)
     train_summary = {**core.error_stats(sample_err), "seconds": t_train,
                      "dean": jsonable(core.dean_fit(sample_err_vec, samples, center, settings["dean"]["eps_C"]))}

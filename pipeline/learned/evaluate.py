@@ -147,7 +147,6 @@ def learned_id(cfg, folders: dict) -> str:
 def _load(cfg, folders: dict) -> dict:
     from pipeline.learned.imitate import load_policy_model
     from pipeline.learned.policies import load_map
-
     from pipeline.learned.ppo import PPOPolicy, load_ppo
 
     models = Path(cfg.paths.models_dir)

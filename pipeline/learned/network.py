@@ -22,9 +22,9 @@ import lightning as L
 import torch
 from torch import nn
 
+from pipeline.errors import ConfigError
 from pipeline.perception.keypoint import KeypointHead
 from pipeline.perception.network import conv_blocks
-from pipeline.errors import ConfigError
 from pipeline.schema import NonEmpty, Positive, PositiveInt, Range
 
 HEADS = 3  # expert action, mode-1 flow, mode-2 flow

@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 
 from pipeline.errors import ConfigError
-from pipeline.render.marker import _MARKER_REACH, heading_marker, polygon_coverage
+from pipeline.render.marker import MARKER_REACH, heading_marker, polygon_coverage
 from pipeline.render.occlusion import CloudSample, Occlusion
 from pipeline.schema import RGB, NonNegative, Positive, checked
 
@@ -249,7 +249,7 @@ class Camera:
         h, w = self.height, self.width
         uv = self.world_to_pixel(centres[idx])
         verts = heading_marker(uv, heading[idx], self.robot_size)
-        reach = _MARKER_REACH * self.robot_size
+        reach = MARKER_REACH * self.robot_size
         k = int(math.ceil(2 * reach)) + 1  # pixels an interval of this length can touch
         start = np.floor(verts.min(axis=1)).astype(np.int64)  # (n, 2): the bounding box's first pixel
         steps = np.arange(k)

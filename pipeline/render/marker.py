@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 _MARKER = np.array([[4.0 / 3.0, 0.0], [-2.0 / 3.0, 0.5], [-2.0 / 3.0, -0.5]])
-_MARKER_REACH = 4.0 / 3.0  # farthest vertex from the centroid, in units of L
+MARKER_REACH = 4.0 / 3.0  # farthest vertex from the centroid, in units of L
 
 
 def heading_marker(uv, heading, size: float) -> np.ndarray:
