@@ -18,6 +18,7 @@ from pipeline.cli import stage_main
 from pipeline.config import build
 from pipeline.control.fields import analyse_field
 from pipeline.control.validity import field_violations
+from pipeline.sim import starts
 
 
 def geometry(cfg: DictConfig) -> dict:
@@ -49,14 +50,11 @@ def geometry(cfg: DictConfig) -> dict:
 def starts_of(cfg: DictConfig, target: np.ndarray) -> np.ndarray | None:
     """The configured starts where they are explicit (points, a circle); None for drawn ones (they avoid the
     diamonds by construction)."""
-    init = tracking.to_plain(cfg.init)
-    target_ = str(init.get("_target_", ""))
-    if target_.endswith("Points"):
-        return np.asarray(init["points"], float)
-    if target_.endswith("Circle"):
-        c = target if init.get("center") is None else np.asarray(init["center"], float)
-        th = float(init.get("phase", 0.0)) + 2.0 * np.pi * np.arange(int(init["n"])) / int(init["n"])
-        return c + float(init["radius"]) * np.stack([np.cos(th), np.sin(th)], axis=1)
+    init = build(cfg.init, "init")  # the distribution itself (it needs no scene until it is drawn)
+    if isinstance(init, starts.Points):
+        return np.asarray(init.points, float)
+    if isinstance(init, starts.Circle):
+        return init.on_circle(target)
     return None
 
 

@@ -137,11 +137,11 @@ def fit(model, trainer_node, data, epochs: int, batch_size: int, seed: int, labe
 
 def check(cfg: DictConfig) -> None:
     """Preflight: every object built and the trunk's map found (no rollout, no training)."""
-    objects_from(cfg)
+    obj = objects_from(cfg)
+    if obj.plant.heading:  # the plant says what it is (not its class name)
+        raise ConfigError("vehicle", "imitation is implemented for the single integrator (vehicle=integrator)")
     build(cfg.imitation, "imitation")
     trunk_source(cfg)
-    if cfg.get("vehicle") is not None and cfg.vehicle._target_.endswith("Unicycle"):
-        raise ConfigError("vehicle", "imitation is implemented for the single integrator (vehicle=integrator)")
 
 
 def run(cfg: DictConfig) -> dict:

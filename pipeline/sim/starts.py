@@ -94,11 +94,14 @@ class Circle:
     center: Pair | None = None
     phase: float = 0.0
 
-    def __call__(self, scene: Scene, field_: str = "init") -> np.ndarray:
-        c = scene.p_T if self.center is None else np.asarray(self.center, dtype=float)
+    def on_circle(self, target) -> np.ndarray:
+        """The starts `(n, 2)` about `center` (null: `target`), before the start rule is checked."""
+        c = np.asarray(target if self.center is None else self.center, dtype=float)
         th = self.phase + 2.0 * np.pi * np.arange(self.n) / self.n
-        pts = c + self.radius * np.stack([np.cos(th), np.sin(th)], axis=1)
-        return _clear_of_diamonds(scene, pts, field_)
+        return c + self.radius * np.stack([np.cos(th), np.sin(th)], axis=1)
+
+    def __call__(self, scene: Scene, field_: str = "init") -> np.ndarray:
+        return _clear_of_diamonds(scene, self.on_circle(scene.p_T), field_)
 
 
 @checked("init")
