@@ -314,7 +314,7 @@ def test_the_ppo_agent_acts_as_sb3_predicts_and_its_attack_net_is_that_action(tm
     np.testing.assert_allclose(net_out, agent.act(obs), atol=1e-6)
 
 
-def test_make_learned_end_to_end_on_tiny_maps_with_clouds_and_the_worst_cloud(tiny_maps, tmp_path):
+def test_make_learned_end_to_end_on_tiny_maps_with_clouds_and_the_worst_cloud(tiny_maps, tmp_path, monkeypatch):
     """`make learned` on tiny maps: the clean and the clouded imitation (each trunk from its map), then the
     comparison with every row (clean, pixel attack, the clouds' level, the worst cloud), tracked by id: a second
     run is up to date, and another clouded network changes the id."""
@@ -326,7 +326,13 @@ def test_make_learned_end_to_end_on_tiny_maps_with_clouds_and_the_worst_cloud(ti
     tiny = ["imitation.agents=3", "imitation.rounds=1", "imitation.epochs=1", "imitation.round_epochs=1",
             "imitation.max_frames=4", "model.hidden=8", f"paths.models_dir={root / 'models'}",
             f"paths.output_dir={tmp_path}"]
+    import pipeline.learned.imitate as imitate_module
+
+    resolved = []  # the trunk's map is resolved once per run (it composes the train config to find the map's id)
+    real = imitate_module.trunk_source
+    monkeypatch.setattr(imitate_module, "trunk_source", lambda cfg: resolved.append(1) or real(cfg))
     clean = imitate(compose("imitate", [*tiny, f"imitation.trunk_from={ids['clean']}"]))
+    assert len(resolved) == 1
     heavy = imitate(compose("imitate_heavy", [*tiny, f"imitation.trunk_from={ids['occluded']}",
                                               "model.reads=features"]))  # the tiny maps' heads are flat
     assert clean["id"] != heavy["id"] and heavy["path"].name.startswith("imitation_heavy-")

@@ -66,6 +66,9 @@ class EpochLine:
         return _Line()
 
 
+_UNRESOLVED = object()
+
+
 def trunk_source(cfg: DictConfig) -> str | None:
     """The folder name of the perception map whose trunk initialises the network (`imitation.trunk_from`
     resolved as a map name means: the map the current train config makes), or the checkpoint's file name."""
@@ -81,16 +84,18 @@ def trunk_source(cfg: DictConfig) -> str | None:
     return resolve_map(ref, cfg.paths.models_dir, field="imitation.trunk_from").name
 
 
-def identity(cfg: DictConfig) -> str:
+def identity(cfg: DictConfig, trunk: str | None | object = _UNRESOLVED) -> str:
     """The id of the weights: the config that determines them (not paths, not where it runs), the trunk's map
-    (by its id: a name means the map the current train config makes) and the code."""
+    (by its id: a name means the map the current train config makes; `trunk`: :func:`trunk_source` already
+    resolved) and the code."""
+    trunk = trunk_source(cfg) if trunk is _UNRESOLVED else trunk
     plain = OmegaConf.to_container(cfg, resolve=False)
     for key in ("paths", "hydra", "force", "name"):
         plain.pop(key, None)
     trainer = {k: v for k, v in plain.pop("trainer", {}).items()
                if k not in ("accelerator", "devices", "strategy", "num_nodes", "enable_progress_bar",
                             "default_root_dir", "log_every_n_steps")}
-    return tracking.content_id(plain, trainer, trunk_source(cfg), tracking.code_version(*CODE))
+    return tracking.content_id(plain, trainer, trunk, tracking.code_version(*CODE))
 
 
 def rollout(venv: NavigateVectorEnv, expert, learner, seed: int, max_frames: int, record_every: int):
@@ -135,13 +140,21 @@ def fit(model, trainer_node, data, epochs: int, batch_size: int, seed: int, labe
     return time.perf_counter() - t0
 
 
-def check(cfg: DictConfig) -> None:
+@dataclass
+class Prepared:
+    """What the preflight built for a run: the objects, the settings and the trunk's map (resolved once)."""
+
+    obj: object
+    settings: ImitationSettings
+    trunk: str | None
+
+
+def check(cfg: DictConfig) -> Prepared:
     """Preflight: every object built and the trunk's map found (no rollout, no training)."""
     obj = objects_from(cfg)
     if obj.plant.heading:  # the plant says what it is (not its class name)
         raise ConfigError("vehicle", "imitation is implemented for the single integrator (vehicle=integrator)")
-    build(cfg.imitation, "imitation")
-    trunk_source(cfg)
+    return Prepared(obj, build(cfg.imitation, "imitation"), trunk_source(cfg))
 
 
 def run(cfg: DictConfig) -> dict:
@@ -149,10 +162,11 @@ def run(cfg: DictConfig) -> dict:
 
     from pipeline.learned.expert import Expert
     from pipeline.learned.policies import ImitatedPolicy
+    from pipeline.preflight import prepared
 
-    check(cfg)
-    obj, s = objects_from(cfg), build(cfg.imitation, "imitation")
-    id_ = identity(cfg)
+    ready = prepared(cfg, check)  # the preflight's, when it checked this job
+    obj, s = ready.obj, ready.settings
+    id_ = identity(cfg, ready.trunk)
     root = Path(cfg.paths.models_dir)
     final = root / f"{cfg.name}-{id_}"
     if final.is_dir() and tracking.is_complete(final) and not cfg.force:
@@ -165,7 +179,9 @@ def run(cfg: DictConfig) -> dict:
     if s.trunk_from is not None:
         from pipeline.learned.policies import load_map
 
-        model.load_trunk(load_map(s.trunk_from, cfg.paths.models_dir).model)
+        ckpt = str(s.trunk_from).endswith(".ckpt")  # else the map folder check() resolved (by its id)
+        ref = s.trunk_from if ckpt else Path(cfg.paths.models_dir) / ready.trunk
+        model.load_trunk(load_map(ref, cfg.paths.models_dir).model)
     venv = NavigateVectorEnv(s.agents, objects_=obj, autoreset=False)
     expert = Expert(obj.controller, obj.plant, obj.scene, venv.core.period)
     data, rounds = None, []
