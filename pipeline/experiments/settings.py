@@ -21,7 +21,8 @@ class ExperimentSettings:
                                                           "authors": "authors", "clean_paper": "clean_paper",
                                                           "field_heavy": "field_heavy_keypoint",
                                                           "unicycle_pose": "unicycle_pose",
-                                                          "unicycle_field_pose": "unicycle_field_pose"})
+                                                          "unicycle_field_pose": "unicycle_field_pose",
+                                                          "dense_case6": "dense_case6_keypoint"})
     errormaps: dict[str, str | None] = field(default_factory=lambda: {"clean": None, "unicycle_pose": None,
                                                                       "unicycle_field_pose": None})
     device: Device = "auto"
