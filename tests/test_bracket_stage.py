@@ -93,3 +93,19 @@ def test_a_file_where_the_bracket_folder_should_be_is_one_line(tmp_path):
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2 and len(lines) == 1 and "a file where" in lines[0] and str(folder) in lines[0], \
         proc.stderr[-2000:]
+
+
+@pytest.mark.parametrize("arg, field", [("controller.saturation=tangent", "controller.saturation"),
+                                        ("controller.noise_tolerance=0.3", "controller.noise_tolerance")])
+def test_a_hybrid_rule_the_abstraction_does_not_model_is_rejected(arg, field):
+    """The certificate's enclosures model §3.3's law; the dense design's rules (the tangent saturation, the side
+    hysteresis) would let the real loop leave the abstraction: rejected in one line, exit 2, before any work."""
+    import subprocess
+    import sys
+
+    from pipeline.cli import REPO_ROOT
+
+    proc = subprocess.run([sys.executable, "-m", "pipeline.bracket", arg], cwd=REPO_ROOT, capture_output=True,
+                          text=True, timeout=120)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1 and lines[0].startswith(f"error: {field}:"), proc.stderr[-2000:]

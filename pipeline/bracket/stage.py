@@ -39,6 +39,14 @@ def objects(cfg: DictConfig):
     for name in bs.controllers:
         node = cfg.controller if name == "hybrid" else cfg.controllers[name]
         laws[name] = build(node, "controller" if name == "hybrid" else f"controllers.{name}", scene=scene)
+    hybrid = laws.get("hybrid")
+    if hybrid is not None:  # the enclosures model §3.3's law: a rule they do not model would make a certificate unsound
+        if getattr(hybrid, "theta", None) is not None:
+            raise ConfigError("controller.noise_tolerance", "the bracket's abstraction models §3.3's mode decisions, "
+                                                            "not the side hysteresis: null here")
+        if getattr(hybrid, "saturation", "radial") != "radial":
+            raise ConfigError("controller.saturation", "the bracket's input enclosures model the radial saturation "
+                                                       "(§3.3's flow scaled to u_max): radial here")
     sim, camera = build(cfg.sim, "sim"), build(cfg.camera, "camera")
     if camera.period is None:
         raise ConfigError("camera.period", "the bracket needs a frame period (the sampled loop), got null")
