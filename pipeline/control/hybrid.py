@@ -51,6 +51,15 @@ class Evaluation:
         return self.cell & (xd["i"] == self.i_from)
 
 
+def _along_face(va, vb, na, nb, limit):
+    """The component of `v = (va, vb)` normal to the unit `n = (na, nb)` (along the face), scaled down to norm
+    `<= limit`; and `v · n`."""
+    vn = va * na + vb * nb
+    ta, tb = va - vn * na, vb - vn * nb
+    scale = np.minimum(1.0, limit / np.maximum(np.hypot(ta, tb), 1e-300))
+    return ta * scale, tb * scale, vn
+
+
 def tangent_saturate(ua: np.ndarray, ub: np.ndarray, ba: np.ndarray, bb: np.ndarray, u_max: float):
     """`v = (ua, ub)` brought to norm `<= u_max` keeping its component along the barrier's face first: with `n` the
     barrier term's direction `(ba, bb)` (the wedge's outward normal; rows where it is zero are left to the radial
@@ -66,12 +75,7 @@ def tangent_saturate(ua: np.ndarray, ub: np.ndarray, ba: np.ndarray, bb: np.ndar
         return ua, ub
     ua, ub = ua.copy(), ub.copy()
     na, nbb = ba[rows] / nb[rows], bb[rows] / nb[rows]
-    va, vb = ua[rows], ub[rows]
-    vn = va * na + vb * nbb
-    ta, tb = va - vn * na, vb - vn * nbb
-    t = np.hypot(ta, tb)
-    scale = np.minimum(1.0, u_max / np.maximum(t, 1e-300))
-    ta, tb = ta * scale, tb * scale
+    ta, tb, vn = _along_face(ua[rows], ub[rows], na, nbb, u_max)
     un = np.sign(vn) * np.sqrt(np.maximum(0.0, u_max * u_max - (ta * ta + tb * tb)))
     ua[rows], ub[rows] = ta + un * na, tb + un * nbb
     return ua, ub
@@ -80,12 +84,8 @@ def tangent_saturate(ua: np.ndarray, ub: np.ndarray, ba: np.ndarray, bb: np.ndar
 def _with_tangent(pa, pb, ua, ub, push: float, u_max: float):
     """The push-out `p` (`|p| = push`, along the wedge's outward normal) plus the attraction's `(ua, ub)` component
     along the face, limited so that the sum stays within `u_max` (`tangent` saturation's push-out)."""
-    na, nb = pa / push, pb / push
-    vn = ua * na + ub * nb
-    ta, tb = ua - vn * na, ub - vn * nb
-    room = math.sqrt(max(0.0, u_max * u_max - push * push))
-    scale = np.minimum(1.0, room / np.maximum(np.hypot(ta, tb), 1e-300))
-    return pa + ta * scale, pb + tb * scale
+    ta, tb, _ = _along_face(ua, ub, pa / push, pb / push, math.sqrt(max(0.0, u_max * u_max - push * push)))
+    return pa + ta, pb + tb
 
 
 @checked("controller", objects=("scene",))
