@@ -280,17 +280,17 @@ def test_adaptive_splitting_tightens_and_stays_sound(camera, trained):
     rng = np.random.default_rng(5)
     _, _, cells = _cells(rng, 8, 0.5, lo=(-40, -20), hi=(40, 20))
     prep = prepare(trained, camera, 0.0, torch.float64)
-    lo0, hi0, d0, n0 = certify_cells(prep, cells, progress=False)
+    lo0, hi0, d0, n0, h0 = certify_cells(prep, cells, progress=False)
     eps0 = eps_of(lo0, hi0)
-    assert np.all(d0 == 0) and np.all(n0 == 1)
+    assert np.all(d0 == 0) and np.all(n0 == 1) and np.all(np.isnan(h0))  # no heading for a position map
     tol = float(np.median(eps0))  # cells above the median split once, the others stay whole
-    lo1, hi1, d1, n1 = certify_cells(prep, cells, tolerance=tol, max_depth=1, progress=False)
+    lo1, hi1, d1, n1, _ = certify_cells(prep, cells, tolerance=tol, max_depth=1, progress=False)
     eps1 = eps_of(lo1, hi1)
     assert np.array_equal(d1, (eps0 > tol).astype(int)) and np.array_equal(n1, np.where(eps0 > tol, 4, 1))
     assert np.all(eps1[eps0 <= tol] == eps0[eps0 <= tol])
     assert np.median(eps1[eps0 > tol]) < np.median(eps0[eps0 > tol])
     predict = lambda imgs: FoldedPerceptionNet(trained)(torch.from_numpy(imgs)).detach().numpy()  # noqa: E731
-    emp, violations, worst = sampled_errors(predict, camera, cells, lo1, hi1, 32, 0, progress=False)
+    emp, violations, worst, _ = sampled_errors(predict, camera, cells, lo1, hi1, 32, 0, progress=False)
     assert violations == 0 and worst[0] <= 0, worst
     assert np.all(eps1 + SLACK >= emp)
 

@@ -405,3 +405,15 @@ def test_a_tiny_pose_map_through_data_train_errormap_and_the_context(tmp_path):
                        measure=ctx.camera_measure("clean"), record_every=1)
     m0 = ctx.perception_map("clean").predict(ctx.camera("clean").render(res.p[0], heading=res.heading[0]))
     assert np.allclose(res.heading_measured[0], m0[:, 2])  # the first frame's heading is the map's
+    from pipeline.certify.stage import run as certify_run  # the certified error map of the pose map
+
+    cert = certify_run(compose("certify", ["debug=tiny", f"maps={folder}", *paths, "region=[[40.0,44.0],[-2.0,2.0]]",
+                                           f"paths.certified_dir={tmp_path / 'certified'}", "kappas=[0.0]",
+                                           "headings=2", "progress=false"]))
+    r = cert["summary"]["kappas"]["0"]
+    assert cert["summary"]["model"]["outputs"] == "pose" and cert["summary"]["headings"] == 2
+    assert r["soundness"]["violations"] == 0 and r["soundness"]["samples"] == 4 * 2 * cert["summary"]["n_cells"]
+    cells = np.load(cert["path"] / "cells.npz")
+    op = cells["operational"]
+    assert np.all(cells["heading_0"][op] >= cells["heading_emp_0"][op]) and np.all(cells["eps_0"][op] >= cells["emp_0"][op])
+    assert r["heading_bar_deg"]["max"] <= 180 + 1e-9 and "Heading" in (cert["path"] / "table.md").read_text()

@@ -1,6 +1,6 @@
 """A PGD attack on the certified bound (SPEC §5.1: a bound is sound or it is not a bound).
 
-Per cell a joint ascent over the position `p = c + h t` (`t in [-1, 1]^2`) and every image the relaxation admits
+Per cell a joint ascent over the position `p = c + h t` (`t in [-1, 1]^2`; a pose cell's `t_θ` too) and every image the relaxation admits
 there (the window's pixels anywhere between the renderer's pixel bounds at `t`, rounding and `kappa` included;
 every other pixel the static image), through the map as deployed (`FoldedPerceptionNet`), for each of the four
 directions `±e_x`, `±e_y`. The largest error it reaches must stay below the cell's certified bound; its share of
@@ -34,18 +34,17 @@ def pgd_worst(model, camera, cells, kappa: float = 0.0, steps: int = 25, seed: i
     found = []
     for sign, j in ((1, 0), (1, 1), (-1, 0), (-1, 1)):
         g = torch.Generator().manual_seed(int(seed))
-        t = (torch.rand(n, 2, generator=g, dtype=torch.float64) * 2 - 1).requires_grad_(True)
+        t = (torch.rand(n, pw.lo.shape[1] - 1, generator=g, dtype=torch.float64) * 2 - 1).requires_grad_(True)
         th = torch.randn(n, 3, kr, kc, generator=g, dtype=torch.float64).requires_grad_(True)
         opt = torch.optim.Adam([t, th], lr=0.2)
         best = torch.full((n,), -np.inf, dtype=torch.float64)
         for _ in range(steps):
             tt = t.clamp(-1, 1)
-            lo, hi = (f[:, 0] + f[:, 1] * tt[:, 0, None, None, None] + f[:, 2] * tt[:, 1, None, None, None]
-                      for f in (pw.lo.double(), pw.hi.double()))
+            lo, hi = (f[:, 0] + torch.einsum("nschw,ns->nchw", f[:, 1:], tt) for f in (pw.lo.double(), pw.hi.double()))
             win = lo + torch.sigmoid(th) * (hi - lo)  # (n, 3, kr, kc): an admissible window
             img = base.expand(n, *base.shape).clone()
             img[torch.arange(n)[:, None, None], r, c] = win.permute(0, 2, 3, 1)
-            e = net(img[:, PAD:-PAD, PAD:-PAD].float())[:, :2].double() - (centre + half * tt)
+            e = net(img[:, PAD:-PAD, PAD:-PAD].float())[:, :2].double() - (centre + half * tt[:, :2])
             obj = sign * e[:, j]
             best = torch.maximum(best, obj.detach())
             opt.zero_grad()

@@ -9,6 +9,7 @@ import torch
 from pipeline.certify.cone import concretize, forward, gather, pad
 from pipeline.certify.crown import backward
 from pipeline.certify.deployed import Deployed, Static, deployed, static_pass
+from pipeline.certify.heading import heading_box, heading_error
 from pipeline.certify.keypoint import keypoint_range
 from pipeline.certify.renderer import pixel_window
 
@@ -36,10 +37,12 @@ def prepare(model, camera, kappa: float = 0.0, dtype: torch.dtype = torch.float3
 
 @dataclass
 class ErrorBound:
-    """Per cell and coordinate: `lower <= e <= upper` for every position of the cell (`(N, 2)`, world units)."""
+    """Per cell and coordinate: `lower <= e <= upper` for every position of the cell (`(N, 2)`, world units); a
+    cell of poses: `heading (N,)`, the largest wrapped heading error (radians) over it."""
 
     lower: torch.Tensor
     upper: torch.Tensor
+    heading: torch.Tensor | None = None
 
     @property
     def eps(self) -> torch.Tensor:
@@ -74,7 +77,8 @@ def _error_range(prep: Prepared, cells: torch.Tensor, z_lo: torch.Tensor, z_hi: 
     def err_range(z):  # half * z + center - p as a form in t (p = c + h t), and its range
         e = z * half[:, None]
         const = e[..., 0] + center - c
-        coef = -torch.diag_embed(h)
+        coef = -torch.diag_embed(h)  # (N, 2, 2): in (t_x, t_y); a pose cell's t_θ moves only z
+        coef = torch.cat([coef, coef.new_zeros((*coef.shape[:2], max(z.shape[-1] - 3, 0)))], -1)
         if z.shape[-1] > 1:
             coef = coef + e[..., 1:]
         form = torch.cat([const[..., None], coef], -1).movedim(-1, 1)
@@ -93,8 +97,9 @@ def _error_range(prep: Prepared, cells: torch.Tensor, z_lo: torch.Tensor, z_hi: 
 
 
 def certified_error_bound(prep: Prepared, cells: torch.Tensor, mode: str = "crown") -> ErrorBound:
-    """Sound bounds of `e = l(h(p)) - p` over each cell `cells (N, 4) = (x0, x1, y0, y1)` (world units) for
-    every image the camera renders there (uint8 rounding included; under `prep.kappa`, every image within
+    """Sound bounds of `e = l(h(p)) - p` over each cell `cells (N, 4) = (x0, x1, y0, y1)` (world units; a pose
+    map's `(N, 6)`, the heading interval `th0, th1` last, with the heading error too) for every image the camera
+    renders there (uint8 rounding included; under `prep.kappa`, every image within
     `kappa` levels of it). `mode`: `ibp` (intervals), `forward` (linear forms in the position, forward only),
     `crown` (forward, then the backward pass; the tightest). A keypoint head (:mod:`.keypoint`) is bounded from
     the intervals of its outputs on the last block's window (`crown`: the tighter of the forward and the backward
@@ -104,15 +109,22 @@ def certified_error_bound(prep: Prepared, cells: torch.Tensor, mode: str = "crow
     net = prep.net
     if net.keypoint is not None and mode == "crown" and len(cells) > KEYPOINT_CHUNK:  # a backward pass per output
         parts = [certified_error_bound(prep, c, mode) for c in torch.as_tensor(cells).split(KEYPOINT_CHUNK)]
-        return ErrorBound(torch.cat([b.lower for b in parts]), torch.cat([b.upper for b in parts]))
+        heading = None if parts[0].heading is None else torch.cat([b.heading for b in parts])
+        return ErrorBound(torch.cat([b.lower for b in parts]), torch.cat([b.upper for b in parts]), heading)
     dtype = net.head_w.dtype
     cells = torch.as_tensor(cells)
+    if (cells.shape[1] == 6) != (net.heading is not None):
+        raise ValueError("a pose map's cells carry a heading interval (N, 6), a position map's do not (N, 4)")
     pw = pixel_window(prep.camera, cells, prep.kappa, symbolic=mode != "ibp")
     lo, hi = pw.lo.to(dtype), pw.hi.to(dtype)
     cone = forward(net, prep.static, pw.origin, lo, hi, ibp=mode == "ibp")
     if net.keypoint is not None:
-        z_lo, z_hi = keypoint_range(net, prep.static, cone, (lo, hi) if mode == "crown" else None)
-        return ErrorBound(*_error_range(prep, cells.to(z_lo.dtype), z_lo[..., None], z_hi[..., None]))
+        z_lo, z_hi, scores = keypoint_range(net, prep.static, cone, (lo, hi) if mode == "crown" else None)
+        heading = None
+        if net.heading is not None:
+            box = heading_box(net, prep.static, cone, scores, (lo, hi) if mode == "crown" else None)
+            heading = heading_error(*box, cells[:, 4], cells[:, 5])
+        return ErrorBound(*_error_range(prep, cells.to(z_lo.dtype), z_lo[..., None], z_hi[..., None]), heading)
     win, out_lo, out_hi = _head(prep, cone)
     wp, wn = win.clamp(min=0)[:, :, None], win.clamp(max=0)[:, :, None]  # (N, 2, 1, C, pr, pc)
     z_lo = (wp * cone.lo[:, None] + wn * cone.hi[:, None]).flatten(3).sum(-1)  # (N, 2, S)

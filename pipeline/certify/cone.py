@@ -141,24 +141,23 @@ def _pool(lo, hi):
     return plo, phi, member, dominant, umax
 
 
-_CORNERS = ((-1.0, -1.0), (1.0, -1.0), (-1.0, 1.0), (1.0, 1.0))
-
-
 def _max_plane(fhi: torch.Tensor, umax: torch.Tensor) -> torch.Tensor:
     """An upper form of `max_i U_i(t)` (members' upper forms `fhi (N, S, C, p, q, 4)`): the max is convex in `t`, so
-    a plane above it at the box's four corners is above it on the whole box; the plane fitted to the corner values
-    and lifted by the largest residual, or the constant `umax` where that is lower on average (and in IBP)."""
-    if fhi.shape[1] != 3:
-        return as_form(umax, fhi.shape[1])
-    corners = torch.tensor(_CORNERS, dtype=fhi.dtype, device=fhi.device)  # (4, 2)
-    vals = (fhi[:, 0, ..., None] + fhi[:, 1, ..., None] * corners[:, 0] + fhi[:, 2, ..., None] * corners[:, 1])
-    vals = vals.amax(-2)  # (N, C, p, q, 4 corners): the max over members at each corner
+    a plane above it at the box's corners is above it on the whole box; the plane fitted to the corner values
+    (least squares on the cube's corners: their mean and the means of value times sign) and lifted by the largest
+    residual, or the constant `umax` where that is lower on average (and in IBP)."""
+    s = fhi.shape[1]
+    if s == 1:
+        return umax[:, None]
+    corners = torch.cartesian_prod(*[torch.tensor([-1.0, 1.0], dtype=fhi.dtype, device=fhi.device)] * (s - 1))
+    corners = corners.view(-1, s - 1)  # (2^(S-1), S-1)
+    vals = fhi[:, 0, ..., None] + torch.einsum("nscpqm,ks->ncpqmk", fhi[:, 1:], corners)
+    vals = vals.amax(-2)  # (N, C, p, q, corners): the max over members at each corner
     a = vals.mean(-1)
-    bx = (vals[..., 1] + vals[..., 3] - vals[..., 0] - vals[..., 2]) / 4
-    by = (vals[..., 2] + vals[..., 3] - vals[..., 0] - vals[..., 1]) / 4
-    a = a + (vals - (a[..., None] + bx[..., None] * corners[:, 0] + by[..., None] * corners[:, 1])).amax(-1)
-    plane = torch.stack([a, bx, by], 1)
-    return torch.where((a <= umax)[:, None], plane, as_form(umax, 3))
+    b = torch.einsum("ncpqk,ks->ncpqs", vals, corners) / len(corners)
+    a = a + (vals - a[..., None] - torch.einsum("ncpqs,ks->ncpqk", b, corners)).amax(-1)
+    plane = torch.cat([a[:, None], b.movedim(-1, 1)], 1)
+    return torch.where((a <= umax)[:, None], plane, as_form(umax, s))
 
 
 def _block(net: Deployed, static_padded, k: int, origin, lo, hi, ibp: bool):

@@ -20,6 +20,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from pipeline.errors import ConfigError
+from pipeline.perception.heading import AttentionHeadingHead
 
 
 @dataclass
@@ -44,6 +45,9 @@ class Deployed:
     # the keypoint head (`position_head: keypoint`) instead of the flat one: its 1x1 convolution's weight `(3, C)`
     # and bias `(3,)` (score, dx, dy), the cells' centres `cx (w,)`, `cy (h,)` and size `(sx, -sy)`, normalised
     keypoint: tuple[torch.Tensor, ...] | None = None
+    # a pose map's attention heading head (`heading_head: attention`): its MLP `(W1, b1, W2, b2)` on the
+    # attention-weighted mean of the same ReLU map, giving `(cos θ, sin θ)`
+    heading: tuple[torch.Tensor, ...] | None = None
 
     @property
     def levels(self) -> int:
@@ -60,14 +64,20 @@ def _fold(conv: nn.Conv2d, bn: nn.BatchNorm2d | None) -> tuple[torch.Tensor, tor
 
 
 def deployed(model, dtype: torch.dtype = torch.float32) -> Deployed:
-    """The position map `model` (a `PerceptionMap` with the flat head and no hidden layer) as :class:`Deployed`.
+    """The map `model` (a `PerceptionMap`: a flat head without a hidden layer, or the keypoint head; a pose map
+    with the attention heading head) as :class:`Deployed`.
 
     Differentiable in the model's parameters; BatchNorm uses its running statistics (eval mode) whatever
-    `model.training` is. Raises `ConfigError` for the parts the bounds do not cover (pose outputs, a hidden
-    layer)."""
-    if getattr(model, "pose", False):
-        raise ConfigError("certify.maps", "the certified bound covers position maps (model.outputs=position)")
+    `model.training` is. Raises `ConfigError` for the parts the bounds do not cover (another heading head, a
+    hidden layer)."""
     keypoint = bool(getattr(model, "keypoint", False))
+    heading = None
+    if getattr(model, "pose", False):
+        if not keypoint or not isinstance(model.heading_head, AttentionHeadingHead):
+            raise ConfigError("certify.maps", "the certified bound covers pose maps with the keypoint head and the "
+                                              "attention heading head (model=pose)")
+        lin = [m for m in model.heading_head.mlp if isinstance(m, nn.Linear)]
+        heading = tuple(t.to(dtype) for t in (lin[0].weight, lin[0].bias, lin[1].weight, lin[1].bias))
     lin = [] if keypoint else [m for m in model.head if isinstance(m, nn.Linear)]
     if not keypoint and len(lin) != 1:
         raise ConfigError("certify.maps", "the certified bound covers a flat head without a hidden layer "
@@ -100,7 +110,7 @@ def deployed(model, dtype: torch.dtype = torch.float32) -> Deployed:
     else:
         head_w, head_b = lin[0].weight.reshape(lin[0].out_features, c_last, *grids[-1]), lin[0].bias
     return Deployed([cast(t) for t in weights], [cast(t) for t in biases], cast(head_w), cast(head_b),
-                    cast(model.center), cast(model.half_range), bool(model.clamp), grids, kp)
+                    cast(model.center), cast(model.half_range), bool(model.clamp), grids, kp, heading)
 
 
 def _conv_interval(lo, hi, w, b, level0: bool):

@@ -80,8 +80,15 @@ def write_table(path: Path, summary: dict) -> None:
                     f"{f(emp, 'max')} | {f(t, 'median')} | {f(t, 'p95')} | "
                     f"{'yes' if r['theorem1']['holds'] else 'no'} ({r['theorem1']['margin_c_minus_r']:.3g}) | "
                     f"{_pgd(r.get('pgd'))} | {e['n']} | {r['depth']} | {r['seconds']:.0f} |")
+    for k, r in summary["kappas"].items():
+        if "heading_bar_deg" in r:
+            h, he = r["heading_bar_deg"], r.get("heading_emp_deg")
+            rows.append(f"\nHeading (κ = {k}, {summary.get('headings')} intervals of [-π, π] per cell): certified "
+                        f"median {h['median']:.3g}°, p95 {h['p95']:.3g}°, max {h['max']:.3g}°"
+                        + (f"; sampled p95 {he['p95']:.3g}°, max {he['max']:.3g}°" if he else "") + ".")
     path.write_text(f"# Certified error map of {summary['name']}-{summary['model']['id']}\n\n"
-                    f"Position head {summary['model'].get('position_head', 'flat')}; "
+                    f"Position head {summary['model'].get('position_head', 'flat')} "
+                    f"({summary['model'].get('outputs', 'position')} map); "
                     f"cells of {summary['cell']:g} units over the operational set, mode {summary['mode']}, "
                     f"tolerance {summary['tolerance']:g}, max depth {summary['max_depth']}.\n\n"
                     + "\n".join(rows) + "\n")

@@ -34,33 +34,50 @@ def softmax_mean_max(s_lo: torch.Tensor, s_hi: torch.Tensor, v: torch.Tensor) ->
 CROWN_PLACES = 12  # window places per cell bounded by backward passes: those of the largest forward upper scores
 
 
-def _window_crown(net, cone, pix_lo, pix_hi, score_hi) -> tuple[torch.Tensor, torch.Tensor]:
-    """The window's head outputs (score, dx, dy) bounded by backward passes from each of them to the pixels
-    (:func:`.crown.backward_from_relu`) at the `CROWN_PLACES` places of each cell's window with the largest forward
-    upper score `score_hi (N, h, w)` (where the attention can go; elsewhere `-inf, inf`): `(N, 3, h, w)` lower and
-    upper, bias excluded."""
-    w = net.keypoint[0]
+def window_crown(net, cone, pix_lo, pix_hi, score_hi, w, places: int = CROWN_PLACES):
+    """The window's 1x1 outputs `w g` (`w (K, C)`: the keypoint head's score, dx, dy, or a heading head's first
+    layer) bounded by backward passes from each of them to the pixels (:func:`.crown.backward_from_relu`) at the
+    `places` places of each cell's window with the largest forward upper score `score_hi (N, h, w)` (where the
+    attention can go; elsewhere `-inf, inf`): `(N, K, h, w)` lower and upper, bias excluded."""
     _, f_lo, _ = cone.g
     n, _, c, h, wd = f_lo.shape
-    k = min(CROWN_PLACES, h * wd)
-    places = score_hi.flatten(1).topk(k, -1).indices  # (N, K)
-    at = torch.eye(h * wd, dtype=w.dtype, device=w.device)[places].view(n, 1, k, 1, h, wd)
-    lam = (w.view(1, 3, 1, c, 1, 1) * at).flatten(1, 2)  # (N, 3 K, C, h, wd): one output at one place
+    k = min(places, h * wd)
+    nk = w.shape[0]
+    top = score_hi.flatten(1).topk(k, -1).indices  # (N, k)
+    w = w.to(f_lo.dtype)
+    at = torch.eye(h * wd, dtype=w.dtype, device=w.device)[top].view(n, 1, k, 1, h, wd)
+    lam = (w.view(1, nk, 1, c, 1, 1) * at).flatten(1, 2)  # (N, nk k, C, h, wd): one output at one place
     lam = torch.cat([lam, -lam], 1)
     forms = backward_from_relu(net, cone, lam, lam.new_zeros(lam.shape[:2]), pix_lo, pix_hi)
     low = forms[..., 0] - forms[..., 1:].abs().sum(-1)  # (N, P): each lower-bound form's minimum over the cell
     half = lam.shape[1] // 2
-    lo = torch.full((n, 3, h * wd), float("-inf"), dtype=low.dtype, device=low.device)
+    lo = torch.full((n, nk, h * wd), float("-inf"), dtype=low.dtype, device=low.device)
     hi = torch.full_like(lo, float("inf"))
-    idx = places[:, None].expand(n, 3, k)
-    lo.scatter_(2, idx, low[:, :half].view(n, 3, k))
-    hi.scatter_(2, idx, -low[:, half:].view(n, 3, k))
-    return lo.view(n, 3, h, wd), hi.view(n, 3, h, wd)
+    idx = top[:, None].expand(n, nk, k)
+    lo.scatter_(2, idx, low[:, :half].view(n, nk, k))
+    hi.scatter_(2, idx, -low[:, half:].view(n, nk, k))
+    return lo.view(n, nk, h, wd), hi.view(n, nk, h, wd)
 
 
-def keypoint_range(net, static, cone, pixels=None) -> tuple[torch.Tensor, torch.Tensor]:
-    """Lower and upper bounds `(N, 2)` (float64) of the keypoint head's normalised position over each cell;
-    `pixels` (the pixel forms `lo, hi`): the window's outputs also by backward passes (the tighter side of each)."""
+def on_grid(static_lo, static_hi, origin, win_lo, win_hi) -> tuple[torch.Tensor, torch.Tensor]:
+    """The window's intervals `(N, C, h, w)` at `origin (N, 2)` written over the static map's `(C, H, W)`:
+    `(N, C, H, W)` lower and upper."""
+    n, _, h, wd = win_lo.shape
+    height, width = static_lo.shape[-2:]
+    rows = (origin[:, 0, None] + MARGIN + torch.arange(h))[:, :, None]
+    cols = (origin[:, 1, None] + MARGIN + torch.arange(wd))[:, None, :]
+    idx = torch.arange(n)[:, None, None]
+    g_lo, g_hi = (pad(t).expand(n, -1, -1, -1).clone() for t in (static_lo, static_hi))
+    g_lo[idx, :, rows, cols] = win_lo.permute(0, 2, 3, 1).to(g_lo.dtype)
+    g_hi[idx, :, rows, cols] = win_hi.permute(0, 2, 3, 1).to(g_hi.dtype)
+    crop = (slice(None), slice(None), slice(MARGIN, MARGIN + height), slice(MARGIN, MARGIN + width))
+    return g_lo[crop], g_hi[crop]
+
+
+def keypoint_range(net, static, cone, pixels=None):
+    """Lower and upper bounds `(N, 2)` (float64) of the keypoint head's normalised position over each cell, and the
+    scores' intervals `(N, h w)` (what a pose map's heading head weighs with); `pixels` (the pixel forms `lo, hi`):
+    the window's outputs also by backward passes (the tighter side of each)."""
     w, b, cx, cy, cell = net.keypoint
     origin, f_lo, f_hi = cone.g  # the window's ReLU outputs, forms (N, S, C, h, wd)
     wp, wn = w.clamp(min=0), w.clamp(max=0)
@@ -75,19 +92,10 @@ def keypoint_range(net, static, cone, pixels=None) -> tuple[torch.Tensor, torch.
     # then their range over the cell
     win_lo, win_hi = concretize(*conv1(f_lo, f_hi))  # (N, 3, h, wd)
     if pixels is not None:
-        c_lo, c_hi = _window_crown(net, cone, *pixels, win_hi[:, 0])
+        c_lo, c_hi = window_crown(net, cone, *pixels, win_hi[:, 0], w)
         win_lo, win_hi = torch.maximum(win_lo, c_lo), torch.minimum(win_hi, c_hi)
-    win_lo, win_hi = win_lo + bias, win_hi + bias
-    n, _, h, wd = win_lo.shape
+    k_lo, k_hi = on_grid(st_lo, st_hi, origin, win_lo + bias, win_hi + bias)
     height, width = st_lo.shape[-2:]
-    rows = (origin[:, 0, None] + MARGIN + torch.arange(h))[:, :, None]
-    cols = (origin[:, 1, None] + MARGIN + torch.arange(wd))[:, None, :]
-    idx = torch.arange(n)[:, None, None]
-    k_lo, k_hi = (pad(t).expand(n, -1, -1, -1).clone() for t in (st_lo, st_hi))
-    k_lo[idx, :, rows, cols] = win_lo.permute(0, 2, 3, 1)  # the window over the static outputs
-    k_hi[idx, :, rows, cols] = win_hi.permute(0, 2, 3, 1)
-    crop = (slice(None), slice(None), slice(MARGIN, MARGIN + height), slice(MARGIN, MARGIN + width))
-    k_lo, k_hi = k_lo[crop], k_hi[crop]
     s_lo, s_hi = k_lo[:, 0].flatten(1), k_hi[:, 0].flatten(1)
     out_lo, out_hi = [], []
     for axis, centre in ((0, cx.view(1, width)), (1, cy.view(height, 1))):
@@ -95,4 +103,4 @@ def keypoint_range(net, static, cone, pixels=None) -> tuple[torch.Tensor, torch.
         v_lo, v_hi = (centre + torch.minimum(a, c)).flatten(1), (centre + torch.maximum(a, c)).flatten(1)
         out_hi.append(softmax_mean_max(s_lo, s_hi, v_hi))
         out_lo.append(-softmax_mean_max(s_lo, s_hi, -v_lo))
-    return torch.stack(out_lo, 1), torch.stack(out_hi, 1)  # float64: no rounding below the bound
+    return torch.stack(out_lo, 1), torch.stack(out_hi, 1), (s_lo, s_hi)  # float64: no rounding below the bound

@@ -18,6 +18,7 @@ class CertifySettings:
     kappas: Annotated[list[NonNegative], NonEmpty(distinct=True)] = field(default_factory=lambda: [0.0, 1.0])
     tolerance: Positive = 1.0
     max_depth: NonNegativeInt = 0
+    headings: PositiveInt = 36
     samples: PositiveInt = 16
     pgd_cells: NonNegativeInt = 256
     pgd_steps: PositiveInt = 25

@@ -24,7 +24,7 @@ from pipeline.certify.attack import pgd_check
 from pipeline.certify.bounds import prepare
 from pipeline.certify.figures import write_figures, write_table
 from pipeline.certify.settings import CertifySettings
-from pipeline.certify.split import certify_cells, eps_of, sampled_errors
+from pipeline.certify.split import certify_cells, eps_of, pose_cells, sampled_errors
 from pipeline.config import build
 from pipeline.config import settings as settings_
 from pipeline.errormap import estimates as core
@@ -56,32 +56,51 @@ def _stats(values: np.ndarray) -> dict:
 
 
 def _per_kappa(prep, pmap, camera, cells, s, margin_cr, progress: bool):
-    """Bounds, depth, sampled errors and the numbers of one `kappa` over `cells`."""
+    """Bounds, depth, sampled errors and the numbers of one `kappa` over `cells` (a pose map's: each with every
+    heading interval, reported per position cell as the worst over them)."""
     t0 = time.perf_counter()
-    lower, upper, depth, leaves = certify_cells(prep, cells, s["mode"], s["tolerance"], s["max_depth"], s["batch"],
-                                                progress, desc=f"certify kappa={prep.kappa:g}")
+    k = int(s["headings"]) if prep.net.heading is not None else 1
+    bounded = pose_cells(cells, k) if prep.net.heading is not None else cells
+    lower, upper, depth, leaves, heading = certify_cells(prep, bounded, s["mode"], s["tolerance"], s["max_depth"],
+                                                         s["batch"], progress, desc=f"certify kappa={prep.kappa:g}")
     seconds = time.perf_counter() - t0
-    eps = eps_of(lower, upper)
     t1 = time.perf_counter()
-    emp, violations, worst = sampled_errors(pmap.predict, camera, cells, lower, upper, s["samples"], s["seed"],
-                                            progress=progress) if prep.kappa == 0 else (None, None, None)
-    out = {"kappa": prep.kappa, "eps_bar": _stats(eps), "seconds": seconds, "cells_per_s": len(cells) / seconds,
+    emp, violations, worst, head_emp = sampled_errors(
+        pmap.predict, camera, bounded, lower, upper, s["samples"], s["seed"], progress=progress,
+        heading=heading) if prep.kappa == 0 else (None, None, None, None)
+    sampled_seconds = time.perf_counter() - t1
+    pgd = None
+    if s["pgd_cells"] > 0:  # an attacker on the bound: PGD over the position and the admissible images
+        t2 = time.perf_counter()
+        pgd = pgd_check(pmap.model, camera, bounded, lower, upper, prep.kappa, s["pgd_cells"], s["pgd_steps"],
+                        s["seed"])
+        pgd["seconds"] = time.perf_counter() - t2
+    per_cell = lambda v, f: None if v is None else f(v.reshape(len(cells), k, *v.shape[1:]), 1)  # noqa: E731
+    lower, upper, heading, emp, head_emp = (per_cell(v, f) for v, f in ((lower, np.min), (upper, np.max),
+                                                                          (heading, np.max), (emp, np.max),
+                                                                          (head_emp, np.max)))
+    depth, leaves = per_cell(depth, np.max), per_cell(leaves, np.sum)
+    eps = eps_of(lower, upper)
+    out = {"kappa": prep.kappa, "eps_bar": _stats(eps), "seconds": seconds, "cells_per_s": len(bounded) / seconds,
            "depth": {str(d): int((depth == d).sum()) for d in range(int(s["max_depth"]) + 1)},
            "leaves": int(leaves.sum()), "eps_cover": float(eps.max()),
            "theorem1": {"max_eps_bar": float(eps.max()), "margin_c_minus_r": margin_cr,
                         "holds": bool(eps.max() < margin_cr), "covered_fraction": float((eps < margin_cr).mean())}}
     arrays = {"lower": lower, "upper": upper, "eps": eps, "depth": depth}
+    if prep.net.heading is not None:
+        out["heading_bar_deg"] = _stats(np.degrees(heading))
+        arrays["heading"] = heading
     if emp is not None:
         tight = eps / np.maximum(emp, 1e-12)
-        out.update(eps_emp=_stats(emp), tightness=_stats(tight), sampled_seconds=time.perf_counter() - t1,
-                   soundness={"samples": int(len(cells) * s["samples"]), "violations": violations,
+        out.update(eps_emp=_stats(emp), tightness=_stats(tight), sampled_seconds=sampled_seconds,
+                   soundness={"samples": int(len(bounded) * s["samples"]), "violations": violations,
                               "worst_excess": worst[0], "counterexample": worst[1] if worst[0] > 0 else None})
         arrays.update(emp=emp)
-    if s["pgd_cells"] > 0:  # an attacker on the bound: PGD over the position and the admissible images
-        t2 = time.perf_counter()
-        out["pgd"] = pgd_check(pmap.model, camera, cells, lower, upper, prep.kappa, s["pgd_cells"], s["pgd_steps"],
-                               s["seed"])
-        out["pgd"]["seconds"] = time.perf_counter() - t2
+        if head_emp is not None:
+            out["heading_emp_deg"] = _stats(np.degrees(head_emp))
+            arrays["heading_emp"] = head_emp
+    if pgd is not None:
+        out["pgd"] = pgd
     return out, arrays
 
 
@@ -129,8 +148,10 @@ def run(cfg: DictConfig, *, perception_map=None, camera=None) -> dict:
             fields[f"{k}_{float(kappa):g}"] = full.reshape(*shape, *v.shape[1:])
         _say(pmap.name, r)
     head = "keypoint" if getattr(pmap.model, "keypoint", False) else "flat"
+    pose = bool(getattr(pmap.model, "pose", False))
     summary = {"id": id_, "name": pmap.name, "model": {"ref": str(cfg.maps), "id": str(pmap.id), "name": pmap.name,
-                                                       "position_head": head},
+                                                       "position_head": head, "outputs": "pose" if pose else "position"},
+               **({"headings": int(s["headings"])} if pose else {}),
                "cell": float(s["cell"]), "n_cells": int(op.sum()), "operational_margin": margin,
                "mode": s["mode"], "tolerance": s["tolerance"], "max_depth": s["max_depth"], "samples": s["samples"],
                "margin_c_minus_r": margin_cr, "torch_threads": int(s["threads"]), "kappas": levels}
@@ -156,6 +177,10 @@ def _say(name: str, r: dict) -> None:
     a = r.get("pgd")
     emp += f"; PGD on {a['cells']} cells: {a['violations']} past their bound, reaching at most " \
            f"{a['share_max']:.0%} of it (median {a['share_median']:.0%})" if a else ""
+    if "heading_bar_deg" in r:
+        h = r["heading_bar_deg"]
+        emp += f"; heading bound median {h['median']:.3g} deg, max {h['max']:.3g} deg" + (
+            f" (sampled max {r['heading_emp_deg']['max']:.3g} deg)" if "heading_emp_deg" in r else "")
     print(f"certify: {name} [kappa {r['kappa']:g}]: certified eps over the operational set mean {e['mean']:.3g}, "
           f"p95 {e['p95']:.3g}, max {e['max']:.3g} (c - r = {r['theorem1']['margin_c_minus_r']:.3g}: "
           f"{'holds' if r['theorem1']['holds'] else 'not shown'}){emp}; {r['seconds']:.0f} s")

@@ -53,7 +53,7 @@ class CertifiedTraining:
         """The ramp's progress in [0, 1] at epoch `t` (0 during the warm-up)."""
         if t < self.warmup_epochs:
             return 0.0
-        if self.ramp_epochs == 0:
+        if t >= self.warmup_epochs + self.ramp_epochs:  # ramped up (also a ramp too short to add to the warm-up)
             return 1.0
         return min(1.0, (t - self.warmup_epochs) / self.ramp_epochs)
 
