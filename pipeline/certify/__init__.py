@@ -19,14 +19,16 @@ so that a training loss can use the bound::
 - Models: position maps (`PerceptionMap`, any filters, BatchNorm and CoordConv or not, `clamp` or not) with the
   flat head without a hidden layer, or the keypoint head (:mod:`.keypoint`: its outputs bounded on the last
   block's window, forward and, with `crown`, by a backward pass per output; the softmax-weighted mean bounded
-  exactly over their intervals). Pose maps are not covered. Float32 by default; pass `dtype=torch.float64` to `prepare` for bounds
-  free of the bound computation's own float32 rounding (the deployed network itself runs in float32).
+  exactly over their intervals); pose maps with the keypoint head and the attention heading head, over cells of
+  poses `(N, 6) = (x0, x1, y0, y1, th0, th1)` (the triangle marker, :func:`.renderer.marker_coverage`; the heading
+  error `b.heading (N,)`, :mod:`.heading`). Float32 by default; pass `dtype=torch.float64` to `prepare` for
+  bounds free of the bound computation's own float32 rounding (the deployed network itself runs in float32).
 - Cost: one static pass per `prepare`; per cell only the cone of activations the robot's pixels reach
   (:mod:`.cone`), batched over cells (no per-cell Python).
 
 Modules: :mod:`.renderer` (the camera inside the bound), :mod:`.deployed` (the folded network, the static
 pass), :mod:`.cone` (forward forms through the cone), :mod:`.crown` (backward pass), :mod:`.keypoint` (the
-keypoint head), :mod:`.bounds` (the API).
+keypoint head), :mod:`.heading` (a pose map's heading), :mod:`.bounds` (the API).
 """
 
 from pipeline.certify.bounds import MODES, ErrorBound, Prepared, certified_error_bound, prepare

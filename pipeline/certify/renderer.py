@@ -19,7 +19,8 @@ with four breakpoints) in `u`, and `u` is affine in `t_x` (`v` in `t_y`, decreas
   are the convolution's zero padding.
 
 A form is a tensor `(..., S, ...)` whose slot 0 is the constant and slots 1, 2 the coefficients of `t_x, t_y`;
-`S = 1` (intervals: the forms concretised) is the IBP mode.
+`S = 1` (intervals: the forms concretised) is the IBP mode. A pose cell's (the unicycle's triangle marker,
+:func:`marker_coverage`) has a slot 3 for `t_θ`.
 """
 
 from __future__ import annotations
