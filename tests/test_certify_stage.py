@@ -61,7 +61,7 @@ def test_certify_tiny_end_to_end(tiny_maps, tmp_path):
 @pytest.mark.parametrize("override, field", [
     ("tolerance=-1", "tolerance"), ("kappas=[]", "kappas"), ("mode=exact", "mode"), ("max_depth=-1", "max_depth"),
     ("region=[[1,0],[0,1]]", "region"), ("samples=0", "samples"), ("dtype=half", "dtype"), ("cell=0", "cell"),
-    ("pgd_cells=-1", "pgd_cells"), ("pgd_steps=0", "pgd_steps"),
+    ("pgd_cells=-1", "pgd_cells"), ("pgd_steps=0", "pgd_steps"), ("headings=0", "headings"),
 ])
 def test_bad_settings_are_one_line(override, field, tmp_path):
     from pipeline.certify.checks import check
