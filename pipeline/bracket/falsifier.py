@@ -43,14 +43,17 @@ def fixed_error(loop: FrameLoop, st: dict, eps: np.ndarray) -> np.ndarray:
     return -(eps * sign)[:, None] * loop.scene.e_b[None]
 
 
-def mode_aware_error(loop: FrameLoop, st: dict, eps: np.ndarray, dirs: np.ndarray) -> np.ndarray:
-    """The mode-aware adversary (module docstring): all `(run, candidate)` pairs evaluated in one batch."""
+def mode_aware_error(loop: FrameLoop, st: dict, eps: np.ndarray, dirs: np.ndarray,
+                     base: np.ndarray | None = None) -> np.ndarray:
+    """The mode-aware adversary (module docstring): all `(run, candidate)` pairs evaluated in one batch. The
+    candidates perceive `base + ε d` (`base` `(N, 2)`, default the true positions; the camera falsifier passes
+    the map's clean estimates); the chosen offset from `base` is returned."""
     n, k = len(st["p"]), len(dirs) + 1
     cand = np.concatenate([np.zeros((1, 2)), dirs], axis=0)  # (k, 2), 0 first
     E = (eps[:, None, None] * cand[None]).reshape(-1, 2)
     P = np.repeat(st["p"], k, axis=0)
     xd = {name: np.repeat(a, k) for name, a in st["xd"].items()}
-    m = P + E
+    m = (P if base is None else np.repeat(np.asarray(base, float), k, axis=0)) + E
     xd1, jumped = loop.decide(m, xd)
     u = loop.held(m, xd1)
     ev = loop.controller.evaluate(m, xd1)
@@ -185,8 +188,10 @@ class Bracket:
 
 
 def attack(loop: FrameLoop, p0: np.ndarray, eps: np.ndarray, search: Search,
-           adversaries=ADVERSARIES) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Every adversary in turn on the runs not yet failed: `(failed, adversary index, outcome, path)`."""
+           adversaries=ADVERSARIES, run=run_adversary) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Every adversary in turn on the runs not yet failed: `(failed, adversary index, outcome, path)`; `run` plays
+    one adversary (`run(loop, p0, bounds, kind, search)` -> the final batch with its `path`; the camera falsifier
+    passes its own)."""
     n = len(p0)
     failed = np.zeros(n, bool)
     which = np.full(n, -1)
@@ -196,7 +201,7 @@ def attack(loop: FrameLoop, p0: np.ndarray, eps: np.ndarray, search: Search,
         rows = np.flatnonzero(~failed)
         if rows.size == 0:
             break
-        st = run_adversary(loop, p0[rows], eps[rows], kind, search)
+        st = run(loop, p0[rows], eps[rows], kind, search)
         bad = st["outcome"] != REACHED
         r = rows[bad]
         failed[r], which[r], outcome[r] = True, a, st["outcome"][bad]
@@ -231,7 +236,7 @@ def falsify(loop: FrameLoop, p0: np.ndarray, eps_max: float, n_bisect: int, sear
     rows = np.flatnonzero(~f0[0])
     if rows.size:
         res = attack(loop, p0[rows], hi[rows], search, adversaries)
-        full = _scatter(n, rows, res, loop)
+        full = scatter(n, rows, res, loop)
         keep(np.where(np.isin(np.arange(n), rows), hi, np.inf), *full)
         tried.append((float(eps_max), int(res[0].sum())))
     live = np.isfinite(eps_hi) & (eps_hi > 0)
@@ -243,14 +248,15 @@ def falsify(loop: FrameLoop, p0: np.ndarray, eps_max: float, n_bisect: int, sear
         res = attack(loop, p0[rows], mid, search, adversaries)
         eps_full = np.full(n, np.inf)
         eps_full[rows] = mid
-        keep(eps_full, *_scatter(n, rows, res, loop))
+        keep(eps_full, *scatter(n, rows, res, loop))
         lo[rows] = np.where(res[0], lo[rows], mid)
     return Bracket(eps_hi=eps_hi, adversary=np.array([adversaries[a] if a >= 0 else ("fixed" if np.isfinite(e) else "")
                                                      for a, e in zip(adv, eps_hi)]),
                    outcome=outc, path=path, tried=tried)
 
 
-def _scatter(n, rows, res, loop):
+def scatter(n, rows, res, loop):
+    """The result of :func:`attack` on the runs `rows`, as arrays over all `n` runs (the others: not failed)."""
     failed, which, outcome, pth = res
     fail_all, which_all = np.zeros(n, bool), np.full(n, -1)
     out_all, path_all = np.zeros(n, np.int8), np.full((loop.n_frames + 1, n, 2), np.nan)

@@ -6,9 +6,19 @@ from dataclasses import dataclass, field
 from typing import Annotated, Literal
 
 from pipeline.errors import ConfigError
-from pipeline.schema import NonEmpty, NonNegative, NonNegativeInt, Positive, PositiveInt, checked
+from pipeline.schema import (
+    Device,
+    NonEmpty,
+    NonNegative,
+    NonNegativeInt,
+    Positive,
+    PositiveInt,
+    Range,
+    checked,
+)
 
 Law = Literal["hybrid", "smooth", "cbf"]
+CameraAdversary = Literal["fixed", "mode_aware"]
 
 
 @checked("bracket")
@@ -17,7 +27,10 @@ class BracketSettings:
     """What the bracket computes (docs/bracket.md): the certificate at each uniform `eps` (and at the certified
     error map's `ε̄` when `error_map` names its cell table) on cells of side `cell` in a frame rotated by
     `angle` with edges over `frames` camera frames, and the falsifier from the centre of every start cell of side `start_cell`, bisecting `ε_hi` on
-    `[0, eps_max]` in `n_bisect` steps; success is reaching `B(p_T, goal_radius)` within `sim.horizon` seconds."""
+    `[0, eps_max]` in `n_bisect` steps; success is reaching `B(p_T, goal_radius)` within `sim.horizon` seconds.
+    With `camera_map` (a perception map: path, name-id, id or name), the falsifier through the camera too: `κ_hi`
+    bisected on the integer levels `[0, kappa_max]`, `pgd_steps` PGD steps per frame towards the directions of
+    `camera_adversaries`, on `camera_device` (:mod:`pipeline.bracket.camera_falsifier`)."""
 
     controllers: Annotated[list[Law], NonEmpty()] = field(default_factory=lambda: ["hybrid", "smooth", "cbf"])
     eps: Annotated[list[NonNegative], NonEmpty()] = field(default_factory=lambda: [0.1, 0.25, 0.5])
@@ -38,6 +51,12 @@ class BracketSettings:
     n_random: NonNegativeInt = 4
     seed: NonNegativeInt = 0
     formats: Annotated[list[str], NonEmpty()] = field(default_factory=lambda: ["png"])
+    camera_map: str | None = None
+    kappa_max: Annotated[int, Range(ge=1, le=255)] = 16
+    pgd_steps: PositiveInt = 3
+    camera_adversaries: Annotated[list[CameraAdversary], NonEmpty()] = field(
+        default_factory=lambda: ["fixed", "mode_aware"])
+    camera_device: Device = "cpu"
 
     def __post_init__(self):
         if self.commit > self.lookahead:
@@ -46,3 +65,5 @@ class BracketSettings:
             raise ConfigError("bracket.eps", f"must be increasing, got {list(self.eps)}")
         if len(set(self.controllers)) != len(self.controllers):
             raise ConfigError("bracket.controllers", f"names a controller twice: {list(self.controllers)}")
+        if len(set(self.camera_adversaries)) != len(self.camera_adversaries):
+            raise ConfigError("bracket.camera_adversaries", f"names an adversary twice: {list(self.camera_adversaries)}")

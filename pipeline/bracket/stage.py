@@ -2,9 +2,11 @@
 
 Writes to the Hydra run dir: `bracket.csv` (one row per controller and start cell: `x0, x1, y0, y1`, `eps_lo` (the
 largest uniform ε certified; NaN: none), `certified_map` (certified with the error map's ε̄, when given),
-`eps_hi` (inf: no failure found up to `eps_max`), the adversary and outcome of the counterexample),
-`table.md` (the bracket table), `certificate.json` (the abstraction's sizes and counts per controller and ε),
-`counterexamples.npz` (the paths) and `bracket.png`.
+`eps_hi` (inf: no failure found up to `eps_max`), the adversary and outcome of the counterexample; with
+`bracket.camera_map` also `kappa_hi` (the falsifier through the camera, pixel levels; inf: none up to `kappa_max`),
+`camera_adversary`, `camera_outcome`), `table.md` (the bracket table), `certificate.json` (the abstraction's sizes
+and counts per controller and ε), `counterexamples.npz` (the paths; `<controller>_camera`: through the camera) and
+`bracket.png`.
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ import numpy as np
 import pandas as pd
 from omegaconf import DictConfig
 
-from pipeline import tracking
+from pipeline import lineage, tracking
 from pipeline.bracket.certify_loop import certified_starts, certify
 from pipeline.bracket.errors import CellTable, Uniform
 from pipeline.bracket.falsifier import Search, falsify
@@ -30,7 +32,8 @@ from pipeline.sim.simulator import stall_threshold
 
 
 def objects(cfg: DictConfig):
-    """(scene, {name: law}, settings, sim, camera, error map or None), built and checked before any work."""
+    """(scene, {name: law}, settings, sim, camera, error map or None, camera map folder or None), built and
+    checked before any work."""
     scene = build(cfg.scene, "scene")
     if scene.n_obstacles != 1 or scene.barrier.kind != "squared":
         raise ConfigError("scene", "the bracket covers one obstacle with the squared barrier (SPEC §5.5's scope)")
@@ -60,7 +63,33 @@ def objects(cfg: DictConfig):
             except DatasetError as err:
                 raise ConfigError("bracket.error_map", str(err)) from None
         emap = CellTable(ref)
-    return scene, laws, bs, sim, camera, emap
+    return scene, laws, bs, sim, camera, emap, camera_map_folder(cfg, bs, scene)
+
+
+def camera_map_folder(cfg: DictConfig, bs, scene) -> Path | None:
+    """The folder of `bracket.camera_map` (None: not set), checked: a position map rendering the bracket's scene."""
+    if bs.camera_map is None:
+        return None
+    try:
+        folder = lineage.resolve_map(bs.camera_map, cfg.paths.models_dir, field="bracket.camera_map",
+                                     overrides=lineage.debug_overrides(cfg))
+    except DatasetError as err:
+        raise ConfigError("bracket.camera_map", str(err).splitlines()[0]) from None
+    m = tracking.read_manifest(folder)
+    if (m.get("model") or {}).get("outputs") == "pose":
+        raise ConfigError("bracket.camera_map", f"{folder.name} is a pose map: the bracket's loop is the single "
+                                                "integrator (a position map)")
+    if "scene" not in m or "render" not in m:
+        raise ConfigError("bracket.camera_map", f"{folder.name}'s manifest has no scene or render config")
+    seen = build(m["scene"], "scene")
+    same = (np.allclose(seen.p_T, scene.p_T) and seen.n_obstacles == scene.n_obstacles
+            and np.allclose(seen.p_0, scene.p_0) and np.isclose(seen.obstacle_radius, scene.obstacle_radius)
+            and np.allclose(seen.bounds, scene.bounds))
+    if not same:
+        raise ConfigError("bracket.camera_map", f"{folder.name} renders another scene (target {list(seen.p_T)}, "
+                                                f"arena {seen.bounds}) than the bracket's (target {list(scene.p_T)}, "
+                                                f"arena {scene.bounds})")
+    return folder
 
 
 def check(cfg: DictConfig) -> None:
@@ -83,8 +112,9 @@ def start_cells(scene, side: float) -> np.ndarray:
     return np.stack([X0.ravel(), X1.ravel(), Y0.ravel(), Y1.ravel()], 1)
 
 
-def bracket_rows(name, law, scene, bs, sim, camera, emap, starts):
-    """One controller: the certificate at each ε (and the map's ε̄), the falsifier; rows, stats, paths."""
+def bracket_rows(name, law, scene, bs, sim, camera, emap, starts, pmap=None):
+    """One controller: the certificate at each ε (and the map's ε̄), the falsifier (and through the camera of
+    `pmap`, a loaded perception map); rows, stats, paths, camera paths (None without `pmap`)."""
     kw = dict(h=bs.cell, angle=bs.angle, period=camera.period, goal_radius=bs.goal_radius, n_split=bs.n_split,
               window=bs.window, frames=bs.frames)
     eps_lo = np.full(len(starts), np.nan)
@@ -118,12 +148,42 @@ def bracket_rows(name, law, scene, bs, sim, camera, emap, starts):
                          "adversary": adv, "outcome": out})
     paths = np.full((br.path.shape[0], len(starts), 2), np.nan)
     paths[:, inside] = br.path
-    return rows, stats, paths
+    cam_paths = None
+    if pmap is not None:
+        t0 = time.perf_counter()
+        cols, cam_paths = camera_rows(loop, pmap, bs, centres, inside)
+        stats["camera_falsifier_seconds"] = time.perf_counter() - t0
+        for k, v in cols.items():
+            rows[k] = v
+    return rows, stats, paths, cam_paths
+
+
+def camera_rows(loop: FrameLoop, pmap, bs, centres: np.ndarray, inside: np.ndarray) -> tuple[dict, np.ndarray]:
+    """The falsifier through the camera of `pmap` from the start cells' centres outside the obstacle: the columns
+    `kappa_hi`, `camera_adversary`, `camera_outcome` and the paths `(frames + 1, start cells, 2)`."""
+    from pipeline.bracket.camera_falsifier import (  # torch: not in preflight
+        CameraLoop,
+        CameraSearch,
+        falsify_camera,
+    )
+
+    search = CameraSearch(steps=bs.pgd_steps, n_dirs=bs.n_dirs, device=str(pmap.device))
+    cb = falsify_camera(CameraLoop(loop, pmap.net, pmap.camera(), search), centres[inside], bs.kappa_max,
+                        tuple(bs.camera_adversaries))
+    n = len(centres)
+    kappa_hi = np.zeros(n)
+    adv, out = np.full(n, "start in obstacle", dtype=object), np.full(n, "collided", dtype=object)
+    kappa_hi[inside], adv[inside] = cb.kappa_hi, cb.adversary
+    out[inside] = [OUTCOMES[o] if np.isfinite(k) else "" for o, k in zip(cb.outcome, cb.kappa_hi)]
+    paths = np.full((cb.path.shape[0], n, 2), np.nan)
+    paths[:, inside] = cb.path
+    return {"kappa_hi": kappa_hi, "camera_adversary": adv, "camera_outcome": out}, paths
 
 
 def table(df: pd.DataFrame, scene, eps_list, with_map: bool = False) -> pd.DataFrame:
     """Per controller: certified share of start cells at each ε, falsified shares, behind the obstacle (frame
-    coordinate `a < -c`, `|b| < 15`), the median `ε_hi` on `K` (the row of cells centred on the axis behind)."""
+    coordinate `a < -c`, `|b| < 15`), the median `ε_hi` on `K` (the row of cells centred on the axis behind); with
+    a `kappa_hi` column, the share falsified through the camera and the median `κ_hi` on `K`."""
     cx, cy = (df.x0 + df.x1) / 2, (df.y0 + df.y1) / 2
     a, b = scene.to_frame(np.stack([cx, cy], 1))
     behind = (a < -scene.c) & (np.abs(b) < 15)
@@ -140,6 +200,9 @@ def table(df: pd.DataFrame, scene, eps_list, with_map: bool = False) -> pd.DataF
         row["behind: certified"] = f"{int(bh.eps_lo.notna().sum())}/{len(bh)}{top}"
         k = g[on_K[g.index]]
         row["on K: median ε_hi"] = f"{np.median(k.eps_hi):.3g}" if len(k) else "-"
+        if "kappa_hi" in g:
+            row["camera: falsified"] = f"{np.isfinite(g.kappa_hi).mean():.0%}"
+            row["on K: median κ_hi"] = f"{np.median(k.kappa_hi):.3g}" if len(k) else "-"
         row["map ε̄: certified"] = f"{g.certified_map.mean():.0%}" if with_map else "-"
         row["soundness: ε_lo > ε_hi"] = int((g.eps_lo > g.eps_hi).sum())
         out.append(row)
@@ -149,20 +212,23 @@ def table(df: pd.DataFrame, scene, eps_list, with_map: bool = False) -> pd.DataF
 CODE = ("bracket", "control", "sim", "plants.py")  # the code the bracket's numbers depend on (its id)
 
 
-def bracket_id(cfg: DictConfig, bs, emap) -> tuple[str, dict]:
+def bracket_id(cfg: DictConfig, bs, emap, cam_folder: Path | None = None) -> tuple[str, dict]:
     """The output's id: what determines its bytes (the scene, the compared laws' nodes, the camera period, the sim,
-    the bracket's settings, the error map's cells and bounds, the code); and the manifest's record of it."""
+    the bracket's settings, the error map's cells and bounds, the camera map's id, the code); and the manifest's
+    record of it."""
     laws = {n: tracking.to_plain(cfg.controller if n == "hybrid" else cfg.controllers[n]) for n in bs.controllers}
     parts = {"scene": tracking.to_plain(cfg.scene), "controllers": laws, "camera": tracking.to_plain(cfg.camera),
-             "sim": tracking.to_plain(cfg.sim), "bracket": {**tracking.to_plain(cfg.bracket), "error_map": None},
+             "sim": tracking.to_plain(cfg.sim),
+             "bracket": {**tracking.to_plain(cfg.bracket), "error_map": None, "camera_map": None},
+             "camera_map": None if cam_folder is None else cam_folder.name,
              "error_map": None if emap is None else hashlib.sha256(np.ascontiguousarray(emap.cells).tobytes()).hexdigest(),
              "code": tracking.code_version(*CODE)}
-    return tracking.content_id(parts), {**parts, "error_map_ref": bs.error_map}
+    return tracking.content_id(parts), {**parts, "error_map_ref": bs.error_map, "camera_map_ref": bs.camera_map}
 
 
 def run(cfg: DictConfig) -> dict:
-    scene, laws, bs, sim, camera, emap = objects(cfg)
-    id_, meta = bracket_id(cfg, bs, emap)
+    scene, laws, bs, sim, camera, emap, cam_folder = objects(cfg)
+    id_, meta = bracket_id(cfg, bs, emap, cam_folder)
     final = Path(cfg.paths.bracket_dir) / f"bracket-{id_}"
     if tracking.is_complete(final) and not cfg.get("force", False):
         df = pd.read_csv(final / "bracket.csv")
@@ -170,13 +236,22 @@ def run(cfg: DictConfig) -> dict:
         return {"bracket": df, "table": None, "stats": json.loads((final / "certificate.json").read_text()),
                 "path": final, "skipped": True}
     starts = start_cells(scene, bs.start_cell)
-    frames, stats, paths = [], {}, {}
+    pmap = None
+    if cam_folder is not None:
+        from pipeline.perception.maps import load_perception_map  # torch: not in the preflight
+
+        pmap = load_perception_map(cam_folder, models_dir=cfg.paths.models_dir, device=bs.camera_device)
+    frames, stats, paths, cam_paths = [], {}, {}, {}
     for name, law in laws.items():
-        rows, st, pth = bracket_rows(name, law, scene, bs, sim, camera, emap, starts)
+        rows, st, pth, cpth = bracket_rows(name, law, scene, bs, sim, camera, emap, starts, pmap)
         frames.append(rows)
         stats[name], paths[name] = st, pth
+        if cpth is not None:
+            cam_paths[f"{name}_camera"] = cpth
         print(f"bracket: {name}: certified at the largest ε {int(rows.eps_lo.notna().sum())}/{len(rows)} start "
-              f"cells, falsified {int(np.isfinite(rows.eps_hi).sum())}/{len(rows)}", flush=True)
+              f"cells, falsified {int(np.isfinite(rows.eps_hi).sum())}/{len(rows)}"
+              + (f", through the camera {int(np.isfinite(rows.kappa_hi).sum())}/{len(rows)}" if cpth is not None
+                 else ""), flush=True)
     df = pd.concat(frames, ignore_index=True)
     tab = table(df, scene, bs.eps, with_map=emap is not None)
     from pipeline.bracket.figures import bracket_figure  # matplotlib: not imported by the preflight
@@ -185,7 +260,8 @@ def run(cfg: DictConfig) -> dict:
         df.to_csv(tmp / "bracket.csv", index=False)
         (tmp / "table.md").write_text(markdown_table(tab) + "\n")
         (tmp / "certificate.json").write_text(json.dumps(stats, indent=1, default=float))
-        np.savez_compressed(tmp / "counterexamples.npz", **{k: v.astype(np.float32) for k, v in paths.items()})
+        np.savez_compressed(tmp / "counterexamples.npz",
+                            **{k: v.astype(np.float32) for k, v in {**paths, **cam_paths}.items()})
         bracket_figure(scene, df, paths, bs, tmp / "bracket", bs.formats)
     print(markdown_table(tab))
     print(f"bracket -> {final}")
