@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -50,6 +52,7 @@ def test_tiny_bracket_run(tmp_path):
     ("bracket.controllers=[hybrid,pid]", "bracket.controllers"),
     ("bracket.error_map=/nonexistent/map.csv", "bracket.error_map"),
     ("bracket.error_map=clean_keypoint-0000000000", "bracket.error_map"),  # a certify output by name-id, not built
+    ("bracket.error_map=[]", "bracket.error_map"),
     ("camera.period=null", "camera.period"),
 ])
 def test_bad_bracket_input_is_one_config_error(tmp_path, override, field):
@@ -109,3 +112,34 @@ def test_a_hybrid_rule_the_abstraction_does_not_model_is_rejected(arg, field):
                           text=True, timeout=120)
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2 and len(lines) == 1 and lines[0].startswith(f"error: {field}:"), proc.stderr[-2000:]
+
+
+def _certify_output(folder, model_id, rows):
+    folder.mkdir(parents=True)
+    (folder / "summary.json").write_text(json.dumps({"model": {"id": model_id}}))
+    pd.DataFrame(rows, columns=["x0", "x1", "y0", "y1", "eps_bar"]).to_csv(folder / "error_map_kappa0.csv", index=False)
+    return folder
+
+
+def test_several_error_maps_give_the_smallest_bound_per_cell(tmp_path):
+    """A whole-arena table and one refined on a region (of one perception map): a grid cell inside the region takes
+    the refined bound, one the region covers only in part keeps the whole table's; two maps' tables are refused."""
+    from types import SimpleNamespace
+
+    from pipeline.bracket.errors import Finest
+    from pipeline.bracket.stage import error_map
+
+    whole = _certify_output(tmp_path / "c" / "m-aaa", "m1", [[x, x + 1, y, y + 1, 2.0] for x in range(-4, 4)
+                                                             for y in range(-4, 4)])
+    region = _certify_output(tmp_path / "c" / "m-bbb", "m1", [[x / 2, x / 2 + 0.5, y / 2, y / 2 + 0.5, 0.5]
+                                                              for x in range(0, 4) for y in range(0, 4)])
+    cfg = SimpleNamespace(paths=SimpleNamespace(certified_dir=str(tmp_path / "c")))
+    table = lambda f: str(f / "error_map_kappa0.csv")  # noqa: E731 - a certify output's table, beside its summary
+    emap = error_map(cfg, SimpleNamespace(error_map=[table(whole), table(region)]))
+    assert isinstance(emap, Finest)
+    boxes = np.array([[0.0, 1.0, 0.0, 1.0], [1.5, 2.5, 0.0, 1.0], [-3.0, -2.0, 0.0, 1.0], [3.5, 4.5, 0.0, 1.0]])
+    np.testing.assert_array_equal(emap(boxes[:, [0, 2]], boxes), [0.5, 2.0, 2.0, np.inf])
+    other = _certify_output(tmp_path / "c" / "m-ccc", "m2", [[0.0, 1.0, 0.0, 1.0, 0.1]])
+    with pytest.raises(ConfigError, match="different perception maps") as err:
+        error_map(cfg, SimpleNamespace(error_map=[table(whole), table(other)]))
+    assert err.value.field == "bracket.error_map"

@@ -4,7 +4,9 @@ A table (CSV or parquet) with one row per cell of positions: `x0, x1, y0, y1, ep
 certified error map of `pipeline.certify` writes one per `kappa`, `error_map_kappa<κ>.csv`), or a certify output's
 folder (its `kappa = 0` table); `bracket.error_map` also takes the folder's `name-id` under `paths.certified_dir`. A grid cell of the abstraction gets the largest
 `eps_bar` of the table cells it meets; a grid cell that no table cell covers gets `inf` (it cannot be
-certified), so a map certified only on part of the arena certifies only runs that stay there.
+certified), so a map certified only on part of the arena certifies only runs that stay there. Several tables of one
+perception map (:class:`Finest`: the whole operational set, and a region certified again with finer splitting)
+each bound the error soundly where they cover it, so a grid cell takes the smallest of their bounds.
 """
 
 from __future__ import annotations
@@ -77,3 +79,20 @@ class CellTable:
             covered += (np.clip(ox, 0, None) * np.clip(oy, 0, None)).sum(axis=1)
         out[covered < area * (1 - 1e-9)] = np.inf  # part of the cell has no bound
         return out
+
+
+class Finest:
+    """`ε̄` from several cell tables of one perception map: per grid cell the smallest of their bounds (each table
+    is sound where it covers the cell, `inf` where it does not)."""
+
+    def __init__(self, tables: list[CellTable]):
+        self.tables = list(tables)
+        self.name = "certified maps"
+
+    @property
+    def cells(self) -> np.ndarray:
+        """Every table's rows with its index as a sixth column (what the bracket's id hashes)."""
+        return np.concatenate([np.column_stack([t.cells, np.full(len(t.cells), i)]) for i, t in enumerate(self.tables)])
+
+    def __call__(self, points, boxes=None, frame=None) -> np.ndarray:
+        return np.min([t(points, boxes, frame) for t in self.tables], axis=0)

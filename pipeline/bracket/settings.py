@@ -25,7 +25,8 @@ CameraAdversary = Literal["fixed", "mode_aware"]
 @dataclass(frozen=True)
 class BracketSettings:
     """What the bracket computes (docs/bracket.md): the certificate at each uniform `eps` (and at the certified
-    error map's `ε̄` when `error_map` names its cell table) on cells of side `cell` in a frame rotated by
+    error map's `ε̄` when `error_map` names its cell table, or several of one perception map: the smallest bound
+    per cell) on cells of side `cell` in a frame rotated by
     `angle` with edges over `frames` camera frames, and the falsifier from the centre of every start cell of side `start_cell`, bisecting `ε_hi` on
     `[0, eps_max]` in `n_bisect` steps; success is reaching `B(p_T, goal_radius)` within `sim.horizon` seconds.
     With `camera_map` (a perception map: path, name-id, id or name), the falsifier through the camera too: `κ_hi`
@@ -34,7 +35,7 @@ class BracketSettings:
 
     controllers: Annotated[list[Law], NonEmpty()] = field(default_factory=lambda: ["hybrid", "smooth", "cbf"])
     eps: Annotated[list[NonNegative], NonEmpty()] = field(default_factory=lambda: [0.1, 0.25, 0.5])
-    error_map: str | None = None
+    error_map: str | Annotated[list[str], NonEmpty(distinct=True)] | None = None
     cell: Positive = 1.0
     angle: float = 45.0
     n_split: PositiveInt = 4

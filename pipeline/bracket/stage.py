@@ -22,7 +22,7 @@ from omegaconf import DictConfig
 
 from pipeline import lineage, tracking
 from pipeline.bracket.certify_loop import certified_starts, certify
-from pipeline.bracket.errors import CellTable, Uniform
+from pipeline.bracket.errors import CellTable, Finest, Uniform
 from pipeline.bracket.falsifier import Search, falsify
 from pipeline.bracket.loop import OUTCOMES, FrameLoop
 from pipeline.config import build
@@ -53,17 +53,33 @@ def objects(cfg: DictConfig):
     sim, camera = build(cfg.sim, "sim"), build(cfg.camera, "camera")
     if camera.period is None:
         raise ConfigError("camera.period", "the bracket needs a frame period (the sampled loop), got null")
-    emap = None
-    if bs.error_map:  # a cell table, or a certify output (folder, name-id or id) resolved as every tracked input
-        ref = Path(bs.error_map)
+    emap = error_map(cfg, bs)
+    return scene, laws, bs, sim, camera, emap, camera_map_folder(cfg, bs, scene)
+
+
+def error_map(cfg: DictConfig, bs):
+    """`bracket.error_map` as `ε̄` (None: not set): a cell table, or a certify output (folder, name-id or id)
+    resolved as every tracked input; several (a list): :class:`Finest`, all of one perception map."""
+    refs = [bs.error_map] if isinstance(bs.error_map, str) else list(bs.error_map or [])
+    tables, models = [], set()
+    for item in refs:
+        ref = Path(item)
         if not ref.is_file():
             try:
-                ref = tracking.resolve(Path(cfg.paths.certified_dir), bs.error_map, kind="certified error map",
+                ref = tracking.resolve(Path(cfg.paths.certified_dir), item, kind="certified error map",
                                        field="bracket.error_map", expected=lambda name: None)
             except DatasetError as err:
                 raise ConfigError("bracket.error_map", str(err)) from None
-        emap = CellTable(ref)
-    return scene, laws, bs, sim, camera, emap, camera_map_folder(cfg, bs, scene)
+        summary = (ref if ref.is_dir() else ref.parent) / "summary.json"
+        if summary.is_file():  # a certify output: the perception map it bounds
+            models.add(str(json.loads(summary.read_text())["model"]["id"]))
+        tables.append(CellTable(ref))
+    if len(models) > 1:
+        raise ConfigError("bracket.error_map", f"the tables bound different perception maps ({', '.join(sorted(models))}):"
+                                               " the smallest bound per cell holds for one map only")
+    if not tables:
+        return None
+    return tables[0] if len(tables) == 1 else Finest(tables)
 
 
 def camera_map_folder(cfg: DictConfig, bs, scene) -> Path | None:
