@@ -32,6 +32,18 @@ def _clear_hydra():
     GlobalHydra.instance().clear()
 
 
+@pytest.fixture(scope="module")
+def one_torch_thread():
+    """Tiny batches: one torch thread is fastest (two on a shared 2-core machine can be 50x slower). A module asks
+    for it with `pytestmark = pytest.mark.usefixtures("one_torch_thread")`."""
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
 @pytest.fixture(scope="session")
 def tiny_maps(tmp_path_factory):
     """Tiny clean/occluded datasets and fast_dev_run perception maps (the camera path, not accuracy), trained once

@@ -49,13 +49,7 @@ def centroid_predict(net):
     return predict
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Tiny batches: one thread is fastest (and two threads on a shared 2-core machine can be 50x slower)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # tests/conftest.py
 
 
 @pytest.fixture(scope="module")

@@ -48,12 +48,7 @@ class Centroid(nn.Module):
         return torch.stack([(w.sum(1) * cols).sum(1) / tot - 50.0, 30.0 - (w.sum(2) * rows).sum(1) / tot], 1)
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # tests/conftest.py
 
 
 @pytest.fixture(scope="module")
