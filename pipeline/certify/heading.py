@@ -16,7 +16,7 @@ import math
 import torch
 
 from pipeline.certify.cone import concretize
-from pipeline.certify.keypoint import on_grid, softmax_mean_max, window_crown
+from pipeline.certify.keypoint import conv1x1, on_grid, softmax_mean_max, window_crown
 
 HEADING_PLACES = 4  # window places per cell whose first layer is bounded by backward passes (64 hidden units each)
 CHUNK = 64  # cells per weighted-mean bound (its sort is `(cells x hidden units x grid)`)
@@ -30,30 +30,16 @@ def _linear(lo, hi, w, b):
 
 def heading_box(net, static, cone, scores, pixels=None) -> tuple[torch.Tensor, torch.Tensor]:
     """Lower and upper bounds `(N, 2)` (float64) of the head's `(cos θ, sin θ)` outputs over each cell, from the
-    cone's window of the last ReLU map and the scores' intervals `scores = (s_lo, s_hi)` `(N, h w)`; `pixels` (the
+    cone's window of the last ReLU map and the scores of :func:`.keypoint.keypoint_range`; `pixels` (the
     pixel forms `lo, hi`): the first layer at the `HEADING_PLACES` places of largest upper score also by backward
     passes (the tighter side of each)."""
     w1, b1, w2, b2 = (t.double() for t in net.heading)
     origin, f_lo, f_hi = cone.g
-    wp, wn = w1.clamp(min=0), w1.clamp(max=0)
-
-    def conv1(lo, hi):  # the first layer at every place (channels on dim -3), no bias
-        return (torch.einsum("kc,...chw->...khw", wp, lo) + torch.einsum("kc,...chw->...khw", wn, hi),
-                torch.einsum("kc,...chw->...khw", wp, hi) + torch.einsum("kc,...chw->...khw", wn, lo))
-
-    st_lo, st_hi = conv1(static.post_lo[-1].double(), static.post_hi[-1].double())  # (K, H, W)
-    win_lo, win_hi = concretize(*conv1(f_lo.double(), f_hi.double()))  # (N, K, h, w)
-    s_lo, s_hi = scores
+    st_lo, st_hi = conv1x1(w1, static.post_lo[-1].double(), static.post_hi[-1].double())  # (K, H, W)
+    win_lo, win_hi = concretize(*conv1x1(w1, f_lo.double(), f_hi.double()))  # (N, K, h, w)
+    s_lo, s_hi, window_score = scores
     if pixels is not None:
-        h, wd = win_lo.shape[-2:]
-        rows = origin[:, 0, None] + torch.arange(h)
-        cols = origin[:, 1, None] + torch.arange(wd)
-        grid_w = static.post_lo[-1].shape[-1]
-        inside = (rows >= 0)[:, :, None] & (cols >= 0)[:, None, :] & (rows < static.post_lo[-1].shape[-2])[:, :, None] \
-            & (cols < grid_w)[:, None, :]
-        flat = (rows.clamp(min=0)[:, :, None] * grid_w + cols.clamp(min=0)[:, None, :]).flatten(1)
-        score = torch.where(inside.flatten(1), s_hi.gather(1, flat.clamp(max=s_hi.shape[1] - 1)), float("-inf"))
-        c_lo, c_hi = window_crown(net, cone, *pixels, score.view(-1, h, wd), net.heading[0], HEADING_PLACES)
+        c_lo, c_hi = window_crown(net, cone, *pixels, window_score, net.heading[0], HEADING_PLACES)
         win_lo, win_hi = torch.maximum(win_lo, c_lo.double()), torch.minimum(win_hi, c_hi.double())
     out_lo, out_hi = [], []
     for i in range(0, len(win_lo), CHUNK):

@@ -59,6 +59,13 @@ def window_crown(net, cone, pix_lo, pix_hi, score_hi, w, places: int = CROWN_PLA
     return lo.view(n, nk, h, wd), hi.view(n, nk, h, wd)
 
 
+def conv1x1(w: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Bounds of the 1x1 convolution `w (K, C)` (no bias) of values between `lo` and `hi` (channels on dim -3)."""
+    wp, wn = w.clamp(min=0), w.clamp(max=0)
+    return (torch.einsum("kc,...chw->...khw", wp, lo) + torch.einsum("kc,...chw->...khw", wn, hi),
+            torch.einsum("kc,...chw->...khw", wp, hi) + torch.einsum("kc,...chw->...khw", wn, lo))
+
+
 def on_grid(static_lo, static_hi, origin, win_lo, win_hi) -> tuple[torch.Tensor, torch.Tensor]:
     """The window's intervals `(N, C, h, w)` at `origin (N, 2)` written over the static map's `(C, H, W)`:
     `(N, C, H, W)` lower and upper."""
@@ -76,21 +83,16 @@ def on_grid(static_lo, static_hi, origin, win_lo, win_hi) -> tuple[torch.Tensor,
 
 def keypoint_range(net, static, cone, pixels=None):
     """Lower and upper bounds `(N, 2)` (float64) of the keypoint head's normalised position over each cell, and the
-    scores' intervals `(N, h w)` (what a pose map's heading head weighs with); `pixels` (the pixel forms `lo, hi`):
-    the window's outputs also by backward passes (the tighter side of each)."""
+    scores (what a pose map's heading head weighs with): their intervals on the grid `(N, h w)` and the upper bounds
+    on the cone's window `(N, h', w')`; `pixels` (the pixel forms `lo, hi`): the window's outputs also by backward
+    passes (the tighter side of each)."""
     w, b, cx, cy, cell = net.keypoint
     origin, f_lo, f_hi = cone.g  # the window's ReLU outputs, forms (N, S, C, h, wd)
-    wp, wn = w.clamp(min=0), w.clamp(max=0)
-
-    def conv1(lo, hi):  # 1x1 convolution of bounds (channels on dim -3), no bias
-        return (torch.einsum("kc,...chw->...khw", wp, lo) + torch.einsum("kc,...chw->...khw", wn, hi),
-                torch.einsum("kc,...chw->...khw", wp, hi) + torch.einsum("kc,...chw->...khw", wn, lo))
-
     bias = b.view(-1, 1, 1)
-    st_lo, st_hi = (t + bias for t in conv1(static.post_lo[-1], static.post_hi[-1]))  # (3, H, W): static outputs
+    st_lo, st_hi = (t + bias for t in conv1x1(w, static.post_lo[-1], static.post_hi[-1]))  # (3, H, W): static
     # the window's outputs: the convolution on the forms first (the position `t` moves every channel together),
     # then their range over the cell
-    win_lo, win_hi = concretize(*conv1(f_lo, f_hi))  # (N, 3, h, wd)
+    win_lo, win_hi = concretize(*conv1x1(w, f_lo, f_hi))  # (N, 3, h, wd)
     if pixels is not None:
         c_lo, c_hi = window_crown(net, cone, *pixels, win_hi[:, 0], w)
         win_lo, win_hi = torch.maximum(win_lo, c_lo), torch.minimum(win_hi, c_hi)
@@ -103,4 +105,5 @@ def keypoint_range(net, static, cone, pixels=None):
         v_lo, v_hi = (centre + torch.minimum(a, c)).flatten(1), (centre + torch.maximum(a, c)).flatten(1)
         out_hi.append(softmax_mean_max(s_lo, s_hi, v_hi))
         out_lo.append(-softmax_mean_max(s_lo, s_hi, -v_lo))
-    return torch.stack(out_lo, 1), torch.stack(out_hi, 1), (s_lo, s_hi)  # float64: no rounding below the bound
+    # float64: no rounding below the bound
+    return torch.stack(out_lo, 1), torch.stack(out_hi, 1), (s_lo, s_hi, win_hi[:, 0] + b[0])
