@@ -195,33 +195,24 @@ def check_schema(cfg: DictConfig, added: Iterable[str] = ()) -> None:
 
 
 def check_folder(value, field: str) -> None:
-    """`value` must be a folder this process can write in, or one it can create: tried for real (a temporary
-    folder made in it, or the missing folders made, then removed), so a read-only or virtual filesystem
-    (`/proc/...`), a file in the way or a missing permission is one `ConfigError` naming `field`."""
+    """`value` must be a folder this process can write in, or one it can create: tried for real (a uniquely
+    named temporary folder made in it, or in its nearest existing parent when it is missing, then removed), so
+    a read-only or virtual filesystem (`/proc/...`), a file in the way or a missing permission is one
+    `ConfigError` naming `field`. Nothing is left behind, and checks running at once never meet."""
     import tempfile
 
     p = Path(str(value)).expanduser()
     if p.exists() and not p.is_dir():
         raise ConfigError(field, f"{p} is a file, not a folder")
-    missing = []
     parent = p
     while not parent.exists() and parent != parent.parent:
-        missing.append(parent)
         parent = parent.parent
     if not parent.is_dir():
         raise ConfigError(field, f"cannot create {p}: {parent} is a file")
     try:
-        if missing:
-            p.mkdir(parents=True)
-        tempfile.TemporaryDirectory(dir=p, prefix=".write-check-").cleanup()
+        tempfile.TemporaryDirectory(dir=parent, prefix=".write-check-").cleanup()
     except OSError as err:
         raise ConfigError(field, f"cannot create or write {p}: {err.strerror or err}") from None
-    finally:
-        for folder in missing:  # deepest first: remove only what this check made
-            try:
-                folder.rmdir()
-            except OSError:
-                break
 
 
 def check_paths(paths) -> None:

@@ -71,6 +71,32 @@ def test_the_path_check_leaves_nothing_behind(tmp_path):
         check_folder("/proc/not_here/sub", "paths.x")
 
 
+def test_path_checks_running_at_once_never_meet(tmp_path):
+    """CI bug: two test workers checked the missing `data/datasets` at once; one made it, the other's mkdir or
+    write-check met the folder the first was removing ('File exists' / 'No such file'), exit 2."""
+    import threading
+
+    from pipeline.config import check_folder
+
+    errors = []
+    for k in range(20):
+        target = tmp_path / f"r{k}" / "data" / "datasets"
+
+        def check():
+            try:
+                check_folder(target, "paths.datasets_dir")
+            except ConfigError as err:
+                errors.append(err)
+
+        threads = [threading.Thread(target=check) for _ in range(8)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+    assert errors == []
+    assert sorted(p.name for p in tmp_path.iterdir()) == []  # and still nothing left behind
+
+
 # -------------------------------------------------------------------- already fixed on main: their tests
 def test_every_bench_module_imports_and_the_error_map_predictor_gives_positions():
     """`make bench` crashed: two areas' benchmarks imported modules the refactor had removed (errormap.core,
