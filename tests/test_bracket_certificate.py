@@ -9,9 +9,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pipeline.bracket.abstraction import Grid, build, decisions, dilate
-from pipeline.bracket.enclosures import DIRS
+from pipeline.bracket.enclosures import DIRS, support_at
 from pipeline.bracket.falsifier import Search, attack
-from pipeline.bracket.inputs import support, support_at
+from pipeline.bracket.inputs import support
 from pipeline.bracket.loop import FrameLoop
 from pipeline.bracket.winning import certified_cells, win
 from pipeline.control import CBFController, HybridController, Scene, SmoothController
@@ -51,8 +51,9 @@ def test_enclosure_is_not_the_whole_ball_far_from_the_obstacle():
     law = HybridController(SCENE)
     box = np.array([[-30.0, -29.5, 10.0, 10.5]])
     h = support(law, box, 2, 0.05)[0]
-    assert h[8] < -9.0  # -x: the vehicle heads right at nearly full speed
-    assert h[4] < 0.5 and h[12] < 3.0
+    q = len(DIRS) // 4  # the axis directions +x, +y, -x, -y are 0, q, 2q, 3q
+    assert h[2 * q] < -9.0  # -x: the vehicle heads right at nearly full speed
+    assert h[q] < 0.5 and h[3 * q] < 3.0
 
 
 @pytest.mark.parametrize("law_cls", [HybridController])
@@ -70,7 +71,7 @@ def test_decisions_cover_the_laws_jump_set(law_cls):
 
 
 @settings(max_examples=60, deadline=None)
-@given(st.lists(st.floats(-5, 5), min_size=16, max_size=16), st.floats(0, 2 * np.pi))
+@given(st.lists(st.floats(-5, 5), min_size=len(DIRS), max_size=len(DIRS)), st.floats(0, 2 * np.pi))
 def test_support_at_bounds_the_polytope(vals, ang):
     """`support_at` is an upper bound of `max x·u` over points `u` inside the polytope `{d_j·u <= h_j}`."""
     h = np.array(vals) + 6.0  # contains the origin's neighbourhood
@@ -163,3 +164,70 @@ def test_edges_over_frames_certify_behind_the_obstacle_soundly():
     loop = FrameLoop(SCENE, law, delta=5.0)
     failed = attack(loop, p0, np.full(24, 0.1), Search(n_dirs=8, tail=8))[0]
     assert not failed.any(), p0[failed]
+
+
+APEX_SCENES = [SCENE, Scene(target=[40.0, 0.0], obstacles=[{"center": [0.0, 0.0], "radius": 4.0}],
+                            barrier={"gain": 300.0, "rho": 1.0, "scale": 16.0})]
+
+
+@pytest.mark.parametrize("scene", APEX_SCENES, ids=["default", "wide_barrier"])
+def test_enclosure_holds_the_guard_at_the_apexes(scene):
+    """Perceived boxes around each wedge's apex, some within hundredths of it, sampled densely near the wedge where
+    the barrier and the guard are strongest: the apex guard's arc of normals and its sampled bound hold."""
+    rng = np.random.default_rng(3)
+    law = HybridController(scene)
+    loop = FrameLoop(scene, law)
+    c = scene.covering(0).c
+    for q, apex, out in ((1, np.array([0.0, -c]), -1.0), (2, np.array([0.0, c]), 1.0)):
+        n = 400
+        ang = rng.uniform(np.pi / 4, 3 * np.pi / 4, n)  # directions from the apex away from the wedge
+        r = 10 ** rng.uniform(-2, 0.5, n)
+        cen = apex + np.stack([np.cos(ang) * r, out * np.sin(ang) * r], axis=1)
+        side = 10 ** rng.uniform(-1.7, 0.2, n)
+        boxes = np.stack([cen[:, 0] - side / 2, cen[:, 0] + side / 2, cen[:, 1] - side / 2, cen[:, 1] + side / 2], 1)
+        h = support(law, boxes, q, loop.period)
+        for _ in range(24):
+            t = rng.uniform(0, 1, (n, 2)) ** np.array([1.0, 4.0 if q == 2 else 0.25])  # crowd the wedge's side
+            m = boxes[:, [0, 2]] + t * (boxes[:, [1, 3]] - boxes[:, [0, 2]])
+            u = loop.held(m, {"q": np.full(n, q, np.int8), "i": np.zeros(n, np.int64)})
+            assert (u @ DIRS.T <= h + 1e-9).all()
+
+
+def test_apex_guard_is_not_the_quarter_arc_away_from_the_apex():
+    """Tightness: a box 1–2 units from the apex on the right face's side cannot hold a velocity back along the left
+    face's normal (the quarter arc of normals would allow it at full speed)."""
+    law = HybridController(SCENE)
+    c = SCENE.covering(0).c
+    box = np.array([[1.0, 2.0, c + 0.5, c + 1.5]])
+    h = support(law, box, 2, 0.05)[0]
+    back = np.argmin(np.abs(np.angle(np.exp(1j * (np.arctan2(DIRS[:, 1], DIRS[:, 0]) - 3 * np.pi / 4)))))
+    assert h[back] < 0.5 * law.u_max
+
+
+def test_transience_finds_a_direction_between_the_support_directions():
+    """`rates` accepts a direction between two support directions when the support bound there is negative, and
+    never one along which some sampled input of a node increases."""
+    from pipeline.bracket.abstraction import Abstraction, Grid
+    from pipeline.bracket.winning import RATE_DIRS, rates
+
+    rng = np.random.default_rng(4)
+    grid = Grid(0.0, 0.0, 1.0, 4, 4)
+    n = grid.n
+    # inputs: a wide cone (150°) of directions at a random angle each: the decreasing directions are a 30° arc,
+    # which the support directions alone (every 11.25°) miss or meet only at its edge for many angles
+    phi = rng.uniform(0, 2 * np.pi, n)
+    half = np.radians(75.0)
+    pts = 5.0 * np.stack([np.cos(phi[:, None] + np.array([-half, half])), np.sin(phi[:, None] + np.array([-half, half]))],
+                         axis=-1)  # (n, 2, 2): the cone's two edges
+    U = (pts @ DIRS.T).max(axis=1)  # the hull of the two edge points: exact support values
+    ab = Abstraction(grid, 1, U[:, None, :], np.ones(n, bool), np.zeros(n, bool), np.zeros(n + 1, np.int64),
+                     np.zeros(0, np.int64), np.ones((n, 1), bool))
+    dir_ok, _ = rates(ab, 0.05, np.array([10.0, 10.0]))
+    W = np.stack([np.cos(2 * np.pi * np.arange(RATE_DIRS) / RATE_DIRS),
+                  np.sin(2 * np.pi * np.arange(RATE_DIRS) / RATE_DIRS)], 1)
+    assert dir_ok.any(axis=1).all()  # every node has a decreasing direction
+    assert (dir_ok.sum(axis=1) > 8).all()  # more than one support direction could give
+    s = rng.uniform(0, 1, (n, 64, 1))
+    samples = s * pts[:, :1] + (1 - s) * pts[:, 1:]  # points of each node's hull
+    worst = np.einsum("nsc,kc->nsk", samples, W).max(axis=1)
+    assert (worst[dir_ok] < 0).all()

@@ -122,7 +122,8 @@ class Abstraction:
 def cell_hits(grid: Grid, H: np.ndarray, window: int):
     """Cells meeting the polygons `{d_j·x <= H_j}` `(N, J)`: `(rows, cells, overflow)` (overflow: a polygon
     reaching outside the grid or wider than `window` cells)."""
-    xl, xh, yl, yh = -H[:, 8], H[:, 0], -H[:, 12], H[:, 4]
+    q = len(DIRS) // 4  # the axis directions: +x, +y, -x, -y
+    xl, xh, yl, yh = -H[:, 2 * q], H[:, 0], -H[:, 3 * q], H[:, q]
     ixl = np.floor((xl - grid.x0) / grid.h).astype(np.int64)
     ixh = np.floor((xh - grid.x0) / grid.h).astype(np.int64)
     iyl = np.floor((yl - grid.y0) / grid.h).astype(np.int64)

@@ -25,7 +25,7 @@ import math
 import numpy as np
 
 BIG = 1e9
-J = 16  # directions of the support function (multiples of 22.5°: the world axes and the diagonals among them)
+J = 32  # directions of the support function (multiples of 22.5°: the world axes and the diagonals among them)
 
 
 def directions(n: int = J) -> np.ndarray:
@@ -34,6 +34,26 @@ def directions(n: int = J) -> np.ndarray:
 
 
 DIRS = directions()
+
+
+def support_at(h: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """An upper bound `(...)` of `max_u x·u` over the polytope `{d_j·u <= h_j}` (`h` `(..., J)`) at vectors `x`
+    `(..., 2)` (broadcast against `h`'s rows): `x = α d_j + β d_{j+1}` with `α, β >= 0` (the directions around `x`),
+    and a support function is sublinear. A zero coefficient ignores its `h` (which may be infinite)."""
+    x = np.asarray(x, float)
+    ang = np.mod(np.arctan2(x[..., 1], x[..., 0]), 2 * np.pi)
+    j = np.minimum((ang / (2 * np.pi / J)).astype(np.int64), J - 1)
+    j1 = (j + 1) % J
+    d0, d1 = DIRS[j], DIRS[j1]
+    det = d0[..., 0] * d1[..., 1] - d0[..., 1] * d1[..., 0]
+    a = np.maximum((x[..., 0] * d1[..., 1] - x[..., 1] * d1[..., 0]) / det, 0.0)
+    b = np.maximum((d0[..., 0] * x[..., 1] - d0[..., 1] * x[..., 0]) / det, 0.0)
+    shape = np.broadcast_shapes(h.shape[:-1], j.shape)
+    h = np.broadcast_to(h, (*shape, J))
+    hj = np.take_along_axis(h, np.broadcast_to(j, shape)[..., None], -1)[..., 0]
+    hj1 = np.take_along_axis(h, np.broadcast_to(j1, shape)[..., None], -1)[..., 0]
+    with np.errstate(invalid="ignore"):
+        return np.where(a > 1e-12, a * hj, 0.0) + np.where(b > 1e-12, b * hj1, 0.0)
 
 
 def split(box: np.ndarray, k: int) -> np.ndarray:

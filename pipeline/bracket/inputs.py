@@ -21,6 +21,7 @@ from pipeline.bracket.enclosures import (
     sector_points,
     split,
     sq_dist_range,
+    support_at,
     wedge_ranges,
 )
 from pipeline.control import CBFController, HybridController, SmoothController
@@ -137,29 +138,40 @@ def _guarded(h, law, D_lo, D_hi, mu, nu, du, dv, period):
         out = np.where(rows[..., None], new, out)
     apex = acts & ~((nu[0] >= 0) | (mu[0] >= 0))
     if apex.any():
-        beta = np.maximum(0.0, u_max - c * s_lo)
-        n_u, n_v = -(DIRS @ du), -(DIRS @ dv)
-        theta = np.degrees(np.arctan2(*(-(du + dv))[::-1]))
-        in_q = np.abs(((np.degrees(np.arctan2(DIRS[:, 1], DIRS[:, 0])) - theta + 180) % 360) - 180) <= 45 + 1e-9
-        dn = np.where(in_q, 1.0, np.maximum(n_u, n_v))
-        out = np.where(apex[..., None], h + beta[..., None] * np.maximum(dn, 0.0), out)
+        out[apex] = _apex_guard(h[apex], mu[0][apex], mu[1][apex], nu[0][apex], nu[1][apex], du, dv, u_max,
+                                c * s_lo[apex])
     return np.minimum(out, u_max)
 
 
-def support_at(h: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """An upper bound `(...)` of the support of the polytope `h` `(..., J)` at one vector `x` `(2,)`:
-    `x = α d_j + β d_{j+1}` (`α, β >= 0`, `h` sublinear)."""
-    J = len(DIRS)
-    ang = np.mod(np.arctan2(x[1], x[0]), 2 * np.pi)
-    j = min(int(ang / (2 * np.pi / J)), J - 1)
-    j1 = (j + 1) % J
-    d0, d1 = DIRS[j], DIRS[j1]
-    det = d0[0] * d1[1] - d0[1] * d1[0]
-    a = (x[0] * d1[1] - x[1] * d1[0]) / det
-    b = (d0[0] * x[1] - d0[1] * x[0]) / det
-    a, b = max(a, 0.0), max(b, 0.0)
-    with np.errstate(invalid="ignore"):
-        return np.where(a > 1e-12, a * h[..., j], 0.0) + np.where(b > 1e-12, b * h[..., j1], 0.0)
+APEX_SAMPLES = 32  # normals sampled on a row's arc by the apex guard's bound
+
+
+def _apex_guard(h, mu_lo, mu_hi, nu_lo, nu_hi, du, dv, u_max, cs):
+    """The guard near the apex (`M` rows; `cs` the rows' `c s_lo`): `u' = u + β n`, `0 <= β <= max(0, -n·u - cs)`
+    with `n` the outward normal, the direction of `μ d_u + ν d_v` over the box of `(μ, ν) <= 0`: an arc between
+    its corners `(μ_lo, ν_hi)` and `(μ_hi, ν_lo)` (the quarter arc where the box reaches `(0, 0)`). Two bounds of
+    `d·u'`, the smaller kept: `d·u + (u_max - cs)⁺ max_n (d·n)⁺`, and `max(d·u, (P_n d)·u - cs d·n)` with
+    `P_n d = d - (d·n) n` (where `β > 0`: `β <= -n·u - cs`), maximised over `APEX_SAMPLES` normals at the centres
+    of equal pieces of the arc plus the Lipschitz constant `u_max + cs` in the angle (`|∂ P_n d/∂φ| = |d| = 1`,
+    `max |u| <= u_max`)."""
+    theta = np.arctan2(*(-(du + dv))[::-1])  # the quarter arc's bisector
+    ends = [np.angle(np.exp(1j * (np.arctan2(a * du[1] + b * dv[1], a * du[0] + b * dv[0]) - theta)))
+            for a, b in ((mu_lo, nu_hi), (mu_hi, nu_lo))]
+    touches = (mu_hi >= 0) & (nu_hi >= 0)
+    lo = np.where(touches, -np.pi / 4, np.clip(np.minimum(*ends), -np.pi / 4, np.pi / 4))[:, None]
+    hi = np.where(touches, np.pi / 4, np.clip(np.maximum(*ends), -np.pi / 4, np.pi / 4))[:, None]
+    rel = np.angle(np.exp(1j * (np.arctan2(DIRS[:, 1], DIRS[:, 0]) - theta)))
+    dn = np.where((rel >= lo - 1e-12) & (rel <= hi + 1e-12), 1.0, np.maximum(np.cos(rel - lo), np.cos(rel - hi)))
+    beta = np.maximum(0.0, u_max - cs)[:, None]
+    out = h + beta * np.maximum(dn, 0.0)
+    step = (hi - lo) / APEX_SAMPLES
+    phi = theta + lo + (np.arange(APEX_SAMPLES) + 0.5) * step  # (M, K)
+    n = np.stack([np.cos(phi), np.sin(phi)], axis=-1)
+    for j, d in enumerate(DIRS):
+        x = d - (n @ d)[..., None] * n  # (M, K, 2)
+        proj = (support_at(h[:, None, :], x) - cs[:, None] * (n @ d)).max(axis=1) + (u_max + cs) * step[:, 0] / 2
+        out[:, j] = np.minimum(out[:, j], np.maximum(h[:, j], proj))
+    return out
 
 
 def _a_range(sub, cov):

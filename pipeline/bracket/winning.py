@@ -10,31 +10,31 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.bracket.abstraction import Abstraction
-from pipeline.bracket.enclosures import DIRS
+from pipeline.bracket.enclosures import DIRS, support_at
 
 J = len(DIRS)
 
 
-def support_at(U: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """An upper bound of `max_{u in U} x·u` for arbitrary `x` `(N, 2)` from the support values `U` `(N, J)`:
-    `x = α d_j + β d_{j+1}` with `α, β >= 0`, and `h` is sublinear."""
-    ang = np.mod(np.arctan2(x[:, 1], x[:, 0]), 2 * np.pi)
-    j = np.minimum((ang / (2 * np.pi / J)).astype(np.int64), J - 1)
-    j1 = (j + 1) % J
-    d0, d1 = DIRS[j], DIRS[j1]
-    det = d0[:, 0] * d1[:, 1] - d0[:, 1] * d1[:, 0]
-    a = (x[:, 0] * d1[:, 1] - x[:, 1] * d1[:, 0]) / det
-    b = (d0[:, 0] * x[:, 1] - d0[:, 1] * x[:, 0]) / det
-    rows = np.arange(len(x))
-    return np.maximum(a, 0) * U[rows, j] + np.maximum(b, 0) * U[rows, j1]
+RATE_DIRS = 24 * J  # candidate directions of the transience rule (the support directions among them)
 
 
 def rates(ab: Abstraction, period: float, p_T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per node: `dir_ok` `(nodes, J)` (`d_j·u < 0` for every input: `d_j·p` decreases every frame) and `lyap_ok`
-    `(nodes,)` (`|p - p_T|²` decreases over every frame from every point of the cell:
+    """Per node: `dir_ok` `(nodes, RATE_DIRS)` (`w_k·u < 0` for every input, `w_k` at `k · 360°/RATE_DIRS`: `w_k·p`
+    decreases every frame; between two support directions bounded by :func:`support_at`, so a direction a
+    polytope's support function does not itself list counts only where that upper bound is negative) and
+    `lyap_ok` `(nodes,)` (`|p - p_T|²` decreases over every frame from every point of the cell:
     `2 (p - p_T)·u + T_s |u|² < 0`)."""
     U = ab.U.reshape(-1, J)
-    dir_ok = U < 0
+    W = np.stack([np.cos(2 * np.pi * np.arange(RATE_DIRS) / RATE_DIRS),
+                  np.sin(2 * np.pi * np.arange(RATE_DIRS) / RATE_DIRS)], axis=1)
+    dir_ok = np.zeros((len(U), RATE_DIRS), bool)
+    on_grid = RATE_DIRS // J
+    finite = np.where(np.isfinite(U), U, -1.0)  # a node without inputs (-inf): every direction decreases
+    for k, w in enumerate(W):
+        if k % on_grid == 0:
+            dir_ok[:, k] = U[:, k // on_grid] < 0
+        else:
+            dir_ok[:, k] = support_at(finite, np.broadcast_to(w, (len(U), 2))) < 0
     boxes = np.repeat(ab.grid.boxes(), ab.modes, axis=0)
     r = np.maximum(U, 0).max(axis=1) / np.cos(np.pi / J)  # |u| <= r
     worst = np.full(len(U), -np.inf)
