@@ -12,6 +12,7 @@ A smoke run (`debug=tiny`) writes its figures, index and lock to `outputs/debug/
 from __future__ import annotations
 
 import json
+import shutil
 import sys
 import time
 from dataclasses import asdict, dataclass, field
@@ -48,6 +49,7 @@ class StageArgs:
     train: list[str] = field(default_factory=list)
     errormap: list[str] = field(default_factory=list)
     certify: list[str] = field(default_factory=list)
+    bracket: list[str] = field(default_factory=list)
     experiments: list[str] = field(default_factory=list)
     imitate: list[str] = field(default_factory=list)
     ppo: list[str] = field(default_factory=list)
@@ -62,6 +64,8 @@ class PaperSettings:
     maps: list[str]
     errormaps: list[str]
     certify: list[str]
+    bracket: list[Annotated[str, Option("tuning")]]
+    bracket_map: str | None
     experiments: list[Annotated[str, Option("experiment")]]
     learned: list[Annotated[str, Pattern(r"imitate(_\w+)?|ppo", "the name of an imitation config (imitate, "
                                                                   "imitate_<x>) or ppo")]]
@@ -96,6 +100,8 @@ def check(cfg: DictConfig) -> None:
     for key in ("errormaps", "certify"):
         if set(getattr(s, key)) - set(maps):
             raise ConfigError(key, f"{sorted(set(getattr(s, key)) - set(maps))} are not among the maps {maps}")
+    if s.bracket_map is not None and s.bracket_map not in s.certify:
+        raise ConfigError("bracket_map", f"{s.bracket_map!r} is not among the certified maps {s.certify} (certify)")
     missing = [c for c in s.learned if c != "ppo" and not (CONF_DIR / f"{c}.yaml").is_file()]
     if missing:
         raise ConfigError("learned", f"no imitation config conf/{missing[0]}.yaml")
@@ -191,8 +197,8 @@ def run(cfg) -> dict:
         return {n: Path(cfg.paths.errormaps_dir) / "-".join(expected_errormap_id(
             models_root / lock["maps"][n].name, [*paths, *args["errormap"]])) for n in errormaps}
 
-    lock: dict[str, dict[str, Path]] = {"datasets": {}, "maps": {}, "errormaps": {}, "certified": {}, "experiments": {},
-                                        "learned": {}}
+    lock: dict[str, dict[str, Path]] = {"datasets": {}, "maps": {}, "errormaps": {}, "certified": {}, "bracket": {},
+                                        "experiments": {}, "learned": {}}
     runner = Runner(cfg, timings, stop)
     jobs = {"data": lambda: [Job("data", ["-m", f"data={','.join(datasets)}", *paths, *args["data"]], "data")],
             "train": lambda: [Job("train", [f"data={map_recipe(n)[0]}", *map_recipe(n)[1], *paths, *args["train"]],
@@ -210,6 +216,8 @@ def run(cfg) -> dict:
         lock[kind] = found or folders()
     if cfg.get("certify"):
         lock["certified"] = _certified(cfg, list(cfg.certify), paths, args, lock, runner)
+    if cfg.get("bracket"):
+        lock["bracket"] = _bracket(cfg, list(cfg.bracket), paths, args, lock, runner)
     map_refs = {n: f.name for n, f in lock["maps"].items()}
     em_refs = {n: f.name for n, f in lock["errormaps"].items()}
     if cfg.experiments:
@@ -248,14 +256,55 @@ def _certified(cfg, names, paths, args, lock, runner) -> dict[str, Path]:
     return found or folders()
 
 
+def _bracket(cfg, tunings, paths, args, lock, runner) -> dict[str, Path]:
+    """The closed loop's bracket (docs/bracket.md) for each named tuning of `tunings` (conf/tuning/), certified with
+    uniform ε and, where `bracket_map` names a certified map, with its certified error map (pinned by id); not started
+    when every output the current config makes is there. Each table and figure is copied into the paper folder
+    (`tab_bracket_<tuning>.md`, `fig_bracket_<tuning>.png`)."""
+    from pipeline.bracket.stage import bracket_id, objects
+
+    paths = [p for p in paths if not p.startswith("debug=")]  # the bracket's small sizes are args.bracket
+    pin = [f"bracket.error_map={lock['certified'][cfg.bracket_map].name}"] if cfg.get("bracket_map") else []
+    argv = {t: [f"tuning={t}", *pin, *paths, *args["bracket"]] for t in tunings}
+
+    def folders() -> dict[str, Path]:
+        out = {}
+        for t, a in argv.items():
+            c = compose("bracket", a)
+            _, _, bs, _, _, emap, cam = objects(c)
+            out[t] = Path(c.paths.bracket_dir) / f"bracket-{bracket_id(c, bs, emap, cam)[0]}"
+        return out
+
+    found = up_to_date("bracket", folders)
+    if found is None:
+        runner.stage("bracket", [Job("bracket", argv[t], f"bracket {t}") for t in tunings])
+        try:
+            found = folders()
+        except PipelineError:
+            return {}
+    for t, folder in found.items():
+        publish(folder, Path(cfg.paths.paper_dir), {"table.md": f"tab_bracket_{t}.md", "bracket.png": f"fig_bracket_{t}.png"})
+    return found
+
+
+def publish(folder: Path, paper_dir: Path, names: dict[str, str]) -> None:
+    """Copy the files `names` (source -> name in the paper folder) of a complete tracked output into the paper folder;
+    an unchanged file is not rewritten (its time says when it was made)."""
+    if not tracking.is_complete(folder):
+        return
+    paper_dir.mkdir(parents=True, exist_ok=True)
+    for src, dst in names.items():
+        same = (paper_dir / dst).is_file() and (paper_dir / dst).read_bytes() == (folder / src).read_bytes()
+        if (folder / src).is_file() and not same:
+            shutil.copyfile(folder / src, paper_dir / dst)
+
+
 def _learned(cfg, configs, paths, args, map_refs, runner) -> dict[str, Path]:
     """`make learned`'s stages (docs/learned.md) after the experiments: the imitation of each config of `configs`
     (conf/imitate*.yaml; its trunk pinned to the map this run built) and PPO (`ppo` among them; `args.ppo`), then
     the comparison with every map and network pinned; each not started when what its current config makes is
     there. The comparison's table and
     figure are copied into the paper folder (`tab_learned.md`, `fig_learned_switching_set.png`)."""
-    import shutil
-
     from pipeline.learned.evaluate import inputs, learned_id
     from pipeline.learned.imitate import identity
     from pipeline.learned.ppo import ppo_identity
@@ -298,14 +347,9 @@ def _learned(cfg, configs, paths, args, map_refs, runner) -> dict[str, Path]:
         except PipelineError:
             found = {}
     out = {**{f"policy {c}": f for c, f in policies.items()}, **found}
-    folder = found.get("comparison")
-    if folder is not None and tracking.is_complete(folder):
-        paper_dir = Path(cfg.paths.paper_dir)
-        paper_dir.mkdir(parents=True, exist_ok=True)
-        for src, dst in (("tab_learned.md", "tab_learned.md"), ("fig_switching_set.png", "fig_learned_switching_set.png")):
-            same = (paper_dir / dst).is_file() and (paper_dir / dst).read_bytes() == (folder / src).read_bytes()
-            if (folder / src).is_file() and not same:  # unchanged: not rewritten (its time says when it was made)
-                shutil.copyfile(folder / src, paper_dir / dst)
+    if found.get("comparison") is not None:
+        publish(found["comparison"], Path(cfg.paths.paper_dir),
+                {"tab_learned.md": "tab_learned.md", "fig_switching_set.png": "fig_learned_switching_set.png"})
     return out
 
 

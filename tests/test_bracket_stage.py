@@ -143,3 +143,24 @@ def test_several_error_maps_give_the_smallest_bound_per_cell(tmp_path):
     with pytest.raises(ConfigError, match="different perception maps") as err:
         error_map(cfg, SimpleNamespace(error_map=[table(whole), table(other)]))
     assert err.value.field == "bracket.error_map"
+
+
+def test_a_named_tuning_reaches_every_object_and_the_id_and_an_override_after_it_wins():
+    """`tuning=wide_barrier` (conf/tuning/) sets the scene's barrier, the hybrid law's hysteresis and the bracket's
+    frames in the objects the stage builds, so the output's id changes; a key given after it on the command line
+    wins; `tuning=paper` is the default config, byte for byte."""
+    from pipeline.bracket.stage import bracket_id, objects
+
+    def built(*overrides):
+        cfg = compose("bracket", list(overrides))
+        scene, laws, bs, _, _, emap, cam = objects(cfg)
+        return scene, laws["hybrid"], bs, bracket_id(cfg, bs, emap, cam)[0]
+
+    scene, hybrid, bs, paper_id = built()
+    assert built("tuning=paper")[3] == paper_id
+    w_scene, w_hybrid, w_bs, wide_id = built("tuning=wide_barrier")
+    assert (w_scene.barrier.gain, w_scene.barrier.rho, w_bs.frames) == (300.0, 1.0, 3)
+    assert (w_hybrid.chi, w_hybrid.lam) == (1.5, 0.2) != (hybrid.chi, hybrid.lam)
+    assert scene.barrier.gain == 1.0 and bs.frames == 4 and wide_id != paper_id
+    assert built("tuning=wide_barrier", "bracket.frames=4", "scene.barrier.gain=1.0")[2].frames == 4
+    assert built("tuning=wide_barrier", "scene.barrier.gain=1.0")[0].barrier.gain == 1.0

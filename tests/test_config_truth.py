@@ -7,6 +7,7 @@ the default option (the YAML is what runs)."""
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -454,6 +455,9 @@ def _bad_cases():
         ("pipeline.experiments", ["experiment=nope"], "experiment"),
         ("pipeline.paper", ["datasets=[nope]"], "datasets"),
         ("pipeline.paper", ["+args.render=[x]"], "args.render"),
+        ("pipeline.paper", ["bracket=[nope]"], "bracket[0]"),
+        ("pipeline.paper", ["bracket=[paper]", "bracket_map=clean_keypoint"], "bracket_map"),  # not among certify's maps
+        ("pipeline.bracket", ["tuning=nope"], "tuning"),
     ]
 
 
@@ -545,6 +549,8 @@ def test_paper_keeps_its_maps_when_a_quick_experiment_trains_another(tmp_path):
             f"args.errormap={q(['grid.step=4.0', 'occlusion_levels=[none]', 'train_samples=64'])}",
             "certify=[clean_keypoint]",
             f"args.certify={q(['cell=2.0', 'region=[[30.0,46.0],[-6.0,6.0]]', 'kappas=[0.0]', 'samples=2', 'pgd_cells=2', 'pgd_steps=2'])}",
+            "bracket=[wide_barrier]", "bracket_map=clean_keypoint",
+            f"args.bracket={q(['bracket.controllers=[hybrid]', 'bracket.cell=4.0', 'bracket.start_cell=20', 'bracket.eps=[0.1]', 'bracket.n_bisect=0', 'bracket.n_dirs=8', 'bracket.tail=4', 'bracket.lookahead=4', 'bracket.commit=4', 'sim.horizon=8'])}",
             f"args.experiments={q(['debug=tiny'])}", "learned=[imitate]",
             f"args.imitate={q(['imitation.agents=2', 'imitation.rounds=0', 'imitation.epochs=1', 'imitation.max_frames=4', 'model.hidden=8'])}",
             f"args.learned={q(['learned.agents=2', 'learned.near_k=2', 'learned.agents_list=[hybrid,imitated]', 'learned.attack_list=[imitated]', 'learned.clouds_list=[]', 'learned.cloud_attack_list=[]', 'learned.attack_steps=1', 'sim.horizon=1', 'learned.grid=[5,4]'])}",
@@ -562,13 +568,19 @@ def test_paper_keeps_its_maps_when_a_quick_experiment_trains_another(tmp_path):
     again = _cli("pipeline.paper", *args[:-1], f"hydra.run.dir={tmp_path / 'run2'}", timeout=900)
     assert again.returncode == 0, again.stderr[-3000:]
     # nothing changed for the paper (issue 32): no stage is started, no figure redrawn
-    assert again.stdout.count("; not started") == 7, again.stdout[-3000:]  # the learned stage's two too
+    assert again.stdout.count("; not started") == 8, again.stdout[-3000:]  # the learned stage's two too
     assert "certify: up to date" in again.stdout  # the certified error map the paper computed is the one expected
     assert figure.stat().st_mtime_ns == drawn
     lock2 = yaml.safe_load((root / "outputs" / "paper" / "paper.lock.yaml").read_text())
     assert lock2["maps"]["clean_keypoint"]["folder"] == map_folder
     assert lock2["experiments"] == lock["experiments"]  # nothing recomputed with the side map
     assert lock2["certified"] == lock["certified"] and lock["certified"]["clean_keypoint"]["folder"]
+    assert lock2["bracket"] == lock["bracket"]  # the bracket with the tuning, certified with the paper's own bound
+    bracket = json.loads((root / "outputs" / "bracket" / lock["bracket"]["wide_barrier"]["folder"] /
+                          "manifest.json").read_text())
+    assert bracket["recipe"]["error_map_ref"] == lock["certified"]["clean_keypoint"]["folder"]
+    assert bracket["recipe"]["scene"]["barrier"]["gain"] == 300  # conf/tuning/wide_barrier.yaml reached the run
+    assert "map ε̄: certified" in (root / "outputs" / "paper" / "tab_bracket_wide_barrier.md").read_text()
     assert lock2["learned"] == lock["learned"] and set(lock["learned"]) == {"policy imitate", "comparison"}
     learned = yaml.safe_load((root / "outputs" / "models" / lock["learned"]["policy imitate"]["folder"] /
                               "manifest.json").read_text())  # its trunk: the paper's own map

@@ -82,7 +82,7 @@ def test_path_checks_running_at_once_never_meet(tmp_path):
     for k in range(20):
         target = tmp_path / f"r{k}" / "data" / "datasets"
 
-        def check():
+        def check(target=target):
             try:
                 check_folder(target, "paths.datasets_dir")
             except ConfigError as err:

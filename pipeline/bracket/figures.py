@@ -1,5 +1,6 @@
-"""The bracket over the arena (docs/bracket.md): per controller, the start cells coloured by `ε_lo` (certified)
-and by `ε_hi` (falsified), with the obstacle, the diamond, `K` and the counterexamples of smallest `ε_hi`."""
+"""The bracket over the arena (docs/bracket.md): per controller, the start cells coloured by `ε_lo` (certified;
+hatched where the certificate holds with the error map's `ε̄`: Theorem 1 for the learned map) and by `ε_hi`
+(falsified), with the obstacle, the diamond, `K` and the counterexamples of smallest `ε_hi`."""
 
 from __future__ import annotations
 
@@ -34,8 +35,13 @@ def bracket_figure(scene, df, paths, bs, stem, formats):
         g = df[df.controller == name]
         top, bottom = axes[0, j], axes[1, j]
         _cells(top, g, g.eps_lo.to_numpy(float), max(bs.eps), "Greens")
+        with_map = bool(g.certified_map.any())
+        for _, r in g[g.certified_map.astype(bool)].iterrows():
+            top.add_patch(Rectangle((r.x0, r.y0), r.x1 - r.x0, r.y1 - r.y0, fill=False, ec="tab:blue", lw=0.4,
+                                    hatch="////"))
         _scene(top, scene)
-        top.set_title(f"{name}: ε_lo (certified; white: none)")
+        top.set_title(f"{name}: ε_lo (certified; white: none)"
+                      + (f"\nhatched: with the map's ε̄ ({int(g.certified_map.sum())} cells)" if with_map else ""))
         eh = g.eps_hi.to_numpy(float)
         _cells(bottom, g, np.where(np.isfinite(eh), eh, np.nan), bs.eps_max, "Reds_r")
         _scene(bottom, scene)
