@@ -164,3 +164,21 @@ def test_a_named_tuning_reaches_every_object_and_the_id_and_an_override_after_it
     assert scene.barrier.gain == 1.0 and bs.frames == 4 and wide_id != paper_id
     assert built("tuning=wide_barrier", "bracket.frames=4", "scene.barrier.gain=1.0")[2].frames == 4
     assert built("tuning=wide_barrier", "scene.barrier.gain=1.0")[0].barrier.gain == 1.0
+
+
+def test_table_counts_map_certified_cells_the_clean_camera_loop_breaks():
+    """With an error map and a camera map, a start cell certified with the map's ε̄ whose clean camera loop failed
+    (κ_hi = 0) contradicts the chain (the map's bound, the certificate): the table counts it; the map column says how
+    many of the certified cells lie behind the obstacle."""
+    from pipeline.bracket.stage import table
+    from pipeline.config import build
+
+    scene = build(compose("bracket").scene, "scene")
+    rows = [(-30.0, -25.0, -2.5, 2.5, True, 0.0), (-30.0, -25.0, 2.5, 7.5, True, 5.0), (20.0, 25.0, 2.5, 7.5, True, 0.0),
+            (20.0, 25.0, 7.5, 12.5, False, 0.0)]
+    df = pd.DataFrame([{"controller": "hybrid", "x0": x0, "x1": x1, "y0": y0, "y1": y1, "eps_lo": 0.1,
+                        "certified_map": cm, "eps_hi": np.inf, "kappa_hi": k} for x0, x1, y0, y1, cm, k in rows])
+    row = table(df, scene, [0.1], with_map=True).iloc[0]
+    assert row["soundness: map-certified, κ_hi = 0"] == 2
+    assert row["map ε̄: certified"] == "75% (2/2 behind)"
+    assert "soundness: map-certified, κ_hi = 0" not in table(df.drop(columns="kappa_hi"), scene, [0.1], True)

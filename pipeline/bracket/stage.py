@@ -199,7 +199,8 @@ def camera_rows(loop: FrameLoop, pmap, bs, centres: np.ndarray, inside: np.ndarr
 def table(df: pd.DataFrame, scene, eps_list, with_map: bool = False) -> pd.DataFrame:
     """Per controller: certified share of start cells at each ε, falsified shares, behind the obstacle (frame
     coordinate `a < -c`, `|b| < 15`), the median `ε_hi` on `K` (the row of cells centred on the axis behind); with
-    a `kappa_hi` column, the share falsified through the camera and the median `κ_hi` on `K`."""
+    a `kappa_hi` column, the share falsified through the camera and the median `κ_hi` on `K`; with both, the
+    map-certified cells whose clean camera loop failed (a soundness bug of the chain: map bound, certificate)."""
     cx, cy = (df.x0 + df.x1) / 2, (df.y0 + df.y1) / 2
     a, b = scene.to_frame(np.stack([cx, cy], 1))
     behind = (a < -scene.c) & (np.abs(b) < 15)
@@ -219,8 +220,11 @@ def table(df: pd.DataFrame, scene, eps_list, with_map: bool = False) -> pd.DataF
         if "kappa_hi" in g:
             row["camera: falsified"] = f"{np.isfinite(g.kappa_hi).mean():.0%}"
             row["on K: median κ_hi"] = f"{np.median(k.kappa_hi):.3g}" if len(k) else "-"
-        row["map ε̄: certified"] = f"{g.certified_map.mean():.0%}" if with_map else "-"
+        row["map ε̄: certified"] = (f"{g.certified_map.mean():.0%} ({int(bh.certified_map.sum())}/{len(bh)} behind)"
+                                    if with_map else "-")
         row["soundness: ε_lo > ε_hi"] = int((g.eps_lo > g.eps_hi).sum())
+        if with_map and "kappa_hi" in g:  # the map's own error is within its certified ε̄: its clean loop must arrive
+            row["soundness: map-certified, κ_hi = 0"] = int((g.certified_map & (g.kappa_hi == 0)).sum())
         out.append(row)
     return pd.DataFrame(out)
 
