@@ -1,16 +1,12 @@
 """Config is the single source of truth: every node names its `_target_`, whose typed signature is its schema.
 
-- :func:`signature`: a project target is imported and inspected, but those in :data:`TORCH_MODULES` (seconds to
-  import): they, and other packages' targets (Lightning), are read from source, so that a config error answers before
-  torch is imported. Their annotations are evaluated among the names of :mod:`pipeline.schema` and :mod:`typing`; one
-  that does not evaluate is an error, never an unchecked keyword (`test_config_truth` checks each source-read
-  signature against the imported one, and that every other target imports without torch).
-- :func:`check_schema` (run by :func:`compose`): every key of a `_target_` node must be a keyword of its target (no
-  `**kwargs` swallowing typos) and every value must fit the keyword's annotation (:mod:`pipeline.schema`).
-- :func:`build` instantiates a node with `hydra.utils.instantiate`; a value its constructor rejects (a range or a
-  cross-field rule) becomes a :class:`ConfigError` naming the node's path.
+:func:`check_schema` (run by :func:`compose`): every key of a `_target_` node must be a keyword of its target (no
+`**kwargs` swallowing typos) and every value must fit the keyword's annotation (:mod:`pipeline.schema`). A target's
+:func:`signature` is read from its source where importing it would load torch (a config error answers before torch),
+its annotations evaluated among the names of :mod:`pipeline.schema` and :mod:`typing`: one that does not evaluate is
+an error (`test_config_truth` compares each with the imported signature). :func:`build` instantiates a node; a value
+its constructor rejects (a range, a cross-field rule) is a :class:`ConfigError` naming the node's path.
 """
-
 from __future__ import annotations
 
 import ast

@@ -100,10 +100,7 @@ def _sweep_error(jobs: list[list[str]], failed: list) -> ConfigError:
     hybrid-only key in a sweep over `controller=hybrid,smooth,cbf`), which of the swept choices take it."""
     job, err = failed[0]
     common = set.intersection(*(set(j) for j in jobs))
-
-    def choice(j: list[str]) -> str:  # what the sweep varies in job j
-        return " ".join(o for o in j if o not in common)
-
+    choice = lambda j: " ".join(o for o in j if o not in common)  # noqa: E731 - what the sweep varies in job j
     unknown = [j for j, e in failed if e.field == err.field and "unknown key" in e.reason]
     passed = [j for j in jobs if all(j is not f for f, _ in failed)]
     if len(unknown) == len(failed) and passed:
