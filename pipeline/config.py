@@ -187,7 +187,11 @@ def build(node, path: str, /, **kwargs):
     label = "name" in node and params is not None and "name" not in params
     clean = OmegaConf.masked_copy(node, [k for k in node.keys() if k != "name"]) if label else node
     keys = frozenset(str(k) for k in clean.keys()) - META_KEYS if params is not None else frozenset()
-    token = CHECKED_KEYWORDS.set((str(node["_target_"]).rpartition(".")[2], keys))  # its constructor skips them
+    try:  # the target (its constructor skips the keys checked here); Hydra says what does not import
+        target = resolve(":".join(str(node["_target_"]).rsplit(".", 1)))
+    except Exception:  # noqa: BLE001
+        target = None
+    token = CHECKED_KEYWORDS.set((target, keys))
     try:
         try:  # partial first: Hydra would turn a dataclass keyword (a Scene) into a config node
             obj = instantiate(clean, _partial_=True, _convert_="all", _recursive_=False)(**kwargs)

@@ -268,10 +268,10 @@ def check_fields(obj, prefix: str) -> None:
             check_value(getattr(obj, f.name), hints.get(f.name), f"{prefix}.{f.name}" if prefix else f.name)
 
 
-# (target's name, keywords) that `pipeline.config.build` has checked in the target's node: a value is checked
-# once, where its node is, not again by the constructor it is passed to (the target's own @checked call only)
-CHECKED_KEYWORDS: contextvars.ContextVar[tuple[str, frozenset]] = contextvars.ContextVar(
-    "checked_keywords", default=("", frozenset()))
+# (target, keywords) that `pipeline.config.build` has checked in the target's node: a value is checked once, where
+# its node is, not again by the constructor it is passed to (the target's own @checked call only)
+CHECKED_KEYWORDS: contextvars.ContextVar[tuple[object, frozenset]] = contextvars.ContextVar(
+    "checked_keywords", default=(None, frozenset()))
 
 
 def checked(prefix: str, objects: tuple[str, ...] = ()):
@@ -286,8 +286,8 @@ def checked(prefix: str, objects: tuple[str, ...] = ()):
         @functools.wraps(fn)
         def call(*args, **kwargs):
             target, done = CHECKED_KEYWORDS.get()
-            if target == source.__qualname__.split(".")[0]:  # the build's own call: its node's values are checked
-                CHECKED_KEYWORDS.set(("", frozenset()))
+            if target is not None and target is built:  # the build's own call: its node's values are checked
+                CHECKED_KEYWORDS.set((None, frozenset()))
             else:
                 done = ()
             try:
@@ -302,8 +302,9 @@ def checked(prefix: str, objects: tuple[str, ...] = ()):
                     check_value(value, hints.get(name), f"{prefix}.{name}" if prefix else name)
             return fn(*args, **kwargs)
 
+        built = obj if inspect.isclass(obj) else call  # what a config's `_target_` names
         if inspect.isclass(obj):
             obj.__init__ = call
-        return obj if inspect.isclass(obj) else call
+        return built
 
     return wrap
