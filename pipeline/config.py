@@ -1,128 +1,127 @@
 """Config is the single source of truth: every node names its `_target_`, whose typed signature is its schema.
 
-- :func:`check_schema` walks a composed config: every key of a `_target_` node must be a keyword of its target
-  (no `**kwargs` swallowing typos) and every value must fit the keyword's annotation (types, `Literal` choices,
-  nested dataclasses key by key; :mod:`pipeline.schema`); `+`/`++` overrides may add only such keywords.
-  :func:`compose` runs it on every composition, so a bad key, type or choice is one `ConfigError` naming it.
-- :func:`build` instantiates a node with `hydra.utils.instantiate`; a value its constructor rejects (a range or a
-  cross-field rule) becomes a :class:`ConfigError` naming the node's path.
-- :func:`check_paths` rejects output paths that are files or cannot be created.
-- :func:`pipeline.preflight.preflight` composes every job of a command line (each sweep value) and runs those
-  checks plus the stage's own cheap check, so a bad input is one line and exit code 2 before any job starts.
+:func:`check_schema` (run by :func:`compose`): every key of a `_target_` node must be a keyword of its target (no
+`**kwargs` swallowing typos) and every value must fit the keyword's annotation (:mod:`pipeline.schema`). A target's
+:func:`signature` is read from its source where importing it would load torch (a config error answers before torch),
+its annotations evaluated among the names of :mod:`pipeline.schema` and :mod:`typing`: one that does not evaluate is
+an error (`test_config_truth` compares each with the imported signature). :func:`build` instantiates a node; a value
+its constructor rejects (a range, a cross-field rule) is a :class:`ConfigError` naming the node's path.
 """
-
 from __future__ import annotations
 
+import ast
+import collections.abc
+import dataclasses
+import functools
+import importlib
+import importlib.util
+import inspect
 import re
+import tempfile
+import typing
 from collections.abc import Iterable
 from pathlib import Path
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
+from pipeline import schema
 from pipeline.errors import ConfigError, PipelineError
 from pipeline.repo import CONF_DIR, REPO_ROOT
 from pipeline.schema import CHECKED_KEYWORDS, check_value, type_hints
-from pipeline.signatures import signature
 
 META_KEYS = {"_target_", "_partial_", "_convert_", "_recursive_", "_args_", "name"}
+TORCH_MODULES = ("pipeline.perception.network", "pipeline.train.datamodule", "pipeline.train.certified",
+                 "pipeline.train.callbacks", "pipeline.learned.network", "pipeline.learned.ppo")
+NAMES = {**vars(typing), **vars(schema), "Sequence": collections.abc.Sequence}
+if not OmegaConf.has_resolver("repo_root"):
+    OmegaConf.register_new_resolver("repo_root", lambda: str(REPO_ROOT))
 
 
-def _register_resolvers() -> None:
-    if not OmegaConf.has_resolver("repo_root"):
-        OmegaConf.register_new_resolver("repo_root", lambda: str(REPO_ROOT))
-
-
-_register_resolvers()
-
-
-# ------------------------------------------------------------------------------------------ build
 def resolve(ref: str):
     """`"package.module:function"` -> the object (a stage's work, a scenario's drawing function), imported when used."""
-    import importlib
-
     module, _, name = ref.partition(":")
     return getattr(importlib.import_module(module), name)
 
 
-def _reprefix(err: ConfigError, path: str, objects=()) -> ConfigError:
-    """`err` naming the config path `path`; a field of an object passed in (`objects`, e.g. the `scene` a controller
-    checks against) keeps its own name (`scene.obstacles[0,4]`, not `controller.obstacles[0,4]`)."""
-    field = err.field
-    if any(field == o or field.startswith((o + ".", o + "[")) for o in objects):
-        return err
-    if path and not (field == path or field.startswith(path + ".") or field.startswith(path + "[")):
-        tail = field.split(".", 1)[-1] if "." in field else field
-        field = f"{path}.{tail}" if field not in ("", "_target_") else path
-    return ConfigError(field, err.reason)
-
-
-def build(node, path: str, /, **kwargs):
-    """`instantiate(node)(**kwargs)`: the object a config node describes, its keys and types checked first, errors
-    naming `path`. `name` is a label of the node (the table row), not a keyword, unless the target takes it."""
-    from hydra.errors import InstantiationException
-    from hydra.utils import instantiate
-
-    if not isinstance(node, DictConfig):
-        node = OmegaConf.create(node)
-    if "_target_" not in node:
-        raise ConfigError(path, "needs a `_target_` (pick one of the options of its config group)")
-    check_node(node, path)
-    sig = signature(str(node["_target_"]))
-    drop = [k for k in node.keys() if k == "name" and sig is not None and "name" not in sig.params]
-    clean = OmegaConf.masked_copy(node, [k for k in node.keys() if k not in drop]) if drop else node
-    keys = frozenset(str(k) for k in clean.keys()) - META_KEYS if sig is not None else frozenset()
-    token = CHECKED_KEYWORDS.set((str(node["_target_"]).rpartition(".")[2], keys))  # its constructor skips them
+# ------------------------------------------------------------------------------------ signatures
+@functools.cache
+def signature(target: str) -> dict | None:
+    """Keyword -> annotation (None: the target checks it) of `target` (a dotted path); None where the keys cannot be
+    checked: it takes `**kwargs`, or it is another package's whose source (a plugin not installed) is not found."""
+    module, _, name = target.rpartition(".")
+    if module.split(".")[0] != "pipeline" or module in TORCH_MODULES:
+        return _from_source(module, name, own=module.split(".")[0] == "pipeline")
     try:
-        # partial first: Hydra would turn a dataclass keyword (a Scene) into a config node
-        obj = instantiate(clean, _partial_=True, _convert_="all", _recursive_=False)(**kwargs)
-    except ConfigError as err:
-        raise _reprefix(err, path, kwargs) from None
-    except PipelineError:
-        raise
-    except InstantiationException as err:
-        cause = err.__cause__
-        while cause is not None and not isinstance(cause, PipelineError):
-            cause = cause.__cause__
-        if isinstance(cause, ConfigError):
-            raise _reprefix(cause, path, kwargs) from None
-        if cause is not None:
-            raise cause from None
-        raise ConfigError(path, str(err).splitlines()[0]) from None
-    except (TypeError, ValueError) as err:
-        raise ConfigError(path, f"invalid parameters for {node['_target_']}: {err}") from None
-    finally:
-        CHECKED_KEYWORDS.reset(token)
-    if drop and hasattr(type(obj), "name") and not isinstance(type(obj).name, property):
-        obj.name = str(node["name"])  # the label of the node (a controller's row in a table)
-    return obj
+        obj = getattr(importlib.import_module(module), name)
+    except Exception as err:  # noqa: BLE001 - any import problem is the config's fault
+        raise ConfigError("_target_", f"cannot import {target!r} ({str(err).splitlines()[0]})") from None
+    hints = type_hints(obj if dataclasses.is_dataclass(obj) or not inspect.isclass(obj) else obj.__init__)
+    every = inspect.signature(obj).parameters.values()
+    return None if any(p.kind is p.VAR_KEYWORD for p in every) else \
+        {p.name: hints.get(p.name) for p in every if p.kind is not p.VAR_POSITIONAL}
+
+
+def _file(module: str) -> Path | None:
+    """The source file of `module`, found without importing it (nor its parent packages)."""
+    top, *rest = module.split(".")
+    spec = importlib.util.find_spec(top)
+    if spec is None or not spec.submodule_search_locations:
+        return Path(spec.origin) if spec is not None and spec.origin and not rest else None
+    base = Path(next(iter(spec.submodule_search_locations))).joinpath(*rest)
+    return next((c for c in (base / "__init__.py", base.with_suffix(".py")) if c.is_file()), None)
+
+
+def _from_source(module: str, name: str, own: bool, depth: int = 0) -> dict | None:
+    """The keywords of `module.name` read from its source, following `from X import name` re-exports."""
+    path = _file(module) if depth < 8 else None
+    for node in ast.parse(path.read_text()).body if path else ():
+        if isinstance(node, ast.ImportFrom) and any((a.asname or a.name) == name for a in node.names):
+            package = module.split(".")[: None if path.name == "__init__.py" else -1]
+            base = package[: len(package) - node.level + 1] if node.level else []
+            real = next(a.name for a in node.names if (a.asname or a.name) == name)
+            return _from_source(".".join(p for p in (*base, node.module) if p), real, own, depth + 1)
+        if not (isinstance(node, ast.ClassDef | ast.FunctionDef) and node.name == name):
+            continue
+        init = node if isinstance(node, ast.FunctionDef) else \
+            next((b for b in node.body if isinstance(b, ast.FunctionDef) and b.name == "__init__"), None)
+        if init is None and "dataclass" in ast.unparse(node.decorator_list):  # its fields are its keywords
+            fields = [ast.arg(b.target.id, b.annotation) for b in node.body
+                      if isinstance(b, ast.AnnAssign) and isinstance(b.target, ast.Name)]
+            init = ast.FunctionDef(name, ast.arguments([], fields, None, [], [], None, []), [], [])
+        if init is None or init.args.kwarg is not None:
+            return None
+        a = init.args
+        return {x.arg: _annotation(f"{module}.{name}", x) if own else None
+                for x in (*a.posonlyargs, *a.args, *a.kwonlyargs) if x.arg != "self"}
+    if own:
+        raise ConfigError("_target_", f"cannot find {module}.{name}")
+    return None  # a plugin not installed: Hydra says so when it builds the node
+
+
+def _annotation(target: str, arg: ast.arg):
+    """The annotation of a keyword from source, evaluated among :data:`NAMES`; one that does not is an error."""
+    node = arg.annotation
+    if isinstance(node, ast.Constant) and isinstance(node.value, str):  # a quoted annotation
+        node = ast.parse(node.value, mode="eval").body
+    try:
+        return eval(ast.unparse(node), dict(NAMES)) if node is not None else None  # noqa: S307 - the project's source
+    except Exception as err:  # noqa: BLE001
+        raise TypeError(f"{target}: the annotation of {arg.arg!r} ({ast.unparse(node)}) is not made of the names "
+                        f"of pipeline.schema and typing: it cannot be checked without importing torch") from err
 
 
 # ----------------------------------------------------------------------------------------- schema
 def _walk(node, path: str = "") -> Iterable[tuple[str, DictConfig]]:
+    """Every mapping under `node` with its path; not Hydra's own settings, nor an interpolation (`hybrid:
+    ${controller}`: checked where it is written)."""
     if isinstance(node, DictConfig):
         yield path, node
-        for k in node.keys():
-            if (k == "hydra" and not path) or _is_alias(node, k):
-                continue
-            try:
-                child = node._get_node(k)._dereference_node() if OmegaConf.is_interpolation(node, k) else node[k]
-            except Exception:  # noqa: BLE001 - unresolvable interpolation (hydra:...) is not a schema matter
-                continue
-            yield from _walk(child, f"{path}.{k}" if path else str(k))
-    elif isinstance(node, ListConfig):
-        for i, child in enumerate(node):
-            if isinstance(child, DictConfig | ListConfig):
-                yield from _walk(child, f"{path}[{i}]")
-
-
-def _is_alias(node: DictConfig, key) -> bool:
-    """`hybrid: ${controller}`: a node interpolated from another, checked where it is written."""
-    if not OmegaConf.is_interpolation(node, key):
-        return False
-    try:
-        return isinstance(node._get_node(key)._dereference_node(), DictConfig)
-    except Exception:  # noqa: BLE001 - unresolvable here (hydra:...)
-        return False
+        items = [(f"{path}.{k}" if path else str(k), k) for k in node.keys() if path or k != "hydra"]
+    else:
+        items = [(f"{path}[{i}]", i) for i in range(len(node))] if isinstance(node, ListConfig) else []
+    for where, k in items:
+        if not (OmegaConf.is_interpolation(node, k) or OmegaConf.is_missing(node, k)):
+            yield from _walk(node[k], where)
 
 
 def _plain_value(node: DictConfig, key):
@@ -141,70 +140,109 @@ def check_node(node: DictConfig, path: str) -> None:
     """The keys and values of one `_target_` node against its target's signature; a node with the same path and
     values checked before in this process (the preflight's, then the stage's build) is not checked again."""
     try:
-        sig = signature(str(node["_target_"]))
+        params = signature(str(node["_target_"]))
     except ConfigError as err:
         raise ConfigError(f"{path}._target_" if path else "_target_", err.reason) from None
-    if sig is None:
+    values = {k: _plain_value(node, k) for k in node.keys()}
+    if params is None or (path, repr(values)) in _CHECKED_NODES:
         return
-    seen = (path, repr({k: _plain_value(node, k) for k in node.keys()}))
-    if seen in _CHECKED_NODES:
-        return
-    for k in node.keys():
-        if k in META_KEYS:
-            continue
+    for k, value in values.items():
         where = f"{path}.{k}" if path else str(k)
-        if k not in sig.params:
-            if sig.any_keyword:
-                continue
-            raise ConfigError(where, f"unknown key ({node['_target_']} takes {', '.join(sig.params)})")
-        value = _plain_value(node, k)
-        if value is ... or (isinstance(value, dict) and "_target_" in value):
-            continue  # checked as its own node
-        check_value(value, sig.params[k], where)
-    _CHECKED_NODES.add(seen)
-
-
-def settings(cfg: DictConfig, cls):
-    """A stage's root-level settings (the keys of its config file that are no node of their own) as the typed
-    dataclass `cls`: every field's value checked against its annotation, then the object's own rules."""
-    import dataclasses
-
-    hints = type_hints(cls)
-    values = {}
-    for f in dataclasses.fields(cls):
-        if f.name in cfg:
-            values[f.name] = _plain_value(cfg, f.name)
-            check_value(values[f.name], hints[f.name], f.name)
-    return cls(**values)
+        if k not in params and k not in META_KEYS:
+            raise ConfigError(where, f"unknown key ({node['_target_']} takes {', '.join(params)})")
+        if k not in META_KEYS and value is not ... and not (isinstance(value, dict) and "_target_" in value):
+            check_value(value, params[k], where)  # (a node is checked as a node)
+    _CHECKED_NODES.add((path, repr(values)))
 
 
 def check_schema(cfg: DictConfig, added: Iterable[str] = ()) -> None:
     """Unknown keys and wrong values anywhere in `cfg` (targets' signatures) and keys added by `+`/`++` overrides."""
     for path, node in _walk(cfg):
-        if "_target_" in node and isinstance(node["_target_"], str):
+        if isinstance(node.get("_target_"), str):
             check_node(node, path)
-    for key in added:
-        parent, _, leaf = key.rpartition(".")
-        node = OmegaConf.select(cfg, parent) if parent else cfg
-        if isinstance(node, DictConfig) and "_target_" in node:
-            sig = signature(str(node["_target_"]))
-            if sig is None or sig.any_keyword or leaf in sig.params:
-                continue
-            raise ConfigError(key, f"unknown key ({node['_target_']} takes {', '.join(sig.params)})")
-        raise ConfigError(key, "unknown key (not in the config; check the spelling: `+` does not add keys here)")
+    for key in added:  # one added to a `_target_` node is checked with its node
+        node = OmegaConf.select(cfg, key.rpartition(".")[0]) if "." in key else cfg
+        if not (isinstance(node, DictConfig) and "_target_" in node):
+            raise ConfigError(key, "unknown key (not in the config; check the spelling: `+` does not add keys here)")
+
+
+def settings(cfg: DictConfig, cls):
+    """A stage's root-level settings (the keys of its config file that are no node of their own) as the typed
+    dataclass `cls`, which checks them (`@checked("")`)."""
+    return cls(**{f.name: _plain_value(cfg, f.name) for f in dataclasses.fields(cls) if f.name in cfg})
+
+
+# ------------------------------------------------------------------------------------------ build
+def build(node, path: str, /, **kwargs):
+    """`instantiate(node)(**kwargs)`: the object a config node describes, its keys and types checked first, errors
+    naming `path`. `name` is a label of the node (the table row), not a keyword, unless the target takes it."""
+    from hydra.errors import InstantiationException
+    from hydra.utils import instantiate
+
+    node = node if isinstance(node, DictConfig) else OmegaConf.create(node)
+    if "_target_" not in node:
+        raise ConfigError(path, "needs a `_target_` (pick one of the options of its config group)")
+    check_node(node, path)
+    params = signature(str(node["_target_"]))
+    label = "name" in node and params is not None and "name" not in params
+    clean = OmegaConf.masked_copy(node, [k for k in node.keys() if k != "name"]) if label else node
+    keys = frozenset(str(k) for k in clean.keys()) - META_KEYS if params is not None else frozenset()
+    try:  # the target (its constructor skips the keys checked here); Hydra says what does not import
+        target = resolve(":".join(str(node["_target_"]).rsplit(".", 1)))
+    except Exception:  # noqa: BLE001
+        target = None
+    token = CHECKED_KEYWORDS.set((target, keys))
+    try:
+        try:  # partial first: Hydra would turn a dataclass keyword (a Scene) into a config node
+            obj = instantiate(clean, _partial_=True, _convert_="all", _recursive_=False)(**kwargs)
+        except InstantiationException as err:  # the user's error inside Hydra's
+            cause = err.__cause__
+            while cause is not None and not isinstance(cause, PipelineError):
+                cause = cause.__cause__
+            raise cause or ConfigError(path, str(err).splitlines()[0]) from None
+    except ConfigError as err:  # named by the node's path, but a field of an object passed in (a controller's
+        field = err.field  # `scene`) keeps its own name (`scene.obstacles[0,4]`, not `controller.obstacles[0,4]`)
+        if path and not any(field == o or field.startswith((o + ".", o + "[")) for o in (*kwargs, path)):
+            field = f"{path}.{field.split('.', 1)[-1]}" if field not in ("", "_target_") else path
+        raise ConfigError(field, err.reason) from None
+    except PipelineError:
+        raise
+    except (TypeError, ValueError) as err:
+        raise ConfigError(path, f"invalid parameters for {node['_target_']}: {err}") from None
+    finally:
+        CHECKED_KEYWORDS.reset(token)
+    if label and hasattr(type(obj), "name") and not isinstance(type(obj).name, property):
+        obj.name = str(node["name"])  # the label of the node (a controller's row in a table)
+    return obj
+
+
+# ----------------------------------------------------------------------------- compose, paths, Hydra's errors
+def compose(config_name: str, overrides: list[str] | None = None, *, check: bool = True) -> DictConfig:
+    """Compose a config with Hydra's compose API, also from inside a running `@hydra.main` app (tests, notebooks,
+    the paper DAG). `hydra:` interpolations are not available here: `paths.output_dir` must be overridden (or the
+    caller sets it) before use."""
+    from hydra import compose as _compose
+    from hydra import initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    if GlobalHydra.instance().is_initialized():
+        cfg = _compose(config_name=config_name, overrides=list(overrides or []))
+    else:  # initialized for this call only
+        with initialize_config_dir(version_base="1.3", config_dir=str(CONF_DIR)):
+            cfg = _compose(config_name=config_name, overrides=list(overrides or []))
+    if check:
+        check_schema(cfg)
+    return cfg
 
 
 def check_folder(value, field: str) -> None:
-    """`value` must be a folder this process can write in, or one it can create: tried for real (a uniquely
-    named temporary folder made in it, or in its nearest existing parent when it is missing, then removed), so
-    a read-only or virtual filesystem (`/proc/...`), a file in the way or a missing permission is one
-    `ConfigError` naming `field`. Nothing is left behind, and checks running at once never meet."""
-    import tempfile
-
-    p = Path(str(value)).expanduser()
+    """`value` must be a folder this process can write in, or one it can create: tried for real (a uniquely named
+    temporary folder made in it, or in its nearest existing parent, then removed), so a read-only or virtual
+    filesystem (`/proc/...`), a file in the way or a missing permission is one error naming `field`; nothing is
+    left behind, and checks running at once never meet."""
+    p = parent = Path(str(value)).expanduser()
     if p.exists() and not p.is_dir():
         raise ConfigError(field, f"{p} is a file, not a folder")
-    parent = p
     while not parent.exists() and parent != parent.parent:
         parent = parent.parent
     if not parent.is_dir():
@@ -217,66 +255,29 @@ def check_folder(value, field: str) -> None:
 
 def check_paths(paths) -> None:
     """Every `paths.*` entry (but the Hydra run dir) must be a folder this process can write, or create."""
-    if paths is None:
-        return
-    for key in paths.keys():
-        if key == "output_dir":
-            continue
-        try:
-            value = paths[key]
-        except Exception:  # noqa: BLE001 - hydra: interpolations outside a run
-            continue
-        if value is not None:
+    for key in [k for k in paths.keys() if k != "output_dir"] if paths is not None else []:
+        value = _plain_value(paths, key)  # `...`: a `${hydra:...}` outside a run
+        if value is not None and value is not ...:
             check_folder(value, f"paths.{key}")
-
-
-# ----------------------------------------------------------------------------------------- compose
-def compose(config_name: str, overrides: list[str] | None = None, *, check: bool = True) -> DictConfig:
-    """Compose a config with Hydra's compose API, also from inside a running `@hydra.main` app (tests, notebooks,
-    the paper DAG). `hydra:` interpolations are not available here: `paths.output_dir` must be overridden (or the
-    caller sets it) before use."""
-    from hydra import compose as _compose
-    from hydra import initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
-
-    gh = GlobalHydra.instance()
-    if gh.is_initialized():
-        cfg = _compose(config_name=config_name, overrides=list(overrides or []))
-    else:
-        try:
-            with initialize_config_dir(version_base="1.3", config_dir=str(CONF_DIR)):
-                cfg = _compose(config_name=config_name, overrides=list(overrides or []))
-        finally:
-            GlobalHydra.instance().clear()
-    if check:
-        check_schema(cfg)
-    return cfg
 
 
 def hydra_error_line(err: BaseException) -> str:
     """One line for Hydra/OmegaConf composition errors (their own messages span several lines)."""
     from hydra.errors import MissingConfigException
 
+    text = str(err)
     if isinstance(err, MissingConfigException) and err.missing_cfg_file:
         group, _, option = str(err.missing_cfg_file).rpartition("/")
         opts = f" (available: {', '.join(sorted(err.options))})" if err.options else ""
         return f"{group or option}: unknown option {option!r}{opts}"
-    text = str(err)
     m = re.search(r"Could not override '([^']+)'", text)
     if m and ("not in struct" in text or "ConfigKeyError" in text or "To append" in text):
         key = re.sub(r"\.(\d+)(?=\.|$)", r"[\1]", m.group(1))  # a list element as the schema names it: obstacles[0]
         return f"{key}: unknown key (not in the config; check the spelling)"
-    m = re.search(r"Could not find '([^']+)'", text)
-    if m:
-        group, _, option = m.group(1).rpartition("/")
-        avail = re.findall(r"^\t(\S+)$", text, flags=re.M)
-        return f"{group or option}: unknown option {option!r}" + (f" (available: {', '.join(avail)})" if avail else "")
     cause = err.__cause__ or err.__context__
     while cause is not None:
-        full_key = getattr(cause, "full_key", None)
-        if full_key:
-            reason = str(cause).splitlines()[0]
-            return f"{full_key}: {reason}"
+        if getattr(cause, "full_key", None):
+            return f"{cause.full_key}: {str(cause).splitlines()[0]}"
         cause = cause.__cause__ or cause.__context__
     m = re.search(r"Error merging override (\S+)", text)
     if m:

@@ -38,7 +38,7 @@ from pipeline.lineage import (
     write_lock,
 )
 from pipeline.paper_profile import Runner
-from pipeline.schema import NonEmpty, Option, Pattern, PositiveInt
+from pipeline.schema import NonEmpty, Option, Pattern, PositiveInt, checked
 
 
 @dataclass(frozen=True)
@@ -56,6 +56,7 @@ class StageArgs:
     learned: list[str] = field(default_factory=list)
 
 
+@checked("")
 @dataclass(frozen=True)
 class PaperSettings:
     """The root keys of conf/paper.yaml (documented there); the cross-field rules in :func:`check`."""

@@ -1,9 +1,8 @@
-"""The schema of a config node is the signature of its `_target_` (:mod:`pipeline.signatures`).
-
-:func:`check_value` checks a value against an annotation (numbers, strings, booleans, `Literal`, `X | None`, lists,
-tuples, mappings, dataclasses key by key, `Annotated[X, rule]` with the rules below), raising one
-:class:`ConfigError` naming the key. An object built from Python checks its arguments the same way (:func:`checked`
-on its class, :func:`check_fields` on a dataclass instance); objects keep only their cross-field rules.
+"""Typed values: :func:`check_value` checks a value against an annotation (numbers, strings, booleans, `Literal`,
+`X | None`, lists, tuples, mappings, dataclasses key by key, `Annotated[X, rule]` with the rules below) and raises one
+:class:`ConfigError` naming the key. A config node is checked against its target's annotations
+(:mod:`pipeline.config`); an object built from Python checks its arguments the same way (:func:`checked` on its
+class, :func:`check_fields` on a dataclass instance) and keeps only its cross-field rules.
 """
 from __future__ import annotations
 
@@ -15,7 +14,6 @@ import inspect
 import math
 import numbers
 import re
-import sys
 import types
 import typing
 from dataclasses import dataclass
@@ -49,9 +47,9 @@ class Range:
         hi = f"{self.lt:g})" if self.lt is not None else f"{self.le:g}]" if self.le is not None else None
         if lo and hi:
             return f"{inner} in {lo}, {hi}"
-        if lo:
-            return f"{inner} > {self.gt:g}" if self.gt is not None else f"{inner} >= {self.ge:g}"
-        return f"{inner} < {self.lt:g}" if self.lt is not None else f"{inner} <= {self.le:g}"
+        op, bound = next((o, b) for o, b in ((">", self.gt), (">=", self.ge), ("<", self.lt), ("<=", self.le))
+                         if b is not None)
+        return f"{inner} {op} {bound:g}"
 
 
 @dataclass(frozen=True)
@@ -139,20 +137,19 @@ RULES = (Range, NonEmpty, Pattern, Ascending, Node, Option)
 # ---------------------------------------------------------------------------------------------- types
 def describe(tp) -> str:
     """The annotation `tp` in words (for error messages)."""
-    origin = typing.get_origin(tp)
+    origin, args = typing.get_origin(tp), typing.get_args(tp)
     if origin is Annotated:
-        inner, *rules = typing.get_args(tp)
-        words = describe(inner)
-        for r in rules:
+        words = describe(args[0])
+        for r in args[1:]:
             words = r.describe(words) if isinstance(r, RULES) else words
         return words
     if origin in (typing.Union, types.UnionType):
-        args = [a for a in typing.get_args(tp) if a is not type(None)]
-        return " or ".join(describe(a) for a in args) + (" (or null)" if len(args) < len(typing.get_args(tp)) else "")
+        opts = [a for a in args if a is not type(None)]
+        return " or ".join(describe(a) for a in opts) + (" (or null)" if len(opts) < len(args) else "")
     if origin is typing.Literal:
-        return "one of " + ", ".join(str(c) for c in typing.get_args(tp))
+        return "one of " + ", ".join(str(c) for c in args)
     if origin in (list, tuple, collections.abc.Sequence):
-        args = [a for a in typing.get_args(tp) if a is not Ellipsis]
+        args = [a for a in args if a is not Ellipsis]
         if origin is tuple and len(args) > 1:
             return f"a list of {len(args)} {_plural(describe(args[0]))}" if len(set(args)) == 1 else \
                 f"a list of {len(args)} values"
@@ -167,50 +164,44 @@ def describe(tp) -> str:
 
 def _plural(words: str) -> str:
     """`a number` -> `numbers`, `an integer > 0` -> `integers > 0` (the element of a list, in words)."""
-    for one, many in (("a number", "numbers"), ("an integer", "integers"), ("a string", "strings"),
-                      ("a list", "lists"), ("a mapping", "mappings")):
+    for one in ("a number", "an integer", "a string", "a list", "a mapping"):
         if words.startswith(one):
-            return many + words[len(one):]
+            return one.split(" ")[1] + "s" + words[len(one):]
     return words
 
 
 def check_value(value, tp, path: str) -> None:
-    """Raise `ConfigError(path, ...)` unless `value` (plain: from a composed config, or what a caller passes)
-    fits the annotation `tp`: `must be <tp in words>, got <value>`, naming the innermost key or element."""
+    """`ConfigError(path, "must be <tp in words>, got <value>")` unless `value` fits the annotation `tp` (an element
+    or key inside it that does not fit: naming its own path)."""
     if not _fits(value, tp, path):
         raise ConfigError(path, f"must be {describe(tp)}, got {value!r}")
 
 
 def _fits(value, tp, path: str) -> bool:
-    """Whether `value` has the shape (and the rules) of `tp` at `path`; an element or key inside it that does not
-    fit raises, naming its own path."""
     if tp is None or tp is Any or tp is object:
         return True
     if getattr(value, "ndim", 0) >= 1 and hasattr(value, "tolist"):  # an array a caller passes: a list
         value = value.tolist()
-    origin = typing.get_origin(tp)
+    origin, args = typing.get_origin(tp), typing.get_args(tp)
     if origin is Annotated:
-        inner, *rules = typing.get_args(tp)
-        return _fits(value, inner, path) and all(r.holds(value) for r in rules if isinstance(r, RULES))
+        return _fits(value, args[0], path) and all(r.holds(value) for r in args[1:] if isinstance(r, RULES))
     if origin in (typing.Union, types.UnionType):
-        if value is None and type(None) in typing.get_args(tp):
-            return True
-        inner = None
-        for opt in typing.get_args(tp):
+        errors = []
+        for opt in args:
             try:
                 if _fits(value, opt, path):
                     return True
             except ConfigError as err:  # the value has this option's shape: the error is inside it
-                inner = inner or err
-        if inner is not None:
-            raise inner
+                errors.append(err)
+        if errors:
+            raise errors[0]
         return False
     if origin is typing.Literal:
-        return value in typing.get_args(tp)
+        return value in args
     if dataclasses.is_dataclass(tp) and isinstance(tp, type):
         return _check_dataclass(value, tp, path)
     if origin in (list, tuple, collections.abc.Sequence) or tp in (list, tuple):  # a Sequence: a list in a config
-        args = [a for a in typing.get_args(tp) if a is not Ellipsis]
+        args = [a for a in args if a is not Ellipsis]
         fixed = origin is tuple and len(args) > 1
         if not isinstance(value, list | tuple) or (fixed and len(value) != len(args)):
             return False
@@ -218,32 +209,20 @@ def _fits(value, tp, path: str) -> bool:
             check_value(v, args[i] if fixed else (args[0] if args else None), f"{path}[{i}]")
         return True
     if origin is dict or tp is dict:
-        if not isinstance(value, dict):
-            return False
-        args = typing.get_args(tp)
-        for k, v in value.items():
+        for k, v in value.items() if isinstance(value, dict) else ():
             check_value(v, args[1] if len(args) == 2 else None, f"{path}.{k}")
-        return True
-    return _scalar_ok(value, tp)
-
-
-def _scalar_ok(value, tp) -> bool:
-    if tp is type(None):
-        return value is None
+        return isinstance(value, dict)
     if tp is bool:
         return isinstance(value, bool | np.bool_)  # numpy's too
-    if tp is int:
-        return isinstance(value, numbers.Integral) and not isinstance(value, bool)
-    if tp is float:
-        return isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
-    if tp is str:
-        return isinstance(value, str)
-    if isinstance(tp, type):
-        try:
-            return isinstance(value, tp) or isinstance(value, dict)  # an object passed by the caller, or its node
-        except TypeError:  # a Protocol: not checked
-            return True
-    return True
+    if tp in (int, float):
+        return isinstance(value, numbers.Integral if tp is int else numbers.Real) and not isinstance(value, bool) \
+            and (tp is int or math.isfinite(value))
+    if tp in (str, type(None)):
+        return isinstance(value, tp)
+    try:
+        return not isinstance(tp, type) or isinstance(value, tp | dict)  # an object passed by the caller, or its node
+    except TypeError:  # a Protocol: not checked
+        return True
 
 
 def _check_dataclass(value, cls, path: str) -> bool:
@@ -258,31 +237,18 @@ def _check_dataclass(value, cls, path: str) -> bool:
         raise ConfigError(f"{path}.{unknown[0]}", f"unknown key ({cls.__name__} takes {', '.join(fields)})")
     hints = type_hints(cls)
     for name, f in fields.items():
-        if name not in value:
-            if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
-                raise ConfigError(f"{path}.{name}", f"missing ({cls.__name__} needs it)")
-            continue
-        check_value(value[name], hints.get(name), f"{path}.{name}")
+        if name in value:
+            check_value(value[name], hints.get(name), f"{path}.{name}")
+        elif f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
+            raise ConfigError(f"{path}.{name}", f"missing ({cls.__name__} needs it)")
     return True
 
 
 # ----------------------------------------------------------------------------------- objects from Python
 @functools.cache
 def type_hints(obj) -> dict:
-    """The annotations of a class (a dataclass's fields) or function, `Annotated` kept; a name that does not
-    resolve (an import for type checkers only) is not checked."""
-    try:
-        return typing.get_type_hints(obj, include_extras=True)
-    except Exception:  # noqa: BLE001 - one unresolvable name: resolve the others one by one
-        out = {}
-        target = inspect.unwrap(obj)
-        space = {**vars(sys.modules[target.__module__]), **vars(typing)}
-        for k, v in getattr(target, "__annotations__", {}).items():
-            try:
-                out[k] = eval(v, space) if isinstance(v, str) else v  # noqa: S307 - the project's own annotations
-            except Exception:  # noqa: BLE001
-                out[k] = None
-        return out
+    """The annotations of a class (a dataclass's fields) or function, `Annotated` kept."""
+    return typing.get_type_hints(obj, include_extras=True)
 
 
 def _is_object(tp) -> bool:
@@ -302,53 +268,43 @@ def check_fields(obj, prefix: str) -> None:
             check_value(getattr(obj, f.name), hints.get(f.name), f"{prefix}.{f.name}" if prefix else f.name)
 
 
-# (target's name, keywords) that `pipeline.config.build` has checked in the target's node: a value is checked
-# once, where its node is, not again by the constructor it is passed to (the target's own @checked call only)
-CHECKED_KEYWORDS: contextvars.ContextVar[tuple[str, frozenset]] = contextvars.ContextVar(
-    "checked_keywords", default=("", frozenset()))
-
-
-def _check_arguments(sig: inspect.Signature, source, prefix: str, objects, args, kwargs) -> None:
-    """The arguments of one call (bound to `sig`) against the annotations of `source` (but `objects`, and the
-    keywords the target's config node checked already: :data:`CHECKED_KEYWORDS`, consumed by this call)."""
-    target, done = CHECKED_KEYWORDS.get()
-    if target and target == getattr(source, "__qualname__", "").split(".")[0]:
-        CHECKED_KEYWORDS.set(("", frozenset()))
-        objects = (*objects, *done)
-    try:
-        bound = sig.bind(*args, **kwargs)
-    except TypeError:  # let the call itself say what is missing or unknown
-        return
-    hints = type_hints(source)
-    for name, value in bound.arguments.items():
-        tp = hints.get(name)
-        if name == "self" or name in objects or _is_object(tp) or sig.parameters[name].kind in (inspect.Parameter.VAR_POSITIONAL,
-                                                                              inspect.Parameter.VAR_KEYWORD):
-            continue
-        check_value(value, tp, f"{prefix}.{name}" if prefix else name)
+# (target, keywords) that `pipeline.config.build` has checked in the target's node: a value is checked once, where
+# its node is, not again by the constructor it is passed to (the target's own @checked call only)
+CHECKED_KEYWORDS: contextvars.ContextVar[tuple[object, frozenset]] = contextvars.ContextVar(
+    "checked_keywords", default=(None, frozenset()))
 
 
 def checked(prefix: str, objects: tuple[str, ...] = ()):
-    """Decorator of a class (its constructor) or a function: every argument is checked against its annotation
-    (types, choices, ranges, nested dataclasses) before the call runs, as the config checks the class's node;
-    errors name `<prefix>.<keyword>` (a config path re-prefixes them with the node's own,
-    `pipeline.config.build`; an empty prefix: a stage's root keys). Arguments annotated with another class (a
-    network, a plant) and those named in `objects` (a controller's scene) are objects the caller passes, the
-    callee's to check."""
+    """Decorator of a class (its constructor) or a function: every argument is checked against its annotation before
+    the call runs, errors naming `<prefix>.<keyword>` (empty prefix: a stage's root keys). Arguments annotated with
+    another class (a network, a plant) and those named in `objects` (a controller's scene) are the callee's to check."""
 
     def wrap(obj):
         fn = obj.__init__ if inspect.isclass(obj) else obj
-        sig = inspect.signature(fn)
-        source = obj if dataclasses.is_dataclass(obj) else fn
+        sig, source = inspect.signature(fn), obj if dataclasses.is_dataclass(obj) else fn
 
         @functools.wraps(fn)
         def call(*args, **kwargs):
-            _check_arguments(sig, source, prefix, objects, args, kwargs)
+            target, done = CHECKED_KEYWORDS.get()
+            if target is not None and target is built:  # the build's own call: its node's values are checked
+                CHECKED_KEYWORDS.set((None, frozenset()))
+            else:
+                done = ()
+            try:
+                bound = sig.bind(*args, **kwargs).arguments
+            except TypeError:  # the call itself says what is missing or unknown
+                bound = {}
+            hints = type_hints(source)
+            for name, value in bound.items():
+                kind = sig.parameters[name].kind
+                if not (name == "self" or name in objects or name in done or _is_object(hints.get(name))
+                        or kind in (kind.VAR_POSITIONAL, kind.VAR_KEYWORD)):
+                    check_value(value, hints.get(name), f"{prefix}.{name}" if prefix else name)
             return fn(*args, **kwargs)
 
-        if not inspect.isclass(obj):
-            return call
-        obj.__init__ = call
-        return obj
+        built = obj if inspect.isclass(obj) else call  # what a config's `_target_` names
+        if inspect.isclass(obj):
+            obj.__init__ = call
+        return built
 
     return wrap

@@ -93,3 +93,20 @@ def test_a_data_run_checks_its_occlusion_level_at_most_three_times(monkeypatch, 
                       lambda path: path in ("occlusions.heavy_mix.probability", "occlusion.probability"))
     assert any(tmp_path.glob("occluded-*")), "the run did not render"
     assert 1 <= n <= 3, f"the level checked {n} times"
+
+
+def test_a_build_lets_only_its_own_target_skip_the_checks_of_its_node(tmp_path, monkeypatch):
+    """The keys `build` checked in a node are skipped by that target's constructor only (by identity; before: by
+    class name, so a namesake the target builds inside skipped its own checks)."""
+    from pipeline.config import build
+
+    (tmp_path / "namesakes_b.py").write_text(
+        "from pipeline.schema import Positive, checked\n\n\n@checked('inner')\nclass Part:\n"
+        "    def __init__(self, size: Positive = 1.0):\n        self.size = size\n")
+    (tmp_path / "namesakes_a.py").write_text(
+        "import namesakes_b\n\n\nclass Part:\n    def __init__(self, size: float = 1.0):\n"
+        "        self.inner = namesakes_b.Part(size=size)\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    assert build({"_target_": "namesakes_a.Part", "size": 2.0}, "part").inner.size == 2.0
+    with pytest.raises(ConfigError, match="size: must be a number > 0"):
+        build({"_target_": "namesakes_a.Part", "size": -1.0}, "part")

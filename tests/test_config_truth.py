@@ -248,9 +248,8 @@ def test_every_key_of_every_target_node_is_checked(config, overrides):
 
     from omegaconf import OmegaConf
 
-    from pipeline.config import META_KEYS, _plain_value, _walk, check_schema
+    from pipeline.config import META_KEYS, _plain_value, _walk, check_schema, signature
     from pipeline.schema import check_value
-    from pipeline.signatures import signature
 
     cfg = compose(config, overrides)
     nodes = [(p, n) for p, n in _walk(cfg) if isinstance(n.get("_target_"), str)]
@@ -265,8 +264,8 @@ def test_every_key_of_every_target_node_is_checked(config, overrides):
             n_values += _NODES_CHECKED[seen]
             continue
         checked_before = n_values
-        sig = signature(node["_target_"])
-        assert sig is not None and not sig.any_keyword, path
+        params = signature(node["_target_"])
+        assert params is not None, path  # neither `**kwargs` nor unreadable: every key is checked
         bad = copy.deepcopy(cfg)
         _set(bad, f"{path}.not_a_keyword", 1)
         with pytest.raises(ConfigError) as err:
@@ -274,10 +273,10 @@ def test_every_key_of_every_target_node_is_checked(config, overrides):
         assert err.value.field == f"{path}.not_a_keyword" and "unknown key" in err.value.reason, str(err.value)
         for key in node.keys():
             value = _plain_value(node, key)  # `...`: a `${hydra:...}` value, resolved in a run only
-            if key in META_KEYS or sig.params.get(key) is None or value is ... or (
+            if key in META_KEYS or params.get(key) is None or value is ... or (
                     isinstance(value, dict) and "_target_" in value):
                 continue
-            for where, tp in _leaves(value, sig.params[key], f"{path}.{key}"):
+            for where, tp in _leaves(value, params[key], f"{path}.{key}"):
                 wrong = next((w for w in WRONG if _rejects(check_value, w, tp)), None)
                 if wrong is None:
                     continue  # the annotation accepts anything
@@ -294,6 +293,56 @@ def test_every_key_of_every_target_node_is_checked(config, overrides):
 # (path, resolved values) -> values checked: most nodes (controller, scene, sim, camera ...) are the same in many
 # composed configs; each distinct one is checked once per test process, in whichever config meets it first
 _NODES_CHECKED: dict[tuple[str, str], int] = {}
+
+
+def _conf_targets() -> list[str]:
+    import re
+
+    return sorted({m for f in CONF_DIR.rglob("*.yaml") for m in re.findall(r"_target_:\s*([\w.]+)", f.read_text())})
+
+
+def test_a_signature_read_from_source_is_the_imported_one():
+    """The targets in modules that import torch are read from source (a config error answers before torch): for each,
+    the keywords and their annotations are those `inspect` and `typing` give on the imported target."""
+    import dataclasses
+    import importlib
+    import inspect
+    import typing
+
+    from pipeline.config import TORCH_MODULES, signature
+
+    read = [t for t in _conf_targets() if t.rpartition(".")[0] in TORCH_MODULES]
+    assert {t.rpartition(".")[0] for t in read} == set(TORCH_MODULES)  # none listed that no config names
+    for target in read:
+        module, _, name = target.rpartition(".")
+        obj = getattr(importlib.import_module(module), name)
+        params = inspect.signature(obj).parameters.values()
+        hints = typing.get_type_hints(obj if dataclasses.is_dataclass(obj) else obj.__init__, include_extras=True)
+        assert not any(p.kind is p.VAR_KEYWORD for p in params), target  # (signature: None, its keys unchecked)
+        assert signature(target) == {p.name: hints.get(p.name) for p in params if p.kind is not p.VAR_POSITIONAL}, \
+            target
+
+
+def test_every_other_target_imports_without_torch():
+    """A project target outside `TORCH_MODULES` is imported to read its signature: it must not import torch."""
+    from pipeline.config import TORCH_MODULES
+
+    modules = sorted({t.rpartition(".")[0] for t in _conf_targets()
+                      if t.startswith("pipeline.") and t.rpartition(".")[0] not in TORCH_MODULES})
+    code = f"import importlib, sys; [importlib.import_module(m) for m in {modules!r}]; print('torch' in sys.modules)"
+    proc = subprocess.run([sys.executable, "-c", code], cwd=REPO_ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.stdout.strip() == "False", proc.stderr[-2000:]
+
+
+def test_an_annotation_read_from_source_that_does_not_evaluate_is_an_error_not_unchecked():
+    """Before: an annotation outside the names of `pipeline.schema` and `typing` was silently left unchecked."""
+    import ast
+
+    from pipeline.config import _annotation
+
+    assert _annotation("m.T", ast.arg("lr", ast.parse("Positive", mode="eval").body)) is not None
+    with pytest.raises(TypeError, match="m.T: the annotation of 'lr'"):
+        _annotation("m.T", ast.arg("lr", ast.parse("SomeAlias", mode="eval").body))
 
 
 def _rejects(check_value, value, tp) -> bool:
