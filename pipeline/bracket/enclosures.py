@@ -25,7 +25,7 @@ import math
 import numpy as np
 
 BIG = 1e9
-J = 32  # directions of the support function (multiples of 22.5°: the world axes and the diagonals among them)
+J = 32  # directions of the support function (multiples of 11.25°: the world axes and the diagonals among them)
 
 
 def directions(n: int = J) -> np.ndarray:

@@ -27,14 +27,10 @@ def rates(ab: Abstraction, period: float, p_T: np.ndarray) -> tuple[np.ndarray, 
     U = ab.U.reshape(-1, J)
     W = np.stack([np.cos(2 * np.pi * np.arange(RATE_DIRS) / RATE_DIRS),
                   np.sin(2 * np.pi * np.arange(RATE_DIRS) / RATE_DIRS)], axis=1)
-    dir_ok = np.zeros((len(U), RATE_DIRS), bool)
-    on_grid = RATE_DIRS // J
-    finite = np.where(np.isfinite(U), U, -1.0)  # a node without inputs (-inf): every direction decreases
-    for k, w in enumerate(W):
-        if k % on_grid == 0:
-            dir_ok[:, k] = U[:, k // on_grid] < 0
-        else:
-            dir_ok[:, k] = support_at(finite, np.broadcast_to(w, (len(U), 2))) < 0
+    C = support_at(np.eye(J)[:, None, :], W)  # (J, RATE_DIRS): w_k's bound a h_j + b h_{j+1} as a linear map of h
+    with np.errstate(invalid="ignore"):  # (a +inf support times a zero coefficient: nan, not decreasing)
+        dir_ok = np.where(np.isneginf(U), -1.0, U) @ C < 0  # a node without inputs (-inf): every direction decreases
+    dir_ok[:, :: RATE_DIRS // J] = U < 0  # the support directions themselves, exactly
     boxes = np.repeat(ab.grid.boxes(), ab.modes, axis=0)
     r = np.maximum(U, 0).max(axis=1) / np.cos(np.pi / J)  # |u| <= r
     worst = np.full(len(U), -np.inf)
