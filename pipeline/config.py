@@ -1,16 +1,13 @@
 """Config is the single source of truth: every node names its `_target_`, whose typed signature is its schema.
 
 :func:`check_schema` (run by :func:`compose`): every key of a `_target_` node must be a keyword of its target (no
-`**kwargs` swallowing typos) and every value must fit the keyword's annotation (:mod:`pipeline.schema`). A target's
-:func:`signature` is read from its source where importing it would load torch (a config error answers before torch),
-its annotations evaluated among the names of :mod:`pipeline.schema` and :mod:`typing`: one that does not evaluate is
-an error (`test_config_truth` compares each with the imported signature). :func:`build` instantiates a node; a value
-its constructor rejects (a range, a cross-field rule) is a :class:`ConfigError` naming the node's path.
+`**kwargs` swallowing typos) and every value must fit the keyword's annotation (:mod:`pipeline.schema`).
+:func:`build` instantiates a node; a value its constructor rejects (a range, a cross-field rule) is a
+:class:`ConfigError` naming the node's path.
 """
 from __future__ import annotations
 
 import ast
-import collections.abc
 import dataclasses
 import functools
 import importlib
@@ -18,21 +15,16 @@ import importlib.util
 import inspect
 import re
 import tempfile
-import typing
 from collections.abc import Iterable
 from pathlib import Path
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from pipeline import schema
 from pipeline.errors import ConfigError, PipelineError
 from pipeline.repo import CONF_DIR, REPO_ROOT
 from pipeline.schema import CHECKED_KEYWORDS, check_value, type_hints
 
 META_KEYS = {"_target_", "_partial_", "_convert_", "_recursive_", "_args_", "name"}
-TORCH_MODULES = ("pipeline.perception.network", "pipeline.train.datamodule", "pipeline.train.certified",
-                 "pipeline.train.callbacks", "pipeline.learned.network", "pipeline.learned.ppo")
-NAMES = {**vars(typing), **vars(schema), "Sequence": collections.abc.Sequence}
 if not OmegaConf.has_resolver("repo_root"):
     OmegaConf.register_new_resolver("repo_root", lambda: str(REPO_ROOT))
 
@@ -47,10 +39,13 @@ def resolve(ref: str):
 @functools.cache
 def signature(target: str) -> dict | None:
     """Keyword -> annotation (None: the target checks it) of `target` (a dotted path); None where the keys cannot be
-    checked: it takes `**kwargs`, or it is another package's whose source (a plugin not installed) is not found."""
+    checked: it takes `**kwargs`, or it is another package's whose source (a plugin not installed) is not found. A
+    target of this project is imported (none imports torch: a torch class takes a typed spec, e.g.
+    :class:`pipeline.perception.spec.MapSpec`); another package's keys are read from its source (Lightning's
+    import would load torch before a config error could answer)."""
     module, _, name = target.rpartition(".")
-    if module.split(".")[0] != "pipeline" or module in TORCH_MODULES:
-        return _from_source(module, name, own=module.split(".")[0] == "pipeline")
+    if module.split(".")[0] != "pipeline":
+        return _keys_from_source(module, name)
     try:
         obj = getattr(importlib.import_module(module), name)
     except Exception as err:  # noqa: BLE001 - any import problem is the config's fault
@@ -61,53 +56,27 @@ def signature(target: str) -> dict | None:
         {p.name: hints.get(p.name) for p in every if p.kind is not p.VAR_POSITIONAL}
 
 
-def _file(module: str) -> Path | None:
-    """The source file of `module`, found without importing it (nor its parent packages)."""
+def _keys_from_source(module: str, name: str, depth: int = 0) -> dict | None:
+    """The keywords of another package's `module.name` (their values are its constructor's to check), read from its
+    source without importing it, following `from X import name` re-exports."""
     top, *rest = module.split(".")
-    spec = importlib.util.find_spec(top)
-    if spec is None or not spec.submodule_search_locations:
-        return Path(spec.origin) if spec is not None and spec.origin and not rest else None
-    base = Path(next(iter(spec.submodule_search_locations))).joinpath(*rest)
-    return next((c for c in (base / "__init__.py", base.with_suffix(".py")) if c.is_file()), None)
-
-
-def _from_source(module: str, name: str, own: bool, depth: int = 0) -> dict | None:
-    """The keywords of `module.name` read from its source, following `from X import name` re-exports."""
-    path = _file(module) if depth < 8 else None
+    spec = importlib.util.find_spec(top) if depth < 8 else None
+    base = Path(next(iter(spec.submodule_search_locations))).joinpath(*rest) \
+        if spec is not None and spec.submodule_search_locations else None
+    path = next((c for c in (base / "__init__.py", base.with_suffix(".py")) if c.is_file()), None) if base else None
     for node in ast.parse(path.read_text()).body if path else ():
         if isinstance(node, ast.ImportFrom) and any((a.asname or a.name) == name for a in node.names):
             package = module.split(".")[: None if path.name == "__init__.py" else -1]
-            base = package[: len(package) - node.level + 1] if node.level else []
+            where = package[: len(package) - node.level + 1] if node.level else []
             real = next(a.name for a in node.names if (a.asname or a.name) == name)
-            return _from_source(".".join(p for p in (*base, node.module) if p), real, own, depth + 1)
-        if not (isinstance(node, ast.ClassDef | ast.FunctionDef) and node.name == name):
-            continue
-        init = node if isinstance(node, ast.FunctionDef) else \
-            next((b for b in node.body if isinstance(b, ast.FunctionDef) and b.name == "__init__"), None)
-        if init is None and "dataclass" in ast.unparse(node.decorator_list):  # its fields are its keywords
-            fields = [ast.arg(b.target.id, b.annotation) for b in node.body
-                      if isinstance(b, ast.AnnAssign) and isinstance(b.target, ast.Name)]
-            init = ast.FunctionDef(name, ast.arguments([], fields, None, [], [], None, []), [], [])
-        if init is None or init.args.kwarg is not None:
-            return None
-        a = init.args
-        return {x.arg: _annotation(f"{module}.{name}", x) if own else None
-                for x in (*a.posonlyargs, *a.args, *a.kwonlyargs) if x.arg != "self"}
-    if own:
-        raise ConfigError("_target_", f"cannot find {module}.{name}")
+            return _keys_from_source(".".join(p for p in (*where, node.module) if p), real, depth + 1)
+        if isinstance(node, ast.ClassDef | ast.FunctionDef) and node.name == name:
+            init = node if isinstance(node, ast.FunctionDef) else \
+                next((b for b in node.body if isinstance(b, ast.FunctionDef) and b.name == "__init__"), None)
+            a = init.args if init is not None else None
+            return None if a is None or a.kwarg is not None else \
+                {x.arg: None for x in (*a.posonlyargs, *a.args, *a.kwonlyargs) if x.arg != "self"}
     return None  # a plugin not installed: Hydra says so when it builds the node
-
-
-def _annotation(target: str, arg: ast.arg):
-    """The annotation of a keyword from source, evaluated among :data:`NAMES`; one that does not is an error."""
-    node = arg.annotation
-    if isinstance(node, ast.Constant) and isinstance(node.value, str):  # a quoted annotation
-        node = ast.parse(node.value, mode="eval").body
-    try:
-        return eval(ast.unparse(node), dict(NAMES)) if node is not None else None  # noqa: S307 - the project's source
-    except Exception as err:  # noqa: BLE001
-        raise TypeError(f"{target}: the annotation of {arg.arg!r} ({ast.unparse(node)}) is not made of the names "
-                        f"of pipeline.schema and typing: it cannot be checked without importing torch") from err
 
 
 # ----------------------------------------------------------------------------------------- schema

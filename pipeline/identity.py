@@ -25,7 +25,7 @@ def dataset_code(recipe: Mapping) -> tuple[str, ...]:
     sampling = recipe.get("sampling") or {}
     if sampling.get("mode") != "closed_loop":
         return DATASET_CODE
-    with_map = ("perception/measure", "perception/maps", "perception/network", "perception/heading",
+    with_map = ("perception/measure", "perception/maps", "perception/network", "perception/spec", "perception/heading",
                 "perception/keypoint") \
         if (sampling.get("closed_loop") or {}).get("map") else ()
     return DATASET_CODE + ("data/closed_loop", "sim", "hybrid", "control", "plants", *with_map)
@@ -56,7 +56,7 @@ PLACEMENT_KEYS = ("_target_", "accelerator", "strategy", "devices", "num_nodes",
 DATAMODULE_SPEED_KEYS = ("_target_", "eval_batch_size", "num_workers", "pin_memory")
 # Callbacks that change the saved weights, and which of their arguments do (None = all).
 WEIGHT_CALLBACKS = {"ModelCheckpoint": ("monitor", "mode"), "EarlyStopping": None}
-MAP_CODE = ("train", "perception/network", "perception/heading", "perception/keypoint")
+MAP_CODE = ("train", "perception/network", "perception/spec", "perception/heading", "perception/keypoint")
 
 
 def map_name(dataset_name: str, model_cfg: Mapping, override: str | None) -> str:
@@ -118,7 +118,7 @@ def errormap_id(settings: Mapping, occlusions: Mapping, map_id: str, scene: Mapp
 
 # --------------------------------------------------------------------------------------- certified maps
 CERTIFY_VOLATILE = ("force", "progress", "paths", "hydra", "maps", "debug", "threads")
-CERTIFY_CODE = ("certify", "render", "perception/network", "perception/maps", "errormap/analysis",
+CERTIFY_CODE = ("certify", "render", "perception/network", "perception/spec", "perception/maps", "errormap/analysis",
                 "errormap/estimates", "control")
 
 

@@ -141,7 +141,7 @@ def test_pixel_attack_through_the_folded_perception_net(camera, positions):
     from pipeline.perception.network import FoldedPerceptionNet, PerceptionMap
 
     torch.manual_seed(0)
-    model = PerceptionMap(filters=[4, 8], batch_norm=True, coord_channels=True)
+    model = PerceptionMap.of(filters=[4, 8], batch_norm=True, coord_channels=True)
     folded = FoldedPerceptionNet(model.eval())
     imgs = camera.render(positions)
     d = directions(positions)

@@ -19,7 +19,8 @@ from pipeline.cli import REPO_ROOT, compose
 from pipeline.errors import ConfigError
 from pipeline.perception.network import PerceptionMap
 from pipeline.render import Camera
-from pipeline.train.certified import CertifiedTerm, CertifiedTraining
+from pipeline.train.certified import CertifiedTerm
+from pipeline.train.settings import CertifiedTraining
 
 SCENE = SimpleNamespace(obstacle_center=(0.0, 0.0), obstacle_radius=4.0, target=(40.0, 0.0))
 
@@ -57,7 +58,7 @@ def _batch(camera, n, seed):
 
 def _model(seed=0):
     torch.manual_seed(seed)
-    return PerceptionMap(filters=(4, 8, 8), uncertainty="none", dropout=0.0, schedule="constant", lr=3e-3)
+    return PerceptionMap.of(filters=(4, 8, 8), uncertainty="none", dropout=0.0, schedule="constant", lr=3e-3)
 
 
 def test_off_by_default_leaves_the_loss_identical(camera):

@@ -57,7 +57,7 @@ def _errors(model, camera, p):
 
 def _amplified(seed, filters=(4, 8, 8), gain=8.0):
     torch.manual_seed(seed)
-    m = PerceptionMap(filters=filters, uncertainty="none", clamp=False).eval()
+    m = PerceptionMap.of(filters=filters, uncertainty="none", clamp=False).eval()
     with torch.no_grad():
         for mod in m.modules():
             if isinstance(mod, torch.nn.BatchNorm2d):
@@ -74,7 +74,7 @@ def _amplified(seed, filters=(4, 8, 8), gain=8.0):
 def trained(camera):
     """A small map fitted for a few seconds (errors of a few units, ReLUs that switch with the robot)."""
     torch.manual_seed(0)
-    return _fit(PerceptionMap(filters=(4, 8, 8), uncertainty="none", dropout=0.0), camera, 0, 150)
+    return _fit(PerceptionMap.of(filters=(4, 8, 8), uncertainty="none", dropout=0.0), camera, 0, 150)
 
 
 def _fit(m, camera, seed: int, steps: int):
@@ -311,7 +311,7 @@ def test_softmax_mean_max_is_the_maximum_over_the_box():
 
 def _keypoint_map(seed: int, trained_on=None, camera=None):
     torch.manual_seed(seed)
-    m = PerceptionMap(filters=(4, 8, 8), uncertainty="none", dropout=0.0, position_head="keypoint", clamp=False)
+    m = PerceptionMap.of(filters=(4, 8, 8), uncertainty="none", dropout=0.0, position_head="keypoint", clamp=False)
     if trained_on is None:
         with torch.no_grad():
             m.features[0].weight.mul_(4.0)

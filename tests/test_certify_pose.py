@@ -48,7 +48,7 @@ def _samples(rng, c, h, m):
 
 def _pose_map(seed, gain=4.0):
     torch.manual_seed(seed)
-    m = PerceptionMap(filters=(4, 8, 8), uncertainty="none", clamp=False, position_head="keypoint", outputs="pose",
+    m = PerceptionMap.of(filters=(4, 8, 8), uncertainty="none", clamp=False, position_head="keypoint", outputs="pose",
                       heading_head="attention").eval()
     with torch.no_grad():
         m.features[0].weight.mul_(gain)  # many ReLUs that switch with the marker
@@ -149,6 +149,6 @@ def test_pose_cells_split_with_their_heading_and_sample_inside(camera):
 
 def test_parts_the_bound_does_not_cover_are_refused(camera):
     with pytest.raises(ConfigError, match="attention heading head"):
-        prepare(PerceptionMap(outputs="pose", uncertainty="none", filters=(4, 8, 8)).eval(), camera)  # pooled heading
+        prepare(PerceptionMap.of(outputs="pose", uncertainty="none", filters=(4, 8, 8)).eval(), camera)  # pooled heading
     with pytest.raises(ValueError, match="heading interval"):
         certified_error_bound(prepare(_pose_map(1), camera), torch.zeros(2, 4), "ibp")

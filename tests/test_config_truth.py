@@ -301,48 +301,47 @@ def _conf_targets() -> list[str]:
     return sorted({m for f in CONF_DIR.rglob("*.yaml") for m in re.findall(r"_target_:\s*([\w.]+)", f.read_text())})
 
 
-def test_a_signature_read_from_source_is_the_imported_one():
-    """The targets in modules that import torch are read from source (a config error answers before torch): for each,
-    the keywords and their annotations are those `inspect` and `typing` give on the imported target."""
-    import dataclasses
-    import importlib
-    import inspect
-    import typing
-
-    from pipeline.config import TORCH_MODULES, signature
-
-    read = [t for t in _conf_targets() if t.rpartition(".")[0] in TORCH_MODULES]
-    assert {t.rpartition(".")[0] for t in read} == set(TORCH_MODULES)  # none listed that no config names
-    for target in read:
-        module, _, name = target.rpartition(".")
-        obj = getattr(importlib.import_module(module), name)
-        params = inspect.signature(obj).parameters.values()
-        hints = typing.get_type_hints(obj if dataclasses.is_dataclass(obj) else obj.__init__, include_extras=True)
-        assert not any(p.kind is p.VAR_KEYWORD for p in params), target  # (signature: None, its keys unchecked)
-        assert signature(target) == {p.name: hints.get(p.name) for p in params if p.kind is not p.VAR_POSITIONAL}, \
-            target
-
-
-def test_every_other_target_imports_without_torch():
-    """A project target outside `TORCH_MODULES` is imported to read its signature: it must not import torch."""
-    from pipeline.config import TORCH_MODULES
-
-    modules = sorted({t.rpartition(".")[0] for t in _conf_targets()
-                      if t.startswith("pipeline.") and t.rpartition(".")[0] not in TORCH_MODULES})
+def test_every_project_target_imports_without_torch():
+    """Every target of this project is imported to read its signature (no source parsing): none may import torch.
+    A torch class takes a typed spec instead (`MapSpec`, `DataModuleSpec`, `PolicySpec`), so its node is checked
+    like any other before torch loads. Before, six torch modules were named targets, read from their source text."""
+    modules = sorted({t.rpartition(".")[0] for t in _conf_targets() if t.startswith("pipeline.")})
     code = f"import importlib, sys; [importlib.import_module(m) for m in {modules!r}]; print('torch' in sys.modules)"
     proc = subprocess.run([sys.executable, "-c", code], cwd=REPO_ROOT, capture_output=True, text=True, timeout=300)
     assert proc.stdout.strip() == "False", proc.stderr[-2000:]
 
 
-def test_an_annotation_read_from_source_that_does_not_evaluate_is_an_error_not_unchecked():
-    """Before: an annotation outside the names of `pipeline.schema` and `typing` was silently left unchecked."""
-    import ast
+def test_a_torch_class_takes_its_spec_and_saves_its_fields():
+    """The network of a spec keeps the spec's fields as its hyperparameters, so a saved map (or policy) is rebuilt
+    from them with the same layers; a bad value is one error naming the key, checked by the spec."""
+    import dataclasses
 
-    from pipeline.config import _annotation
+    import torch
 
-    assert _annotation("m.T", ast.arg("lr", ast.parse("Positive", mode="eval").body)) is not None
-    with pytest.raises(TypeError, match="m.T: the annotation of 'lr'"):
-        _annotation("m.T", ast.arg("lr", ast.parse("SomeAlias", mode="eval").body))
+    from pipeline.learned.network import VelocityPolicy
+    from pipeline.learned.spec import PolicySpec
+    from pipeline.perception.network import PerceptionMap
+    from pipeline.perception.spec import MapSpec
+
+    for cls, spec in ((PerceptionMap, MapSpec(filters=(4, 8), position_head="keypoint")),
+                      (VelocityPolicy, PolicySpec(filters=(4, 8), hidden=8))):
+        torch.manual_seed(0)
+        net = cls(spec)
+        assert dict(net.hparams) == dataclasses.asdict(spec)
+        torch.manual_seed(0)
+        again = cls.of(**net.hparams)
+        assert all(torch.equal(a, b) for a, b in zip(net.state_dict().values(), again.state_dict().values()))
+    with pytest.raises(ConfigError, match="model.position_head"):  # checked by the spec
+        PerceptionMap.of(position_head="grid")
+
+
+def test_another_packages_keys_are_read_without_importing_it():
+    """Lightning's targets: their keys from source (its import loads torch), followed through re-exports."""
+    code = ("import sys; from pipeline.config import signature; s = signature('lightning.Trainer'); "
+            "print('max_epochs' in s, 'dirpath' in signature('lightning.pytorch.callbacks.ModelCheckpoint'), "
+            "'torch' in sys.modules)")
+    proc = subprocess.run([sys.executable, "-c", code], cwd=REPO_ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.stdout.split() == ["True", "True", "False"], proc.stderr[-2000:]
 
 
 def _rejects(check_value, value, tp) -> bool:

@@ -116,10 +116,11 @@ def test_every_bench_module_imports_and_the_error_map_predictor_gives_positions(
 def test_bench_trains_the_default_map_with_its_uncertainty_head():
     """`make bench` crashed: the default map has four outputs (position + variance), the loss took them all."""
     from pipeline.config import build
+    from pipeline.perception.network import PerceptionMap
     from pipeline.train.bench import _data, raw_loop
 
     images, pos = _data(16)
-    assert raw_loop(build(compose("train").model, "model"), images, pos, batch=8, steps=1) > 0
+    assert raw_loop(PerceptionMap(build(compose("train").model, "model")), images, pos, batch=8, steps=1) > 0
 
 
 def test_every_bench_area_imports_and_its_maps_predict_positions():
@@ -141,6 +142,8 @@ def test_every_bench_area_imports_and_its_maps_predict_positions():
 
 @pytest.mark.parametrize("module,args,field", [
     ("pipeline.train", ["trainer.max_epochs=0"], "trainer.max_epochs"),
+    ("pipeline.train", ["+trainer.max_epoch=3"], "trainer.max_epoch"),  # Lightning's keys, read from its source
+    ("pipeline.train", ["model.position_head=grid"], "model.position_head"),  # the map's spec, imported
     ("pipeline.errormap", ["grid.step=-1"], "grid.step"),
     ("pipeline.experiments", ["experiment=robustness_sweep", "scale=-1"], "scale"),
     ("pipeline.data", ["data.seed=-1"], "data.seed"),

@@ -46,7 +46,7 @@ def _model(**kw):
     from pipeline.perception.network import PerceptionMap
 
     torch.manual_seed(0)
-    model = PerceptionMap(position_head="keypoint", filters=[4, 8, 8], **kw)
+    model = PerceptionMap.of(position_head="keypoint", filters=[4, 8, 8], **kw)
     for m in model.modules():
         if isinstance(m, torch.nn.BatchNorm2d):  # non-trivial running statistics
             m.running_mean.uniform_(-0.2, 0.2)
@@ -86,17 +86,18 @@ def test_the_heading_head_must_match_the_position_head(position, heading):
     from pipeline.perception.network import PerceptionMap
 
     with pytest.raises(ConfigError, match="model.heading_head"):
-        PerceptionMap(outputs="pose", position_head=position, heading_head=heading, uncertainty="none")
-    PerceptionMap(outputs="position", position_head=position, heading_head=heading)  # a position map reads none
+        PerceptionMap.of(outputs="pose", position_head=position, heading_head=heading, uncertainty="none")
+    PerceptionMap.of(outputs="position", position_head=position, heading_head=heading)  # a position map reads none
 
 
 def test_the_pose_and_keypoint_configs_compose_to_keypoint_maps():
     from pipeline.config import build
+    from pipeline.perception.network import PerceptionMap
 
     for name, pose in (("keypoint", False), ("pose", True)):
-        model = build(compose("train", ["data=unicycle", f"model={name}"]).model, "model")
+        model = PerceptionMap(build(compose("train", ["data=unicycle", f"model={name}"]).model, "model"))
         assert model.keypoint and model.pose == pose
-    assert not build(compose("train", []).model, "model").keypoint  # the paper's maps keep the flat head
+    assert not PerceptionMap(build(compose("train", []).model, "model")).keypoint  # the paper's maps keep the flat head
 
 
 def test_the_keypoint_head_learns_sub_pixel_positions_where_the_flat_head_does_not_yet():
@@ -114,7 +115,7 @@ def test_the_keypoint_head_learns_sub_pixel_positions_where_the_flat_head_does_n
     mae = {}
     for head in ("keypoint", "flat"):
         torch.manual_seed(0)
-        model = PerceptionMap(position_head=head, uncertainty="none", filters=[8, 16, 32])
+        model = PerceptionMap.of(position_head=head, uncertainty="none", filters=[8, 16, 32])
         opt = torch.optim.Adam(model.parameters(), lr=3e-3)
         model.train()
         for _ in range(6):

@@ -60,7 +60,7 @@ def test_each_modes_flow_passes_the_obstacle_on_its_own_side():
 
 def _tiny_model(seed=0):
     torch.manual_seed(seed)
-    return VelocityPolicy(filters=(4, 8, 8), hidden=8, u_max=10.0)
+    return VelocityPolicy.of(filters=(4, 8, 8), hidden=8, u_max=10.0)
 
 
 def test_policy_network_masks_the_loss_of_heads_without_labels():
@@ -193,8 +193,8 @@ def test_trunk_from_a_perception_map_is_copied_and_stays_frozen():
     """`load_trunk` copies the map's blocks; with `freeze_trunk` a training step changes the head only."""
     from pipeline.perception.network import PerceptionMap
 
-    pm = PerceptionMap(filters=(4, 8, 8), uncertainty="none")
-    model = VelocityPolicy(filters=(4, 8, 8), hidden=8, freeze_trunk=True)
+    pm = PerceptionMap.of(filters=(4, 8, 8), uncertainty="none")
+    model = VelocityPolicy.of(filters=(4, 8, 8), hidden=8, freeze_trunk=True)
     model.load_trunk(pm)
     for a, b in zip(model.features.state_dict().values(), pm.features.state_dict().values()):
         assert torch.equal(a, b)
@@ -254,8 +254,8 @@ def test_a_policy_reading_the_keypoint_copies_the_maps_head_and_is_its_position_
     from pipeline.perception.network import PerceptionMap
 
     torch.manual_seed(0)
-    pm = PerceptionMap(filters=(4, 8, 8), position_head="keypoint", uncertainty="none").eval()
-    model = VelocityPolicy(filters=(4, 8, 8), hidden=8, freeze_trunk=True, reads="keypoint")
+    pm = PerceptionMap.of(filters=(4, 8, 8), position_head="keypoint", uncertainty="none").eval()
+    model = VelocityPolicy.of(filters=(4, 8, 8), hidden=8, freeze_trunk=True, reads="keypoint")
     model.load_trunk(pm)
     for a, b in zip(model.keypoint.state_dict().values(), pm.head.state_dict().values()):
         assert torch.equal(a, b)
@@ -265,8 +265,8 @@ def test_a_policy_reading_the_keypoint_copies_the_maps_head_and_is_its_position_
     z = pm.position_outputs(pm.prepare(images))
     np.testing.assert_allclose(model.normalised(images).reshape(4, -1).detach(), model.head(z).detach(), atol=1e-5)
     with pytest.raises(ConfigError, match="model.reads"):
-        VelocityPolicy(filters=(4, 8, 8), hidden=8, reads="keypoint").load_trunk(
-            PerceptionMap(filters=(4, 8, 8), uncertainty="none"))
+        VelocityPolicy.of(filters=(4, 8, 8), hidden=8, reads="keypoint").load_trunk(
+            PerceptionMap.of(filters=(4, 8, 8), uncertainty="none"))
 
 
 def test_worst_cloud_on_a_policy_picks_for_each_live_agent_the_cloud_its_network_likes_least():

@@ -227,7 +227,7 @@ def _pose_map(**kw):
     from pipeline.perception.network import PerceptionMap
 
     torch.manual_seed(0)
-    model = PerceptionMap(outputs="pose", uncertainty="none", **kw)
+    model = PerceptionMap.of(outputs="pose", uncertainty="none", **kw)
     for m in model.modules():
         if isinstance(m, torch.nn.BatchNorm2d):  # non-trivial running statistics
             m.running_mean.uniform_(-0.2, 0.2)
@@ -276,7 +276,7 @@ def test_pose_model_bad_keys():
     for kw, field in (({"heading_head": "conv"}, "model.heading_head"), ({"heading_hidden": 0}, "model.heading_hidden"),
                       ({"heading_weight": 0.0}, "model.heading_weight")):
         with pytest.raises(ConfigError, match=field):
-            PerceptionMap(outputs="pose", **kw)
+            PerceptionMap.of(outputs="pose", **kw)
 
 
 # ---------------------------------------------------------------- the unicycle in the experiments Context

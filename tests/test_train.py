@@ -119,7 +119,7 @@ def test_wrong_image_shape_is_a_model_error(tiny):
     from pipeline.perception.maps import PerceptionMapPredictor
     from pipeline.perception.network import PerceptionMap
 
-    pm = PerceptionMapPredictor(PerceptionMap())
+    pm = PerceptionMapPredictor(PerceptionMap.of())
     assert pm.predict(np.zeros((3, 60, 100, 3), np.uint8)).shape == (3, 2)
     with pytest.raises(ModelError, match="image shape"):
         pm.predict(np.zeros((3, 64, 64, 3), np.uint8))

@@ -89,7 +89,7 @@ def _random_map(**kw):
     from pipeline.perception.network import PerceptionMap
 
     torch.manual_seed(0)
-    model = PerceptionMap(**kw)
+    model = PerceptionMap.of(**kw)
     for m in model.modules():  # non-trivial BatchNorm statistics, as after training
         if isinstance(m, torch.nn.BatchNorm2d):
             m.running_mean.uniform_(-0.2, 0.2)
@@ -280,6 +280,7 @@ def test_the_epoch_validation_reads_the_first_limit_val_samples():
     """`limit_val_samples` caps the per-epoch validation at the split's first N images (the rest of the split is
     for calibration); the training and test splits are untouched."""
     from pipeline.train.datamodule import PerceptionDataModule
+    from pipeline.train.settings import DataModuleSpec
 
     class Split:
         def __init__(self, n):
@@ -291,7 +292,7 @@ def test_the_epoch_validation_reads_the_first_limit_val_samples():
         def positions(self, name):
             return np.arange(2 * self.sizes[name], dtype=np.float32).reshape(-1, 2)
 
-    dm = PerceptionDataModule(Split(100), batch_size=8, limit_val_samples=30, eval_batch_size=16)
+    dm = PerceptionDataModule(DataModuleSpec(batch_size=8, limit_val_samples=30, eval_batch_size=16), Split(100))
     seen = np.concatenate([pos.numpy() for _, pos in dm.val_dataloader()])
     np.testing.assert_array_equal(seen, Split(100).positions("val")[:30])
     assert sum(len(pos) for _, pos in dm.test_dataloader()) == 100

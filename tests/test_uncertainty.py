@@ -54,7 +54,7 @@ def test_gaussian_head_learns_the_known_noise_and_calibrates():
     torch.manual_seed(0)
     L.seed_everything(0, verbose=False)
     images, pos, _ = _synthetic(4096, 0)
-    model = PerceptionMap(image_shape=[16, 16, 3], arena=[[-10, 10], [-10, 10]], filters=[4], batch_norm=False,
+    model = PerceptionMap.of(image_shape=[16, 16, 3], arena=[[-10, 10], [-10, 10]], filters=[4], batch_norm=False,
                           dropout=0.0, lr=3e-3, uncertainty="gaussian", coord_channels=False)
     dl = torch.utils.data.DataLoader(torch.utils.data.TensorDataset(torch.from_numpy(images),
                                                                     torch.from_numpy(pos).float()),
@@ -214,7 +214,7 @@ def test_the_head_never_changes_the_position_estimate():
     preds = []
     for unc in ("none", "gaussian"):
         L.seed_everything(0, verbose=False)
-        model = PerceptionMap(image_shape=[16, 16, 3], arena=[[-10, 10], [-10, 10]], filters=[4], batch_norm=True,
+        model = PerceptionMap.of(image_shape=[16, 16, 3], arena=[[-10, 10], [-10, 10]], filters=[4], batch_norm=True,
                               dropout=0.2, lr=3e-3, uncertainty=unc, coord_channels=True)
         dl = torch.utils.data.DataLoader(torch.utils.data.TensorDataset(torch.from_numpy(images),
                                                                         torch.from_numpy(pos).float()),

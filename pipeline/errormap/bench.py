@@ -34,7 +34,7 @@ def _predictor():
         note = "no trained model; "
     # the predictor, not the raw network: the default map has four outputs (position + its variance)
     torch.manual_seed(0)
-    pm = PerceptionMapPredictor(PerceptionMap())
+    pm = PerceptionMapPredictor(PerceptionMap.of())
     return pm.predict, Camera(Scene(target=[40.0, 0.0])), note + "untrained PerceptionMap (same cost)"
 
 

@@ -23,7 +23,7 @@ def _map():
         return load_perception_map("clean"), "trained map `clean`"
     except Exception:  # noqa: BLE001 - no trained map yet
         torch.manual_seed(0)
-        net = PerceptionMap(filters=(16, 32, 64), batch_norm=True, coord_channels=False, dropout=0.5, lr=1e-3,
+        net = PerceptionMap.of(filters=(16, 32, 64), batch_norm=True, coord_channels=False, dropout=0.5, lr=1e-3,
                             schedule="constant", uncertainty="none")
         return PerceptionMapPredictor(net), "untrained 16/32/64 map"
 

@@ -26,9 +26,10 @@ from pipeline.envs.navigate import NavigateVectorEnv, objects_from
 from pipeline.errors import ConfigError
 from pipeline.repo import CONF_DIR
 from pipeline.schema import NonNegativeInt, PositiveInt, checked
+from pipeline.train.callbacks import epoch_line
 
 # the code that makes the weights (not the evaluation's: `make learned` evaluates without retraining)
-CODE = ("envs", "learned/imitate", "learned/expert", "learned/network", "learned/policies", "control", "render",
+CODE = ("envs", "learned/imitate", "learned/expert", "learned/network", "learned/spec", "learned/policies", "control", "render",
         "plants", "sim", "hybrid", "perception")
 
 
@@ -45,25 +46,6 @@ class ImitationSettings:
     seed: NonNegativeInt = 0
     threads: PositiveInt | None = None
     trunk_from: str | None = None
-
-
-class EpochLine:
-    """One line per epoch (the train loss, seconds): the imitation's progress in logs."""
-
-    def __new__(cls, label: str):
-        import lightning as L
-
-        class _Line(L.Callback):
-            def on_fit_start(self, trainer, pl_module):
-                self.t0 = time.perf_counter()
-
-            def on_train_epoch_end(self, trainer, pl_module):
-                loss = trainer.callback_metrics.get("train_loss")
-                print(f"[imitate] {label}: epoch {trainer.current_epoch + 1}/{trainer.max_epochs} train loss "
-                      f"{float(loss) if loss is not None else float('nan'):.4f} "
-                      f"({time.perf_counter() - self.t0:.0f} s)", flush=True)
-
-        return _Line()
 
 
 _UNRESOLVED = object()
@@ -134,7 +116,7 @@ def fit(model, trainer_node, data, epochs: int, batch_size: int, seed: int, labe
     ds = TensorDataset(torch.from_numpy(frames), torch.from_numpy(labels).float(), torch.from_numpy(masks))
     loader = DataLoader(ds, batch_size=batch_size, shuffle=True, generator=torch.Generator().manual_seed(seed))
     L.seed_everything(seed, verbose=False)
-    trainer = build(trainer_node, "trainer", max_epochs=int(epochs), callbacks=[EpochLine(label)])
+    trainer = build(trainer_node, "trainer", max_epochs=int(epochs), callbacks=[epoch_line(label, "train_loss")])
     t0 = time.perf_counter()
     trainer.fit(model, loader)
     return time.perf_counter() - t0
@@ -161,6 +143,7 @@ def run(cfg: DictConfig) -> dict:
     import torch
 
     from pipeline.learned.expert import Expert
+    from pipeline.learned.network import VelocityPolicy
     from pipeline.learned.policies import ImitatedPolicy
     from pipeline.preflight import prepared
 
@@ -175,7 +158,7 @@ def run(cfg: DictConfig) -> dict:
     if s.threads is not None:
         torch.set_num_threads(s.threads)
     torch.manual_seed(s.seed)
-    model = build(cfg.model, "model", image_shape=(*obj.camera.shape, 3))
+    model = VelocityPolicy(build(cfg.model, "model", image_shape=(*obj.camera.shape, 3)))
     if s.trunk_from is not None:
         from pipeline.learned.policies import load_map
 
@@ -239,7 +222,7 @@ def load_policy_model(ref, models_dir, field: str = "policies.imitation"):
     m = tracking.read_manifest(folder)
     hp = dict(m["hparams"])
     hp["image_shape"] = tuple(hp["image_shape"])
-    model = VelocityPolicy(**hp)
+    model = VelocityPolicy.of(**hp)
     model.load_state_dict(torch.load(folder / "model.pt", map_location="cpu"))
     model.eval()
     model.tracked_name = folder.name

@@ -15,17 +15,16 @@ frames where its label is defined (the mode's flow set), weights equal.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from typing import Annotated, Literal
+import dataclasses
 
 import lightning as L
 import torch
 from torch import nn
 
 from pipeline.errors import ConfigError
+from pipeline.learned.spec import PolicySpec
 from pipeline.perception.keypoint import KeypointHead
 from pipeline.perception.network import conv_blocks
-from pipeline.schema import NonEmpty, Positive, PositiveInt, Range
 
 HEADS = 3  # expert action, mode-1 flow, mode-2 flow
 
@@ -33,20 +32,22 @@ HEADS = 3  # expert action, mode-1 flow, mode-2 flow
 class VelocityPolicy(L.LightningModule):
     """`forward(uint8 NHWC frames) -> (N, HEADS, 2)` velocities in world units per second."""
 
-    def __init__(self, image_shape: tuple[int, int, int] = (60, 100, 3),
-                 filters: Annotated[Sequence[int], Range(ge=1), NonEmpty()] = (16, 32, 64),
-                 batch_norm: bool = True, coord_channels: bool = True, hidden: PositiveInt = 128,
-                 dropout: Annotated[float, Range(ge=0, lt=1)] = 0.1, lr: Positive = 2e-3, u_max: Positive = 10.0,
-                 freeze_trunk: bool = False, reads: Literal["features", "keypoint"] = "features"):
+    @classmethod
+    def of(cls, **fields) -> VelocityPolicy:
+        """The network of `PolicySpec(**fields)` (Python callers, a saved policy's hyperparameters)."""
+        return cls(PolicySpec(**fields))
+
+    def __init__(self, spec: PolicySpec):
         super().__init__()
-        self.save_hyperparameters()
+        self.save_hyperparameters(dataclasses.asdict(spec))
+        image_shape, filters, hidden, reads = spec.image_shape, spec.filters, spec.hidden, spec.reads
         h, w, _ = image_shape
-        self.image_shape, self.u_max, self.lr = tuple(image_shape), float(u_max), float(lr)
-        self.coord_channels, self.freeze_trunk = bool(coord_channels), bool(freeze_trunk)
+        self.image_shape, self.u_max, self.lr = tuple(image_shape), float(spec.u_max), float(spec.lr)
+        self.coord_channels, self.freeze_trunk = bool(spec.coord_channels), bool(spec.freeze_trunk)
         cols = torch.linspace(-0.5, 0.5, w).view(1, 1, 1, w).expand(1, 1, h, w)
         rows = torch.linspace(-0.5, 0.5, h).view(1, 1, h, 1).expand(1, 1, h, w)
         self.register_buffer("coords", torch.cat([cols, rows], 1).contiguous(), persistent=False)
-        self.features = conv_blocks(3 + 2 * self.coord_channels, [int(f) for f in filters], batch_norm)
+        self.features = conv_blocks(3 + 2 * self.coord_channels, [int(f) for f in filters], spec.batch_norm)
         fh, fw = h, w
         for _ in filters[:-1]:
             fh, fw = fh // 2, fw // 2
@@ -55,7 +56,7 @@ class VelocityPolicy(L.LightningModule):
         fh, fw = fh // 2, fw // 2
         self.head = nn.Sequential(nn.Linear(2, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, hidden),
                                   nn.ReLU(inplace=True), nn.Linear(hidden, 2 * HEADS)) if reads == "keypoint" else \
-            nn.Sequential(nn.Flatten(), nn.Dropout(dropout), nn.Linear(int(filters[-1]) * fh * fw, hidden),
+            nn.Sequential(nn.Flatten(), nn.Dropout(spec.dropout), nn.Linear(int(filters[-1]) * fh * fw, hidden),
                           nn.ReLU(inplace=True), nn.Linear(hidden, 2 * HEADS))
 
     def prepare(self, images: torch.Tensor) -> torch.Tensor:

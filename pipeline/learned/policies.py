@@ -54,6 +54,10 @@ def load_map(ref, models_dir):
     if path.suffix == ".ckpt":
         if not path.is_file():
             raise ConfigError("maps.clean", f"no checkpoint {path}")
-        model = PerceptionMap.load_from_checkpoint(path, map_location="cpu")
+        import torch
+
+        blob = torch.load(path, map_location="cpu", weights_only=False)  # a Lightning checkpoint: the map's fields
+        model = PerceptionMap.of(**blob["hyper_parameters"])
+        model.load_state_dict(blob["state_dict"])
         return PerceptionMapPredictor(model, manifest={"name": "checkpoint", "id": path.stem}, device="cpu")
     return load_perception_map(ref, models_dir, device="cpu")

@@ -11,7 +11,6 @@ return and success per rollout).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -23,7 +22,6 @@ from pipeline import tracking
 from pipeline.cli import stage_main
 from pipeline.config import build
 from pipeline.envs.navigate import NavigateVectorEnv, objects_from
-from pipeline.schema import NonNegativeInt, Positive, PositiveInt, checked
 
 
 class SB3VecEnv(VecEnv):
@@ -74,26 +72,10 @@ class SB3VecEnv(VecEnv):
         return [indices] if isinstance(indices, int) else indices
 
 
-@checked("ppo")
-@dataclass(frozen=True)
-class PPOSettings:
-    """`ppo`: `num_envs` agents of the vector environment, `total_timesteps` agent-steps in all (the budget),
-    PPO's `n_steps` per agent per rollout, `batch_size`, `n_epochs`, `learning_rate`, `seed`, torch `threads`."""
-
-    num_envs: PositiveInt = 64
-    total_timesteps: PositiveInt = 200_000
-    n_steps: PositiveInt = 64
-    batch_size: PositiveInt = 256
-    n_epochs: PositiveInt = 4
-    learning_rate: Positive = 3e-4
-    seed: NonNegativeInt = 0
-    threads: PositiveInt | None = None
-
-
 def ppo_identity(cfg: DictConfig) -> str:
     """The id of a PPO model: its settings, the scene, the reward, the clouds and the code."""
     return tracking.content_id(tracking.to_plain(cfg.ppo), tracking.to_plain(cfg.scene), tracking.to_plain(cfg.env),
-                               tracking.to_plain(cfg.occlusion), tracking.code_version("envs", "learned/ppo"))
+                               tracking.to_plain(cfg.occlusion), tracking.code_version("envs", "learned/ppo", "learned/spec"))
 
 
 def check(cfg: DictConfig):

@@ -23,7 +23,7 @@ def default_map(overrides: tuple[str, ...] = ()) -> PerceptionMap:
     """The default config's map (conf/model/default.yaml; `overrides`: e.g. `model=keypoint`) on the default 60x100
     camera, random weights with non-trivial BatchNorm statistics (same cost as a trained one)."""
     torch.manual_seed(0)
-    model = build(compose("train", list(overrides)).model, "model")
+    model = PerceptionMap(build(compose("train", list(overrides)).model, "model"))
     for m in model.modules():
         if isinstance(m, torch.nn.BatchNorm2d):
             m.running_mean.uniform_(-0.2, 0.2)

@@ -195,6 +195,6 @@ def load_perception_map(ref, models_dir=None, *, verify: bool = False, device="a
     manifest = tracking.read_manifest(folder)
     blob = torch.load(folder / "model.pt", map_location="cpu", weights_only=True)
     hparams = dict(blob["hparams"])
-    model = PerceptionMap(**hparams)
+    model = PerceptionMap.of(**hparams)
     model.load_state_dict(blob["state_dict"])
     return PerceptionMapPredictor(model, manifest=manifest, path=folder, device=dev, compile=compile)

@@ -12,27 +12,17 @@ arena and the module scales them back.
 from __future__ import annotations
 
 import copy
+import dataclasses
 from collections.abc import Sequence
-from typing import Annotated, Literal
 
 import lightning as L
 import torch
 from torch import nn
 
-from pipeline.errors import ConfigError, ModelError
+from pipeline.errors import ModelError
 from pipeline.perception.heading import AttentionHeadingHead, HeadingHead, heading_deg
 from pipeline.perception.keypoint import KeypointHead
-from pipeline.schema import (
-    Interval,
-    Name,
-    NonEmpty,
-    NonNegative,
-    NonNegativeInt,
-    Positive,
-    PositiveInt,
-    Range,
-    checked,
-)
+from pipeline.perception.spec import MapSpec
 
 CHI2_2_95 = 5.991464547107979  # 95% quantile of chi^2 with 2 degrees of freedom: the 95% ellipse of a 2-D Gaussian
 LOGVAR_RANGE = (-14.0, 2.0)  # normalised coordinates: sigma from ~1e-3 (0.05 px) to ~3 half-arenas
@@ -82,89 +72,47 @@ def variance_head(n_in: int) -> nn.Sequential:
     return head.requires_grad_(False)
 
 
-def _check_variant(image_shape, uncertainty_thumbnail, outputs, position_head, heading_head) -> None:
-    """The cross-field rules of a map's variant: a thumbnail cell that fits the image; the attention heading head
-    with the keypoint position head (pooled or flat with flat)."""
-    if uncertainty_thumbnail > min(image_shape[:2]):
-        raise ConfigError("model.uncertainty_thumbnail", f"must be <= {min(image_shape[:2])} (pixels per side of "
-                                                         f"a thumbnail cell), got {uncertainty_thumbnail!r}")
-    if outputs == "pose" and (heading_head == "attention") != (position_head == "keypoint"):
-        raise ConfigError("model.heading_head", f"{heading_head!r} with position_head={position_head!r}: the "
-                                                "attention head reads the keypoint's weights (attention with "
-                                                "keypoint; pooled or flat with flat)")
-
-
-@checked("model")
 class PerceptionMap(L.LightningModule):
-    """CNN perception map; `forward(uint8 or float images NHWC) -> (N, 2)` world coordinates.
+    """CNN perception map; `forward(uint8 or float images NHWC) -> (N, 2)` world coordinates, built from its typed
+    spec (:class:`pipeline.perception.spec.MapSpec`, checked there); `hparams` are the spec's fields."""
 
-    The defaults are conf/model/default.yaml's (the project's map); conf/model/paper.yaml is the paper's. The
-    annotations are the node's schema (read from this source at composition: keep them to builtins, `Literal`
-    and the aliases of :mod:`pipeline.schema`); a thumbnail cell that does not fit the image and filters that
-    pool it away are the cross-field rules here."""
+    @classmethod
+    def of(cls, **fields) -> PerceptionMap:
+        """The map of `MapSpec(**fields)` (Python callers, a saved map's hyperparameters)."""
+        return cls(MapSpec(**fields))
 
-    def __init__(
-        self,
-        image_shape: tuple[PositiveInt, PositiveInt, Literal[3]] = (60, 100, 3),
-        arena: tuple[Interval, Interval] = ((-50.0, 50.0), (-30.0, 30.0)),
-        filters: Annotated[Sequence[int], Range(ge=1), NonEmpty()] = (16, 32, 64),
-        batch_norm: bool = True,
-        hidden: NonNegativeInt = 0,
-        dropout: Annotated[float, Range(ge=0, lt=1)] = 0.1,
-        lr: Positive = 2e-3,
-        weight_decay: NonNegative = 0.0,
-        schedule: Literal["constant", "cosine", "onecycle"] = "onecycle",
-        loss: Literal["mse", "l1", "smooth_l1"] = "mse",
-        coord_channels: bool = True,
-        clamp: bool = True,
-        name: Name = "default",
-        uncertainty: Literal["none", "gaussian"] = "gaussian",
-        uncertainty_epochs: PositiveInt = 10,
-        uncertainty_lr: Positive = 2e-3,
-        uncertainty_batch_size: PositiveInt = 128,
-        uncertainty_thumbnail: PositiveInt = 4,
-        outputs: Literal["position", "pose"] = "position",
-        position_head: Literal["flat", "keypoint"] = "flat",
-        heading_head: Literal["pooled", "flat", "attention"] = "pooled",
-        heading_hidden: PositiveInt = 64,
-        heading_weight: Positive = 1.0,
-    ):
+    def __init__(self, spec: MapSpec):
         super().__init__()
-        _check_variant(image_shape, uncertainty_thumbnail, outputs, position_head, heading_head)
-        self.save_hyperparameters()
-        h, w, _ = (int(s) for s in image_shape)
+        self.save_hyperparameters(dataclasses.asdict(spec))
+        h, w, _ = (int(s) for s in spec.image_shape)
         self.image_shape = (h, w, 3)
-        (x0, x1), (y0, y1) = arena
+        (x0, x1), (y0, y1) = spec.arena
         self.register_buffer("center", torch.tensor([(x0 + x1) / 2, (y0 + y1) / 2], dtype=torch.float32))
         self.register_buffer("half_range", torch.tensor([(x1 - x0) / 2, (y1 - y0) / 2], dtype=torch.float32))
         # px per world unit (for metrics reported in pixels)
         self.px_per_unit = float(w / (x1 - x0))
         # CoordConv: two extra input channels holding the pixel's column/row in [-0.5, 0.5]
-        self.coord_channels = bool(coord_channels)
-        self.clamp = bool(clamp)
+        self.coord_channels = bool(spec.coord_channels)
+        self.clamp = bool(spec.clamp)
         if self.coord_channels:
             cols = torch.linspace(-0.5, 0.5, w).view(1, 1, 1, w).expand(1, 1, h, w)
             rows = torch.linspace(-0.5, 0.5, h).view(1, 1, h, 1).expand(1, 1, h, w)
             self.register_buffer("coords", torch.cat([cols, rows], 1).contiguous(), persistent=False)
-        self.features = conv_blocks(3 + 2 * self.coord_channels, [int(f) for f in filters], batch_norm)
-        fh, fw = h, w
-        for _ in filters:
-            gh, gw = fh, fw  # the last block's grid before its pooling (the keypoint head's cells)
-            fh, fw = fh // 2, fw // 2
-        if fh < 1 or fw < 1:
-            raise ConfigError("model.filters", f"{len(filters)} pooling blocks shrink a {h}x{w} image to nothing")
-        flat = int(filters[-1]) * fh * fw
-        self.uncertainty = uncertainty
-        self.pose = outputs == "pose"  # a pose map: (x, y, cos θ, sin θ) from the head, θ = atan2 (SPEC §2)
-        self.keypoint = position_head == "keypoint"
+        filters = [int(f) for f in spec.filters]
+        self.features = conv_blocks(3 + 2 * self.coord_channels, filters, spec.batch_norm)
+        gh, gw = h >> (len(filters) - 1), w >> (len(filters) - 1)  # the last block's grid before its pooling
+        flat = filters[-1] * (gh // 2) * (gw // 2)
+        self.uncertainty = spec.uncertainty
+        self.pose = spec.outputs == "pose"  # a pose map: (x, y, cos θ, sin θ) from the head, θ = atan2 (SPEC §2)
+        self.keypoint = spec.position_head == "keypoint"
         # its (cos θ, sin θ): from the pooled features (`heading_head: pooled`, pipeline.perception.heading), the
         # keypoint's attention-weighted features (`attention`) or two more outputs of the position's head (`flat`)
-        heading_cls = {"pooled": HeadingHead, "attention": AttentionHeadingHead}.get(heading_head)
-        self.heading_head = heading_cls(int(filters[-1]), int(heading_hidden)) \
+        heading_cls = {"pooled": HeadingHead, "attention": AttentionHeadingHead}.get(spec.heading_head)
+        self.heading_head = heading_cls(filters[-1], int(spec.heading_hidden)) \
             if self.pose and heading_cls is not None else None
-        self.heading_weight = float(heading_weight)
-        head = KeypointHead(int(filters[-1]), (gh, gw)) if self.keypoint else \
-            position_head_layers(flat, hidden, dropout, 4 if self.pose and self.heading_head is None else 2)
+        self.heading_weight = float(spec.heading_weight)
+        head = KeypointHead(filters[-1], (gh, gw)) if self.keypoint else \
+            position_head_layers(flat, spec.hidden, spec.dropout, 4 if self.pose and self.heading_head is None else 2)
         # `uncertainty: gaussian`: a second head on the features predicts the log variance of each normalised
         # coordinate. It is fitted AFTER the position network (`pipeline.train.uncertainty.fit_variance_head`, on
         # the trained network's eval-mode features and errors), so it is frozen during training and never changes
@@ -172,8 +120,8 @@ class PerceptionMap(L.LightningModule):
         # those of a map without it)
         # It reads the features and a thumbnail of the image (`thumbnail`: cells of uncertainty_thumbnail px).
         self.var_head = None
-        self.thumb_size = (h // int(uncertainty_thumbnail), w // int(uncertainty_thumbnail))
-        if uncertainty == "gaussian":
+        self.thumb_size = (h // int(spec.uncertainty_thumbnail), w // int(spec.uncertainty_thumbnail))
+        if spec.uncertainty == "gaussian":
             self.var_head = variance_head(flat + 3 * self.thumb_size[0] * self.thumb_size[1])
         # calibration of the predicted sigma on the validation split (set after training; 1 = raw NLL sigma)
         self.register_buffer("sigma_scale", torch.ones(()))
@@ -181,7 +129,7 @@ class PerceptionMap(L.LightningModule):
         # certified training (pipeline.train.certified): a bound-based term the train stage attaches; None: off
         self.certified_term = None
         self._loss = {"mse": nn.functional.mse_loss, "l1": nn.functional.l1_loss,
-                      "smooth_l1": nn.functional.smooth_l1_loss}[loss]
+                      "smooth_l1": nn.functional.smooth_l1_loss}[spec.loss]
         self.to(memory_format=torch.channels_last)
 
     # --------------------------------------------------------------------------------- forward

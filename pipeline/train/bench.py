@@ -72,17 +72,17 @@ def _maps():
     """(label, constructor) of the benchmarked maps: the default config's map (BatchNorm, CoordConv) and the
     plain CNNs (no BatchNorm, no CoordConv) of 16/32/64 and 32/64/128 filters."""
     node = compose("train").model
-    yield "default map 16/32/64 BN+CoordConv", lambda: build(node, "model")
+    yield "default map 16/32/64 BN+CoordConv", lambda: PerceptionMap(build(node, "model"))
     plain = dict(lr=1e-3, batch_norm=False, coord_channels=False, dropout=0.5, schedule="constant", uncertainty="none")
-    yield "plain 16/32/64", lambda: PerceptionMap(filters=(16, 32, 64), **plain)  # no BN, no CoordConv
-    yield "plain 32/64/128", lambda: PerceptionMap(filters=(32, 64, 128), **plain)
+    yield "plain 16/32/64", lambda: PerceptionMap.of(filters=(16, 32, 64), **plain)  # no BN, no CoordConv
+    yield "plain 32/64/128", lambda: PerceptionMap.of(filters=(32, 64, 128), **plain)
 
 
 def job_rate(kind: str, model_overrides: tuple[str, ...], batch: int, steps: int, seed: int = 0) -> float:
     """img/s of one training job (`kind`: raw | lightning) of the map `python -m pipeline.train <overrides>`
     builds, on random images (what `side_by_side` runs in each worker)."""
     torch.manual_seed(seed)
-    model = build(compose("train", list(model_overrides)).model, "model")
+    model = PerceptionMap(build(compose("train", list(model_overrides)).model, "model"))
     images, pos = _data(batch * 8, seed)
     return (raw_loop if kind == "raw" else lightning_fit)(model, images, pos, batch, steps)
 
@@ -96,7 +96,7 @@ def schedule_rows(quick: bool = False) -> list[dict]:
     rows = []
     for tag, overrides, batch in (("make paper's map (keypoint head)", ("model=keypoint",), 32),
                                   ("paper's network (model=paper)", ("model=paper",), 128)):
-        flops = 3 * build(compose("train", list(overrides)).model, "model").flops_per_image()
+        flops = 3 * PerceptionMap(build(compose("train", list(overrides)).model, "model")).flops_per_image()
         alone = job_rate("raw", overrides, batch, steps)
         raw = sum(side_by_side(job_rate, ("raw", overrides, batch, steps)))
         lit = sum(side_by_side(job_rate, ("lightning", overrides, batch, steps)))

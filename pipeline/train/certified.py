@@ -20,48 +20,9 @@ Off by default (`certified: null` in conf/train.yaml): the loss and the weights 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Literal
-
 import torch
 
-from pipeline.errors import ConfigError
-from pipeline.schema import NonNegative, Positive, PositiveInt, checked
-
-
-@checked("certified")
-@dataclass(frozen=True)
-class CertifiedTraining:
-    """The certified-training term's settings (conf/certified/on.yaml documents each)."""
-
-    weight: Positive = 5.0e-3
-    target: NonNegative = 0.25
-    cell: Positive = 0.0625
-    cell_start: Positive = 0.01
-    warmup_epochs: NonNegative = 1.0
-    ramp_epochs: NonNegative = 2.0
-    ibp_epochs: NonNegative = 0.0
-    mode: Literal["ibp", "forward", "crown"] = "crown"
-    cells_per_step: PositiveInt = 16
-    kappa: NonNegative = 0.0
-
-    def __post_init__(self):
-        if self.cell_start > self.cell:
-            raise ConfigError("certified.cell_start", f"must be <= cell ({self.cell!r}), got {self.cell_start!r}")
-
-    def ramp(self, t: float) -> float:
-        """The ramp's progress in [0, 1] at epoch `t` (0 during the warm-up)."""
-        if t < self.warmup_epochs:
-            return 0.0
-        if t >= self.warmup_epochs + self.ramp_epochs:  # ramped up (also a ramp too short to add to the warm-up)
-            return 1.0
-        return min(1.0, (t - self.warmup_epochs) / self.ramp_epochs)
-
-    def schedule(self, t: float) -> tuple[float, float, str]:
-        """`(weight, cell side, bound mode)` at epoch `t`; weight 0 during the warm-up."""
-        r = self.ramp(t)
-        mode = "ibp" if t < self.warmup_epochs + self.ibp_epochs else self.mode
-        return self.weight * r, self.cell_start + (self.cell - self.cell_start) * r, mode
+from pipeline.train.settings import CertifiedTraining
 
 
 class CertifiedTerm:

@@ -18,7 +18,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
 from pipeline.errors import ConfigError
-from pipeline.schema import NonNegativeInt, PositiveInt, checked
+from pipeline.train.settings import DataModuleSpec
 
 _RAM_LIMIT_BYTES = 4 << 30  # splits smaller than this are copied to RAM (faster random access)
 
@@ -81,25 +81,20 @@ class ShardedBatchSampler(Sampler):
         return self.n // self.batch_size if self.shuffle else -(-self.n // self.batch_size)
 
 
-@checked("datamodule")
 class PerceptionDataModule(L.LightningDataModule):
-    """Train/val/test splits of a tracked dataset (`pipeline.data.Dataset`).
+    """Train/val/test splits of a tracked dataset (`pipeline.data.Dataset`), batched as its typed spec says
+    (:class:`pipeline.train.settings.DataModuleSpec`, built from `conf/datamodule/` and checked before any work);
+    `attach(dataset)` once the dataset is open."""
 
-    Built from `conf/datamodule/` with `dataset=None` first (the config is checked before any work), then
-    `attach(dataset)` once the dataset is open.
-    """
-
-    def __init__(self, dataset=None, batch_size: PositiveInt = 32, limit_train_samples: PositiveInt | None = None,
-                 limit_val_samples: PositiveInt | None = 2048, eval_batch_size: PositiveInt = 512,
-                 num_workers: NonNegativeInt = 0, pin_memory: bool = False, seed: int = 0):
+    def __init__(self, spec: DataModuleSpec, dataset=None):
         super().__init__()
-        self.batch_size = batch_size
-        self.limit_train = limit_train_samples
-        self.limit_val = limit_val_samples
-        self.eval_batch_size = eval_batch_size
-        self.num_workers = num_workers
-        self.pin_memory = pin_memory
-        self.seed = seed
+        self.batch_size = spec.batch_size
+        self.limit_train = spec.limit_train_samples
+        self.limit_val = spec.limit_val_samples
+        self.eval_batch_size = spec.eval_batch_size
+        self.num_workers = spec.num_workers
+        self.pin_memory = spec.pin_memory
+        self.seed = spec.seed
         self.dataset = None
         self.pose = False  # the labels a pose map trains on: (x, y, θ) (set by the stage from the model)
         self._splits: dict[str, BatchArrays] = {}

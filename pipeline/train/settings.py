@@ -1,12 +1,24 @@
-"""The train stage's own settings (the root keys of conf/train.yaml) and the flag evaluation (`uncertainty_eval`),
-typed: no torch here, so they are checked in the preflight."""
+"""The train stage's typed settings: its root keys (conf/train.yaml), the flag evaluation (`uncertainty_eval`), the
+batches (`datamodule`, the spec :class:`pipeline.train.datamodule.PerceptionDataModule` takes) and certified training
+(`certified`). No torch here, so they are imported, checked and built in the preflight."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Annotated
+from typing import Annotated, Literal
 
-from pipeline.schema import Device, Name, NonNegativeInt, OpenShare, Positive, PositiveInt, Range, checked
+from pipeline.errors import ConfigError
+from pipeline.schema import (
+    Device,
+    Name,
+    NonNegative,
+    NonNegativeInt,
+    OpenShare,
+    Positive,
+    PositiveInt,
+    Range,
+    checked,
+)
 
 
 @checked("uncertainty_eval")
@@ -41,3 +53,52 @@ class TrainSettings:
     device: Device = "auto"
     num_threads: PositiveInt | None = None
     optimized_metric: str | None = None
+
+
+@checked("datamodule")
+@dataclass(frozen=True)
+class DataModuleSpec:
+    """Batches of a tracked dataset (conf/datamodule/default.yaml documents each key; the stage sets `seed`)."""
+
+    batch_size: PositiveInt = 32
+    limit_train_samples: PositiveInt | None = None
+    limit_val_samples: PositiveInt | None = 2048
+    eval_batch_size: PositiveInt = 512
+    num_workers: NonNegativeInt = 0
+    pin_memory: bool = False
+    seed: int = 0
+
+
+@checked("certified")
+@dataclass(frozen=True)
+class CertifiedTraining:
+    """The certified-training term's settings (conf/certified/on.yaml documents each)."""
+
+    weight: Positive = 5.0e-3
+    target: NonNegative = 0.25
+    cell: Positive = 0.0625
+    cell_start: Positive = 0.01
+    warmup_epochs: NonNegative = 1.0
+    ramp_epochs: NonNegative = 2.0
+    ibp_epochs: NonNegative = 0.0
+    mode: Literal["ibp", "forward", "crown"] = "crown"
+    cells_per_step: PositiveInt = 16
+    kappa: NonNegative = 0.0
+
+    def __post_init__(self):
+        if self.cell_start > self.cell:
+            raise ConfigError("certified.cell_start", f"must be <= cell ({self.cell!r}), got {self.cell_start!r}")
+
+    def ramp(self, t: float) -> float:
+        """The ramp's progress in [0, 1] at epoch `t` (0 during the warm-up)."""
+        if t < self.warmup_epochs:
+            return 0.0
+        if t >= self.warmup_epochs + self.ramp_epochs:  # ramped up (also a ramp too short to add to the warm-up)
+            return 1.0
+        return min(1.0, (t - self.warmup_epochs) / self.ramp_epochs)
+
+    def schedule(self, t: float) -> tuple[float, float, str]:
+        """`(weight, cell side, bound mode)` at epoch `t`; weight 0 during the warm-up."""
+        r = self.ramp(t)
+        mode = "ibp" if t < self.warmup_epochs + self.ibp_epochs else self.mode
+        return self.weight * r, self.cell_start + (self.cell - self.cell_start) * r, mode

@@ -36,9 +36,11 @@ from pipeline.data import open_dataset
 from pipeline.errors import ConfigError, ModelError, PipelineError
 from pipeline.lineage import debug_overrides, rerun_command, resolve_dataset, train_dataset_id
 from pipeline.perception.maps import PerceptionMapPredictor, resolve_device
+from pipeline.perception.network import PerceptionMap
 from pipeline.profiling import phase, record
 from pipeline.train.certified import CertifiedTerm
 from pipeline.train.checks import check
+from pipeline.train.datamodule import PerceptionDataModule
 from pipeline.train.evaluate import evaluate, fit_clean_gate
 from pipeline.train.figures import curves as plot_curves
 from pipeline.train.figures import scatter
@@ -127,7 +129,7 @@ def run(cfg) -> dict:
         return {"id": id_, "name": name, "path": str(final), "skipped": True,
                 "metrics": json.loads((final / "metrics.json").read_text())}
 
-    dm = _build(cfg.datamodule, "datamodule", dataset=None, seed=s.seed).attach(ds)  # batch vs split size
+    dm = PerceptionDataModule(_build(cfg.datamodule, "datamodule", seed=s.seed), ds)  # batch vs split size
     work = root / f".work-{name}-{id_}"
     _resume_point(work, bool(cfg.get("force", False)), command)
     cfg = _run_dir(cfg, work)
@@ -188,7 +190,7 @@ def _model(cfg, seed: int, shape, arena, name: str, ds):
     torch.set_num_threads(_threads(cfg))
     _quiet_lightning()
     L.seed_everything(seed, workers=True, verbose=False)
-    model = _build(cfg.model, "model", image_shape=list(shape), arena=arena, name=name)
+    model = PerceptionMap(_build(cfg.model, "model", image_shape=list(shape), arena=arena, name=name))
     if model.pose and not ds.has_headings:
         raise ConfigError("model.outputs", f"pose: dataset {ds.name}-{ds.id} shows no heading (a recipe with "
                                            "data.vehicle: a unicycle)")
