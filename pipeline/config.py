@@ -13,15 +13,13 @@ import functools
 import importlib
 import importlib.util
 import inspect
-import re
-import tempfile
 from collections.abc import Iterable
 from pathlib import Path
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from pipeline.errors import ConfigError, PipelineError
-from pipeline.repo import CONF_DIR, REPO_ROOT
+from pipeline.errors import ConfigError, PipelineError, hydra_error
+from pipeline.repo import CONF_DIR, REPO_ROOT, check_folder
 from pipeline.schema import CHECKED_KEYWORDS, check_value, type_hints
 
 META_KEYS = {"_target_", "_partial_", "_convert_", "_recursive_", "_args_", "name"}
@@ -185,41 +183,28 @@ def build(node, path: str, /, **kwargs):
     return obj
 
 
-# ----------------------------------------------------------------------------- compose, paths, Hydra's errors
+# --------------------------------------------------------------------------------------- compose, paths
 def compose(config_name: str, overrides: list[str] | None = None, *, check: bool = True) -> DictConfig:
     """Compose a config with Hydra's compose API, also from inside a running `@hydra.main` app (tests, notebooks,
-    the paper DAG). `hydra:` interpolations are not available here: `paths.output_dir` must be overridden (or the
-    caller sets it) before use."""
+    the paper DAG); Hydra's composition errors are one :class:`ConfigError` line. `hydra:` interpolations are not
+    available here: `paths.output_dir` must be overridden (or the caller sets it) before use."""
     from hydra import compose as _compose
     from hydra import initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
-    if GlobalHydra.instance().is_initialized():
-        cfg = _compose(config_name=config_name, overrides=list(overrides or []))
-    else:  # initialized for this call only
-        with initialize_config_dir(version_base="1.3", config_dir=str(CONF_DIR)):
+    try:
+        if GlobalHydra.instance().is_initialized():
             cfg = _compose(config_name=config_name, overrides=list(overrides or []))
+        else:  # initialized for this call only
+            with initialize_config_dir(version_base="1.3", config_dir=str(CONF_DIR)):
+                cfg = _compose(config_name=config_name, overrides=list(overrides or []))
+    except PipelineError:
+        raise
+    except Exception as err:  # noqa: BLE001 - Hydra's composition errors, as one line
+        raise hydra_error(err) from None
     if check:
         check_schema(cfg)
     return cfg
-
-
-def check_folder(value, field: str) -> None:
-    """`value` must be a folder this process can write in, or one it can create: tried for real (a uniquely named
-    temporary folder made in it, or in its nearest existing parent, then removed), so a read-only or virtual
-    filesystem (`/proc/...`), a file in the way or a missing permission is one error naming `field`; nothing is
-    left behind, and checks running at once never meet."""
-    p = parent = Path(str(value)).expanduser()
-    if p.exists() and not p.is_dir():
-        raise ConfigError(field, f"{p} is a file, not a folder")
-    while not parent.exists() and parent != parent.parent:
-        parent = parent.parent
-    if not parent.is_dir():
-        raise ConfigError(field, f"cannot create {p}: {parent} is a file")
-    try:
-        tempfile.TemporaryDirectory(dir=parent, prefix=".write-check-").cleanup()
-    except OSError as err:
-        raise ConfigError(field, f"cannot create or write {p}: {err.strerror or err}") from None
 
 
 def check_paths(paths) -> None:
@@ -228,28 +213,3 @@ def check_paths(paths) -> None:
         value = _plain_value(paths, key)  # `...`: a `${hydra:...}` outside a run
         if value is not None and value is not ...:
             check_folder(value, f"paths.{key}")
-
-
-def hydra_error_line(err: BaseException) -> str:
-    """One line for Hydra/OmegaConf composition errors (their own messages span several lines)."""
-    from hydra.errors import MissingConfigException
-
-    text = str(err)
-    if isinstance(err, MissingConfigException) and err.missing_cfg_file:
-        group, _, option = str(err.missing_cfg_file).rpartition("/")
-        opts = f" (available: {', '.join(sorted(err.options))})" if err.options else ""
-        return f"{group or option}: unknown option {option!r}{opts}"
-    m = re.search(r"Could not override '([^']+)'", text)
-    if m and ("not in struct" in text or "ConfigKeyError" in text or "To append" in text):
-        key = re.sub(r"\.(\d+)(?=\.|$)", r"[\1]", m.group(1))  # a list element as the schema names it: obstacles[0]
-        return f"{key}: unknown key (not in the config; check the spelling)"
-    cause = err.__cause__ or err.__context__
-    while cause is not None:
-        if getattr(cause, "full_key", None):
-            return f"{cause.full_key}: {str(cause).splitlines()[0]}"
-        cause = cause.__cause__ or cause.__context__
-    m = re.search(r"Error merging override (\S+)", text)
-    if m:
-        return f"{m.group(1).split('=')[0].lstrip('+')}: invalid value in {m.group(1)!r}"
-    lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
-    return " ".join(lines[:2]) if lines else type(err).__name__

@@ -27,7 +27,7 @@ from omegaconf import DictConfig
 
 from pipeline import identity, tracking
 from pipeline.cli import stage_main
-from pipeline.config import build, compose, hydra_error_line
+from pipeline.config import build, compose
 from pipeline.data.plan import plan
 from pipeline.errors import ConfigError, PipelineError
 from pipeline.experiments.report import markdown_table
@@ -121,11 +121,8 @@ def _compose(config: str, overrides: list[str], where: str):
     """A stage config composed here; Hydra's errors become one `ConfigError` line."""
     try:
         return compose(config, overrides)
-    except PipelineError:
-        raise
-    except Exception as err:  # noqa: BLE001 - Hydra composition errors
-        field, _, reason = hydra_error_line(err).partition(": ")
-        raise ConfigError(field, f"{reason} (in {where})") from None
+    except ConfigError as err:
+        raise ConfigError(err.field, f"{err.reason} (in {where})") from None
 
 
 def check(cfg: DictConfig) -> None:

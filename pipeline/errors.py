@@ -1,5 +1,7 @@
 """Errors a user can act on. Stages print them as one line and exit non-zero (see `pipeline.cli`)."""
 
+import re
+
 
 class PipelineError(Exception):
     """Base class: an error caused by the user's input, reported without a traceback."""
@@ -20,3 +22,28 @@ class DatasetError(PipelineError):
 
 class ModelError(PipelineError):
     """A perception map that is unknown or does not fit its input."""
+
+
+def hydra_error(err: BaseException) -> ConfigError:
+    """Hydra's and OmegaConf's composition errors (their own messages span several lines) as one `ConfigError`."""
+    from hydra.errors import MissingConfigException
+
+    text = str(err)
+    if isinstance(err, MissingConfigException) and err.missing_cfg_file:
+        group, _, option = str(err.missing_cfg_file).rpartition("/")
+        opts = f" (available: {', '.join(sorted(err.options))})" if err.options else ""
+        return ConfigError(group or option, f"unknown option {option!r}{opts}")
+    m = re.search(r"Could not override '([^']+)'", text)
+    if m and ("not in struct" in text or "ConfigKeyError" in text or "To append" in text):
+        key = re.sub(r"\.(\d+)(?=\.|$)", r"[\1]", m.group(1))  # a list element as the schema names it: obstacles[0]
+        return ConfigError(key, "unknown key (not in the config; check the spelling)")
+    cause = err.__cause__ or err.__context__
+    while cause is not None:
+        if getattr(cause, "full_key", None):
+            return ConfigError(str(cause.full_key), str(cause).splitlines()[0])
+        cause = cause.__cause__ or cause.__context__
+    m = re.search(r"Error merging override (\S+)", text)
+    if m:
+        return ConfigError(m.group(1).split("=")[0].lstrip("+"), f"invalid value in {m.group(1)!r}")
+    lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+    return ConfigError("overrides", " ".join(lines[:2]) if lines else type(err).__name__)

@@ -10,9 +10,9 @@ from collections.abc import Callable
 
 from omegaconf import DictConfig, OmegaConf
 
-from pipeline.config import check_folder, check_paths, check_schema, compose, hydra_error_line
-from pipeline.errors import ConfigError, PipelineError
-from pipeline.repo import CONF_DIR
+from pipeline.config import check_paths, check_schema, compose
+from pipeline.errors import ConfigError
+from pipeline.repo import CONF_DIR, check_folder
 
 EXTRAS = {"hydra/launcher": "launchers", "hydra/sweeper": "search"}  # pyproject's extras for Hydra's plugins
 
@@ -68,16 +68,14 @@ def _expand(overrides: list[str]) -> list[list[str]]:
 
 
 def _compose_job(config_name: str, job: list[str]) -> DictConfig:
-    """The job's config, unchecked; Hydra's composition errors as one line (and the extra a plugin comes with)."""
+    """The job's config, unchecked; a plugin's group that is not installed says which extra it comes with."""
     try:
         return compose(config_name, job, check=False)
-    except PipelineError:
-        raise
-    except Exception as err:  # noqa: BLE001 - Hydra's composition errors, in one line
-        field, _, reason = hydra_error_line(err).partition(": ")
-        hint = f"; its plugin comes with `pip install -c constraints.txt -e '.[{EXTRAS[field]}]'`" \
-            if field in EXTRAS else ""
-        raise ConfigError(field, (reason or field) + hint) from None
+    except ConfigError as err:
+        if err.field not in EXTRAS:
+            raise
+        extra = f"; its plugin comes with `pip install -c constraints.txt -e '.[{EXTRAS[err.field]}]'`"
+        raise ConfigError(err.field, err.reason + extra) from None
 
 
 def _check_job(config_name: str, job: list[str], check: Callable[[DictConfig], object] | None) -> None:

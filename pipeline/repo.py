@@ -1,6 +1,28 @@
-"""Where the project lives: the repository root and its config folder (read by the config system and the stages)."""
+"""Where the project lives (the repository root and its config folder, read by the config system and the stages),
+and whether it can write where a config says (:func:`check_folder`)."""
 
+import tempfile
 from pathlib import Path
+
+from pipeline.errors import ConfigError
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 CONF_DIR = REPO_ROOT / "conf"
+
+
+def check_folder(value, field: str) -> None:
+    """`value` must be a folder this process can write in, or one it can create: tried for real (a uniquely named
+    temporary folder made in it, or in its nearest existing parent, then removed), so a read-only or virtual
+    filesystem (`/proc/...`), a file in the way or a missing permission is one error naming `field`; nothing is
+    left behind, and checks running at once never meet."""
+    p = parent = Path(str(value)).expanduser()
+    if p.exists() and not p.is_dir():
+        raise ConfigError(field, f"{p} is a file, not a folder")
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise ConfigError(field, f"cannot create {p}: {parent} is a file")
+    try:
+        tempfile.TemporaryDirectory(dir=parent, prefix=".write-check-").cleanup()
+    except OSError as err:
+        raise ConfigError(field, f"cannot create or write {p}: {err.strerror or err}") from None

@@ -691,3 +691,16 @@ def test_paper_lists_only_maps_it_builds(override, field):
     with pytest.raises(ConfigError) as err:
         preflight("paper", ["maps=[clean_keypoint]", "datasets=[clean]", "errormaps=[clean_keypoint]", override], check)
     assert err.value.field == field and "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize("overrides,field,reason", [
+    (["model=nope"], "model", "unknown option 'nope'"),
+    (["model.lrr=0.1"], "model.lrr", "unknown key"),
+    (["trainer.max_epochs=[1"], "overrides", ""),
+])
+def test_compose_turns_hydras_errors_into_one_config_error(overrides, field, reason):
+    """`compose` from Python (the paper DAG, the environment, dagger) gives Hydra's composition errors as one
+    `ConfigError` line; before, each caller turned them into one (three copies) or let Hydra's exception through."""
+    with pytest.raises(ConfigError) as err:
+        compose("train", overrides)
+    assert err.value.field == field and reason in err.value.reason and "\n" not in str(err.value)

@@ -63,7 +63,7 @@ def test_an_explicit_run_dir_that_cannot_be_created_is_one_line(tmp_path):
 
 
 def test_the_path_check_leaves_nothing_behind(tmp_path):
-    from pipeline.config import check_folder
+    from pipeline.repo import check_folder
 
     check_folder(tmp_path / "a" / "b" / "c", "paths.x")
     assert list(tmp_path.iterdir()) == []  # the folders it made to try are removed
@@ -76,7 +76,7 @@ def test_path_checks_running_at_once_never_meet(tmp_path):
     write-check met the folder the first was removing ('File exists' / 'No such file'), exit 2."""
     import threading
 
-    from pipeline.config import check_folder
+    from pipeline.repo import check_folder
 
     errors = []
     for k in range(20):

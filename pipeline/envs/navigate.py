@@ -18,9 +18,9 @@ from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 from omegaconf import DictConfig
 
-from pipeline.config import build, compose, hydra_error_line
+from pipeline.config import build, compose
 from pipeline.envs.core import OUTCOMES, RUNNING, EnvSettings, NavigationCore
-from pipeline.errors import ConfigError, PipelineError
+from pipeline.errors import ConfigError
 from pipeline.sim.settings import check_vehicle, frame_steps
 
 
@@ -66,13 +66,7 @@ class EnvObjects:
 
 def compose_env(overrides=None) -> DictConfig:
     """conf/env.yaml with `overrides`; a composition error is one ConfigError line."""
-    try:
-        return compose("env", list(overrides or []))
-    except PipelineError:
-        raise
-    except Exception as err:  # noqa: BLE001 - Hydra's composition errors, as one line
-        field, _, reason = hydra_error_line(err).partition(": ")
-        raise ConfigError(field if reason else "overrides", reason or field) from None
+    return compose("env", list(overrides or []))
 
 
 def objects(overrides=None) -> EnvObjects:
