@@ -20,15 +20,15 @@ from pipeline.control.validity import (
     SQRT2,
     STARTS_FIELD,
     TARGET_FIELD,
-    _arena,
-    _fmt,
-    _loop_params,
-    _points,
-    _positive,
+    arena_box,
+    as_points,
     barrier_reach,
     diamond_signed_distance,
     field_geometry,
     field_violations,
+    fmt_num,
+    loop_params,
+    positive,
     to_frames,
 )
 from pipeline.errors import ConfigError
@@ -67,7 +67,7 @@ def random_field(
     M = int(n_obstacles)
     if M < 1 or M != n_obstacles:
         raise ConfigError(f"{RANDOM_FIELD}.n_obstacles", f"must be an integer >= 1, got {n_obstacles!r}")
-    box = _arena(arena)
+    box = arena_box(arena)
     if box is None:
         raise ConfigError(ARENA_FIELD, "random_field needs an arena")
     r_lo, r_hi = (float(x) for x in radius_range)
@@ -75,13 +75,13 @@ def random_field(
         raise ConfigError(f"{RANDOM_FIELD}.radius_range", f"must be 0 < r_min <= r_max, got {radius_range!r}")
     if not apex_factor > SQRT2:
         raise ConfigError(f"{RANDOM_FIELD}.apex_factor", f"must exceed sqrt(2) (the diamond must contain the disc), got {apex_factor!r}")
-    rho_b = _positive(barrier_rho, f"{RANDOM_FIELD}.barrier.rho")
-    scale_f = _positive(barrier_scale_factor, f"{RANDOM_FIELD}.barrier_scale_factor")
-    h, step = _loop_params(h, u_max, T_s)
+    rho_b = positive(barrier_rho, f"{RANDOM_FIELD}.barrier.rho")
+    scale_f = positive(barrier_scale_factor, f"{RANDOM_FIELD}.barrier_scale_factor")
+    h, step = loop_params(h, u_max, T_s)
     margin = float(margin)
     d = float(inflation)
-    p_T = _points(target, TARGET_FIELD)[0]
-    P = np.zeros((0, 2)) if starts is None else _points(starts, STARTS_FIELD)
+    p_T = as_points(target, TARGET_FIELD)[0]
+    P = np.zeros((0, 2)) if starts is None else as_points(starts, STARTS_FIELD)
     clear = d if start_clearance is None else float(start_clearance)
     k_R = apex_factor + SQRT2 * math.sqrt(rho_b) * scale_f  # R_i = k_R (r_i + d)
     half = (box[:, 1] - box[:, 0]) / 2.0
@@ -90,7 +90,7 @@ def random_field(
     named = [(TARGET_FIELD, p_T)] + [(f"{STARTS_FIELD}[{k}]", P[k]) for k in range(len(P))]
     for name, pt in named:
         if np.any(pt < box[:, 0]) or np.any(pt > box[:, 1]):
-            raise ConfigError(name, f"({_fmt(pt[0])}, {_fmt(pt[1])}) lies outside the arena {box.tolist()}")
+            raise ConfigError(name, f"({fmt_num(pt[0])}, {fmt_num(pt[1])}) lies outside the arena {box.tolist()}")
     gap_need = max(2.0 * step, 0.0) + 2.0 * margin  # V2 (gap > 0) and V3 (gap / 2 > u_max T_s), with the margin
     plan = _FieldDraw(M, box, half, r_lo, r_hi, apex_factor, rho_b, scale_f, k_R, h, margin, d, p_T, P, clear, gap_need)
     rng = np.random.default_rng(seed)
@@ -100,7 +100,7 @@ def random_field(
             return _checked_field(plan, *placed, u_max=u_max, T_s=T_s)
     raise ConfigError(
         f"{RANDOM_FIELD}.n_obstacles",
-        f"no valid field of {M} obstacles found in {max_restarts} tries (influence radius R = {_fmt(k_R)} (r + d), "
+        f"no valid field of {M} obstacles found in {max_restarts} tries (influence radius R = {fmt_num(k_R)} (r + d), "
         f"radii {r_lo}..{r_hi}, arena {box.tolist()}): use fewer or smaller discs, a larger arena, or a smaller "
         f"apex factor or barrier",
     )
@@ -314,7 +314,7 @@ def analyse_field(
     """The settings under which a given field is valid (see FieldAnalysis). `example` = `(f, rho_b, l / rr)`
     is checked with `field_violations` and recorded with its violations (empty when valid)."""
     g0 = field_geometry(centers, radii, target, inflation=inflation)
-    h, step = _loop_params(h, u_max, T_s)
+    h, step = loop_params(h, u_max, T_s)
     sampled = u_max is not None and T_s is not None
     c, rr, p_T = g0.centers, g0.cover_radii, g0.target
     d = float(inflation)
@@ -329,7 +329,7 @@ def analyse_field(
         t = order[0]
         cand.append((float(pair_k[t]), f"{OBSTACLES_FIELD}[{ii[t]},{jj[t]}]", "V3" if sampled else "V2"))
     kappa_max, *binding = min(cand, key=lambda x: x[0])
-    P = np.zeros((0, 2)) if starts is None else _points(starts, STARTS_FIELD)
+    P = np.zeros((0, 2)) if starts is None else as_points(starts, STARTS_FIELD)
     start_apex = _start_apex_bound(P, c, rr, p_T, clear) if len(P) else np.full((0, len(rr)), np.inf)
     start_max = float(start_apex.min()) if start_apex.size else math.inf
     reach_f = (kappa_max - SQRT2) / SQRT2

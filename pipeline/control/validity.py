@@ -120,12 +120,14 @@ def diamond_signed_distance(points, centers, apex, target) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- inputs
-def _fmt(x: float) -> str:
+def fmt_num(x: float) -> str:
+    """A number as the validity messages print it: 2 decimals, or 2 significant digits below 0.1."""
     x = float(x)
     return f"{x:.2f}" if abs(x) >= 0.1 or x == 0 else f"{x:.2g}"
 
 
-def _positive(value, name: str, *, allow_none: bool = False) -> float | None:
+def positive(value, name: str, *, allow_none: bool = False) -> float | None:
+    """`value` as a float > 0 (None passes when `allow_none`), else one ConfigError naming `name`."""
     if value is None and allow_none:
         return None
     try:
@@ -137,7 +139,8 @@ def _positive(value, name: str, *, allow_none: bool = False) -> float | None:
     return v
 
 
-def _arena(arena) -> np.ndarray | None:
+def arena_box(arena) -> np.ndarray | None:
+    """The arena `((x_min, x_max), (y_min, y_max))` as a checked `(2, 2)` array (None stays None)."""
     if arena is None:
         return None
     try:
@@ -149,7 +152,8 @@ def _arena(arena) -> np.ndarray | None:
     return a
 
 
-def _points(value, name: str) -> np.ndarray:
+def as_points(value, name: str) -> np.ndarray:
+    """`value` as finite `(N, 2)` points, else one ConfigError naming `name`."""
     try:
         p = np.asarray(value, dtype=float)
     except (TypeError, ValueError):
@@ -190,7 +194,7 @@ def field_geometry(centers, radii, target, *, apex=None, reach=None, inflation: 
     bad = np.flatnonzero(~(np.isfinite(r) & (r > 0)))
     if bad.size:
         raise ConfigError(f"{OBSTACLES_FIELD}[{bad[0]}]", f"radius must be > 0, got {r[bad[0]]!r}")
-    p_T = _points(target, TARGET_FIELD)
+    p_T = as_points(target, TARGET_FIELD)
     if p_T.shape != (1, 2):
         raise ConfigError(TARGET_FIELD, f"must be one point [x, y], got {target!r}")
     d = float(inflation)
@@ -206,7 +210,7 @@ def field_geometry(centers, radii, target, *, apex=None, reach=None, inflation: 
         i = bad[0]
         raise ConfigError(
             f"{OBSTACLES_FIELD}[{i}]",
-            f"apex {a[i]!r} must exceed sqrt(2) r_{i} = {_fmt(SQRT2 * rc[i])} (the diamond |a| + |b| <= c must "
+            f"apex {a[i]!r} must exceed sqrt(2) r_{i} = {fmt_num(SQRT2 * rc[i])} (the diamond |a| + |b| <= c must "
             f"contain the disc{' inflated by d' if d else ''})",
         )
     try:
@@ -241,11 +245,11 @@ class Violation:
         return ConfigError(self.field, self.message)
 
 
-def _loop_params(h, u_max, T_s) -> tuple[float, float]:
+def loop_params(h, u_max, T_s) -> tuple[float, float]:
     """`(h, u_max T_s)`; the step is 0 for a continuous loop (T_s or u_max None)."""
-    h = _positive(h, HYSTERESIS_FIELD)
-    u = _positive(u_max, U_MAX_FIELD, allow_none=True)
-    t = _positive(T_s, PERIOD_FIELD, allow_none=True)
+    h = positive(h, HYSTERESIS_FIELD)
+    u = positive(u_max, U_MAX_FIELD, allow_none=True)
+    t = positive(T_s, PERIOD_FIELD, allow_none=True)
     return h, (u * t if u is not None and t is not None else 0.0)
 
 
@@ -276,10 +280,10 @@ def field_violations(
     included in the shortfalls.
     """
     g = field_geometry(centers, radii, target, apex=apex, reach=reach, inflation=inflation)
-    h, step = _loop_params(h, u_max, T_s)
+    h, step = loop_params(h, u_max, T_s)
     sampled = u_max is not None and T_s is not None
-    box = _arena(arena)
-    P = np.zeros((0, 2)) if starts is None else _points(starts, STARTS_FIELD)
+    box = arena_box(arena)
+    P = np.zeros((0, 2)) if starts is None else as_points(starts, STARTS_FIELD)
     clear = float(inflation) if start_clearance is None else float(start_clearance)
     margin = float(margin)
     if not (math.isfinite(clear) and clear >= 0):
@@ -310,20 +314,20 @@ def _arena_violations(c, r, p_T, P, box, margin: float) -> list[Violation]:
         s = int(np.argmax(over[i]))
         out.append(Violation(
             f"{OBSTACLES_FIELD}[{i}]", "arena", float(over[i, s]),
-            f"arena: obstacle {i}'s disc (centre ({_fmt(c[i, 0])}, {_fmt(c[i, 1])}), r = {_fmt(r[i])}) reaches "
-            f"{_fmt(over[i, s])} past the arena's {names[s]} = {_fmt(bounds[s])}"
-            f"{f' (margin {_fmt(margin)})' if margin else ''}; move it inside or shrink it", (int(i),)))
+            f"arena: obstacle {i}'s disc (centre ({fmt_num(c[i, 0])}, {fmt_num(c[i, 1])}), r = {fmt_num(r[i])}) reaches "
+            f"{fmt_num(over[i, s])} past the arena's {names[s]} = {fmt_num(bounds[s])}"
+            f"{f' (margin {fmt_num(margin)})' if margin else ''}; move it inside or shrink it", (int(i),)))
     over_t = overflow(p_T[None], np.zeros(1))[0] - margin
     if over_t.max() > 0:
         s = int(np.argmax(over_t))
         out.append(Violation(TARGET_FIELD, "arena", float(over_t[s]),
-                             f"arena: the target lies {_fmt(over_t[s])} past the arena's {names[s]} = {_fmt(bounds[s])}"))
+                             f"arena: the target lies {fmt_num(over_t[s])} past the arena's {names[s]} = {fmt_num(bounds[s])}"))
     if len(P):
         over_p = overflow(P, np.zeros(len(P))) - margin
         for k in np.flatnonzero(over_p.max(axis=1) > 0):
             s = int(np.argmax(over_p[k]))
             out.append(Violation(f"{STARTS_FIELD}[{k}]", "arena", float(over_p[k, s]),
-                                 f"arena: the start lies {_fmt(over_p[k, s])} past the arena's {names[s]} = {_fmt(bounds[s])}"))
+                                 f"arena: the start lies {fmt_num(over_p[k, s])} past the arena's {names[s]} = {fmt_num(bounds[s])}"))
     return out
 
 
@@ -333,8 +337,8 @@ def _v1_violations(c, R, p_T, margin: float) -> list[Violation]:
     short1 = R + margin - dT
     return [Violation(
         f"{OBSTACLES_FIELD}[{i}]", "V1", float(short1[i]),
-        f"V1: the target is {_fmt(short1[i])} units too close (|p_T - c_{i}| = {_fmt(dT[i])}, needs > R_{i} = "
-        f"{_fmt(R[i])}{f' + margin {_fmt(margin)}' if margin else ''}); move the target or shrink obstacle "
+        f"V1: the target is {fmt_num(short1[i])} units too close (|p_T - c_{i}| = {fmt_num(dT[i])}, needs > R_{i} = "
+        f"{fmt_num(R[i])}{f' + margin {fmt_num(margin)}' if margin else ''}); move the target or shrink obstacle "
         f"{i}'s apex or barrier scale", (int(i),)) for i in np.flatnonzero(short1 >= 0)]
 
 
@@ -346,8 +350,8 @@ def _pair_violations(c, R, h: float, step: float | None, margin: float) -> list[
     short2 = need2 + margin - dij
     out = [Violation(
         f"{OBSTACLES_FIELD}[{i},{j}]", "V2", float(s),
-        f"V2: centres {_fmt(d)} apart, need > R_{i} + R_{j} + h = {_fmt(n)}{f' + margin {_fmt(margin)}' if margin else ''} "
-        f"(short by {_fmt(s)}); move them apart or shrink their apex or barrier scale", (int(i), int(j)))
+        f"V2: centres {fmt_num(d)} apart, need > R_{i} + R_{j} + h = {fmt_num(n)}{f' + margin {fmt_num(margin)}' if margin else ''} "
+        f"(short by {fmt_num(s)}); move them apart or shrink their apex or barrier scale", (int(i), int(j)))
         for i, j, d, n, s in zip(ii, jj, dij, need2, short2) if s >= 0]
     if step is not None:
         side = (dij - need2) / 2.0
@@ -355,8 +359,8 @@ def _pair_violations(c, R, h: float, step: float | None, margin: float) -> list[
         out.extend(Violation(
             f"{OBSTACLES_FIELD}[{i},{j}]", "V3", float(s),
             f"V3: the gap between their influence discs leaves (|c_{i} - c_{j}| - R_{i} - R_{j} - h)/2 = "
-            f"({_fmt(d)} - {_fmt(n)})/2 = {_fmt(sd)} per side, need > u_max T_s = {_fmt(step)}"
-            f"{f' + margin {_fmt(margin)}' if margin else ''} (short by {_fmt(s)})", (int(i), int(j)))
+            f"({fmt_num(d)} - {fmt_num(n)})/2 = {fmt_num(sd)} per side, need > u_max T_s = {fmt_num(step)}"
+            f"{f' + margin {fmt_num(margin)}' if margin else ''} (short by {fmt_num(s)})", (int(i), int(j)))
             for i, j, d, n, sd, s in zip(ii, jj, dij, need2, side, short3) if s >= 0)
     return out
 
@@ -368,13 +372,13 @@ def _start_violations(P, c, apex, p_T, clear: float, margin: float) -> list[Viol
     short_s = clear + margin - sd
     for k, i in zip(*np.nonzero(short_s >= 0)):
         inside = sd[k, i] <= 0
-        where = (f"lies inside obstacle {i}'s diamond |a| + |b| <= c_{i} = {_fmt(apex[i])} ({_fmt(-sd[k, i])} "
+        where = (f"lies inside obstacle {i}'s diamond |a| + |b| <= c_{i} = {fmt_num(apex[i])} ({fmt_num(-sd[k, i])} "
                  f"from its boundary)" if inside else
-                 f"is {_fmt(sd[k, i])} from obstacle {i}'s diamond (c_{i} = {_fmt(apex[i])})")
-        need = f"; needs > {_fmt(clear + margin)}" if clear + margin > 0 else ""
+                 f"is {fmt_num(sd[k, i])} from obstacle {i}'s diamond (c_{i} = {fmt_num(apex[i])})")
+        need = f"; needs > {fmt_num(clear + margin)}" if clear + margin > 0 else ""
         out.append(Violation(
             f"{STARTS_FIELD}[{k}]", "start", float(short_s[k, i]),
-            f"start: ({_fmt(P[k, 0])}, {_fmt(P[k, 1])}) {where}{need} (short by {_fmt(short_s[k, i])}); move the "
+            f"start: ({fmt_num(P[k, 0])}, {fmt_num(P[k, 1])}) {where}{need} (short by {fmt_num(short_s[k, i])}); move the "
             f"start or shrink obstacle {i}'s apex", (int(i),)))
     return out
 
