@@ -18,7 +18,7 @@ from pipeline import identity, tracking
 from pipeline.config import compose
 from pipeline.errors import ConfigError, DatasetError
 from pipeline.render import Occlusion, load_occlusion
-from pipeline.repo import CONF_DIR
+from pipeline.repo import CONF_DIR, write_atomic
 
 COMMANDS = {
     "dataset": "python -m pipeline.data data={name}",
@@ -210,10 +210,7 @@ def write_lock(path: Path, sections: dict[str, dict[str, Path]],
     lock = {"generated_by": generated_by, "git_commit": tracking.git_commit(), "debug": str(debug), **lock}
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(yaml.safe_dump(lock, sort_keys=False))
-    tmp.replace(path)
-    return path
+    return write_atomic(path, yaml.safe_dump(lock, sort_keys=False))
 
 
 def pinned_folders(paper_dir: Path, kind: str) -> dict[str, str]:

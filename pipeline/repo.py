@@ -1,6 +1,8 @@
 """Where the project lives (the repository root and its config folder, read by the config system and the stages),
-and whether it can write where a config says (:func:`check_folder`)."""
+whether it can write where a config says (:func:`check_folder`), and a file written whole or not at all
+(:func:`write_atomic`)."""
 
+import os
 import tempfile
 from pathlib import Path
 
@@ -26,3 +28,14 @@ def check_folder(value, field: str) -> None:
         tempfile.TemporaryDirectory(dir=parent, prefix=".write-check-").cleanup()
     except OSError as err:
         raise ConfigError(field, f"cannot create or write {p}: {err.strerror or err}") from None
+
+
+def write_atomic(path, text: str) -> Path:
+    """`text` into `path`, whole or not at all: written to a uniquely named file beside it, then renamed over it, so
+    that a reader (another job of a sweep reading the same index) never sees it empty or half written."""
+    path = Path(path)
+    with tempfile.NamedTemporaryFile("w", dir=path.parent, prefix=f".{path.name}.", suffix=".tmp", delete=False) as f:
+        f.write(text)
+    os.chmod(f.name, 0o644)  # a plain file's mode (not the temporary file's 0600)
+    Path(f.name).replace(path)
+    return path

@@ -17,15 +17,17 @@ from pipeline.config import build
 from pipeline.errors import ConfigError
 from pipeline.perception.adversary import is_attack
 from pipeline.plants import SingleIntegrator, explain_steering, steering_warnings
+from pipeline.preflight import prepared
 from pipeline.sim import frame_steps, simulate
-from pipeline.sim.settings import check_vehicle, run_keywords
+from pipeline.sim.settings import check_vehicle
 
 
 def objects(cfg: DictConfig):
     """Every object of the run, built from its node and checked: (scene, controller, disturbance, starts, keywords).
 
     The controller steers the vehicle's steered point in `vehicle.steering_scene(scene)` (the unicycle's discs
-    inflated by its look-ahead, SPEC §3.7); the keywords carry the plant and its initial headings."""
+    inflated by its look-ahead, SPEC §3.7); the keywords of :func:`pipeline.sim.simulate` carry the `sim` and
+    `camera` settings, the plant and its initial headings."""
     scene = build(cfg.scene, "scene")
     plant = build(cfg.vehicle, "vehicle") if cfg.get("vehicle") is not None else SingleIntegrator()
     try:
@@ -40,18 +42,18 @@ def objects(cfg: DictConfig):
     sim, camera = build(cfg.sim, "sim"), build(cfg.camera, "camera")
     frame_steps(sim.dt, camera.period)
     check_vehicle(plant, sim)
-    kw = {**run_keywords(sim, camera), "plant": plant, "heading0": plant.initial_heading(x0, scene)}
+    kw = {"sim": sim, "camera": camera, "plant": plant, "heading0": plant.initial_heading(x0, scene)}
     return scene, controller, disturbance, x0, kw
 
 
-def check(cfg: DictConfig) -> None:
-    """Preflight: build every object (no simulation)."""
-    objects(cfg)
+def check(cfg: DictConfig) -> tuple:
+    """Preflight: build every object (no simulation); the run uses them."""
+    return objects(cfg)
 
 
 def run(cfg: DictConfig) -> dict:
     """Run one batched simulation; returns `{"metrics": DataFrame, "result": SimResult, "run_dir": Path}`."""
-    scene, controller, disturbance, x0, kw = objects(cfg)  # validate everything before any work
+    scene, controller, disturbance, x0, kw = prepared(cfg, check)  # the preflight's, when it checked this job
     for line in steering_warnings(kw["plant"], controller):  # valid, but the unicycle cannot follow (SPEC §3.7)
         print(f"warning: {line}", file=sys.stderr)
     run_dir = Path(cfg.paths.output_dir)
@@ -66,11 +68,11 @@ def run(cfg: DictConfig) -> dict:
         from pipeline.viz import save, trajectory_figure  # matplotlib: not imported by the preflight
 
         fig = trajectory_figure(scene, result.p, result.metrics["success"], arena=scene.bounds,
-                                title=f"{controller.name} controller, disturbance {disturbance.name}, {kw['model']}")
+                                title=f"{controller.name} controller, disturbance {disturbance.name}, {kw['sim'].model}")
         save(fig, run_dir / "trajectories")
     med = df.time_to_target.dropna().median() if df.success.any() else float("nan")
     vehicle = f", {kw['plant'].name}" if kw["plant"].heading else ""
-    print(f"simulate ({kw['model']}{vehicle}): {controller.name} / {disturbance.name}: {len(df)} agents, "
+    print(f"simulate ({kw['sim'].model}{vehicle}): {controller.name} / {disturbance.name}: {len(df)} agents, "
           f"success {df.success.mean():.1%}, collision {df.collision.mean():.1%}, median time {med:.2f} s, "
           f"{elapsed:.2f} s -> {run_dir}")
     return {"metrics": df, "result": result, "run_dir": run_dir}

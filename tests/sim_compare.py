@@ -12,7 +12,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.control import HybridController, Scene
-from pipeline.sim.simulator import simulate
+from pipeline.sim.simulator import CameraSettings, SimSettings, simulate
 from pipeline.viz import draw_scene
 
 EDGE_STARTS = ((-12.0, 2.0), (-45.0, 0.3), (-37.0, -17.0), (-30.0, 20.0), (10.0, 25.0))
@@ -24,12 +24,12 @@ def model_comparison(scene: Scene, starts=EDGE_STARTS, *, dt: float = 0.01, came
     x0 = np.asarray(starts, dtype=float)
     ctrl = HybridController(scene, guard=guard)
     runs = {
-        "sampled": simulate(scene, ctrl, x0, dt=dt, horizon=horizon, camera_period=camera_period,
-                            record=False),
-        "continuous": simulate(scene, ctrl, x0, dt=dt, horizon=horizon, model="continuous",
+        "sampled": simulate(scene, ctrl, x0, sim=SimSettings(dt=dt, horizon=horizon),
+                            camera=CameraSettings(period=camera_period), record=False),
+        "continuous": simulate(scene, ctrl, x0, sim=SimSettings(dt=dt, horizon=horizon, model="continuous"),
                                record=False),
-        "limit": simulate(scene, ctrl, x0, dt=limit_dt, horizon=horizon, camera_period=limit_dt,
-                          record=False),
+        "limit": simulate(scene, ctrl, x0, sim=SimSettings(dt=limit_dt, horizon=horizon),
+                          camera=CameraSettings(period=limit_dt), record=False),
     }
     df = pd.DataFrame({"x0": x0[:, 0], "y0": x0[:, 1]})
     for name, res in runs.items():
@@ -49,8 +49,9 @@ def zigzag_figure(scene: Scene, start=(-12.0, 2.0), *, dt: float = 0.01, camera_
 
     x0 = np.asarray([start], dtype=float)
     ctrl = HybridController(scene, guard=guard)
-    samp = simulate(scene, ctrl, x0, dt=dt, horizon=horizon, camera_period=camera_period, record_every=1)
-    cont = simulate(scene, ctrl, x0, dt=dt, horizon=horizon, model="continuous", record_every=1)
+    samp = simulate(scene, ctrl, x0, sim=SimSettings(dt=dt, horizon=horizon, record_every=1),
+                    camera=CameraSettings(period=camera_period))
+    cont = simulate(scene, ctrl, x0, sim=SimSettings(dt=dt, horizon=horizon, model="continuous", record_every=1))
     fig = Figure(figsize=(11, 4))
     axes = fig.subplots(1, 2)
     ts, tc = samp.metrics["time_to_target"][0], cont.metrics["time_to_target"][0]

@@ -9,7 +9,7 @@ import pytest
 from pipeline.bracket.falsifier import Search, falsify, fixed_error, run_adversary
 from pipeline.bracket.loop import OUTCOMES, REACHED, STALLED, FrameLoop
 from pipeline.control import CBFController, HybridController, Scene, SmoothController
-from pipeline.sim import simulate
+from pipeline.sim import CameraSettings, SimSettings, simulate
 from pipeline.sim.disturbances import Adversarial
 
 SCENE = Scene(target=[40.0, 0.0], obstacles=[{"center": [0.0, 0.0], "radius": 4.0}])
@@ -22,8 +22,8 @@ def test_frame_loop_is_the_simulators_sampled_loop(law):
     ctl = law(SCENE)
     p0 = np.array([[-12.0, 2.0], [-30.0, -5.0], [-20.0, 0.3]])
     eps = 0.3
-    sim = simulate(SCENE, ctl, p0, disturbance=Adversarial(eps=eps), horizon=3.0, dt=0.01, camera_period=0.05,
-                   record_every=5, stop_on_success=False)
+    sim = simulate(SCENE, ctl, p0, sim=SimSettings(horizon=3.0, dt=0.01, record_every=5, stop_on_success=False),
+                   camera=CameraSettings(period=0.05), disturbance=Adversarial(eps=eps))
     loop = FrameLoop(SCENE, ctl, period=0.05, horizon=3.0)
     st = run_adversary(loop, p0, np.full(3, eps), "fixed", FAST)
     assert st["path"].shape == sim.p.shape

@@ -453,17 +453,19 @@ def test_nested_and_stage_defaults_are_the_yaml():
 
 
 def test_experiment_settings_and_simulate_defaults_are_the_yaml():
-    """The experiments stage's root keys, and `simulate()`'s keywords: those of conf/sim and conf/camera."""
+    """The experiments stage's root keys, and `simulate()`'s settings: those of conf/sim and conf/camera."""
+    import inspect
+
     from pipeline.experiments.settings import ExperimentSettings
-    from pipeline.sim import simulate
+    from pipeline.sim import CameraSettings, SimSettings, simulate
 
     experiments = _yaml("experiments.yaml")
     assert _differences(experiments, ExperimentSettings) == []
     assert set(experiments) - {"defaults", "hydra"} == set(_code_defaults(ExperimentSettings))
     sim, camera = _yaml("sim/default.yaml"), _yaml("camera/default.yaml")
-    run = {**{k: v for k, v in sim.items() if k != "_target_"}, "camera_period": camera["period"],
-           **{k: camera[k] for k in ("p_fail", "predict", "drift", "max_drift")}}
-    assert _differences(run, simulate) == []
+    assert _differences(sim, SimSettings) == [] and _differences(camera, CameraSettings) == []
+    defaults = inspect.signature(simulate).parameters
+    assert defaults["sim"].default == SimSettings() and defaults["camera"].default == CameraSettings()
 
 
 # ------------------------------------------------------------------------------- bad input, every stage

@@ -9,7 +9,7 @@ from test_control_geometry import scenes
 from test_control_potentials import box_points, default_scene, sampled_step
 
 from pipeline.control import CBFController, HybridController, SmoothController, in_diamond, potential
-from pipeline.sim import simulate
+from pipeline.sim import CameraSettings, SimSettings, simulate
 
 SETTINGS = settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
@@ -108,7 +108,8 @@ def test_sampled_loop_counts_pushouts_exactly_outside_c_and_d():
         return seq[frame][idx].copy()
 
     x0 = np.column_stack([np.full(n, -45.0), np.linspace(-25.0, 25.0, n)])  # far from the obstacle and target
-    res = simulate(scene, ctrl, x0, dt=0.01, horizon=0.4, camera_period=0.01, measure=measure, record_every=1)
+    res = simulate(scene, ctrl, x0, sim=SimSettings(dt=0.01, horizon=0.4, record_every=1),
+                   camera=CameraSettings(period=0.01), measure=measure)
     assert (res.metrics["termination"] == "horizon").all()
     xd = ctrl.initial_state(seq[0])
     pushouts, jumps = np.zeros(n, dtype=int), np.zeros(n, dtype=int)

@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from pipeline.control import HybridController, Obstacle, Scene
 from pipeline.errors import ConfigError
 from pipeline.plants import SingleIntegrator, Unicycle
-from pipeline.sim import simulate, true_state
+from pipeline.sim import CameraSettings, SimSettings, simulate, true_state
 
 
 @pytest.fixture(scope="module")
@@ -35,13 +35,13 @@ def at_frames(res):
 X0 = np.array([[-40.0, 20.0], [-30.0, -0.2], [-45.0, 5.0], [20.0, 25.0]])
 
 
-def _run(scene, plant=None, **kw):
+def _run(scene, plant=None, *, measure=None, horizon=40.0, **camera):
+    """The blind runs of this file; `camera`: keys of :class:`CameraSettings` (`predict`, `drift`, `max_drift`)."""
     plant = plant or SingleIntegrator()
     ctrl = HybridController(plant.steering_scene(scene), guard=plant.heading)
-    kw = {"dt": 0.01, "horizon": 40.0, "camera_period": 0.05, "seed": 0, "record_every": 1, "plant": plant,
-          "stop_on_success": False,
-          "heading0": plant.initial_heading(X0, scene)} | kw
-    return simulate(scene, ctrl, X0, **kw)
+    sim = SimSettings(dt=0.01, horizon=horizon, seed=0, record_every=1, stop_on_success=False)
+    return simulate(scene, ctrl, X0, sim=sim, camera=CameraSettings(period=0.05, **camera), measure=measure,
+                    plant=plant, heading0=plant.initial_heading(X0, scene))
 
 
 def test_predicted_estimate_is_the_true_state_and_the_vehicle_arrives(scene):

@@ -17,7 +17,7 @@ from pipeline.control.hybrid import tangent_saturate
 from pipeline.errors import ConfigError
 from pipeline.experiments.report import figure_stem
 from pipeline.preflight import preflight
-from pipeline.sim import Adversarial, Alternating, WorldAlternating, simulate
+from pipeline.sim import Adversarial, Alternating, SimSettings, WorldAlternating, simulate
 from pipeline.sim.starts import Circle, Points
 from pipeline.sweep import simulate_headline
 
@@ -96,7 +96,7 @@ def _case6_runs(disturbance, controller):
     scene = build(cfg.scene, "scene")
     ctl = build(cfg.controller, "controller", scene=scene)
     x0 = build(cfg.init, "init")(scene)
-    r = simulate(scene, ctl, x0, horizon=10.0, disturbance=disturbance, record=False, )
+    r = simulate(scene, ctl, x0, sim=SimSettings(horizon=10.0), disturbance=disturbance, record=False)
     return np.asarray(r.metrics["success"]), np.asarray(r.metrics["collision"])
 
 
@@ -113,7 +113,8 @@ def _case6_adversary(overrides):
     cfg = compose("simulate", ["scene=case6", "controller=hybrid_dense", *overrides])
     scene = build(cfg.scene, "scene")
     ctl = build(cfg.controller, "controller", scene=scene)
-    r = simulate(scene, ctl, Circle()(scene), horizon=10.0, disturbance=Adversarial(eps=0.28), record=False)
+    r = simulate(scene, ctl, Circle()(scene), sim=SimSettings(horizon=10.0), disturbance=Adversarial(eps=0.28),
+                 record=False)
     return np.asarray(r.metrics["success"]).mean(), np.asarray(r.metrics["min_clearance"]).min()
 
 
@@ -158,7 +159,7 @@ def test_stall_speed_is_a_share_of_u_max():
     scene = _scene("default")
     assert stall_threshold(SimSettings(), HybridController(scene)) == pytest.approx(0.25)
     slow = HybridController(scene, u_max=0.2)  # moving at 0.2 units/s the whole time: not stalled
-    r = simulate(scene, slow, np.array([[-40.0, 0.0]]), horizon=6.0, record=False)
+    r = simulate(scene, slow, np.array([[-40.0, 0.0]]), sim=SimSettings(horizon=6.0), record=False)
     assert r.metrics["outcome"][0] == "timed_out"
 
 
@@ -234,7 +235,7 @@ def _variant_runs(saturation: list[str]):
     scene = build(cfg.scene, "scene")
     ctl = build(cfg.controller, "controller", scene=scene)
     x0 = Points(points=[[-4.79183, 5.10278], [-5.10278, 4.79183]])(scene)
-    r = simulate(scene, ctl, x0, horizon=10.0, disturbance=Alternating(eps=0.28), record=False)
+    r = simulate(scene, ctl, x0, sim=SimSettings(horizon=10.0), disturbance=Alternating(eps=0.28), record=False)
     return np.asarray(r.metrics["success"]), np.asarray(r.metrics["collision"]), np.asarray(r.metrics["path_length"])
 
 

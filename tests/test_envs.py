@@ -57,14 +57,14 @@ def test_trajectories_equal_the_simulators_for_the_same_policy(scene):
     """The paper's architecture (a map + the hybrid law) through the vector environment and through
     `pipeline.sim.simulate` with the camera in the loop: the same positions at every frame, the same outcome."""
     from pipeline.perception.measure import CameraMeasure
-    from pipeline.sim import simulate
+    from pipeline.sim import CameraSettings, SimSettings, simulate
 
     venv = envs.make_vector("hycontrol/Navigate-v0", 6, overrides=[f"scene={scene}"], autoreset=False)
     o = venv.objects
     pm = CentroidMap(o.camera)
     starts = np.array([[-12.0, 2.0], [-37.0, -17.0], [-40.0, 20.0], [10.0, -20.0], [-20.0, 0.3], [30.0, 25.0]])
-    res = simulate(o.scene, o.controller, starts, measure=CameraMeasure(o.camera, pm), dt=o.sim.dt,
-                   horizon=o.sim.horizon, camera_period=o.camera_settings.period, record_every=5, seed=0)
+    res = simulate(o.scene, o.controller, starts, sim=SimSettings(dt=o.sim.dt, horizon=o.sim.horizon, record_every=5),
+                   camera=CameraSettings(period=o.camera_settings.period), measure=CameraMeasure(o.camera, pm), seed=0)
     policy = ArchitecturePolicy(pm, o.controller, o.plant, o.scene, venv.core.period)
     obs, _ = venv.reset(seed=0, options={"start": starts})
     p, code = [venv.core.position().copy()], np.zeros(len(starts), dtype=int)

@@ -9,6 +9,8 @@ import sys
 import numpy as np
 import pandas as pd
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from pipeline.cli import CONF_DIR, REPO_ROOT, compose
 from pipeline.errors import ConfigError, ModelError
@@ -138,15 +140,16 @@ def test_camera_in_the_loop_renders_all_agents_per_frame(tiny_maps):
     from pipeline.control import HybridController, Scene
     from pipeline.perception.maps import load_perception_map
     from pipeline.perception.measure import CameraMeasure
-    from pipeline.sim import simulate
+    from pipeline.sim import CameraSettings, SimSettings, simulate
 
     pm = load_perception_map(ids["clean"], models_dir=root / "models")
     cam = pm.camera()
     scene = Scene(target=(40.0, 0.0))
     x0 = np.array([[-30.0, 10.0], [-20.0, -15.0], [10.0, 20.0]])
     measure = CameraMeasure(cam, pm)
-    res = simulate(scene, HybridController(scene), x0, dt=0.01, horizon=0.5, camera_period=0.05, measure=measure,
-                   record_every=5, stop_on_success=False)
+    res = simulate(scene, HybridController(scene), x0,
+                   sim=SimSettings(dt=0.01, horizon=0.5, record_every=5, stop_on_success=False),
+                   camera=CameraSettings(period=0.05), measure=measure)
     assert measure.frames == 10 and measure.images == 30  # one batched call per frame, all agents
     # the perceived positions are the map's predictions on the rendered frames
     np.testing.assert_allclose(res.m[0], pm.predict(cam.render(x0)), atol=1e-5)
@@ -195,7 +198,7 @@ def test_camera_in_the_loop_is_the_same_on_every_device(tiny_maps):
     from pipeline.control import HybridController, Scene
     from pipeline.perception.maps import load_perception_map
     from pipeline.perception.measure import CameraMeasure
-    from pipeline.sim import simulate
+    from pipeline.sim import CameraSettings, SimSettings, simulate
 
     root, ids = tiny_maps
     scene = Scene(target=(40.0, 0.0))
@@ -203,8 +206,9 @@ def test_camera_in_the_loop_is_the_same_on_every_device(tiny_maps):
     runs = {}
     for device in ["cpu", "auto"] + (["cuda"] if torch.cuda.is_available() else []):
         pm = load_perception_map(ids["clean"], models_dir=root / "models", device=device)
-        runs[device] = simulate(scene, HybridController(scene), x0, dt=0.01, horizon=1.0, camera_period=0.05,
-                                measure=CameraMeasure(pm.camera(), pm), record_every=5, stop_on_success=False)
+        runs[device] = simulate(scene, HybridController(scene), x0,
+                                sim=SimSettings(dt=0.01, horizon=1.0, record_every=5, stop_on_success=False),
+                                camera=CameraSettings(period=0.05), measure=CameraMeasure(pm.camera(), pm))
     for device, res in runs.items():
         np.testing.assert_allclose(res.m, runs["cpu"].m, atol=1e-3, err_msg=device)
         np.testing.assert_allclose(res.p, runs["cpu"].p, atol=1e-3, err_msg=device)
@@ -258,3 +262,46 @@ def test_a_run_on_the_side_never_replaces_a_pinned_paper_figure(tmp_path):
         tmp_path / "out" / "side" / pinned["cache"].name
     with pytest.raises(ConfigError, match="publish"):
         run(_cfg(tmp_path, "experiment=coverings", "debug=tiny", "publish=maybe"))
+
+
+def test_experiments_side_by_side_never_read_a_half_written_entry(tmp_path):
+    """`make paper` runs experiments two at a time, each writing its index entry and reading every other one to
+    rewrite index.md (a tiny run failed on an empty entry, 2026-12-04): each file is written whole."""
+    import threading
+
+    from pipeline.experiments.report import publish
+
+    errors = []
+
+    def job(i: int) -> None:
+        entry = {"id": f"exp{i}", "title": "t", "command": "c",
+                 "items": [{"kind": "table", "files": [f"{'x' * 20_000}{i}.csv"], "caption": "c"}]}
+        try:
+            for _ in range(200):
+                publish(tmp_path, entry, figures={})
+        except Exception as err:  # noqa: BLE001 - what the other job's reader met
+            errors.append(err)
+
+    threads = [threading.Thread(target=job, args=(i,)) for i in range(3)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors, errors[0]
+    index = (tmp_path / "index.md").read_text()
+    assert all(f"## exp{i}" in index for i in range(3))
+    assert sorted(p.name for p in (tmp_path / "index").iterdir()) == ["exp0.json", "exp1.json", "exp2.json"]
+
+
+@settings(max_examples=30, deadline=None)
+@given(values=st.lists(st.floats(-1e6, 1e6, allow_nan=False), min_size=1, max_size=50))
+def test_cached_results_load_bit_for_bit(tmp_path_factory, values):
+    """A scenario's cached tables load as the floats it saved: a paper whose results come from the cache publishes
+    the numbers of one that computed them (pandas' default CSV parser is off by an ulp: a tiny `make paper` that
+    reused its experiments, 2026-12-04, published x0 = 13.148321982859612 for 13.148321982859613)."""
+    from pipeline.experiments.results import Results
+
+    folder = tmp_path_factory.mktemp("results")
+    Results(tables={"metrics": pd.DataFrame({"x": values})}).save(folder)
+    loaded = Results.load(folder).tables["metrics"]["x"].to_numpy()
+    assert loaded.tolist() == values

@@ -20,13 +20,13 @@ from tests.test_envs import CentroidMap
 def test_expert_rolled_out_in_the_env_is_the_simulators_hybrid_controller_on_the_true_state():
     """The expert's action (head 0) carries its mode along its own trajectory: rolled out in the environment it
     is the simulator's hybrid controller on the true state, frame for frame."""
-    from pipeline.sim import simulate
+    from pipeline.sim import CameraSettings, SimSettings, simulate
 
     venv = envs.make_vector("hycontrol/Navigate-v0", 4, autoreset=False)
     o = venv.objects
     starts = np.array([[-12.0, 2.0], [-30.0, -0.2], [-20.0, 0.1], [10.0, 20.0]])
-    res = simulate(o.scene, o.controller, starts, dt=o.sim.dt, horizon=o.sim.horizon,
-                   camera_period=o.camera_settings.period, record_every=5)
+    res = simulate(o.scene, o.controller, starts, sim=SimSettings(dt=o.sim.dt, horizon=o.sim.horizon, record_every=5),
+                   camera=CameraSettings(period=o.camera_settings.period))
     expert = Expert(o.controller, o.plant, o.scene, venv.core.period)
     _, info = venv.reset(seed=0, options={"start": starts})
     p = [info["position"].copy()]

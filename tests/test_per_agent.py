@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pipeline.control import HybridController, Obstacle, Scene, SmoothController
-from pipeline.sim import Adversarial, Alternating, simulate
+from pipeline.sim import Adversarial, Alternating, CameraSettings, SimSettings, simulate
 from pipeline.sim.disturbances import PerAgent
 from pipeline.sim.starts import NearK
 
@@ -23,8 +23,8 @@ def scene() -> Scene:
 
 def _run(scene, ctrl, x0, dist, model):
     # a short horizon: the arcs near K under the adversary are where the batch could differ (and the costly part)
-    return simulate(scene, ctrl, x0, disturbance=dist, dt=0.01, horizon=1.5, camera_period=0.05, seed=0,
-                    record=False, model=model)
+    return simulate(scene, ctrl, x0, sim=SimSettings(dt=0.01, horizon=1.5, model=model),
+                    camera=CameraSettings(period=0.05), disturbance=dist, seed=0, record=False)
 
 
 @pytest.mark.parametrize("model", ["continuous", "sampled"])

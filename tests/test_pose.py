@@ -159,13 +159,13 @@ def test_simulate_stage_drives_the_unicycle_and_keeps_the_integrator(tmp_path):
     assert np.allclose(res.heading[0], th0)  # vehicle.heading0 random, from vehicle.heading_seed
     # the integrator through the stage equals a direct simulate() without a plant: its numbers do not move
     from pipeline.config import build
-    from pipeline.sim import simulate
+    from pipeline.sim import CameraSettings, SimSettings, simulate
 
     cfg = compose("simulate", [*common, f"paths.output_dir={tmp_path / 'i'}"])
     integ = run(cfg)
     scene = build(cfg.scene, "scene")
-    ref = simulate(scene, build(cfg.controller, "controller", scene=scene), integ["result"].x0, dt=0.01,
-                   horizon=15.0, camera_period=0.05, record_every=5)
+    ref = simulate(scene, build(cfg.controller, "controller", scene=scene), integ["result"].x0,
+                   sim=SimSettings(dt=0.01, horizon=15.0, record_every=5), camera=CameraSettings(period=0.05))
     assert np.array_equal(ref.p, integ["result"].p) and integ["result"].heading is None
 
 

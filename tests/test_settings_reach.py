@@ -34,8 +34,7 @@ SIM = {"model": "sampled", "dt": 0.02, "horizon": 7.0, "delta": 1.5, "record_eve
        "stall_time": 4.0}
 CAMERA = {"period": 0.04, "p_fail": 0.3, "gate": 1.25, "heading": "imu", "heading_noise": 0.05, "predict": True,
           "drift": 0.2, "max_drift": 3.0}
-TO_SIMULATE = {"period": "camera_period", "p_fail": "p_fail", "predict": "predict", "drift": "drift",
-               "max_drift": "max_drift"}  # camera fields the simulator takes (by its names)
+TO_SIMULATE = {"period", "p_fail", "predict", "drift", "max_drift"}  # camera fields the simulator reads
 TO_MEASURE = {"gate": "gate", "heading": "heading", "heading_noise": "heading_noise"}  # ...the camera measurement
 
 
@@ -50,7 +49,7 @@ def _ctx(tmp_path, *extra):
 
 def test_the_override_lists_cover_every_field():
     assert set(SIM) == {f.name for f in dataclasses.fields(SimSettings)}
-    assert set(CAMERA) == {f.name for f in dataclasses.fields(CameraSettings)} == set(TO_SIMULATE) | set(TO_MEASURE)
+    assert set(CAMERA) == {f.name for f in dataclasses.fields(CameraSettings)} == TO_SIMULATE | set(TO_MEASURE)
     for k, v in {**SIM, **CAMERA}.items():  # off the default: a value dropped for the default is seen
         default = getattr(SimSettings() if k in SIM else CameraSettings(), k)
         assert v != default or k == "model", k
@@ -72,13 +71,16 @@ def test_sim_and_camera_settings_reach_the_simulator_and_the_camera(tmp_path, mo
     ctx.simulate(ctx.controller(), x0)
     ctx.leader_follower(x0[:1], x0[1:])
     plain, leader, follower = calls
-    for k, v in SIM.items():
-        assert plain[k] == v, f"sim.{k} does not reach the simulator: {plain[k]!r} != {v!r}"
-    for k, name in TO_SIMULATE.items():
-        assert plain[name] == CAMERA[k], f"camera.{k} does not reach the simulator: {plain[name]!r}"
-    assert follower["p_fail"] == CAMERA["p_fail"], "camera.p_fail does not reach the follower's camera"
-    assert leader["p_fail"] == 0.0  # the leader reads its own state: no camera to lose frames of
-    assert ctx.simulate(ctx.controller(), x0, p_fail=0.5) is not None and calls[-1]["p_fail"] == 0.5  # a condition's own
+    for k, v in SIM.items():  # the settings objects themselves, passed down
+        assert getattr(plain["sim"], k) == v, f"sim.{k} does not reach the simulator: {getattr(plain['sim'], k)!r}"
+    assert plain["seed"] == SIM["seed"]
+    for k in TO_SIMULATE:
+        assert getattr(plain["camera"], k) == CAMERA[k], f"camera.{k} does not reach the simulator"
+    assert plain["sim"] is ctx.sim and plain["camera"] is ctx.camera_settings  # not rebuilt (nor re-checked) per run
+    assert follower["camera"].p_fail == CAMERA["p_fail"], "camera.p_fail does not reach the follower's camera"
+    assert leader["camera"].p_fail == 0.0  # the leader reads its own state: no camera to lose frames of
+    assert not leader["sim"].stop_on_success and leader["sim"].horizon == SIM["horizon"]  # its own override only
+    assert ctx.simulate(ctx.controller(), x0, p_fail=0.5) is not None and calls[-1]["camera"].p_fail == 0.5
 
     seen = {}
     monkeypatch.setattr(runs, "CameraMeasure", lambda camera, pm, occ, **kw: seen.update(kw) or "measure")

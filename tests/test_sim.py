@@ -61,9 +61,12 @@ def near_k_x0(scene) -> np.ndarray:
     return x0
 
 
-def run(scene, ctrl, x0, disturbance=None, **kw):
-    kw = {"dt": 0.01, "horizon": 30.0, "delta": DELTA, "camera_period": 0.05, "seed": 0} | kw
-    return simulate(scene, ctrl, x0, disturbance=disturbance, **kw)
+def run(scene, ctrl, x0, disturbance=None, *, seed=0, record=True, target_fn=None, camera_period=0.05, p_fail=0.0,
+        **sim):
+    """One run at this file's defaults; `sim`: keys of :class:`SimSettings`."""
+    return simulate(scene, ctrl, x0, disturbance=disturbance, seed=seed, record=record, target_fn=target_fn,
+                    sim=SimSettings(**({"dt": 0.01, "horizon": 30.0, "delta": DELTA} | sim)),
+                    camera=CameraSettings(period=camera_period, p_fail=p_fail))
 
 
 # ------------------------------------------------------------------------------------- main claims
@@ -167,7 +170,8 @@ def test_camera_failure_holds_last_estimate(scene):
     x0 = np.array([[-40.0, 20.0], [-40.0, -20.0], [-45.0, 5.0], [30.0, 25.0]] * 10)
     dt, p_fail = 0.01, 0.5
     ctrl = SmoothController(scene)
-    res = simulate(scene, ctrl, x0, dt=dt, horizon=1.0, camera_period=dt, p_fail=p_fail, seed=3, record_every=1)
+    res = simulate(scene, ctrl, x0, sim=SimSettings(dt=dt, horizon=1.0, record_every=1),
+                   camera=CameraSettings(period=dt, p_fail=p_fail), seed=3)
     p, m, u = res.p, res.m, res.u
     assert (res.metrics["termination"] == "horizon").all()
     np.testing.assert_array_equal(m[0], x0)  # the first frame is always delivered
@@ -187,7 +191,8 @@ def test_camera_failure_holds_last_estimate(scene):
 
 def test_camera_period_zero_order_hold(scene):
     x0 = np.array([[-40.0, 20.0], [20.0, -25.0]])
-    res = simulate(scene, HybridController(scene), x0, dt=0.01, horizon=2.0, camera_period=0.05, record_every=1)
+    res = simulate(scene, HybridController(scene), x0, sim=SimSettings(dt=0.01, horizon=2.0, record_every=1),
+                   camera=CameraSettings(period=0.05))
     # u (and m) change only at frame starts: steps 0, 5, 10, ... -> recorded indices 1, 6, 11, ...
     change = (np.diff(res.u[1:], axis=0) != 0).any(axis=(1, 2))
     idx = np.flatnonzero(change) + 1  # step whose velocity differs from the step before
@@ -209,7 +214,8 @@ def test_p_fail_and_other_arguments_are_validated(scene):
     ]
     for kw, field in cases:
         with pytest.raises(ConfigError) as info:
-            simulate(scene, ctrl, x0, **({"horizon": 1.0, "camera_period": 0.05} | kw))
+            camera = {"period": kw.pop("camera_period", 0.05)} | ({"p_fail": kw.pop("p_fail")} if "p_fail" in kw else {})
+            simulate(scene, ctrl, x0, sim=SimSettings(**({"horizon": 1.0} | kw)), camera=CameraSettings(**camera))
         assert info.value.field == field, kw
     with pytest.raises(ConfigError, match="init.points"):
         simulate(scene, ctrl, np.zeros((0, 2)))
@@ -261,7 +267,8 @@ class _Straight(Feedback):
 
 def test_collision_detection_and_termination(scene):
     x0 = np.array([[-20.0, 0.0], [-20.0, 10.0], [1.0, 1.0], [-20.0, 3.9]])
-    res = simulate(scene, _Straight(scene, u_max=10.0), x0, dt=0.01, horizon=30.0, camera_period=None, record_every=1)
+    res = simulate(scene, _Straight(scene, u_max=10.0), x0, sim=SimSettings(dt=0.01, horizon=30.0, record_every=1),
+                   camera=CameraSettings(period=None))
     m = res.metrics
     assert m["collision"].tolist() == [True, False, True, True]
     assert m["success"].tolist() == [False, True, False, False]

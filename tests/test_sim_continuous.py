@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -12,7 +13,7 @@ from hypothesis import strategies as st
 from pipeline.control import CBFController, Feedback, HybridController, Obstacle, Scene, SmoothController
 from pipeline.errors import ConfigError
 from pipeline.hybrid.steppers import hermite, locate
-from pipeline.sim import Adversarial, Alternating, Gaussian, simulate, true_state
+from pipeline.sim import Adversarial, Alternating, CameraSettings, Gaussian, SimSettings, simulate, true_state
 from pipeline.sim.starts import Grid, NearK, Random
 
 # two starts whose path slides along the diamond's edge (the issue's), three that stay away from it
@@ -29,15 +30,15 @@ def scene() -> Scene:
 @pytest.fixture(scope="module")
 def limit(scene):
     """The sampled model with dt = camera.period = 0.0005: the continuous-time limit of sample-and-hold."""
-    return simulate(scene, HybridController(scene, guard=False), STARTS, dt=LIMIT_DT, horizon=20.0,
-                    camera_period=LIMIT_DT,
-                    record=False).metrics
+    return simulate(scene, HybridController(scene, guard=False), STARTS, sim=SimSettings(dt=LIMIT_DT, horizon=20.0),
+                    camera=CameraSettings(period=LIMIT_DT), record=False).metrics
 
 
 @pytest.fixture(scope="module")
 def continuous(scene):
-    return simulate(scene, HybridController(scene), STARTS, dt=0.01, horizon=20.0, camera_period=0.05,
-                    model="continuous", record_every=5)
+    return simulate(scene, HybridController(scene), STARTS,
+                    sim=SimSettings(dt=0.01, horizon=20.0, model="continuous", record_every=5),
+                    camera=CameraSettings(period=0.05))
 
 
 def test_continuous_matches_the_dt_limit(limit, continuous):
@@ -53,10 +54,10 @@ def test_continuous_matches_the_dt_limit(limit, continuous):
 def test_continuous_is_much_closer_to_the_limit_than_sample_and_hold(scene, limit, continuous):
     """The literal 20 Hz sample-and-hold zigzags along the diamond's edge: later arrival; continuous does not; the
     sampled-data guard (SPEC §3.3, the default) brings the sampled loop within 10% of the limit."""
-    sampled = simulate(scene, HybridController(scene, guard=False), STARTS, dt=0.01, horizon=20.0,
-                       camera_period=0.05, record=False).metrics
-    guarded = simulate(scene, HybridController(scene), STARTS, dt=0.01, horizon=20.0, camera_period=0.05,
-                       record=False).metrics
+    sampled = simulate(scene, HybridController(scene, guard=False), STARTS, sim=SimSettings(dt=0.01, horizon=20.0),
+                       camera=CameraSettings(period=0.05), record=False).metrics
+    guarded = simulate(scene, HybridController(scene), STARTS, sim=SimSettings(dt=0.01, horizon=20.0),
+                       camera=CameraSettings(period=0.05), record=False).metrics
     err_g = np.abs(guarded["time_to_target"] - limit["time_to_target"]) / limit["time_to_target"]
     assert guarded["success"].all() and (err_g[SLIDING] < 0.1).all(), err_g
     ref = limit["time_to_target"]
@@ -91,8 +92,9 @@ def test_continuous_arc_is_consistent(scene, continuous):
 
 
 def test_rosenbrock_and_dopri5_agree(scene, continuous):
-    res = simulate(scene, HybridController(scene), STARTS, dt=0.01, horizon=20.0, model="continuous",
-                   method="dopri5", rtol=1e-6, atol=1e-6, record=False)
+    res = simulate(scene, HybridController(scene), STARTS,
+                   sim=SimSettings(dt=0.01, horizon=20.0, model="continuous", method="dopri5", rtol=1e-6, atol=1e-6),
+                   record=False)
     np.testing.assert_allclose(res.metrics["time_to_target"], continuous.metrics["time_to_target"], rtol=2e-3)
 
 
@@ -107,9 +109,9 @@ def test_arrival_time_is_exact_in_the_far_field(scene, angle, d0):
     x0 = scene.p_T + d0 * np.array([[math.cos(angle), math.sin(angle)]])
     expected = (d0 - 5.0) / 10.0 + math.log(5.0) / 2.0
     for method, tol, abs_err in (("rosenbrock23", 1e-9, 1e-5), ("dopri5", 1e-9, 1e-5), ("rosenbrock23", None, 1e-3)):
-        kw = {} if tol is None else {"rtol": tol, "atol": tol}
-        res = simulate(scene, HybridController(scene), x0, dt=0.01, horizon=10.0, model="continuous", record=False,
-                       method=method, **kw)
+        tols = {} if tol is None else {"rtol": tol, "atol": tol}
+        res = simulate(scene, HybridController(scene), x0, record=False,
+                       sim=SimSettings(dt=0.01, horizon=10.0, model="continuous", method=method, **tols))
         assert res.metrics["time_to_target"][0] == pytest.approx(expected, abs=abs_err), (method, tol)
         assert res.metrics["final_error"][0] == pytest.approx(1.0, abs=1e-7)
 
@@ -138,7 +140,8 @@ class _Toggle(Feedback):
 def test_jump_is_located_in_time(scene, s):
     x0 = np.array([[-s, 20.0], [-s - 0.4, 25.0]])
     horizon = 3.0
-    res = simulate(scene, _Toggle(scene), x0, dt=0.01, horizon=horizon, model="continuous", record_every=1)
+    res = simulate(scene, _Toggle(scene), x0,
+                   sim=SimSettings(dt=0.01, horizon=horizon, model="continuous", record_every=1))
     np.testing.assert_array_equal(res.metrics["jumps"], [1, 1])
     # the jump happens exactly at x = 0: then the vehicle goes straight up for the rest of the horizon
     np.testing.assert_allclose(res.p[-1, :, 0], 0.0, atol=1e-6)
@@ -150,7 +153,8 @@ def test_jump_is_located_in_time(scene, s):
     np.testing.assert_array_equal(res.j[first, [0, 1]], [1, 1])
     np.testing.assert_array_equal(res.j[first - 1, [0, 1]], [0, 0])
     # sample-and-hold jumps at the first frame after the crossing: it overshoots x = 0
-    sampled = simulate(scene, _Toggle(scene), x0, dt=0.01, horizon=horizon, camera_period=0.05, record=False)
+    sampled = simulate(scene, _Toggle(scene), x0, sim=SimSettings(dt=0.01, horizon=horizon),
+                       camera=CameraSettings(period=0.05), record=False)
     overshoot = np.ceil(np.array([s, s + 0.4]) / 0.05 - 1e-9) * 0.05 - np.array([s, s + 0.4])
     np.testing.assert_allclose(sampled.p[-1, :, 0], overshoot, atol=1e-9)
 
@@ -174,7 +178,8 @@ def test_locate_finds_the_first_crossing():
 
 def test_continuous_determinism(scene):
     x0 = Random(n=12, seed=3, margin=2.0)(scene)
-    kw = {"dt": 0.01, "horizon": 3.0, "camera_period": 0.05, "model": "continuous", "record_every": 5}
+    kw = {"sim": SimSettings(dt=0.01, horizon=3.0, model="continuous", record_every=5),
+          "camera": CameraSettings(period=0.05)}
     a = simulate(scene, HybridController(scene), x0, disturbance=Gaussian(0.5), seed=7, **kw)
     b = simulate(scene, HybridController(scene), x0, disturbance=Gaussian(0.5), seed=np.random.default_rng(7), **kw)
     c = simulate(scene, HybridController(scene), x0, disturbance=Gaussian(0.5), seed=8, **kw)
@@ -188,9 +193,10 @@ def test_continuous_determinism(scene):
 def test_disturbance_is_held_per_frame(scene):
     """The noise process is that of the sampled model (same draws), held between frames."""
     x0 = np.array([[-40.0, 20.0], [20.0, -25.0], [-30.0, -5.0]])
-    kw = {"dt": 0.01, "horizon": 1.0, "camera_period": 0.05, "record_every": 1, "seed": 4}
-    cont = simulate(scene, HybridController(scene), x0, disturbance=Gaussian(0.5), model="continuous", **kw)
-    samp = simulate(scene, HybridController(scene), x0, disturbance=Gaussian(0.5), **kw)
+    sim, camera = SimSettings(dt=0.01, horizon=1.0, record_every=1, seed=4), CameraSettings(period=0.05)
+    cont = simulate(scene, HybridController(scene), x0, disturbance=Gaussian(0.5), camera=camera,
+                    sim=dataclasses.replace(sim, model="continuous"))
+    samp = simulate(scene, HybridController(scene), x0, disturbance=Gaussian(0.5), sim=sim, camera=camera)
     e = cont.m - cont.p
     # constant within a frame (a record at a frame's instant, like the sampled model's, shows the frame before)
     frame = np.maximum(np.ceil(cont.t / 0.05 - 1e-9).astype(int) - 1, 0)
@@ -208,8 +214,8 @@ def test_disturbance_is_held_per_frame(scene):
 def test_proposition_1_in_continuous_time(scene, cls):
     """Near K under the adversary: the CBF filter stalls, the hybrid controller reaches the target."""
     x0 = NearK(n=30, seed=0, band=0.5)(scene)
-    res = simulate(scene, cls(scene), x0, dt=0.01, horizon=20.0, camera_period=0.05, disturbance=Adversarial(0.5),
-                   model="continuous", record=False)
+    res = simulate(scene, cls(scene), x0, sim=SimSettings(dt=0.01, horizon=20.0, model="continuous"),
+                   camera=CameraSettings(period=0.05), disturbance=Adversarial(0.5), record=False)
     m = res.metrics
     assert not m["collision"].any()
     if cls is HybridController:
@@ -221,16 +227,16 @@ def test_proposition_1_in_continuous_time(scene, cls):
 @pytest.mark.slow
 def test_proposition_1_smooth_in_continuous_time(scene):
     x0 = NearK(n=30, seed=0, band=0.5)(scene)
-    res = simulate(scene, SmoothController(scene), x0, dt=0.01, horizon=20.0, camera_period=0.05,
-                   disturbance=Adversarial(0.5), model="continuous", record=False)
+    res = simulate(scene, SmoothController(scene), x0, sim=SimSettings(dt=0.01, horizon=20.0, model="continuous"),
+                   camera=CameraSettings(period=0.05), disturbance=Adversarial(0.5), record=False)
     assert not res.metrics["success"].any() and set(res.metrics["outcome"]) == {"stalled"}
 
 
 def test_hybrid_reaches_target_from_grid_continuous(scene):
     x0 = Grid(nx=15, ny=9, margin=2.0)(scene)
     for dist in (None, Alternating(0.5)):
-        res = simulate(scene, HybridController(scene), x0, dt=0.01, horizon=30.0, camera_period=0.05,
-                       disturbance=dist, model="continuous", record=False)
+        res = simulate(scene, HybridController(scene), x0, sim=SimSettings(dt=0.01, horizon=30.0, model="continuous"),
+                       camera=CameraSettings(period=0.05), disturbance=dist, record=False)
         m = res.metrics
         assert m["success"].all() and not m["collision"].any() and (m["min_clearance"] > 0).all()
         assert m["jumps"].max() <= 20
@@ -246,13 +252,15 @@ def test_continuous_rejects_sampled_only_inputs(scene):
              ({"atol": -1.0}, "sim.atol"), ({"h_max": float("nan")}, "sim.h_max")]
     for kw, field in cases:
         with pytest.raises(ConfigError) as info:
-            simulate(scene, ctrl, x0, horizon=1.0, camera_period=0.05, model="continuous", **kw)
+            tuned = {k: kw.pop(k) for k in ("method", "rtol", "atol", "h_max") if k in kw}
+            camera = CameraSettings(period=0.05, p_fail=kw.pop("p_fail", 0.0))
+            simulate(scene, ctrl, x0, sim=SimSettings(horizon=1.0, model="continuous", **tuned), camera=camera, **kw)
         assert info.value.field == field, kw
     with pytest.raises(ConfigError) as info:
-        simulate(scene, ctrl, x0, horizon=1.0, model="exact")
+        simulate(scene, ctrl, x0, sim=SimSettings(horizon=1.0, model="exact"))
     assert info.value.field == "sim.model"
     # the true state is fine
-    simulate(scene, ctrl, x0, horizon=1.0, model="continuous", measure=true_state)
+    simulate(scene, ctrl, x0, sim=SimSettings(horizon=1.0, model="continuous"), measure=true_state)
 
 
 def test_model_comparison_table_and_figure(scene):

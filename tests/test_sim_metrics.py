@@ -15,8 +15,10 @@ from pipeline.sim import (
     OUTCOMES,
     Adversarial,
     Alternating,
+    CameraSettings,
     Gaussian,
     NoDisturbance,
+    SimSettings,
     simulate,
     summarise_agents,
     wilson,
@@ -47,8 +49,8 @@ class _Straight(Feedback):
 def test_smooth_on_the_saddle_is_stalled_not_timed_out(scene, model):
     """Started on K behind the obstacle, the smooth flow goes to its saddle and stays (Proposition 1)."""
     x0 = np.array([[-20.0, 0.0], [-40.0, 0.0]])
-    res = simulate(scene, SmoothController(scene), x0, dt=0.01, horizon=20.0, camera_period=0.05, model=model,
-                   record=False)
+    res = simulate(scene, SmoothController(scene), x0, sim=SimSettings(dt=0.01, horizon=20.0, model=model),
+                   camera=CameraSettings(period=0.05), record=False)
     m = res.metrics
     assert list(m["outcome"]) == ["stalled", "stalled"]
     assert list(m["termination"]) == ["horizon", "horizon"]
@@ -60,31 +62,35 @@ def test_smooth_on_the_saddle_is_stalled_not_timed_out(scene, model):
 def test_outcome_classes(scene, model):
     """reached / collided / timed_out on constructed cases; a short horizon is never `stalled`."""
     x0 = np.array([[-5.0, 25.0], [-20.0, 0.0], [-45.0, 29.0]])
-    res = simulate(scene, _Straight(scene), x0, dt=0.01, horizon=8.0, camera_period=0.05, model=model, record=False)
+    res = simulate(scene, _Straight(scene), x0, sim=SimSettings(dt=0.01, horizon=8.0, model=model),
+                   camera=CameraSettings(period=0.05), record=False)
     m = res.metrics
     # the third still drives towards the target at the horizon (|x0 - p_T| = 90 at 10 units/s)
     assert list(m["outcome"]) == ["reached", "collided", "timed_out"]
     assert m["min_clearance"][1] < 0 < m["min_clearance"][0]
     assert set(m["outcome"]) <= set(OUTCOMES)
     # a horizon shorter than stall_time cannot tell a stall: the smooth saddle is `timed_out` then
-    res = simulate(scene, SmoothController(scene), np.array([[-20.0, 0.0]]), dt=0.01, horizon=4.0, model=model,
-                   camera_period=None, stall_time=5.0, record=False)
+    res = simulate(scene, SmoothController(scene), np.array([[-20.0, 0.0]]),
+                   sim=SimSettings(dt=0.01, horizon=4.0, model=model, stall_time=5.0),
+                   camera=CameraSettings(period=None), record=False)
     assert list(res.metrics["outcome"]) == ["timed_out"]
 
 
 def test_stall_thresholds_are_config(scene):
     x0 = np.array([[-20.0, 0.0], [-45.0, 20.0]])
     # the second agent moves at ~10 units/s: stalled only if the threshold is above its speed
-    slow = simulate(scene, SmoothController(scene), x0, dt=0.01, horizon=5.0, camera_period=None, stall_time=2.0,
-                    stall_speed=0.1, record=False)
+    slow = simulate(scene, SmoothController(scene), x0,
+                    sim=SimSettings(dt=0.01, horizon=5.0, stall_time=2.0, stall_speed=0.1),
+                    camera=CameraSettings(period=None), record=False)
     assert list(slow.metrics["outcome"]) == ["stalled", "timed_out"]
-    fast = simulate(scene, SmoothController(scene), x0, dt=0.01, horizon=5.0, camera_period=None, stall_time=2.0,
-                    stall_speed=20.0, record=False)
+    fast = simulate(scene, SmoothController(scene), x0,
+                    sim=SimSettings(dt=0.01, horizon=5.0, stall_time=2.0, stall_speed=20.0),
+                    camera=CameraSettings(period=None), record=False)
     assert list(fast.metrics["outcome"]) == ["stalled", "stalled"]
     for kw, field in (({"stall_speed": 0.0}, "sim.stall_speed"), ({"stall_time": -1.0}, "sim.stall_time"),
                       ({"stall_time": "x"}, "sim.stall_time")):
         with pytest.raises(ConfigError) as info:
-            simulate(scene, SmoothController(scene), x0, horizon=1.0, **kw)
+            simulate(scene, SmoothController(scene), x0, sim=SimSettings(horizon=1.0, **kw))
         assert info.value.field == field
 
 
@@ -93,8 +99,8 @@ def test_adversary_near_k_is_stalled(scene, cls):
     """Proposition 1's chattering vehicles count as stalled (mean speed ~ 0), not timed out."""
     rng = np.random.default_rng(0)
     x0 = scene.from_frame(rng.uniform(-45, -15, 40), rng.uniform(-0.5, 0.5, 40))
-    res = simulate(scene, cls(scene), x0, dt=0.01, horizon=30.0, camera_period=0.05, disturbance=Adversarial(0.5),
-                   record=False)
+    res = simulate(scene, cls(scene), x0, sim=SimSettings(dt=0.01, horizon=30.0), camera=CameraSettings(period=0.05),
+                   disturbance=Adversarial(0.5), record=False)
     assert (res.metrics["outcome"] == "stalled").mean() >= 0.95
 
 
@@ -113,7 +119,8 @@ def test_stall_monitor_mean_speed():
 
 
 def test_outcome_column_in_metrics_frame(scene):
-    res = simulate(scene, HybridController(scene), np.array([[-12.0, 2.0]]), horizon=15.0, camera_period=0.05)
+    res = simulate(scene, HybridController(scene), np.array([[-12.0, 2.0]]), sim=SimSettings(horizon=15.0),
+                   camera=CameraSettings(period=0.05))
     df = res.metrics_frame()
     assert {"outcome", "min_clearance", "min_target_distance"} <= set(df.columns)
     assert df.outcome.tolist() == ["reached"]
@@ -200,7 +207,7 @@ def test_wilson_interval_stays_in_the_unit_interval_around_the_rate(n, share):
 
 def test_summarise_on_a_simulation(scene):
     x0 = np.array([[-20.0, 0.0], [-12.0, 2.0], [-30.0, 20.0]])
-    frames = [simulate(scene, cls(scene), x0, horizon=15.0, camera_period=0.05).metrics_frame()
+    frames = [simulate(scene, cls(scene), x0, sim=SimSettings(horizon=15.0), camera=CameraSettings(period=0.05)).metrics_frame()
               for cls in (HybridController, SmoothController)]
     out = summarise_agents(pd.concat(frames), "controller")
     row = out.set_index("controller")
@@ -255,7 +262,8 @@ def test_grazing_chord_is_a_collision(scene, model):
     step lie outside it; 0.05 outside, the clearance is 0.05."""
     r = scene.obstacle_radius
     x0 = np.array([[-30.0, r - 0.05], [-30.0, r + 0.05], [-30.0, -r + 0.05]])
-    res = simulate(scene, _Constant(scene), x0, dt=0.01, horizon=6.0, model=model, camera_period=None, record=False)
+    res = simulate(scene, _Constant(scene), x0, sim=SimSettings(dt=0.01, horizon=6.0, model=model),
+                   camera=CameraSettings(period=None), record=False)
     m = res.metrics
     assert m["collision"].tolist() == [True, False, True]
     assert m["outcome"].tolist() == ["collided", "timed_out", "collided"]

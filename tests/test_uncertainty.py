@@ -14,7 +14,7 @@ from pipeline.errors import ConfigError
 from pipeline.perception.maps import PerceptionMapPredictor
 from pipeline.perception.measure import CameraMeasure
 from pipeline.perception.network import PerceptionMap, gaussian_nll
-from pipeline.sim import simulate
+from pipeline.sim import CameraSettings, SimSettings, simulate
 from pipeline.train.uncertainty import (
     calibrate,
     clean_gate,
@@ -183,8 +183,9 @@ def test_gated_frames_are_failures_the_last_estimate_is_held():
     runs = {}
     for gate in (None, 5.0):
         meas = CameraMeasure(_Identity(), _DoubtfulMap(), gate=gate)
-        runs[gate] = (simulate(scene, HybridController(scene), x0, dt=0.01, horizon=6.0, camera_period=0.05,
-                               measure=meas, record_every=5, stop_on_success=False), meas)
+        runs[gate] = (simulate(scene, HybridController(scene), x0,
+                               sim=SimSettings(dt=0.01, horizon=6.0, record_every=5, stop_on_success=False),
+                               camera=CameraSettings(period=0.05), measure=meas), meas)
     ungated, _ = runs[None]
     gated, meas = runs[5.0]
     off = np.abs(ungated.m[..., 1] - ungated.p[..., 1]) > 10  # the wrong answers reach the controller ungated

@@ -129,7 +129,7 @@ def test_the_bundles_push_out_speed_keeps_the_unicycle_off_a_period_2_orbit_at_a
     from pipeline.control import HybridController, Scene
     from pipeline.plants import Unicycle
     from pipeline.sim.disturbances import Alternating
-    from pipeline.sim.simulator import simulate
+    from pipeline.sim.simulator import SimSettings, simulate
 
     cfg = compose("experiments", ["experiment=unicycle", "perception=oracle"])
     push = float(cfg.controller.push_speed)
@@ -141,7 +141,7 @@ def test_the_bundles_push_out_speed_keeps_the_unicycle_off_a_period_2_orbit_at_a
     arrived = {}
     for speed in (10.0, push):
         ctrl = HybridController(uni.steering_scene(scene), push_speed=speed, guard=True)
-        res = simulate(scene, ctrl, x0, plant=uni, heading0=uni.initial_heading(x0, scene),
-                       disturbance=Alternating(eps=0.5), record=False, horizon=20.0)
+        res = simulate(scene, ctrl, x0, sim=SimSettings(horizon=20.0), plant=uni,
+                       heading0=uni.initial_heading(x0, scene), disturbance=Alternating(eps=0.5), record=False)
         arrived[speed] = res.metrics["success"].mean()
     assert arrived[10.0] <= 0.25 and arrived[push] == 1.0, arrived

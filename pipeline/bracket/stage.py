@@ -251,7 +251,7 @@ def run(cfg: DictConfig) -> dict:
     id_, meta = bracket_id(cfg, bs, emap, cam_folder)
     final = Path(cfg.paths.bracket_dir) / f"bracket-{id_}"
     if tracking.is_complete(final) and not cfg.get("force", False):
-        df = pd.read_csv(final / "bracket.csv")
+        df = pd.read_csv(final / "bracket.csv", float_precision="round_trip")
         print(f"bracket: {final} is complete (force=true to recompute)\n{(final / 'table.md').read_text()}")
         return {"bracket": df, "table": None, "stats": json.loads((final / "certificate.json").read_text()),
                 "path": final, "skipped": True}

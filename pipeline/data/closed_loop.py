@@ -22,7 +22,7 @@ from pipeline.config import build
 from pipeline.errors import ConfigError
 from pipeline.perception.measure import CameraMeasure
 from pipeline.plants import Plant, SingleIntegrator
-from pipeline.sim import simulate
+from pipeline.sim import CameraSettings, SimSettings, simulate
 from pipeline.sim.starts import Random
 
 _F = "data.sampling.closed_loop"
@@ -75,10 +75,10 @@ def _simulate(recipe, camera, measure=None):
     dist = build(cl.disturbance, f"{_F}.disturbance")
     starts = Random(n=cl.starts, seed=cl.seed, margin=2.0)(scene, _F)
     every = max(1, round((cl.camera_period or cl.dt) / cl.dt))
-    return simulate(scene, ctrl, starts, dt=cl.dt, horizon=cl.horizon, camera_period=cl.camera_period,
-                    disturbance=dist, seed=cl.seed, record_every=every, record=measure is None,
-                    stop_on_success=cl.stop_at_target, measure=measure, plant=plant,
-                    heading0=plant.initial_heading(starts, scene))
+    return simulate(scene, ctrl, starts,
+                    sim=SimSettings(dt=cl.dt, horizon=cl.horizon, record_every=every, stop_on_success=cl.stop_at_target),
+                    camera=CameraSettings(period=cl.camera_period), disturbance=dist, seed=cl.seed,
+                    record=measure is None, measure=measure, plant=plant, heading0=plant.initial_heading(starts, scene))
 
 
 def visitation_pool(recipe, camera) -> np.ndarray:

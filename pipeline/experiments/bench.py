@@ -13,7 +13,7 @@ from pipeline.perception.maps import PerceptionMapPredictor, load_perception_map
 from pipeline.perception.measure import CameraMeasure
 from pipeline.perception.network import PerceptionMap
 from pipeline.render import Camera
-from pipeline.sim import simulate
+from pipeline.sim import CameraSettings, SimSettings, simulate
 from pipeline.sim.starts import Random
 
 
@@ -48,8 +48,8 @@ def bench(quick: bool = False) -> list[dict]:
     # closed loop: every frame renders all N agents and infers them in one batch
     measure = CameraMeasure(cam, pm)
     t0 = time.perf_counter()
-    simulate(scene, HybridController(scene), x0, dt=dt, horizon=frames * period, camera_period=period,
-             measure=measure, record=False, stop_on_success=False)
+    simulate(scene, HybridController(scene), x0, sim=SimSettings(dt=dt, horizon=frames * period, stop_on_success=False),
+             camera=CameraSettings(period=period), measure=measure, record=False)
     loop_s = time.perf_counter() - t0
     closed = measure.images / loop_s
 

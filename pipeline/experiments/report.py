@@ -10,6 +10,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.control import Scene
+from pipeline.repo import write_atomic
 from pipeline.viz import draw_scene, save
 
 # The paper's figures, in its order, then ours (fig8 on): stem -> (experiment id, what it reproduces)
@@ -99,6 +100,14 @@ class Outputs:
         return paths
 
 
+def publish(paper_dir: Path, entry: dict, figures: dict = FIGURES) -> Path:
+    """Record an experiment's entry (`<paper_dir>/index/<id>.json`) and rewrite index.md from every entry, each file
+    written whole: `make paper` runs experiments side by side, each reading the others' entries."""
+    (Path(paper_dir) / "index").mkdir(parents=True, exist_ok=True)
+    write_atomic(Path(paper_dir) / "index" / f"{entry['id']}.json", json.dumps(entry, indent=2) + "\n")
+    return write_index(paper_dir, figures)
+
+
 def write_index(paper_dir: Path, figures: dict = FIGURES) -> Path:
     """index.md from every experiment's entry in `<paper_dir>/index/*.json`, in the paper's figure order
     (`figures`: stem -> (experiment id, what it reproduces)); paths relative to `paper_dir`."""
@@ -128,9 +137,7 @@ def write_index(paper_dir: Path, figures: dict = FIGURES) -> Path:
             label = f" ({it['reproduces']})" if it.get("reproduces") else ""
             lines.append(f"- {it['kind']}{label}: {it['caption']} — {files}")
         lines.append("")
-    path = paper_dir / "index.md"
-    path.write_text("\n".join(lines))
-    return path
+    return write_atomic(paper_dir / "index.md", "\n".join(lines))
 
 
 def draw_frame(ax, scene: Scene, arena, diamond: bool = True):

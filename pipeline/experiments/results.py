@@ -33,7 +33,7 @@ class Results:
     @classmethod
     def load(cls, folder: Path) -> Results:
         info = json.loads((folder / "info.json").read_text())
-        tables = {p.stem: pd.read_csv(p) for p in sorted(folder.glob("*.csv"))}
+        tables = {p.stem: pd.read_csv(p, float_precision="round_trip") for p in sorted(folder.glob("*.csv"))}
         arrays = {}
         if (folder / "arrays.npz").is_file():
             with np.load(folder / "arrays.npz", allow_pickle=False) as z:

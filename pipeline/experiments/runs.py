@@ -4,6 +4,7 @@ the run's `sim` and `camera` settings, the camera in the loop, and the leader-fo
 from __future__ import annotations
 
 import sys
+from dataclasses import replace
 
 import numpy as np
 
@@ -13,7 +14,6 @@ from pipeline.perception.adversary import proposition1_direction
 from pipeline.perception.measure import CameraMeasure, FollowerTarget, LeaderTrack, OracleMap
 from pipeline.plants import steering_warnings
 from pipeline.sim import simulate, true_state
-from pipeline.sim.settings import run_keywords
 
 
 class Runs:
@@ -41,28 +41,28 @@ class Runs:
                  target_fn=None, p_fail: float | None = None, seed: int | None = None, record: bool = True,
                  record_every: int | None = None, horizon: float | None = None, model: str | None = None,
                  stop_on_success: bool | None = None):
-        """One batched run; `model` (sampled | continuous) overrides `sim.model` (the camera is sampled-only),
-        `stop_on_success` overrides `sim.stop_on_success`, `p_fail` (a scenario's failure condition) overrides
-        `camera.p_fail`."""
-        kw = run_keywords(self.sim, self.camera_settings)
-        if p_fail is not None:
-            kw["p_fail"] = p_fail
-        if (model or self.sim.model) == "continuous" and kw["p_fail"] > 0:
-            raise ConfigError("camera.p_fail", f"a continuous-time run takes no camera failures, got {kw['p_fail']} "
+        """One batched run with the run's `sim` and `camera` settings; `model` (sampled | continuous), `horizon`,
+        `record_every` and `stop_on_success` replace the `sim` keys of those names, `p_fail` (a scenario's failure
+        condition) `camera.p_fail`, for this run."""
+        over = {"model": model, "horizon": horizon, "record_every": record_every,
+                "stop_on_success": None if stop_on_success is None else bool(stop_on_success)}
+        over = {k: v for k, v in over.items() if v is not None and v != getattr(self.sim, k)}
+        sim = replace(self.sim, **over) if over else self.sim
+        cs = self.camera_settings
+        camera = replace(cs, p_fail=p_fail) if p_fail is not None and p_fail != cs.p_fail else cs
+        if sim.model == "continuous" and camera.p_fail > 0:
+            raise ConfigError("camera.p_fail", f"a continuous-time run takes no camera failures, got {camera.p_fail} "
                                                "(camera.p_fail=0, or the scenario's sampled time model)")
-        kw.update(seed=self.seed if seed is None else seed, record=record,
-                  record_every=record_every or self.sim.record_every, horizon=horizon or self.horizon,
-                  model=model or self.sim.model,
-                  stop_on_success=self.sim.stop_on_success if stop_on_success is None else bool(stop_on_success))
         scene = scene or self.scene
         x0 = np.asarray(x0, float)
         for line in steering_warnings(self.vehicle, controller):  # valid, but the unicycle cannot follow it
             if line not in self.warned:
                 self.warned.add(line)
                 print(f"warning: {line}", file=sys.stderr)
-        res = simulate(scene, controller, x0, disturbance=disturbance, measure=measure, target_fn=target_fn,
+        res = simulate(scene, controller, x0, sim=sim, camera=camera, disturbance=disturbance, measure=measure,
+                       target_fn=target_fn, seed=self.seed if seed is None else seed, record=record,
                        progress=len(x0) >= 2000 and sys.stderr.isatty(), plant=self.vehicle,
-                       heading0=self.vehicle.initial_heading(x0, scene), **kw)
+                       heading0=self.vehicle.initial_heading(x0, scene))
         what = f"{getattr(controller, 'name', 'controller')}, {len(x0)} agents"
         self.advance(1, f"{self.label}: {what}" if self.label else what)
         return res

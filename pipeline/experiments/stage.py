@@ -14,7 +14,6 @@ pins another computation of the experiment).
 
 from __future__ import annotations
 
-import json
 import os
 import sys
 import time
@@ -27,7 +26,7 @@ from pipeline.config import resolve
 from pipeline.experiments.checks import check
 from pipeline.experiments.context import Context
 from pipeline.experiments.redraw import drawing_key, drawn_entry
-from pipeline.experiments.report import FIGURES, Outputs, write_index
+from pipeline.experiments.report import Outputs, publish
 from pipeline.experiments.results import Results
 from pipeline.experiments.scenario import Scenario
 from pipeline.lineage import pinned_folders
@@ -141,9 +140,7 @@ def run(cfg) -> dict:
                           "caption": "raw per-agent metrics (one row per simulated vehicle)"})
     entry = {"id": scen.id, "title": scen.title, "paper": scen.paper, "command": _command(cfg, scen.id),
              "inputs": dict(ctx.used), "cache": os.path.relpath(folder, paper_dir), "items": out.items, "drawn": drawn}
-    (paper_dir / "index").mkdir(parents=True, exist_ok=True)
-    (paper_dir / "index" / f"{scen.id}.json").write_text(json.dumps(entry, indent=2) + "\n")
-    index = write_index(paper_dir, FIGURES)
+    index = publish(paper_dir, entry)
     files = [f for it in out.items for f in it["files"]]
     record(f"experiments {scen.id}", cached=cached, drawn=True)
     print(f"[experiments] {scen.id}: {len(files)} files in {paper_dir} ({time.perf_counter() - t0:.0f} s); "

@@ -10,7 +10,7 @@ import numpy as np
 
 from pipeline.control import HybridController, Scene, in_diamond
 from pipeline.control.fields import random_scene
-from pipeline.sim import simulate
+from pipeline.sim import CameraSettings, SimSettings, simulate
 
 
 def _agents(scene: Scene, n: int, seed: int = 0) -> np.ndarray:
@@ -24,8 +24,9 @@ def _rate(scene, x0, steps, period, repeat=2) -> float:
     best = np.inf
     for _ in range(repeat):
         t0 = time.perf_counter()
-        simulate(scene, HybridController(scene), x0, dt=0.01, horizon=steps * 0.01, camera_period=period,
-                 record=False, stop_on_success=False)
+        simulate(scene, HybridController(scene), x0,
+                 sim=SimSettings(dt=0.01, horizon=steps * 0.01, stop_on_success=False),
+                 camera=CameraSettings(period=period), record=False)
         best = min(best, time.perf_counter() - t0)
     return len(x0) * steps / best
 
@@ -35,8 +36,9 @@ def _agent_seconds(scene, x0, horizon, model, repeat=2) -> float:
     best = np.inf
     for _ in range(repeat):
         t0 = time.perf_counter()
-        simulate(scene, HybridController(scene), x0, dt=0.01, horizon=horizon, camera_period=0.05, record=False,
-                 stop_on_success=False, model=model)
+        simulate(scene, HybridController(scene), x0,
+                 sim=SimSettings(dt=0.01, horizon=horizon, stop_on_success=False, model=model),
+                 camera=CameraSettings(period=0.05), record=False)
         best = min(best, time.perf_counter() - t0)
     return len(x0) * horizon / best
 
@@ -91,8 +93,9 @@ def bench(quick: bool = False) -> list[dict]:
         batched = _rate(scene, x0, steps, period)
         t0 = time.perf_counter()
         for i in range(n_loop):  # the same controller and simulator, one agent at a time
-            simulate(scene, HybridController(scene), x0[i : i + 1], dt=0.01, horizon=loop_steps * 0.01,
-                     camera_period=period, record=False, stop_on_success=False)
+            simulate(scene, HybridController(scene), x0[i : i + 1],
+                     sim=SimSettings(dt=0.01, horizon=loop_steps * 0.01, stop_on_success=False),
+                     camera=CameraSettings(period=period), record=False)
         loop = n_loop * loop_steps / (time.perf_counter() - t0)
         rows += [
             {"section": "simulator", "case": f"batched N={n}, {label}", "value": batched / 1e6, "unit": "M agent-steps/s",

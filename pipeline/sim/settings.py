@@ -88,10 +88,3 @@ def check_vehicle(plant, sim: SimSettings) -> None:
         raise ConfigError("vehicle.lookahead", f"must be < sim.delta = {sim.delta:g} (the axle settles `lookahead` "
                                                f"from the target, SPEC §3.7), got {d:g}")
 
-
-def run_keywords(sim: SimSettings, camera: CameraSettings) -> dict:
-    """The keywords of :func:`pipeline.sim.simulate` that the two settings nodes give."""
-    keys = ("model", "dt", "horizon", "delta", "record_every", "stop_on_success", "seed", "method", "rtol", "atol",
-            "h_max", "stall_speed", "stall_share", "stall_time")
-    return {**{k: getattr(sim, k) for k in keys}, "camera_period": camera.period, "p_fail": camera.p_fail,
-            "predict": camera.predict, "drift": camera.drift, "max_drift": camera.max_drift}

@@ -73,44 +73,38 @@ def stall_threshold(sim: SimSettings, controller) -> float:
     return sim.stall_share * (10.0 if u_max is None else float(u_max))
 
 
-def simulate(scene, controller, x0: np.ndarray, *, dt: float = _SIM.dt, horizon: float = _SIM.horizon,
-             delta: float = _SIM.delta, camera_period: float | None = _CAMERA.period, p_fail: float = _CAMERA.p_fail,
+def simulate(scene, controller, x0: np.ndarray, *, sim: SimSettings = _SIM, camera: CameraSettings = _CAMERA,
              disturbance=None, measure: Measure | None = None, target_fn: TargetFn | None = None,
-             seed: int | np.random.Generator = _SIM.seed, record_every: int = _SIM.record_every, record: bool = True,
-             stop_on_success: bool = _SIM.stop_on_success, progress: bool = False, model: str = _SIM.model,
-             rtol: float = _SIM.rtol, atol: float = _SIM.atol, h_max: float = _SIM.h_max, method: str = _SIM.method,
-             stall_speed: float | None = _SIM.stall_speed, stall_share: float = _SIM.stall_share,
-             stall_time: float = _SIM.stall_time, plant: Plant | None = None,
-             heading0: np.ndarray | None = None, predict: bool = _CAMERA.predict, drift: float = _CAMERA.drift,
-             max_drift: float = _CAMERA.max_drift) -> SimResult:
-    """Simulate all agents of `x0` `(N, 2)` at once (see the module docstring); the settings are checked by
-    :class:`SimSettings` and :class:`CameraSettings`, whose defaults (the YAML's) are these keywords'.
+             seed: int | np.random.Generator | None = None, record: bool = True, progress: bool = False,
+             plant: Plant | None = None, heading0: np.ndarray | None = None) -> SimResult:
+    """Simulate all agents of `x0` `(N, 2)` at once (see the module docstring) under the time model `sim` and the
+    camera's timing `camera` (:class:`SimSettings`, :class:`CameraSettings`: checked where they are built, from the
+    config or from Python; the defaults are the YAML's); `seed` (a number or a generator) replaces `sim.seed`.
 
-    The first frame is always delivered (a vehicle starts with an estimate). Success: `|p - p_T| <= delta` within
-    the horizon without ever entering an obstacle; collision: `|p - c_i| < r_i` at any step. `model='continuous'`
-    integrates the hybrid arcs adaptively (`method`, `rtol`, `atol`, `h_max`; `dt` is then the record grid only)
-    and takes the true state only. `plant` (default: the single integrator) with `heading0` (the unicycle's
-    initial headings). `predict`: a lost frame's estimate is predicted with the held input (dead reckoning, `drift`,
-    `max_drift`: :class:`CameraSettings`) instead of held. Outcome per agent (`metrics['outcome']`): `reached`,
-    `collided`, `stalled` (mean speed below `stall_speed` over the last `stall_time` seconds, away from the target;
+    The first frame is always delivered (a vehicle starts with an estimate). Success: `|p - p_T| <= sim.delta`
+    within the horizon without ever entering an obstacle; collision: `|p - c_i| < r_i` at any step.
+    `sim.model='continuous'` integrates the hybrid arcs adaptively (`sim.method`, `rtol`, `atol`, `h_max`; `dt` is
+    then the record grid only) and takes the true state only. `plant` (default: the single integrator) with
+    `heading0` (the unicycle's initial headings). `camera.predict`: a lost frame's estimate is predicted with the
+    held input (dead reckoning) instead of held. Outcome per agent (`metrics['outcome']`): `reached`, `collided`,
+    `stalled` (mean speed below `sim.stall_speed` over the last `stall_time` seconds, away from the target;
     `stall_speed` None: `stall_share` of the controller's `u_max`, of 10 (the default `u_max`) when it has none) or
     `timed_out`.
     """
-    sim = SimSettings(model=model, dt=dt, horizon=horizon, delta=delta, record_every=record_every,
-                      stop_on_success=stop_on_success, method=method, rtol=rtol, atol=atol, h_max=h_max,
-                      stall_speed=stall_speed, stall_share=stall_share, stall_time=stall_time)
-    CameraSettings(period=camera_period, p_fail=p_fail, predict=predict, drift=drift, max_drift=max_drift)
-    every = frame_steps(dt, camera_period)
+    dt, record_every, p_fail = sim.dt, sim.record_every, camera.p_fail
+    every = frame_steps(dt, camera.period)
     plant = plant or SingleIntegrator()
     x0 = np.asarray(x0, dtype=float)
     if x0.ndim != 2 or x0.shape[1] != 2 or len(x0) == 0:
         raise ConfigError("init.points", f"initial conditions must be a non-empty (N, 2) array, got shape {x0.shape}")
     check_vehicle(plant, sim)
     c0 = plant.lift(x0, heading0)
+    seed = sim.seed if seed is None else seed
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
     stall = StallMonitor(len(x0), stall_threshold(sim, controller), sim.stall_time, dt)
-    monitor = ArrivalCollision(scene, plant, len(x0), delta=delta, stop_on_success=stop_on_success, stall=stall)
-    if model == "continuous":
+    monitor = ArrivalCollision(scene, plant, len(x0), delta=sim.delta, stop_on_success=sim.stop_on_success,
+                               stall=stall)
+    if sim.model == "continuous":
         if (measure is not None and measure is not true_state) or target_fn is not None or p_fail > 0:
             raise ConfigError("sim.model", "continuous takes the true state only: a camera/perception-map "
                               "measurement, a moving target and camera failures (camera.p_fail = "
@@ -118,20 +112,20 @@ def simulate(scene, controller, x0: np.ndarray, *, dt: float = _SIM.dt, horizon:
         loop = ContinuousLoop(scene, controller, plant, disturbance)
         arc = solve_continuous(loop, loop.initial(c0, rng), dt=dt, n_steps=sim.n_steps, rng=rng, monitor=monitor,
                                frame_steps=None if loop.exact else every, record_every=record_every,
-                               record=record, rtol=rtol, atol=atol, h_max=h_max, method=method)
+                               record=record, rtol=sim.rtol, atol=sim.atol, h_max=sim.h_max, method=sim.method)
         m = arc.c + arc.d["e"]
     else:
         try:  # V3 of SPEC §3.6 needs the frame period: checked here
             loop = SampledLoop(scene, controller, plant, disturbance, measure=measure, target_fn=target_fn,
                                p_fail=p_fail, dt=dt, every=every,
-                               reckoning=DeadReckoning(drift, max_drift) if predict else None)
+                               reckoning=DeadReckoning(camera.drift, camera.max_drift) if camera.predict else None)
         except ConfigError as err:
             raise explain_steering(plant, err) from None
         arc = solve_sampled(loop, loop.initial(c0, rng), dt=dt, n_steps=sim.n_steps, every=every, rng=rng,
                             monitor=monitor, record_every=record_every, record=record,
                             progress=f"simulate {controller.name}" if progress else None)
         m = arc.d["m"]
-    return _result(scene, controller, plant, x0, arc, m, monitor, delta, stop_on_success)
+    return _result(scene, controller, plant, x0, arc, m, monitor, sim.delta, sim.stop_on_success)
 
 
 def _result(scene, controller, plant, x0, arc, m, monitor: ArrivalCollision, delta, stop_on_success) -> SimResult:

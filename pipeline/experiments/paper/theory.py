@@ -19,7 +19,7 @@ from pipeline.experiments.paper.camera_loop import MonteCarlo
 from pipeline.experiments.results import Results, summarise
 from pipeline.experiments.scenario import Points, Scenario, practical_success
 from pipeline.schema import Interval, NonEmpty, NonNegative, Positive, PositiveInt, Range
-from pipeline.sim import simulate, starts
+from pipeline.sim import CameraSettings, SimSettings, simulate, starts
 from pipeline.sim.disturbances import PerAgent
 from pipeline.sim.metrics import wilson
 from pipeline.sim.settings import FailureRate, TimeModel
@@ -309,8 +309,9 @@ class SampleAndHold(Scenario):
         runs = {"sampled": ctx.simulate(literal, x0, model="sampled", record_every=1),  # SPEC §3.3's literal rule
                 "guarded": ctx.simulate(guarded, x0, model="sampled", record_every=1),  # with its sampled-data guard
                 "continuous": ctx.simulate(literal, x0, model="continuous", record_every=1),
-                "limit": simulate(ctx.scene, literal, x0, dt=self.limit_dt, horizon=ctx.horizon,
-                                  delta=ctx.delta, camera_period=self.limit_dt, record=False)}
+                "limit": simulate(ctx.scene, literal, x0,
+                                  sim=SimSettings(dt=self.limit_dt, horizon=ctx.horizon, delta=ctx.delta),
+                                  camera=CameraSettings(period=self.limit_dt), record=False)}
         df = pd.DataFrame({"x0": x0[:, 0], "y0": x0[:, 1]})
         for name, res in runs.items():
             df[f"t_{name}"] = res.metrics["time_to_target"]
