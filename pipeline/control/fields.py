@@ -26,7 +26,7 @@ from pipeline.control.validity import (
     diamond_signed_distance,
     field_geometry,
     field_violations,
-    fmt_num,
+    fmt,
     loop_params,
     positive,
     to_frames,
@@ -90,7 +90,7 @@ def random_field(
     named = [(TARGET_FIELD, p_T)] + [(f"{STARTS_FIELD}[{k}]", P[k]) for k in range(len(P))]
     for name, pt in named:
         if np.any(pt < box[:, 0]) or np.any(pt > box[:, 1]):
-            raise ConfigError(name, f"({fmt_num(pt[0])}, {fmt_num(pt[1])}) lies outside the arena {box.tolist()}")
+            raise ConfigError(name, f"({fmt(pt[0])}, {fmt(pt[1])}) lies outside the arena {box.tolist()}")
     gap_need = max(2.0 * step, 0.0) + 2.0 * margin  # V2 (gap > 0) and V3 (gap / 2 > u_max T_s), with the margin
     plan = _FieldDraw(M, box, half, r_lo, r_hi, apex_factor, rho_b, scale_f, k_R, h, margin, d, p_T, P, clear, gap_need)
     rng = np.random.default_rng(seed)
@@ -100,7 +100,7 @@ def random_field(
             return _checked_field(plan, *placed, u_max=u_max, T_s=T_s)
     raise ConfigError(
         f"{RANDOM_FIELD}.n_obstacles",
-        f"no valid field of {M} obstacles found in {max_restarts} tries (influence radius R = {fmt_num(k_R)} (r + d), "
+        f"no valid field of {M} obstacles found in {max_restarts} tries (influence radius R = {fmt(k_R)} (r + d), "
         f"radii {r_lo}..{r_hi}, arena {box.tolist()}): use fewer or smaller discs, a larger arena, or a smaller "
         f"apex factor or barrier",
     )

@@ -120,7 +120,7 @@ def diamond_signed_distance(points, centers, apex, target) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- inputs
-def fmt_num(x: float) -> str:
+def fmt(x: float) -> str:
     """A number as the validity messages print it: 2 decimals, or 2 significant digits below 0.1."""
     x = float(x)
     return f"{x:.2f}" if abs(x) >= 0.1 or x == 0 else f"{x:.2g}"
@@ -210,7 +210,7 @@ def field_geometry(centers, radii, target, *, apex=None, reach=None, inflation: 
         i = bad[0]
         raise ConfigError(
             f"{OBSTACLES_FIELD}[{i}]",
-            f"apex {a[i]!r} must exceed sqrt(2) r_{i} = {fmt_num(SQRT2 * rc[i])} (the diamond |a| + |b| <= c must "
+            f"apex {a[i]!r} must exceed sqrt(2) r_{i} = {fmt(SQRT2 * rc[i])} (the diamond |a| + |b| <= c must "
             f"contain the disc{' inflated by d' if d else ''})",
         )
     try:
@@ -314,20 +314,20 @@ def _arena_violations(c, r, p_T, P, box, margin: float) -> list[Violation]:
         s = int(np.argmax(over[i]))
         out.append(Violation(
             f"{OBSTACLES_FIELD}[{i}]", "arena", float(over[i, s]),
-            f"arena: obstacle {i}'s disc (centre ({fmt_num(c[i, 0])}, {fmt_num(c[i, 1])}), r = {fmt_num(r[i])}) reaches "
-            f"{fmt_num(over[i, s])} past the arena's {names[s]} = {fmt_num(bounds[s])}"
-            f"{f' (margin {fmt_num(margin)})' if margin else ''}; move it inside or shrink it", (int(i),)))
+            f"arena: obstacle {i}'s disc (centre ({fmt(c[i, 0])}, {fmt(c[i, 1])}), r = {fmt(r[i])}) reaches "
+            f"{fmt(over[i, s])} past the arena's {names[s]} = {fmt(bounds[s])}"
+            f"{f' (margin {fmt(margin)})' if margin else ''}; move it inside or shrink it", (int(i),)))
     over_t = overflow(p_T[None], np.zeros(1))[0] - margin
     if over_t.max() > 0:
         s = int(np.argmax(over_t))
         out.append(Violation(TARGET_FIELD, "arena", float(over_t[s]),
-                             f"arena: the target lies {fmt_num(over_t[s])} past the arena's {names[s]} = {fmt_num(bounds[s])}"))
+                             f"arena: the target lies {fmt(over_t[s])} past the arena's {names[s]} = {fmt(bounds[s])}"))
     if len(P):
         over_p = overflow(P, np.zeros(len(P))) - margin
         for k in np.flatnonzero(over_p.max(axis=1) > 0):
             s = int(np.argmax(over_p[k]))
             out.append(Violation(f"{STARTS_FIELD}[{k}]", "arena", float(over_p[k, s]),
-                                 f"arena: the start lies {fmt_num(over_p[k, s])} past the arena's {names[s]} = {fmt_num(bounds[s])}"))
+                                 f"arena: the start lies {fmt(over_p[k, s])} past the arena's {names[s]} = {fmt(bounds[s])}"))
     return out
 
 
@@ -337,8 +337,8 @@ def _v1_violations(c, R, p_T, margin: float) -> list[Violation]:
     short1 = R + margin - dT
     return [Violation(
         f"{OBSTACLES_FIELD}[{i}]", "V1", float(short1[i]),
-        f"V1: the target is {fmt_num(short1[i])} units too close (|p_T - c_{i}| = {fmt_num(dT[i])}, needs > R_{i} = "
-        f"{fmt_num(R[i])}{f' + margin {fmt_num(margin)}' if margin else ''}); move the target or shrink obstacle "
+        f"V1: the target is {fmt(short1[i])} units too close (|p_T - c_{i}| = {fmt(dT[i])}, needs > R_{i} = "
+        f"{fmt(R[i])}{f' + margin {fmt(margin)}' if margin else ''}); move the target or shrink obstacle "
         f"{i}'s apex or barrier scale", (int(i),)) for i in np.flatnonzero(short1 >= 0)]
 
 
@@ -350,8 +350,8 @@ def _pair_violations(c, R, h: float, step: float | None, margin: float) -> list[
     short2 = need2 + margin - dij
     out = [Violation(
         f"{OBSTACLES_FIELD}[{i},{j}]", "V2", float(s),
-        f"V2: centres {fmt_num(d)} apart, need > R_{i} + R_{j} + h = {fmt_num(n)}{f' + margin {fmt_num(margin)}' if margin else ''} "
-        f"(short by {fmt_num(s)}); move them apart or shrink their apex or barrier scale", (int(i), int(j)))
+        f"V2: centres {fmt(d)} apart, need > R_{i} + R_{j} + h = {fmt(n)}{f' + margin {fmt(margin)}' if margin else ''} "
+        f"(short by {fmt(s)}); move them apart or shrink their apex or barrier scale", (int(i), int(j)))
         for i, j, d, n, s in zip(ii, jj, dij, need2, short2) if s >= 0]
     if step is not None:
         side = (dij - need2) / 2.0
@@ -359,8 +359,8 @@ def _pair_violations(c, R, h: float, step: float | None, margin: float) -> list[
         out.extend(Violation(
             f"{OBSTACLES_FIELD}[{i},{j}]", "V3", float(s),
             f"V3: the gap between their influence discs leaves (|c_{i} - c_{j}| - R_{i} - R_{j} - h)/2 = "
-            f"({fmt_num(d)} - {fmt_num(n)})/2 = {fmt_num(sd)} per side, need > u_max T_s = {fmt_num(step)}"
-            f"{f' + margin {fmt_num(margin)}' if margin else ''} (short by {fmt_num(s)})", (int(i), int(j)))
+            f"({fmt(d)} - {fmt(n)})/2 = {fmt(sd)} per side, need > u_max T_s = {fmt(step)}"
+            f"{f' + margin {fmt(margin)}' if margin else ''} (short by {fmt(s)})", (int(i), int(j)))
             for i, j, d, n, sd, s in zip(ii, jj, dij, need2, side, short3) if s >= 0)
     return out
 
@@ -372,13 +372,13 @@ def _start_violations(P, c, apex, p_T, clear: float, margin: float) -> list[Viol
     short_s = clear + margin - sd
     for k, i in zip(*np.nonzero(short_s >= 0)):
         inside = sd[k, i] <= 0
-        where = (f"lies inside obstacle {i}'s diamond |a| + |b| <= c_{i} = {fmt_num(apex[i])} ({fmt_num(-sd[k, i])} "
+        where = (f"lies inside obstacle {i}'s diamond |a| + |b| <= c_{i} = {fmt(apex[i])} ({fmt(-sd[k, i])} "
                  f"from its boundary)" if inside else
-                 f"is {fmt_num(sd[k, i])} from obstacle {i}'s diamond (c_{i} = {fmt_num(apex[i])})")
-        need = f"; needs > {fmt_num(clear + margin)}" if clear + margin > 0 else ""
+                 f"is {fmt(sd[k, i])} from obstacle {i}'s diamond (c_{i} = {fmt(apex[i])})")
+        need = f"; needs > {fmt(clear + margin)}" if clear + margin > 0 else ""
         out.append(Violation(
             f"{STARTS_FIELD}[{k}]", "start", float(short_s[k, i]),
-            f"start: ({fmt_num(P[k, 0])}, {fmt_num(P[k, 1])}) {where}{need} (short by {fmt_num(short_s[k, i])}); move the "
+            f"start: ({fmt(P[k, 0])}, {fmt(P[k, 1])}) {where}{need} (short by {fmt(short_s[k, i])}); move the "
             f"start or shrink obstacle {i}'s apex", (int(i),)))
     return out
 
