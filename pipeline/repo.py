@@ -35,7 +35,13 @@ def write_atomic(path, text: str) -> Path:
     that a reader (another job of a sweep reading the same index) never sees it empty or half written."""
     path = Path(path)
     with tempfile.NamedTemporaryFile("w", dir=path.parent, prefix=f".{path.name}.", suffix=".tmp", delete=False) as f:
-        f.write(text)
-    os.chmod(f.name, 0o644)  # a plain file's mode (not the temporary file's 0600)
-    Path(f.name).replace(path)
+        tmp = Path(f.name)
+        try:
+            f.write(text)
+        except BaseException:  # nothing half written is left beside it, and `path` keeps what it had
+            f.close()
+            tmp.unlink()
+            raise
+    os.chmod(tmp, 0o644)  # a plain file's mode (not the temporary file's 0600)
+    tmp.replace(path)
     return path

@@ -305,3 +305,12 @@ def test_cached_results_load_bit_for_bit(tmp_path_factory, values):
     Results(tables={"metrics": pd.DataFrame({"x": values})}).save(folder)
     loaded = Results.load(folder).tables["metrics"]["x"].to_numpy()
     assert loaded.tolist() == values
+
+
+def test_a_failed_atomic_write_leaves_the_file_as_it_was(tmp_path):
+    from pipeline.repo import write_atomic
+
+    target = write_atomic(tmp_path / "index.md", "before")
+    with pytest.raises(TypeError):
+        write_atomic(target, None)  # the write itself fails
+    assert target.read_text() == "before" and [p.name for p in tmp_path.iterdir()] == ["index.md"]
