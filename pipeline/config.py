@@ -8,6 +8,7 @@
 from __future__ import annotations
 
 import ast
+import contextlib
 import dataclasses
 import functools
 import importlib
@@ -20,9 +21,9 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from pipeline.errors import ConfigError, PipelineError, hydra_error
 from pipeline.repo import CONF_DIR, REPO_ROOT, check_folder
-from pipeline.schema import CHECKED_KEYWORDS, check_value, type_hints
+from pipeline.schema import check_once, type_hints
 
-META_KEYS = {"_target_", "_partial_", "_convert_", "_recursive_", "_args_", "name"}
+META_KEYS = {"_target_", "_partial_", "_convert_", "_recursive_", "_args_"}
 if not OmegaConf.has_resolver("repo_root"):
     OmegaConf.register_new_resolver("repo_root", lambda: str(REPO_ROOT))
 
@@ -100,26 +101,22 @@ def _plain_value(node: DictConfig, key):
     return OmegaConf.to_container(value, resolve=True) if isinstance(value, DictConfig | ListConfig) else value
 
 
-_CHECKED_NODES: set[tuple[str, str]] = set()  # (path, the node's values): checked once per process
-
-
 def check_node(node: DictConfig, path: str) -> None:
-    """The keys and values of one `_target_` node against its target's signature; a node with the same path and
-    values checked before in this process (the preflight's, then the stage's build) is not checked again."""
+    """The keys and values of one `_target_` node against its target's signature (each value once per process:
+    :func:`pipeline.schema.check_once`)."""
     try:
         params = signature(str(node["_target_"]))
     except ConfigError as err:
         raise ConfigError(f"{path}._target_" if path else "_target_", err.reason) from None
     values = {k: _plain_value(node, k) for k in node.keys()}
-    if params is None or (path, repr(values)) in _CHECKED_NODES:
+    if params is None:
         return
     for k, value in values.items():
         where = f"{path}.{k}" if path else str(k)
         if k not in params and k not in META_KEYS:
             raise ConfigError(where, f"unknown key ({node['_target_']} takes {', '.join(params)})")
         if k not in META_KEYS and value is not ... and not (isinstance(value, dict) and "_target_" in value):
-            check_value(value, params[k], where)  # (a node is checked as a node)
-    _CHECKED_NODES.add((path, repr(values)))
+            check_once(value, params[k], where)  # (a node is checked as a node)
 
 
 def check_schema(cfg: DictConfig, added: Iterable[str] = ()) -> None:
@@ -142,7 +139,7 @@ def settings(cfg: DictConfig, cls):
 # ------------------------------------------------------------------------------------------ build
 def build(node, path: str, /, **kwargs):
     """`instantiate(node)(**kwargs)`: the object a config node describes, its keys and types checked first, errors
-    naming `path`. `name` is a label of the node (the table row), not a keyword, unless the target takes it."""
+    naming `path`."""
     from hydra.errors import InstantiationException
     from hydra.utils import instantiate
 
@@ -150,36 +147,19 @@ def build(node, path: str, /, **kwargs):
     if "_target_" not in node:
         raise ConfigError(path, "needs a `_target_` (pick one of the options of its config group)")
     check_node(node, path)
-    params = signature(str(node["_target_"]))
-    label = "name" in node and params is not None and "name" not in params
-    clean = OmegaConf.masked_copy(node, [k for k in node.keys() if k != "name"]) if label else node
-    keys = frozenset(str(k) for k in clean.keys()) - META_KEYS if params is not None else frozenset()
-    try:  # the target (its constructor skips the keys checked here); Hydra says what does not import
-        target = resolve(":".join(str(node["_target_"]).rsplit(".", 1)))
-    except Exception:  # noqa: BLE001
-        target = None
-    token = CHECKED_KEYWORDS.set((target, keys))
+    try:  # partial: Hydra would turn a dataclass keyword (a Scene) into a config node
+        part = instantiate(node, _partial_=True, _convert_="all", _recursive_=False)
+    except InstantiationException as err:  # a target that does not import (another package's plugin)
+        raise ConfigError(f"{path}._target_", str(err).splitlines()[0]) from None
     try:
-        try:  # partial first: Hydra would turn a dataclass keyword (a Scene) into a config node
-            obj = instantiate(clean, _partial_=True, _convert_="all", _recursive_=False)(**kwargs)
-        except InstantiationException as err:  # the user's error inside Hydra's
-            cause = err.__cause__
-            while cause is not None and not isinstance(cause, PipelineError):
-                cause = cause.__cause__
-            raise cause or ConfigError(path, str(err).splitlines()[0]) from None
+        obj = part(**kwargs)
     except ConfigError as err:  # named by the node's path, but a field of an object passed in (a controller's
         field = err.field  # `scene`) keeps its own name (`scene.obstacles[0,4]`, not `controller.obstacles[0,4]`)
         if path and not any(field == o or field.startswith((o + ".", o + "[")) for o in (*kwargs, path)):
             field = f"{path}.{field.split('.', 1)[-1]}" if field not in ("", "_target_") else path
         raise ConfigError(field, err.reason) from None
-    except PipelineError:
-        raise
-    except (TypeError, ValueError) as err:
+    except (TypeError, ValueError) as err:  # (a PipelineError other than a ConfigError is neither: it is raised)
         raise ConfigError(path, f"invalid parameters for {node['_target_']}: {err}") from None
-    finally:
-        CHECKED_KEYWORDS.reset(token)
-    if label and hasattr(type(obj), "name") and not isinstance(type(obj).name, property):
-        obj.name = str(node["name"])  # the label of the node (a controller's row in a table)
     return obj
 
 
@@ -192,12 +172,10 @@ def compose(config_name: str, overrides: list[str] | None = None, *, check: bool
     from hydra import initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
-    try:
-        if GlobalHydra.instance().is_initialized():
+    try:  # inside a running app (tests, the paper DAG): its Hydra; else one initialized for this call only
+        with contextlib.nullcontext() if GlobalHydra.instance().is_initialized() else \
+                initialize_config_dir(version_base="1.3", config_dir=str(CONF_DIR)):
             cfg = _compose(config_name=config_name, overrides=list(overrides or []))
-        else:  # initialized for this call only
-            with initialize_config_dir(version_base="1.3", config_dir=str(CONF_DIR)):
-                cfg = _compose(config_name=config_name, overrides=list(overrides or []))
     except PipelineError:
         raise
     except Exception as err:  # noqa: BLE001 - Hydra's composition errors, as one line

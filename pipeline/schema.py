@@ -7,10 +7,10 @@ class, :func:`check_fields` on a dataclass instance) and keeps only its cross-fi
 from __future__ import annotations
 
 import collections.abc
-import contextvars
 import dataclasses
 import functools
 import inspect
+import json
 import math
 import numbers
 import re
@@ -177,6 +177,23 @@ def check_value(value, tp, path: str) -> None:
         raise ConfigError(path, f"must be {describe(tp)}, got {value!r}")
 
 
+_ACCEPTED: set[tuple] = set()  # (annotation, value as JSON) pairs accepted in this process
+
+
+def check_once(value, tp, path: str) -> None:
+    """:func:`check_value`, once per process for a plain (JSON) value and annotation: a value a config node's check
+    accepted is not checked again by the constructor it is passed to, nor by the next build of the node."""
+    try:
+        key = (tp, json.dumps(value, sort_keys=True))
+        if key in _ACCEPTED:
+            return
+    except TypeError:  # an array or an object a caller passes (or an annotation that cannot be hashed): checked
+        key = None
+    check_value(value, tp, path)
+    if key is not None:
+        _ACCEPTED.add(key)
+
+
 def _fits(value, tp, path: str) -> bool:
     if tp is None or tp is Any or tp is object:
         return True
@@ -226,8 +243,7 @@ def _fits(value, tp, path: str) -> bool:
 
 
 def _check_dataclass(value, cls, path: str) -> bool:
-    if isinstance(value, cls):  # an object a caller built: its fields, named where they sit
-        check_fields(value, path)
+    if isinstance(value, cls):  # an object a caller built: its class checked it then
         return True
     if not isinstance(value, dict):
         return False
@@ -251,33 +267,18 @@ def type_hints(obj) -> dict:
     return typing.get_type_hints(obj, include_extras=True)
 
 
-def _is_object(tp) -> bool:
-    """An annotation naming an object the caller passes (a scene, a plant), not a config value: the constructor
-    checks it itself."""
-    if typing.get_origin(tp) in (typing.Union, types.UnionType):
-        return any(_is_object(a) for a in typing.get_args(tp))
-    return isinstance(tp, type) and not dataclasses.is_dataclass(tp) and \
-        tp not in (bool, int, float, str, list, tuple, dict, type(None))
-
-
 def check_fields(obj, prefix: str) -> None:
     """Every field of the dataclass instance `obj` against its annotation (`ConfigError("<prefix>.<field>")`)."""
     hints = type_hints(type(obj))
     for f in dataclasses.fields(obj):
         if f.init:
-            check_value(getattr(obj, f.name), hints.get(f.name), f"{prefix}.{f.name}" if prefix else f.name)
+            check_once(getattr(obj, f.name), hints.get(f.name), f"{prefix}.{f.name}" if prefix else f.name)
 
 
-# (target, keywords) that `pipeline.config.build` has checked in the target's node: a value is checked once, where
-# its node is, not again by the constructor it is passed to (the target's own @checked call only)
-CHECKED_KEYWORDS: contextvars.ContextVar[tuple[object, frozenset]] = contextvars.ContextVar(
-    "checked_keywords", default=(None, frozenset()))
-
-
-def checked(prefix: str, objects: tuple[str, ...] = ()):
+def checked(prefix: str):
     """Decorator of a class (its constructor) or a function: every argument is checked against its annotation before
-    the call runs, errors naming `<prefix>.<keyword>` (empty prefix: a stage's root keys). Arguments annotated with
-    another class (a network, a plant) and those named in `objects` (a controller's scene) are the callee's to check."""
+    the call runs, errors naming `<prefix>.<keyword>` (empty prefix: a stage's root keys); an object of the annotated
+    class (a controller's scene, a network) is taken as its class built it."""
 
     def wrap(obj):
         fn = obj.__init__ if inspect.isclass(obj) else obj
@@ -285,11 +286,6 @@ def checked(prefix: str, objects: tuple[str, ...] = ()):
 
         @functools.wraps(fn)
         def call(*args, **kwargs):
-            target, done = CHECKED_KEYWORDS.get()
-            if target is not None and target is built:  # the build's own call: its node's values are checked
-                CHECKED_KEYWORDS.set((None, frozenset()))
-            else:
-                done = ()
             try:
                 bound = sig.bind(*args, **kwargs).arguments
             except TypeError:  # the call itself says what is missing or unknown
@@ -297,14 +293,12 @@ def checked(prefix: str, objects: tuple[str, ...] = ()):
             hints = type_hints(source)
             for name, value in bound.items():
                 kind = sig.parameters[name].kind
-                if not (name == "self" or name in objects or name in done or _is_object(hints.get(name))
-                        or kind in (kind.VAR_POSITIONAL, kind.VAR_KEYWORD)):
-                    check_value(value, hints.get(name), f"{prefix}.{name}" if prefix else name)
+                if not (name == "self" or kind in (kind.VAR_POSITIONAL, kind.VAR_KEYWORD)):
+                    check_once(value, hints.get(name), f"{prefix}.{name}" if prefix else name)
             return fn(*args, **kwargs)
 
-        built = obj if inspect.isclass(obj) else call  # what a config's `_target_` names
         if inspect.isclass(obj):
             obj.__init__ = call
-        return built
+        return obj if inspect.isclass(obj) else call
 
     return wrap

@@ -42,10 +42,9 @@ def _count_checks(monkeypatch, module: str, argv: list[str], counted) -> int:
     import importlib
     import sys
 
-    import pipeline.config
     import pipeline.schema as schema
 
-    monkeypatch.setattr(pipeline.config, "_CHECKED_NODES", set(), raising=False)  # a fresh process: nothing checked yet
+    monkeypatch.setattr(schema, "_ACCEPTED", set())  # a fresh process: nothing checked yet
     seen = []
     original = schema.check_value
 
@@ -95,9 +94,9 @@ def test_a_data_run_checks_its_occlusion_level_at_most_three_times(monkeypatch, 
     assert 1 <= n <= 3, f"the level checked {n} times"
 
 
-def test_a_build_lets_only_its_own_target_skip_the_checks_of_its_node(tmp_path, monkeypatch):
-    """The keys `build` checked in a node are skipped by that target's constructor only (by identity; before: by
-    class name, so a namesake the target builds inside skipped its own checks)."""
+def test_a_value_accepted_for_one_annotation_is_still_checked_against_another(tmp_path, monkeypatch):
+    """A value a node's check accepted is not checked again for the same annotation, but a constructor the target
+    calls inside (a namesake, before: matched by class name) checks it against its own (`size: Positive`)."""
     from pipeline.config import build
 
     (tmp_path / "namesakes_b.py").write_text(

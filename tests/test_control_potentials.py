@@ -558,7 +558,7 @@ def test_hybrid_controller_validation(kwargs, field):
     assert info.value.field == field
     # the same through the config node
     with pytest.raises(ConfigError) as info:
-        build({"_target_": "pipeline.control.HybridController", "name": "hybrid", **kwargs}, "controller", scene=scene)
+        build({"_target_": "pipeline.control.HybridController", **kwargs}, "controller", scene=scene)
     assert info.value.field == field and "\n" not in str(info.value)
 
 
@@ -569,5 +569,5 @@ def test_controller_validation_accepts_valid_and_checks_alpha():
     with pytest.raises(ConfigError) as info:
         CBFController(scene, alpha=0.0)
     assert info.value.field == "controller.alpha"
-    with pytest.raises(TypeError):
+    with pytest.raises(ConfigError, match=r"controller\.scene: must be"):  # one line naming it (before: a TypeError)
         SmoothController("not a scene")

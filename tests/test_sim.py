@@ -345,16 +345,15 @@ def test_disturbances(scene):
 
 def test_build_helpers(scene):
     """Controllers, disturbances and initial conditions from their config nodes (`pipeline.config.build`)."""
-    ctrl = build({"_target_": "pipeline.control.HybridController", "name": "hy", "chi": 1.2, "lam": 0.1},
-                 "controller", scene=scene)
-    assert isinstance(ctrl, HybridController) and ctrl.name == "hy" and ctrl.chi == 1.2
+    ctrl = build({"_target_": "pipeline.control.HybridController", "chi": 1.2, "lam": 0.1}, "controller", scene=scene)
+    assert isinstance(ctrl, HybridController) and ctrl.name == "hybrid" and ctrl.chi == 1.2
     with pytest.raises(ConfigError) as info:
         build({"_target_": "pipeline.control.HybridController", "chi": 0.9}, "controller", scene=scene)
     assert info.value.field == "controller.chi"
     with pytest.raises(ConfigError) as info:
         build({"name": "x"}, "controller", scene=scene)
     assert info.value.field == "controller"
-    dist = build({"_target_": "pipeline.sim.Adversarial", "name": "adversarial", "eps": 0.25}, "disturbance")
+    dist = build({"_target_": "pipeline.sim.Adversarial", "eps": 0.25}, "disturbance")
     assert isinstance(dist, Adversarial) and dist.eps == 0.25
     pts = build({"_target_": "pipeline.sim.starts.Random", "n": 50, "seed": 1, "margin": 2.0}, "init")(scene)
     assert pts.shape == (50, 2) and not in_diamond(scene, pts).any()

@@ -233,17 +233,20 @@ def test_disturbances_reject_unknown_keywords(cls, kw):
         cls(**kw)
 
 
-def test_builders_strip_name_and_reject_typos(scene):
-    ctrl = build({"_target_": "pipeline.control.SmoothController", "name": "smooth", "k": 2.0}, "controller",
-                 scene=scene)
+def test_builders_reject_typos_and_a_name_the_target_does_not_take(scene):
+    """A node's keys are its target's keywords, `name` too: the controllers' and disturbances' rows are named by their
+    class (before: a `name` key was a label the build stripped, restating the class's name in 11 config files)."""
+    ctrl = build({"_target_": "pipeline.control.SmoothController", "k": 2.0}, "controller", scene=scene)
     assert isinstance(ctrl, SmoothController) and ctrl.k == 2.0 and ctrl.name == "smooth"
-    assert isinstance(build({"_target_": "pipeline.sim.NoDisturbance", "name": "none"}, "disturbance"), NoDisturbance)
+    with pytest.raises(ConfigError, match=r"controller\.name: unknown key"):
+        build({"_target_": "pipeline.control.SmoothController", "name": "smooth"}, "controller", scene=scene)
+    assert isinstance(build({"_target_": "pipeline.sim.NoDisturbance"}, "disturbance"), NoDisturbance)
     with pytest.raises(ConfigError) as info:
-        build({"_target_": "pipeline.control.HybridController", "name": "hybrid", "lamda": 0.05}, "controller",
+        build({"_target_": "pipeline.control.HybridController", "lamda": 0.05}, "controller",
               scene=scene)
     assert info.value.field == "controller.lamda"
     with pytest.raises(ConfigError) as info:
-        build({"_target_": "pipeline.sim.Gaussian", "name": "gaussian", "sigmaa": 0.1}, "disturbance")
+        build({"_target_": "pipeline.sim.Gaussian", "sigmaa": 0.1}, "disturbance")
     assert info.value.field == "disturbance.sigmaa"
 
 

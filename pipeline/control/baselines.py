@@ -31,7 +31,7 @@ class SmoothController(Feedback):
         return self._finalise(u, inside, radial(self.scene, m))
 
 
-@checked("controller", objects=("scene",))
+@checked("controller")
 class CBFController(Feedback):
     """CBF safety filter (SPEC §3.4, §3.6) on `u_nom = -k (m - p_T)`, one constraint per obstacle, exact QP."""
 

@@ -31,7 +31,7 @@ def saturate(u: np.ndarray, u_max: float | None) -> np.ndarray:
     return u * scale[:, None]
 
 
-@checked("controller", objects=("scene",))
+@checked("controller")
 class Feedback:
     """Base of the feedback laws: `k`, the speed limit `u_max` and the push-out speed of SPEC §3.3's fallback."""
 

@@ -88,7 +88,7 @@ def _with_tangent(pa, pb, ua, ub, push: float, u_max: float):
     return pa + ta, pb + tb
 
 
-@checked("controller", objects=("scene",))
+@checked("controller")
 class HybridController(Feedback):
     """The hybrid controller of the paper (SPEC §3.3) over the locally active obstacle (SPEC §3.6).
 
