@@ -20,7 +20,7 @@ from pathlib import Path
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from pipeline.errors import ConfigError, PipelineError, hydra_error
-from pipeline.repo import CONF_DIR, REPO_ROOT, check_folder
+from pipeline.repo import CONF_DIR, REPO_ROOT
 from pipeline.schema import check_once, type_hints
 
 META_KEYS = {"_target_", "_partial_", "_convert_", "_recursive_", "_args_"}
@@ -92,7 +92,7 @@ def _walk(node, path: str = "") -> Iterable[tuple[str, DictConfig]]:
             yield from _walk(node[k], where)
 
 
-def _plain_value(node: DictConfig, key):
+def plain_value(node: DictConfig, key):
     """A node's value as plain Python, or `...` when it cannot be resolved here (`${hydra:...}` outside a run)."""
     try:
         value = OmegaConf.select(node, str(key), throw_on_resolution_failure=True)
@@ -108,7 +108,7 @@ def check_node(node: DictConfig, path: str) -> None:
         params = signature(str(node["_target_"]))
     except ConfigError as err:
         raise ConfigError(f"{path}._target_" if path else "_target_", err.reason) from None
-    values = {k: _plain_value(node, k) for k in node.keys()}
+    values = {k: plain_value(node, k) for k in node.keys()}
     if params is None:
         return
     for k, value in values.items():
@@ -133,7 +133,7 @@ def check_schema(cfg: DictConfig, added: Iterable[str] = ()) -> None:
 def settings(cfg: DictConfig, cls):
     """A stage's root-level settings (the keys of its config file that are no node of their own) as the typed
     dataclass `cls`, which checks them (`@checked("")`)."""
-    return cls(**{f.name: _plain_value(cfg, f.name) for f in dataclasses.fields(cls) if f.name in cfg})
+    return cls(**{f.name: plain_value(cfg, f.name) for f in dataclasses.fields(cls) if f.name in cfg})
 
 
 # ------------------------------------------------------------------------------------------ build
@@ -163,7 +163,7 @@ def build(node, path: str, /, **kwargs):
     return obj
 
 
-# --------------------------------------------------------------------------------------- compose, paths
+# ------------------------------------------------------------------------------------------ compose
 def compose(config_name: str, overrides: list[str] | None = None, *, check: bool = True) -> DictConfig:
     """Compose a config with Hydra's compose API, also from inside a running `@hydra.main` app (tests, notebooks,
     the paper DAG); Hydra's composition errors are one :class:`ConfigError` line. `hydra:` interpolations are not
@@ -183,11 +183,3 @@ def compose(config_name: str, overrides: list[str] | None = None, *, check: bool
     if check:
         check_schema(cfg)
     return cfg
-
-
-def check_paths(paths) -> None:
-    """Every `paths.*` entry (but the Hydra run dir) must be a folder this process can write, or create."""
-    for key in [k for k in paths.keys() if k != "output_dir"] if paths is not None else []:
-        value = _plain_value(paths, key)  # `...`: a `${hydra:...}` outside a run
-        if value is not None and value is not ...:
-            check_folder(value, f"paths.{key}")

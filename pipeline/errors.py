@@ -24,15 +24,21 @@ class ModelError(PipelineError):
     """A perception map that is unknown or does not fit its input."""
 
 
+EXTRAS = {"hydra/launcher": "launchers", "hydra/sweeper": "search"}  # pyproject's extras for Hydra's plugins
+
+
 def hydra_error(err: BaseException) -> ConfigError:
-    """Hydra's and OmegaConf's composition errors (their own messages span several lines) as one `ConfigError`."""
+    """Hydra's and OmegaConf's composition errors (their own messages span several lines) as one `ConfigError`; an
+    option of a plugin's group that is not installed says which extra it comes with."""
     from hydra.errors import MissingConfigException
 
     text = str(err)
     if isinstance(err, MissingConfigException) and err.missing_cfg_file:
         group, _, option = str(err.missing_cfg_file).rpartition("/")
         opts = f" (available: {', '.join(sorted(err.options))})" if err.options else ""
-        return ConfigError(group or option, f"unknown option {option!r}{opts}")
+        extra = f"; its plugin comes with `pip install -c constraints.txt -e '.[{EXTRAS[group]}]'`" \
+            if group in EXTRAS else ""
+        return ConfigError(group or option, f"unknown option {option!r}{opts}{extra}")
     m = re.search(r"Could not override '([^']+)'", text)
     if m and ("not in struct" in text or "ConfigKeyError" in text or "To append" in text):
         key = re.sub(r"\.(\d+)(?=\.|$)", r"[\1]", m.group(1))  # a list element as the schema names it: obstacles[0]

@@ -10,11 +10,9 @@ from collections.abc import Callable
 
 from omegaconf import DictConfig, OmegaConf
 
-from pipeline.config import check_paths, check_schema, compose
+from pipeline.config import check_schema, compose, plain_value
 from pipeline.errors import ConfigError
 from pipeline.repo import CONF_DIR, check_folder
-
-EXTRAS = {"hydra/launcher": "launchers", "hydra/sweeper": "search"}  # pyproject's extras for Hydra's plugins
 
 
 def preflight(config_name: str, argv: list[str], check: Callable[[DictConfig], object] | None = None) -> int:
@@ -67,28 +65,20 @@ def _expand(overrides: list[str]) -> list[list[str]]:
     return [first] + [[*first[:i], v, *first[i + 1:]] for i, c in enumerate(choices) for v in c[1:]]
 
 
-def _compose_job(config_name: str, job: list[str]) -> DictConfig:
-    """The job's config, unchecked; a plugin's group that is not installed says which extra it comes with."""
-    try:
-        return compose(config_name, job, check=False)
-    except ConfigError as err:
-        if err.field not in EXTRAS:
-            raise
-        extra = f"; its plugin comes with `pip install -c constraints.txt -e '.[{EXTRAS[err.field]}]'`"
-        raise ConfigError(err.field, err.reason + extra) from None
-
-
 def _check_job(config_name: str, job: list[str], check: Callable[[DictConfig], object] | None) -> None:
     """One job: composed, its schema (with the keys `+`/`++` add, but group selections and, for `++`, keys the
     config has without it), its paths and the stage's check (kept for the run)."""
-    cfg = _compose_job(config_name, job)
-    base = _compose_job(config_name, [o for o in job if not o.startswith("++")]) if \
+    cfg = compose(config_name, job, check=False)
+    base = compose(config_name, [o for o in job if not o.startswith("++")], check=False) if \
         any(o.startswith("++") for o in job) else cfg
     added = [k for k in (o.lstrip("+").split("=", 1)[0] for o in job if o.startswith("+"))
              if not ("/" in k or "@" in k or (CONF_DIR / k).is_dir())
              and (base is cfg or OmegaConf.select(base, k, default="__missing__") == "__missing__")]
     check_schema(cfg, added)
-    check_paths(cfg.get("paths"))
+    for key in [k for k in cfg.get("paths") or {} if k != "output_dir"]:  # writable folders (not Hydra's run dir)
+        value = plain_value(cfg.paths, key)  # `...`: a `${hydra:...}` outside a run
+        if value is not None and value is not ...:
+            check_folder(value, f"paths.{key}")
     if check is not None:
         _PREPARED[_job_key(cfg)] = check(cfg)
 

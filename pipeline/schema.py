@@ -45,11 +45,8 @@ class Range:
     def describe(self, inner: str) -> str:
         lo = f"({self.gt:g}" if self.gt is not None else f"[{self.ge:g}" if self.ge is not None else None
         hi = f"{self.lt:g})" if self.lt is not None else f"{self.le:g}]" if self.le is not None else None
-        if lo and hi:
-            return f"{inner} in {lo}, {hi}"
-        op, bound = next((o, b) for o, b in ((">", self.gt), (">=", self.ge), ("<", self.lt), ("<=", self.le))
-                         if b is not None)
-        return f"{inner} {op} {bound:g}"
+        return f"{inner} in {lo}, {hi}" if lo and hi else inner + "".join(
+            f" {o} {b:g}" for o, b in ((">", self.gt), (">=", self.ge), ("<", self.lt), ("<=", self.le)) if b is not None)
 
 
 @dataclass(frozen=True)
@@ -154,12 +151,10 @@ def describe(tp) -> str:
             return f"a list of {len(args)} {_plural(describe(args[0]))}" if len(set(args)) == 1 else \
                 f"a list of {len(args)} values"
         return f"a list of {_plural(describe(args[0])) if args else 'values'}"
-    if origin is dict:
-        return "a mapping"
     if dataclasses.is_dataclass(tp):
         return f"a mapping with keys {', '.join(f.name for f in dataclasses.fields(tp) if f.init)}"
-    return {bool: "true or false", int: "an integer", float: "a number", str: "a string"}.get(
-        tp, getattr(tp, "__name__", str(tp)))
+    return {bool: "true or false", int: "an integer", float: "a number", str: "a string", dict: "a mapping"}.get(
+        origin or tp, getattr(tp, "__name__", str(tp)))
 
 
 def _plural(words: str) -> str:

@@ -248,7 +248,7 @@ def test_every_key_of_every_target_node_is_checked(config, overrides):
 
     from omegaconf import OmegaConf
 
-    from pipeline.config import META_KEYS, _plain_value, _walk, check_schema, signature
+    from pipeline.config import META_KEYS, _walk, check_schema, plain_value, signature
     from pipeline.schema import check_value
 
     cfg = compose(config, overrides)
@@ -259,7 +259,7 @@ def test_every_key_of_every_target_node_is_checked(config, overrides):
         parent, _, leaf = path.rpartition(".")
         if OmegaConf.is_interpolation(OmegaConf.select(cfg, parent) if parent else cfg, leaf):
             continue  # `controllers.hybrid: ${controller}`: checked as the node it points to
-        seen = (path, repr({k: _plain_value(node, k) for k in node.keys()}))
+        seen = (path, repr({k: plain_value(node, k) for k in node.keys()}))
         if seen in _NODES_CHECKED:  # the same node at the same place in an earlier config of this process
             n_values += _NODES_CHECKED[seen]
             continue
@@ -272,7 +272,7 @@ def test_every_key_of_every_target_node_is_checked(config, overrides):
             check_schema(bad)
         assert err.value.field == f"{path}.not_a_keyword" and "unknown key" in err.value.reason, str(err.value)
         for key in node.keys():
-            value = _plain_value(node, key)  # `...`: a `${hydra:...}` value, resolved in a run only
+            value = plain_value(node, key)  # `...`: a `${hydra:...}` value, resolved in a run only
             if key in META_KEYS or params.get(key) is None or value is ... or (
                     isinstance(value, dict) and "_target_" in value):
                 continue
