@@ -254,3 +254,18 @@ def test_cli_bad_input_one_line_exit_2(request, tmp_path, override):
     assert len(lines) == 1 and lines[0].startswith("error: "), proc.stderr
     field = override.lstrip("+").split("=")[0]
     assert (field if field != "trainer" else "trainer.accelerator") in lines[0]
+
+
+def test_a_subclass_of_model_checkpoint_writes_into_the_runs_folder(tmp_path, monkeypatch):
+    """The checkpoint callback is told by its class, not by its last name: a user's subclass of ModelCheckpoint
+    (before: its name compared as a string) gets the run's `ckpt` folder, where the stage reads best and last."""
+    from pipeline.train.stage import _trainer
+
+    (tmp_path / "my_callbacks.py").write_text(
+        "from lightning.pytorch.callbacks import ModelCheckpoint\n\n\nclass EveryEpoch(ModelCheckpoint):\n"
+        "    pass\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    cfg = compose("train", ["debug=tiny", "~logger", "callbacks.model_checkpoint._target_=my_callbacks.EveryEpoch",
+                            f"paths.root_dir={tmp_path}", f"trainer.default_root_dir={tmp_path}"])
+    _, ckpt = _trainer(cfg, tmp_path / "work")
+    assert type(ckpt).__name__ == "EveryEpoch" and ckpt.dirpath == str(tmp_path / "work" / "ckpt")

@@ -31,7 +31,7 @@ from lightning.pytorch.loggers import CSVLogger
 from omegaconf import DictConfig, OmegaConf
 
 from pipeline import identity, tracking
-from pipeline.config import build
+from pipeline.config import build, resolve
 from pipeline.data import open_dataset
 from pipeline.errors import ConfigError, ModelError, PipelineError
 from pipeline.lineage import debug_overrides, rerun_command, resolve_dataset, train_dataset_id
@@ -205,8 +205,7 @@ def _trainer(cfg, work: Path):
     loggers = [_build(node, f"logger.{key}") for key, node in (cfg.get("logger") or {}).items()]
     callbacks = []
     for key, node in (cfg.get("callbacks") or {}).items():
-        cls = str(node.get("_target_", "")).rsplit(".", 1)[-1]
-        extra = {"dirpath": str(work / "ckpt")} if cls == "ModelCheckpoint" else {}
+        extra = {"dirpath": str(work / "ckpt")} if _targets(node, ModelCheckpoint) else {}
         cb = _build(node, f"callbacks.{key}", **extra)
         if isinstance(cb, LearningRateMonitor) and not loggers:
             continue  # Lightning refuses a learning-rate monitor without a logger
@@ -223,6 +222,16 @@ def _trainer(cfg, work: Path):
     trainer = _build(cfg.trainer, "trainer", logger=loggers or False, callbacks=callbacks,
                      enable_progress_bar=show_bar)
     return trainer, ckpt_cb
+
+
+def _targets(node, cls: type) -> bool:
+    """Whether the node's `_target_` is `cls` or a subclass (before: its last name compared as a string, so a user's
+    subclass of ModelCheckpoint wrote its checkpoints outside the run's folder)."""
+    try:
+        target = resolve(":".join(str(node.get("_target_")).rsplit(".", 1)))
+        return isinstance(target, type) and issubclass(target, cls)
+    except Exception:  # noqa: BLE001 - a target that does not import: its build says so in one line
+        return False
 
 
 def _with_digests(cb: ModelCheckpoint) -> None:
