@@ -45,8 +45,10 @@ class Range:
     def describe(self, inner: str) -> str:
         lo = f"({self.gt:g}" if self.gt is not None else f"[{self.ge:g}" if self.ge is not None else None
         hi = f"{self.lt:g})" if self.lt is not None else f"{self.le:g}]" if self.le is not None else None
-        return f"{inner} in {lo}, {hi}" if lo and hi else inner + "".join(
-            f" {o} {b:g}" for o, b in ((">", self.gt), (">=", self.ge), ("<", self.lt), ("<=", self.le)) if b is not None)
+        if lo and hi:
+            return f"{inner} in {lo}, {hi}"
+        bounds = ((">", self.gt), (">=", self.ge), ("<", self.lt), ("<=", self.le))
+        return inner + next(f" {op} {b:g}" for op, b in bounds if b is not None)
 
 
 @dataclass(frozen=True)
