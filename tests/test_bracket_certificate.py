@@ -90,8 +90,8 @@ def test_no_certified_start_is_falsified(law_cls):
     grid = Grid.over(SCENE.bounds, 2.0)
     eps = 0.25
     ab = build(law, grid, np.full(grid.n, eps), 0.05, 5.0)
-    W, _ = win(ab, 0.05, SCENE.p_T)
-    cert = certified_cells(ab, W)
+    W, _, frames = win(ab, 0.05, SCENE.p_T)
+    cert = certified_cells(ab, W, frames, horizon=400)  # the loop's 20 s
     assert 0.2 < cert.mean() < 0.9
     rng = np.random.default_rng(3)
     cells = rng.choice(np.flatnonzero(cert), 40, replace=False)
@@ -123,7 +123,7 @@ def test_face_aligned_certificate_is_sound_and_reads_a_cell_table(tmp_path):
     law = SmoothController(SCENE)
     cert = certify(law, CellTable(tmp_path / "map.csv"), h=2.0, angle=45.0, period=0.05, goal_radius=5.0)
     starts = np.array([[x, x + 4, y, y + 4] for x in range(-48, 44, 4) for y in range(-28, 28, 4)], float)
-    ok = certified_starts(cert, starts)
+    ok = certified_starts(cert, starts)[0]
     assert 0.1 < ok.mean() < 0.9
     rng = np.random.default_rng(4)
     p0 = starts[ok][:, [0, 2]] + rng.uniform(0, 4, (int(ok.sum()), 2))
@@ -156,7 +156,7 @@ def test_edges_over_frames_certify_behind_the_obstacle_soundly():
     cert = certify(law, lambda p, boxes=None, frame=None: np.full(len(p), 0.1), h=1.0, angle=45.0, period=0.05,
                    goal_radius=5.0, frames=4, window=12)
     starts = np.array([[x, x + 2, y, y + 2] for x in range(-50, -14, 2) for y in range(-30, 28, 2)], float)
-    ok = certified_starts(cert, starts)
+    ok = certified_starts(cert, starts)[0]
     assert ok.sum() >= 20
     rng = np.random.default_rng(5)
     pick = rng.choice(np.flatnonzero(ok), 24, replace=False)
@@ -179,7 +179,7 @@ def test_wide_barrier_is_certified_on_the_axis_behind_the_obstacle_soundly():
     cert = certify(law, lambda p, boxes=None, frame=None: np.full(len(p), 1.5), h=1.0, angle=45.0, period=0.05,
                    goal_radius=5.0, frames=3, window=12)
     starts = np.array([[x, x + 2, y, y + 2] for x in range(-46, -14, 2) for y in range(-6, 6, 2)], float)
-    ok = certified_starts(cert, starts)
+    ok = certified_starts(cert, starts)[0]
     assert ok.sum() >= 10, ok.sum()
     rng = np.random.default_rng(5)
     pick = np.repeat(np.flatnonzero(ok), 2)

@@ -153,7 +153,7 @@ def test_a_named_tuning_reaches_every_object_and_the_id_and_an_override_after_it
 
     def built(*overrides):
         cfg = compose("bracket", list(overrides))
-        scene, laws, bs, _, _, emap, cam = objects(cfg)
+        scene, laws, bs, _, _, emap, cam, _ = objects(cfg)
         return scene, laws["hybrid"], bs, bracket_id(cfg, bs, emap, cam)[0]
 
     scene, hybrid, bs, paper_id = built()

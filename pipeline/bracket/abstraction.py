@@ -117,6 +117,7 @@ class Abstraction:
     succ: np.ndarray
     initial: np.ndarray    # (cells, modes) possible initial nodes
     multi: np.ndarray | None = None  # (nodes,) edges over several frames (positions beyond P along them)
+    frames: int = 1        # the frames of a `multi` node's edges
 
 
 def cell_hits(grid: Grid, H: np.ndarray, window: int):
@@ -184,8 +185,13 @@ def _frames(grid: Grid, hP, Uq, period, frames, window, bad_cell, stop):
 
 
 def build(law, grid: Grid, eps_cells: np.ndarray, period: float, goal_radius: float, n_split: int = 4,
-          window: int = 8, in_view: np.ndarray | None = None, frames: int = 1) -> Abstraction:
-    """The abstraction of `law`'s sampled loop on `grid` with the error bound `eps_cells` `(cells,)` (module doc)."""
+          window: int = 8, in_view: np.ndarray | None = None, frames: int = 1, keep_mode: bool = False,
+          may_stop: bool = False) -> Abstraction:
+    """The abstraction of `law`'s sampled loop on `grid` with the error bound `eps_cells` `(cells,)` (module doc).
+
+    Lost frames (SPEC §5.6; :mod:`pipeline.bracket.lost`, which widens `eps_cells` for the input held from an older
+    frame): `keep_mode`, a frame may bring no decision (the mode is kept: every node also steps to its own mode);
+    `may_stop`, a frame's input may be 0 (the predicting gate's stop past `max_drift`)."""
     kind = law_kind(law)
     modes = 2 if kind == "hybrid" else 1
     boxes = grid.boxes()
@@ -194,6 +200,8 @@ def build(law, grid: Grid, eps_cells: np.ndarray, period: float, goal_radius: fl
     known = np.isfinite(eps_cells)  # a cell without a bound: its nodes are unsafe (nothing is known there)
     M = dilate(boxes, np.where(known, eps_cells, 0.0))
     U = np.stack([support(law, M, q, period, n_split) for q in range(1, modes + 1)], axis=1)
+    if may_stop:
+        U = np.maximum(U, 0.0)  # the polytope's hull with the origin
     cen = grid.centres()
     hP = cen @ DIRS.T + 0.5 * grid.h * (np.abs(DIRS[:, 0]) + np.abs(DIRS[:, 1]))
     d_lo, _ = dist_range(boxes, scene.p_0)
@@ -223,7 +231,7 @@ def build(law, grid: Grid, eps_cells: np.ndarray, period: float, goal_radius: fl
         if modes == 1:
             rows_all.append(r), cols_all.append(c)
         else:
-            s, j = stay[c, q], jump[c, q]
+            s, j = stay[c, q] | keep_mode, jump[c, q]
             rows_all += [r[s] * 2 + q, r[j] * 2 + q]
             cols_all += [c[s] * 2 + q, c[j] * 2 + (1 - q)]
     if modes == 1:
@@ -236,4 +244,4 @@ def build(law, grid: Grid, eps_cells: np.ndarray, period: float, goal_radius: fl
     keep[1:] = (rows[1:] != rows[:-1]) | (cols[1:] != cols[:-1])
     rows, cols = rows[keep], cols[keep]
     indptr = np.searchsorted(rows, np.arange(n_nodes + 1))
-    return Abstraction(grid, modes, rate_U, safe, goal, indptr, cols, initial, multi)
+    return Abstraction(grid, modes, rate_U, safe, goal, indptr, cols, initial, multi, frames)

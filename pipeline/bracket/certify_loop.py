@@ -1,5 +1,7 @@
-"""The certificate end to end (SPEC §5.4): the abstraction in a face-aligned frame, `Win`, and the certified
-start region on world start cells (a start cell is certified when every grid cell meeting it is)."""
+"""The certificate end to end (SPEC §5.4, §5.6): the abstraction in a face-aligned frame, `Win` with its arrival
+bound, and the certified start region on world start cells: a start cell is certified when every grid cell meeting
+its starts is, within the horizon. The starts of a cell are its points the simulator accepts: outside the closed
+diamond `|a| + |b| <= c` (SPEC §3.6's start rule), so a grid cell lying inside the diamond is not a start."""
 
 from __future__ import annotations
 
@@ -10,7 +12,9 @@ import numpy as np
 from pipeline.bracket.abstraction import Abstraction, Grid, build, cell_hits
 from pipeline.bracket.enclosures import DIRS
 from pipeline.bracket.frame import Frame
-from pipeline.bracket.winning import certified_cells, win
+from pipeline.bracket.lost import LostFrames
+from pipeline.bracket.winning import arrival_frames, certified_cells, win
+from pipeline.control import in_diamond
 
 
 @dataclass
@@ -19,37 +23,56 @@ class Certificate:
     grid: Grid
     abstraction: Abstraction
     won: np.ndarray        # (nodes,)
-    certified: np.ndarray  # (grid cells,)
+    certified: np.ndarray  # (grid cells,) within the horizon
     stats: dict
+    arrival: np.ndarray    # (grid cells,) frames to the goal from the cell, every initial node (inf: not in Win)
+    no_start: np.ndarray   # (grid cells,) inside the closed diamond: no start of the simulator lies there
 
 
 def certify(law, eps_world, *, h: float, angle: float, period: float, goal_radius: float, n_split: int = 4,
-            window: int = 8, frames: int = 1) -> Certificate:
+            window: int = 8, frames: int = 1, horizon: float = np.inf, lost: LostFrames | None = None) -> Certificate:
     """`law`'s certificate on cells of side `h` in the frame rotated by `angle`; `eps_world(points (N, 2)) ->
     (N,)` the error bound at world points of a cell (`max` over its corners and centre is taken, so `eps_world`
-    must be the largest bound over any cell it is asked about: see :mod:`pipeline.bracket.errors`)."""
+    must be the largest bound over any cell it is asked about: see :mod:`pipeline.bracket.errors`). `horizon`: the
+    frames a run has (a start is certified when its arrival bound fits); `lost`: frames that may be lost
+    (:mod:`pipeline.bracket.lost`; None: every frame delivered)."""
     frame = Frame(angle)
     rlaw = frame.law(law)
     scene = rlaw.scene
     anchor = scene.p_0 - scene.c * np.sqrt(0.5) * np.ones(2)  # the faces' lines are grid lines at 45°
     grid = Grid.over(scene.bounds, h, anchor=anchor)
     boxes = grid.boxes()
-    eps = eps_world(frame.to_world(grid.centres()), boxes=boxes, frame=frame)
+    lost = lost or LostFrames(0, False, period, 0.0)
+    eps = lost.eps(eps_world)(frame.to_world(grid.centres()), boxes=boxes, frame=frame)
     view = frame.in_view(boxes, law.scene.bounds)
-    ab = build(rlaw, grid, eps, period, goal_radius, n_split=n_split, window=window, in_view=view, frames=frames)
-    W, stats = win(ab, period, scene.p_T)
-    cert = certified_cells(ab, W) & view
-    stats = {**stats, "nodes": int(len(ab.safe)), "edges": int(len(ab.succ)), "cells": int(grid.n)}
-    return Certificate(frame, grid, ab, W, cert, stats)
+    ab = build(rlaw, grid, eps, period, goal_radius, n_split=n_split, window=window, in_view=view, frames=frames,
+               keep_mode=lost.keep_mode, may_stop=lost.may_stop)
+    W, stats, to_goal = win(ab, period, scene.p_T)
+    arrival = np.where(view, arrival_frames(ab, to_goal), np.inf)
+    cert = certified_cells(ab, W, to_goal, horizon) & view
+    corners = np.stack([boxes[:, [0, 2]], boxes[:, [1, 2]], boxes[:, [1, 3]], boxes[:, [0, 3]]], axis=1)
+    no_start = in_diamond(law.scene, frame.to_world(corners.reshape(-1, 2))).reshape(-1, 4).all(axis=1)
+    stats = {**stats, "nodes": int(len(ab.safe)), "edges": int(len(ab.succ)), "cells": int(grid.n),
+             "horizon_frames": float(horizon), "beyond_horizon": int((certified_cells(ab, W) & view & ~cert).sum()),
+             "lost_frames": lost.describe()}
+    return Certificate(frame, grid, ab, W, cert, stats, arrival, no_start)
 
 
-def certified_starts(cert: Certificate, starts: np.ndarray) -> np.ndarray:
-    """World start cells `(N, 4)` (`x0, x1, y0, y1`) certified: every grid cell meeting one is certified."""
+def certified_starts(cert: Certificate, starts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """World start cells `(N, 4)` (`x0, x1, y0, y1`): `(certified, arrival, no_start)`. Certified: every grid cell
+    meeting one is certified, those inside the closed diamond aside (no start there); arrival: the largest arrival
+    bound in frames over those grid cells (inf: one is not in `Win`); no_start: the cell holds no start at all."""
     C = np.stack([starts[:, [0, 2]], starts[:, [1, 2]], starts[:, [1, 3]], starts[:, [0, 3]]], axis=1)
     G = cert.frame.to_grid(C.reshape(-1, 2)).reshape(-1, 4, 2)
     H = np.einsum("nkc,jc->nkj", G, DIRS).max(axis=1) + 2e-9  # the rotated square's support (closed)
     rows, cells, over = cell_hits(cert.grid, H, window=int(np.ceil(2 * (starts[0, 1] - starts[0, 0])
                                                                      / cert.grid.h)) + 3)
+    start = ~cert.no_start[cells]
+    rows, cells = rows[start], cells[start]
     ok = ~over
     np.logical_and.at(ok, rows, cert.certified[cells])
-    return ok
+    arrival = np.full(len(starts), -np.inf)
+    np.maximum.at(arrival, rows, cert.arrival[cells])
+    no_start = ~over & (np.bincount(rows, minlength=len(starts)) == 0)
+    arrival[over | no_start] = np.inf
+    return ok & ~no_start, arrival, no_start

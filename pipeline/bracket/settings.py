@@ -31,7 +31,9 @@ class BracketSettings:
     `[0, eps_max]` in `n_bisect` steps; success is reaching `B(p_T, goal_radius)` within `sim.horizon` seconds.
     With `camera_map` (a perception map: path, name-id, id or name), the falsifier through the camera too: `κ_hi`
     bisected on the integer levels `[0, kappa_max]`, `pgd_steps` PGD steps per frame towards the directions of
-    `camera_adversaries`, on `camera_device` (:mod:`pipeline.bracket.camera_falsifier`)."""
+    `camera_adversaries`, on `camera_device` (:mod:`pipeline.bracket.camera_falsifier`). `lost_frames`: the most
+    consecutive camera frames the proof lets be lost (`camera.p_fail`, `camera.gate`; held or, with
+    `camera.predict`, dead-reckoned: :mod:`pipeline.bracket.lost`); 0: every frame arrives (the loop must lose none)."""
 
     controllers: Annotated[list[Law], NonEmpty()] = field(default_factory=lambda: ["hybrid", "smooth", "cbf"])
     eps: Annotated[list[NonNegative], NonEmpty()] = field(default_factory=lambda: [0.1, 0.25, 0.5])
@@ -58,6 +60,7 @@ class BracketSettings:
     camera_adversaries: Annotated[list[CameraAdversary], NonEmpty()] = field(
         default_factory=lambda: ["fixed", "mode_aware"])
     camera_device: Device = "cpu"
+    lost_frames: NonNegativeInt = 0
 
     def __post_init__(self):
         if self.commit > self.lookahead:

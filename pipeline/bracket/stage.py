@@ -24,16 +24,18 @@ from pipeline import lineage, tracking
 from pipeline.bracket.certify_loop import certified_starts, certify
 from pipeline.bracket.errors import CellTable, Finest, Uniform
 from pipeline.bracket.falsifier import Search, falsify
-from pipeline.bracket.loop import OUTCOMES, FrameLoop
+from pipeline.bracket.loop import OUTCOMES, REACHED, RUNNING, FrameLoop
+from pipeline.bracket.lost import LostFrames
 from pipeline.config import build
+from pipeline.control import in_diamond
 from pipeline.errors import ConfigError, DatasetError
 from pipeline.experiments.report import markdown_table
 from pipeline.sim.simulator import stall_threshold
 
 
 def objects(cfg: DictConfig):
-    """(scene, {name: law}, settings, sim, camera, error map or None, camera map folder or None), built and
-    checked before any work."""
+    """(scene, {name: law}, settings, sim, camera, error map or None, camera map folder or None, {name: the lost
+    frames the proof covers}), built and checked before any work."""
     scene = build(cfg.scene, "scene")
     if scene.n_obstacles != 1 or scene.barrier.kind != "squared":
         raise ConfigError("scene", "the bracket covers one obstacle with the squared barrier (SPEC §5.5's scope)")
@@ -53,8 +55,30 @@ def objects(cfg: DictConfig):
     sim, camera = build(cfg.sim, "sim"), build(cfg.camera, "camera")
     if camera.period is None:
         raise ConfigError("camera.period", "the bracket needs a frame period (the sampled loop), got null")
+    lost = lost_frames(sim, camera, bs, laws)
     emap = error_map(cfg, bs)
-    return scene, laws, bs, sim, camera, emap, camera_map_folder(cfg, bs, scene)
+    return scene, laws, bs, sim, camera, emap, camera_map_folder(cfg, bs, scene), lost
+
+
+def lost_frames(sim, camera, bs, laws) -> dict[str, LostFrames]:
+    """The loop's frame model as the proof takes it (SPEC §5.6, :mod:`pipeline.bracket.lost`); what it does not
+    model is refused in one line: the continuous-time loop, frames lost or gated with no bound on consecutive losses
+    (`bracket.lost_frames`), a law without a speed limit when frames may be lost."""
+    if sim.model != "sampled":
+        raise ConfigError("sim.model", f"the bracket proves the sampled loop (a frame every camera.period, the input "
+                                       f"held between frames), not sim.model={sim.model}: sampled here")
+    losing = camera.p_fail > 0 or camera.gate is not None
+    if losing and bs.lost_frames == 0:
+        cause = f"camera.p_fail = {camera.p_fail:g}" if camera.p_fail > 0 else f"camera.gate = {camera.gate:g}"
+        field_ = "camera.p_fail" if camera.p_fail > 0 else "camera.gate"
+        raise ConfigError(field_, f"{cause} loses frames, and the proof assumes every frame arrives unless "
+                                  "bracket.lost_frames (the most consecutive lost frames it covers) is >= 1")
+    if bs.lost_frames > 0 and any(law.u_max is None for law in laws.values()):
+        raise ConfigError("bracket.lost_frames", "a law without a speed limit (u_max null): a lost frame's input "
+                                                 "comes from a frame taken an unbounded distance away")
+    return {name: LostFrames(bs.lost_frames, camera.predict, camera.period,
+                             0.0 if law.u_max is None else max(law.u_max, law.push_speed), camera.drift,
+                             camera.max_drift) for name, law in laws.items()}
 
 
 def error_map(cfg: DictConfig, bs):
@@ -128,40 +152,70 @@ def start_cells(scene, side: float) -> np.ndarray:
     return np.stack([X0.ravel(), X1.ravel(), Y0.ravel(), Y1.ravel()], 1)
 
 
-def bracket_rows(name, law, scene, bs, sim, camera, emap, starts, pmap=None):
-    """One controller: the certificate at each ε (and the map's ε̄), the falsifier (and through the camera of
-    `pmap`, a loaded perception map); rows, stats, paths, camera paths (None without `pmap`)."""
+def falsifier_starts(scene, starts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per start cell the falsifier's start: the centre, or where the simulator refuses it (inside the closed
+    diamond, SPEC §3.6) the cell's corner farthest out of it; and whether that start is one the simulator accepts
+    (outside the diamond and the obstacle disc)."""
+    C = np.stack([starts[:, [0, 2]], starts[:, [1, 2]], starts[:, [1, 3]], starts[:, [0, 3]]], axis=1)
+    centres = C.mean(axis=1)
+    a, b = scene.to_frame(C.reshape(-1, 2))
+    far = C[np.arange(len(C)), np.argmax((np.abs(a) + np.abs(b)).reshape(-1, 4), axis=1)]
+    p0 = np.where(in_diamond(scene, centres)[:, None], far, centres)
+    ok = ~in_diamond(scene, p0) & (np.hypot(*(p0 - scene.p_0).T) >= scene.obstacle_radius)
+    return p0, ok
+
+
+def nominal_arrival(loop: FrameLoop, p0: np.ndarray) -> np.ndarray:
+    """Seconds to the goal disc of the runs from `p0` without error (NaN: did not arrive within the horizon)."""
+    st = loop.start(p0, np.zeros_like(p0))
+    zero = np.zeros_like(p0)
+    while (st["outcome"] == RUNNING).any():
+        st = loop.step(st, zero)
+    return np.where(st["outcome"] == REACHED, st["t_end"], np.nan)
+
+
+def bracket_rows(name, law, scene, bs, sim, camera, emap, starts, pmap=None, lost: LostFrames | None = None):
+    """One controller: the certificate at each ε (and the map's ε̄) within the horizon and with the lost frames of
+    `lost`, the falsifier (and through the camera of `pmap`, a loaded perception map); rows, stats, paths, camera
+    paths (None without `pmap`)."""
+    loop = FrameLoop(scene, law, period=camera.period, horizon=sim.horizon, delta=bs.goal_radius,
+                     stall_speed=stall_threshold(sim, law), stall_time=sim.stall_time)
     kw = dict(h=bs.cell, angle=bs.angle, period=camera.period, goal_radius=bs.goal_radius, n_split=bs.n_split,
-              window=bs.window, frames=bs.frames)
+              window=bs.window, frames=bs.frames, horizon=loop.n_frames, lost=lost)
     eps_lo = np.full(len(starts), np.nan)
+    arrival = np.full(len(starts), np.nan)
     stats = {}
     for eps in bs.eps:
         t0 = time.perf_counter()
         cert = certify(law, Uniform(eps), **kw)
-        ok = certified_starts(cert, starts)
-        eps_lo[ok] = eps
+        ok, frames, no_start = certified_starts(cert, starts)
+        eps_lo[ok], arrival[ok] = eps, np.maximum(frames[ok], 1) * camera.period  # arrival is told at a frame's end
         stats[f"eps={eps:g}"] = {**cert.stats, "certified_starts": int(ok.sum()), "seconds": time.perf_counter() - t0}
     by_map = np.full(len(starts), False)
     if emap is not None:
         cert = certify(law, emap, **kw)
-        by_map = certified_starts(cert, starts)
+        by_map = certified_starts(cert, starts)[0]
         stats["error_map"] = {**cert.stats, "certified_starts": int(by_map.sum())}
-    loop = FrameLoop(scene, law, period=camera.period, horizon=sim.horizon, delta=bs.goal_radius,
-                     stall_speed=stall_threshold(sim, law), stall_time=sim.stall_time)
+    if lost is not None and lost.max_lost > 0:
+        stats["lost_frames"] = {"model": lost.describe(), "p_fail": camera.p_fail,
+                                "p_more_per_run": lost.p_more(camera.p_fail, loop.n_frames)}
     search = Search(n_dirs=bs.n_dirs, lookahead=bs.lookahead, commit=bs.commit, tail=bs.tail,
                     n_random=bs.n_random, seed=bs.seed)
-    centres = np.stack([(starts[:, 0] + starts[:, 1]) / 2, (starts[:, 2] + starts[:, 3]) / 2], axis=1)
-    inside = np.hypot(*(centres - scene.p_0).T) >= scene.obstacle_radius
+    centres, inside = falsifier_starts(scene, starts)
+    inside &= ~no_start
     t0 = time.perf_counter()
     br = falsify(loop, centres[inside], bs.eps_max, bs.n_bisect, search)
     stats["falsifier_seconds"] = time.perf_counter() - t0
-    eps_hi = np.full(len(starts), 0.0)
-    adv, out = np.full(len(starts), "start in obstacle", dtype=object), np.full(len(starts), "collided", dtype=object)
+    t_sim = np.full(len(starts), np.nan)
+    t_sim[inside] = nominal_arrival(loop, centres[inside])
+    eps_hi = np.full(len(starts), np.nan)  # no falsifier run: the cell holds no start the simulator accepts
+    adv, out = np.full(len(starts), "no start", dtype=object), np.full(len(starts), "", dtype=object)
     eps_hi[inside], adv[inside] = br.eps_hi, br.adversary
     out[inside] = [OUTCOMES[o] if np.isfinite(e) else "" for o, e in zip(br.outcome, br.eps_hi)]
     rows = pd.DataFrame({"controller": name, "x0": starts[:, 0], "x1": starts[:, 1], "y0": starts[:, 2],
-                         "y1": starts[:, 3], "eps_lo": eps_lo, "certified_map": by_map, "eps_hi": eps_hi,
-                         "adversary": adv, "outcome": out})
+                         "y1": starts[:, 3], "start": ~no_start, "eps_lo": eps_lo, "arrival_bound": arrival,
+                         "arrival_nominal": t_sim, "certified_map": by_map, "eps_hi": eps_hi, "adversary": adv,
+                         "outcome": out})
     paths = np.full((br.path.shape[0], len(starts), 2), np.nan)
     paths[:, inside] = br.path
     cam_paths = None
@@ -187,8 +241,8 @@ def camera_rows(loop: FrameLoop, pmap, bs, centres: np.ndarray, inside: np.ndarr
     cb = falsify_camera(CameraLoop(loop, pmap.net, pmap.camera(), search), centres[inside], bs.kappa_max,
                         tuple(bs.camera_adversaries))
     n = len(centres)
-    kappa_hi = np.zeros(n)
-    adv, out = np.full(n, "start in obstacle", dtype=object), np.full(n, "collided", dtype=object)
+    kappa_hi = np.full(n, np.nan)
+    adv, out = np.full(n, "no start", dtype=object), np.full(n, "", dtype=object)
     kappa_hi[inside], adv[inside] = cb.kappa_hi, cb.adversary
     out[inside] = [OUTCOMES[o] if np.isfinite(k) else "" for o, k in zip(cb.outcome, cb.kappa_hi)]
     paths = np.full((cb.path.shape[0], n, 2), np.nan)
@@ -197,17 +251,23 @@ def camera_rows(loop: FrameLoop, pmap, bs, centres: np.ndarray, inside: np.ndarr
 
 
 def table(df: pd.DataFrame, scene, eps_list, with_map: bool = False) -> pd.DataFrame:
-    """Per controller: certified share of start cells at each ε, falsified shares, behind the obstacle (frame
-    coordinate `a < -c`, `|b| < 15`), the median `ε_hi` on `K` (the row of cells centred on the axis behind); with
-    a `kappa_hi` column, the share falsified through the camera and the median `κ_hi` on `K`; with both, the
-    map-certified cells whose clean camera loop failed (a soundness bug of the chain: map bound, certificate)."""
+    """Per controller, over the start cells holding a start the simulator accepts (`start`; the others, inside the
+    diamond, are counted apart): certified share at each ε (within the horizon), falsified shares, behind the
+    obstacle (frame coordinate `a < -c`, `|b| < 15`), the median `ε_hi` on `K` (the row of cells centred on the axis
+    behind); the certified arrival bound beside the nominal run's arrival (seconds, medians over certified cells)
+    and the certified cells whose nominal run arrives later than the bound (a soundness bug); with a `kappa_hi`
+    column, the share falsified through the camera and the median `κ_hi` on `K`; with both, the map-certified cells
+    whose clean camera loop failed (a soundness bug of the chain: map bound, certificate)."""
     cx, cy = (df.x0 + df.x1) / 2, (df.y0 + df.y1) / 2
     a, b = scene.to_frame(np.stack([cx, cy], 1))
     behind = (a < -scene.c) & (np.abs(b) < 15)
     on_K = (a < -scene.c) & (df.y0 <= scene.p_0[1]) & (scene.p_0[1] < df.y1)
+    start = df["start"].to_numpy(bool) if "start" in df else np.ones(len(df), bool)
     out = []
-    for name, g in df.groupby("controller", sort=False):
-        row = {"controller": name, "start cells": len(g)}
+    for name, whole in df.groupby("controller", sort=False):
+        g = whole[start[whole.index]]
+        row = {"controller": name, "start cells": f"{len(g)}" + (f" (+{len(whole) - len(g)} in the diamond)"
+                                                                 if len(whole) > len(g) else "")}
         for eps in eps_list:
             row[f"certified ε={eps:g}"] = f"{(g.eps_lo >= eps).mean():.0%}"
         for eps in eps_list:
@@ -216,13 +276,20 @@ def table(df: pd.DataFrame, scene, eps_list, with_map: bool = False) -> pd.DataF
         top = f" (ε_lo up to {bh.eps_lo.max():g})" if bh.eps_lo.notna().any() else ""
         row["behind: certified"] = f"{int(bh.eps_lo.notna().sum())}/{len(bh)}{top}"
         k = g[on_K[g.index]]
-        row["on K: median ε_hi"] = f"{np.median(k.eps_hi):.3g}" if len(k) else "-"
+        row["on K: median ε_hi"] = f"{np.nanmedian(k.eps_hi):.3g}" if k.eps_hi.notna().any() else "-"
+        if "arrival_bound" in g:
+            c = g[g.eps_lo.notna()]
+            row["arrival (s): bound / nominal"] = (f"{c.arrival_bound.median():.3g} / {c.arrival_nominal.median():.3g}"
+                                                   if len(c) else "-")
         if "kappa_hi" in g:
             row["camera: falsified"] = f"{np.isfinite(g.kappa_hi).mean():.0%}"
-            row["on K: median κ_hi"] = f"{np.median(k.kappa_hi):.3g}" if len(k) else "-"
+            row["on K: median κ_hi"] = f"{np.nanmedian(k.kappa_hi):.3g}" if k.kappa_hi.notna().any() else "-"
         row["map ε̄: certified"] = (f"{g.certified_map.mean():.0%} ({int(bh.certified_map.sum())}/{len(bh)} behind)"
                                     if with_map else "-")
         row["soundness: ε_lo > ε_hi"] = int((g.eps_lo > g.eps_hi).sum())
+        if "arrival_bound" in g:  # the nominal run is one the certificate covers (no error): it arrives by the bound
+            row["soundness: arrival > bound"] = int((g.eps_lo.notna() & ~(g.arrival_nominal <= g.arrival_bound
+                                                                          + 1e-9)).sum())
         if with_map and "kappa_hi" in g:  # the map's own error is within its certified ε̄: its clean loop must arrive
             row["soundness: map-certified, κ_hi = 0"] = int((g.certified_map & (g.kappa_hi == 0)).sum())
         out.append(row)
@@ -247,7 +314,7 @@ def bracket_id(cfg: DictConfig, bs, emap, cam_folder: Path | None = None) -> tup
 
 
 def run(cfg: DictConfig) -> dict:
-    scene, laws, bs, sim, camera, emap, cam_folder = objects(cfg)
+    scene, laws, bs, sim, camera, emap, cam_folder, lost = objects(cfg)
     id_, meta = bracket_id(cfg, bs, emap, cam_folder)
     final = Path(cfg.paths.bracket_dir) / f"bracket-{id_}"
     if tracking.is_complete(final) and not cfg.get("force", False):
@@ -263,7 +330,7 @@ def run(cfg: DictConfig) -> dict:
         pmap = load_perception_map(cam_folder, models_dir=cfg.paths.models_dir, device=bs.camera_device)
     frames, stats, paths, cam_paths = [], {}, {}, {}
     for name, law in laws.items():
-        rows, st, pth, cpth = bracket_rows(name, law, scene, bs, sim, camera, emap, starts, pmap)
+        rows, st, pth, cpth = bracket_rows(name, law, scene, bs, sim, camera, emap, starts, pmap, lost[name])
         frames.append(rows)
         stats[name], paths[name] = st, pth
         if cpth is not None:

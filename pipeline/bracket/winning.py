@@ -1,8 +1,18 @@
-"""The winning set of the abstraction (SPEC §5.4): the least fixed point with the transience rule.
+"""The winning set of the abstraction (SPEC §5.4) and its arrival-time bound (SPEC §5.6, the horizon).
 
 `win(abs, period, p_T)`: strongly connected components of the safe non-goal nodes by Tarjan's algorithm
 (iterative; it emits components sinks first), each decided once in that order: in `Win` when every successor
 outside it is in `Win` and it is a single node without a self-loop or transient (:func:`rates`).
+
+With it, per node of `Win`, `frames`: an upper bound on the camera frames from the node (a frame instant) until the
+position is in a goal cell at a frame instant, for every run the abstraction allows. A goal node: 0. A component,
+in the same sinks-first order, per node `n` of it: `inner(n) + max over the component's exit edges (v -> s) of
+(f(v) + frames(s))`, `f(v)` the frames of `v`'s edges (1, or `Abstraction.frames` on edges over several frames) and
+`inner(n)` the frames a run from `n` can spend inside it: 0 for a single node without a self-loop; for a transient
+one, its ranking function's largest value on `n`'s cell less its smallest on the cells of the component's nodes with
+an exit edge (a run leaves from one of them), over the least decrease per frame (`w·p` decreasing by `c T_s` per frame, `c` the smallest `-w·u`
+over the component's inputs; or `|p - p_T|²` by its least certified decrease), rounded down, the smallest over the
+directions and the distance.
 """
 
 from __future__ import annotations
@@ -10,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.bracket.abstraction import Abstraction
-from pipeline.bracket.enclosures import DIRS, support_at
+from pipeline.bracket.enclosures import DIRS, dist_range, support_at
 
 J = len(DIRS)
 
@@ -18,29 +28,39 @@ J = len(DIRS)
 RATE_DIRS = 24 * J  # candidate directions of the transience rule (the support directions among them)
 
 
+RATE_W = np.stack([np.cos(2 * np.pi * np.arange(RATE_DIRS) / RATE_DIRS),
+                   np.sin(2 * np.pi * np.arange(RATE_DIRS) / RATE_DIRS)], axis=1)
+RATE_C = support_at(np.eye(J)[:, None, :], RATE_W)  # (J, RATE_DIRS): w_k's bound a h_j + b h_{j+1}, linear in h
+
+
+def direction_bounds(U: np.ndarray) -> np.ndarray:
+    """`(nodes, RATE_DIRS)`: an upper bound of `w_k·u` over each polytope `U` `(nodes, J)` (:func:`support_at`
+    between two support directions; exactly the support on the support directions). A node without inputs (-inf):
+    -1 in every direction (it decreases everything; it has no successors either)."""
+    with np.errstate(invalid="ignore"):  # (a +inf support times a zero coefficient: nan, not decreasing)
+        out = np.where(np.isneginf(U), -1.0, U) @ RATE_C
+    out[:, :: RATE_DIRS // J] = np.where(np.isneginf(U), -1.0, U)
+    return np.where(np.isnan(out), np.inf, out)
+
+
 def rates(ab: Abstraction, period: float, p_T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per node: `dir_ok` `(nodes, RATE_DIRS)` (`w_k·u < 0` for every input, `w_k` at `k · 360°/RATE_DIRS`: `w_k·p`
     decreases every frame; between two support directions bounded by :func:`support_at`, so a direction a
     polytope's support function does not itself list counts only where that upper bound is negative) and
-    `lyap_ok` `(nodes,)` (`|p - p_T|²` decreases over every frame from every point of the cell:
-    `2 (p - p_T)·u + T_s |u|² < 0`)."""
+    `lyap_dec` `(nodes,)`, the least decrease of `|p - p_T|²` over a frame from any point of the cell
+    (`-T_s (2 (p - p_T)·u + T_s |u|²)`; positive where it decreases, the distance rule)."""
     U = ab.U.reshape(-1, J)
-    W = np.stack([np.cos(2 * np.pi * np.arange(RATE_DIRS) / RATE_DIRS),
-                  np.sin(2 * np.pi * np.arange(RATE_DIRS) / RATE_DIRS)], axis=1)
-    C = support_at(np.eye(J)[:, None, :], W)  # (J, RATE_DIRS): w_k's bound a h_j + b h_{j+1} as a linear map of h
-    with np.errstate(invalid="ignore"):  # (a +inf support times a zero coefficient: nan, not decreasing)
-        dir_ok = np.where(np.isneginf(U), -1.0, U) @ C < 0  # a node without inputs (-inf): every direction decreases
-    dir_ok[:, :: RATE_DIRS // J] = U < 0  # the support directions themselves, exactly
+    dir_ok = direction_bounds(U) < 0
     boxes = np.repeat(ab.grid.boxes(), ab.modes, axis=0)
     r = np.maximum(U, 0).max(axis=1) / np.cos(np.pi / J)  # |u| <= r
     worst = np.full(len(U), -np.inf)
     for cx, cy in ((0, 2), (1, 2), (1, 3), (0, 3)):  # h_U convex: the largest (p - p_T)·u at a corner
         x = np.stack([boxes[:, cx], boxes[:, cy]], axis=1) - p_T
         worst = np.maximum(worst, support_at(U, x))
-    lyap_ok = 2 * worst + period * r * r < 0
+    lyap_dec = -period * (2 * worst + period * r * r)
     if ab.multi is not None:
-        lyap_ok &= ~ab.multi  # an edge over several frames leaves P: the bound above is on P only
-    return dir_ok, lyap_ok
+        lyap_dec = np.where(ab.multi, -np.inf, lyap_dec)  # an edge over several frames leaves P: the bound is on P only
+    return dir_ok, lyap_dec
 
 
 def tarjan(n: int, indptr: np.ndarray, succ: np.ndarray, active: np.ndarray) -> list[np.ndarray]:
@@ -92,35 +112,75 @@ def tarjan(n: int, indptr: np.ndarray, succ: np.ndarray, active: np.ndarray) -> 
     return comps
 
 
-def win(ab: Abstraction, period: float, p_T: np.ndarray) -> tuple[np.ndarray, dict]:
-    """`Win` `(nodes,)` and counts (components, transient ones and by which rule)."""
+def _inner_frames(ab: Abstraction, comp: np.ndarray, leaves: np.ndarray, period: float, p_T: np.ndarray,
+                  dir_ok: np.ndarray, lyap_dec: np.ndarray) -> tuple[np.ndarray, str | None]:
+    """Per node of the transient component `comp`, the frames a run from it can spend in the component before the
+    frame instant at which it takes an exit edge from one of the nodes `leaves` (a mask of `comp`): its ranking
+    function's largest value on the node's cell less its smallest on the leaving nodes' cells, over the least
+    decrease per frame, rounded down; the smaller of every direction's and the distance's. And the rule that shows
+    the component transient (`direction` first, else `distance`; None: not transient, inf)."""
+    cells = comp // ab.modes
+    boxes = ab.grid.boxes()[cells]
+    best, rule = np.full(len(comp), np.inf), None
+    ok = np.flatnonzero(dir_ok[comp].all(axis=0))
+    if len(ok):
+        rate = -direction_bounds(ab.U.reshape(-1, J)[comp])[:, ok].max(axis=0)  # (ok,) > 0
+        corners = np.stack([boxes[:, [0, 2]], boxes[:, [1, 2]], boxes[:, [1, 3]], boxes[:, [0, 3]]], 1)
+        wp = corners @ RATE_W[ok].T  # (nodes, 4, ok)
+        span = wp.max(axis=1) - wp[leaves].min(axis=(0, 1))
+        best, rule = np.floor(np.maximum(span, 0.0) / (rate * period)).min(axis=1), "direction"
+    dec = lyap_dec[comp].min()
+    if dec > 0:
+        lo, hi = dist_range(boxes, p_T)
+        best, rule = np.minimum(best, np.floor(np.maximum(hi**2 - lo[leaves].min() ** 2, 0.0) / dec)), rule or "distance"
+    return best, rule
+
+
+def win(ab: Abstraction, period: float, p_T: np.ndarray) -> tuple[np.ndarray, dict, np.ndarray]:
+    """`Win` `(nodes,)`, counts (components, transient ones and by which rule) and the arrival bound `frames`
+    `(nodes,)` (inf outside `Win`; module docstring)."""
     n = len(ab.safe)
     goal = np.repeat(ab.goal, ab.modes)
     W = goal.copy()
+    frames = np.where(goal, 0.0, np.inf)
+    f = np.where(ab.multi, ab.frames, 1) if ab.multi is not None else np.ones(n, np.int64)
     active = ab.safe & ~goal
-    dir_ok, lyap_ok = rates(ab, period, p_T)
+    dir_ok, lyap_dec = rates(ab, period, p_T)
     comps = tarjan(n, ab.indptr, ab.succ, active)
     stats = {"components": len(comps), "transient_direction": 0, "transient_distance": 0, "won_components": 0}
     member = np.full(n, -1, np.int64)
     for ci, comp in enumerate(comps):
         member[comp] = ci
+        deg = ab.indptr[comp + 1] - ab.indptr[comp]
         outs = np.concatenate([ab.succ[ab.indptr[v]:ab.indptr[v + 1]] for v in comp])
         internal = member[outs] == ci
         if not W[outs[~internal]].all():
             continue
+        src = np.repeat(comp, deg)[~internal]
+        inner = 0.0
         if internal.any():
-            if dir_ok[comp].all(axis=0).any():
-                stats["transient_direction"] += 1
-            elif lyap_ok[comp].all():
-                stats["transient_distance"] += 1
-            else:
+            inner, rule = _inner_frames(ab, comp, np.isin(comp, src), period, p_T, dir_ok, lyap_dec)
+            if rule is None:
                 continue
+            stats[f"transient_{rule}"] += 1
         W[comp] = True
+        exit_frames = (f[src] + frames[outs[~internal]]).max() if (~internal).any() else 0.0
+        frames[comp] = inner + exit_frames
         stats["won_components"] += 1
-    return W, stats
+    return W, stats, frames
 
 
-def certified_cells(ab: Abstraction, W: np.ndarray) -> np.ndarray:
-    """Start cells whose every possible initial node is in `Win` `(cells,)`."""
+def arrival_frames(ab: Abstraction, frames: np.ndarray) -> np.ndarray:
+    """Per start cell, the largest arrival bound over the initial nodes it can have `(cells,)` (inf: one of them
+    is not in `Win`; a cell without initial nodes: inf)."""
+    F = np.where(ab.initial, frames.reshape(-1, ab.modes), -np.inf).max(axis=1)
+    return np.where(ab.initial.any(axis=1), F, np.inf)
+
+
+def certified_cells(ab: Abstraction, W: np.ndarray, frames: np.ndarray | None = None,
+                    horizon: float = np.inf) -> np.ndarray:
+    """Start cells whose every possible initial node is in `Win` `(cells,)`, and with `frames` (:func:`win`) whose
+    arrival bound fits `horizon` frames."""
     Wc = W.reshape(-1, ab.modes)
-    return (~ab.initial | Wc).all(axis=1) & ab.initial.any(axis=1)
+    ok = (~ab.initial | Wc).all(axis=1) & ab.initial.any(axis=1)
+    return ok if frames is None else ok & (arrival_frames(ab, frames) <= horizon)
