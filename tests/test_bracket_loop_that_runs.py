@@ -189,3 +189,16 @@ def test_the_probability_of_more_losses_is_a_union_bound():
         cur = np.where(runs[:, k], cur + 1, 0)
         longest = np.maximum(longest, cur)
     assert (longest > 3).mean() <= LostFrames(3, False, PERIOD, 10.0).p_more(0.5, 60)
+
+
+def test_a_start_cell_is_judged_alone_whatever_the_first_start_cell_is():
+    """Regression: the cells a start cell meets were searched in a window sized by the first start cell, a clipped
+    one at the arena's corner (2.5 units against 5), so a whole start cell overflowed it and counted as uncertified
+    (a checkerboard of uncertified cells inside certified regions). A cell's verdict cannot depend on its neighbours."""
+    law = HybridController(SCENE)
+    cert = certify(law, Uniform(0.25), h=1.0, angle=45.0, period=PERIOD, goal_radius=5.0, window=12, horizon=600)
+    cells = np.array([[x, x + 5, y, y + 5] for x in (-27.5, -22.5, 12.5, 17.5) for y in (12.5, 17.5)], float)
+    alone = np.array([certified_starts(cert, c[None])[0][0] for c in cells])
+    behind_a_narrow_one = certified_starts(cert, np.concatenate([[[-50.0, -47.5, -30.0, -27.5]], cells]))[0][1:]
+    assert alone.sum() >= 4
+    np.testing.assert_array_equal(behind_a_narrow_one, alone)

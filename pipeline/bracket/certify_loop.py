@@ -65,8 +65,9 @@ def certified_starts(cert: Certificate, starts: np.ndarray) -> tuple[np.ndarray,
     C = np.stack([starts[:, [0, 2]], starts[:, [1, 2]], starts[:, [1, 3]], starts[:, [0, 3]]], axis=1)
     G = cert.frame.to_grid(C.reshape(-1, 2)).reshape(-1, 4, 2)
     H = np.einsum("nkc,jc->nkj", G, DIRS).max(axis=1) + 2e-9  # the rotated square's support (closed)
-    rows, cells, over = cell_hits(cert.grid, H, window=int(np.ceil(2 * (starts[0, 1] - starts[0, 0])
-                                                                     / cert.grid.h)) + 3)
+    q = len(DIRS) // 4  # the widest rotated square of them all, in grid cells (the first may be a clipped one)
+    span = np.maximum(H[:, 0] + H[:, 2 * q], H[:, q] + H[:, 3 * q]).max()
+    rows, cells, over = cell_hits(cert.grid, H, window=int(np.ceil(span / cert.grid.h)) + 2)
     start = ~cert.no_start[cells]
     rows, cells = rows[start], cells[start]
     ok = ~over
