@@ -272,7 +272,7 @@ def _bracket(cfg, tunings, paths, args, lock, runner) -> dict[str, Path]:
         out = {}
         for t, a in argv.items():
             c = compose("bracket", a)
-            _, _, bs, _, _, emap, cam = objects(c)
+            _, _, bs, _, _, emap, cam, _ = objects(c)
             out[t] = Path(c.paths.bracket_dir) / f"bracket-{bracket_id(c, bs, emap, cam)[0]}"
         return out
 
