@@ -1,6 +1,7 @@
 """The certify stage end to end on a tiny config (pipeline.certify.stage), and its bad inputs: one line, exit 2."""
 
 import json
+import re
 import subprocess
 import sys
 
@@ -96,3 +97,30 @@ def test_a_file_where_the_certified_folder_should_be_is_one_line(tiny_maps, tmp_
                           cwd=REPO_ROOT, capture_output=True, text=True, timeout=300)
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2 and len(lines) == 1 and "a file where" in lines[0], proc.stderr[-2000:]
+
+
+def test_certify_reports_its_pgd_progress_and_names_the_region(tiny_maps, tmp_path, monkeypatch, capsys):
+    """Issue 46: the PGD phase printed nothing (a documented command looked hung for 270 s), and the closing line
+    said "over the operational set" when a `region` was given (debug=tiny's: [[30, 46], [-6, 6]])."""
+    from pipeline import progress as pr
+    from pipeline.certify.stage import run
+
+    monkeypatch.setattr(pr, "LINE_INTERVAL", 0.0)
+    monkeypatch.setattr(pr, "DELAY", 0.0)
+    root, ids = tiny_maps
+    out = run(compose("certify", ["debug=tiny", f"maps={ids['clean']}", f"paths.models_dir={root / 'models'}",
+                                  f"paths.certified_dir={tmp_path / 'certified'}", "progress=true", "kappas=[0.0]"]))
+    cap = capsys.readouterr()
+    total = 4 * out["summary"]["kappas"]["0"]["pgd"]["cells"]  # one ascent per cell and direction
+    steps = re.findall(rf"PGD kappa=0: (\d+)/{total} ascent", cap.err)
+    assert steps and int(steps[-1]) == total, cap.err[-2000:]
+    assert re.search(r"certify kappa=0: \d+/\d+ cell", cap.err), cap.err[-2000:]  # the bounds' lines, same style
+    n = out["summary"]["n_cells"]
+    region = f"over the region x in [30, 46], y in [-6, 6] (its {n} operational cells)"
+    closing = [ln for ln in cap.out.splitlines() if "certified eps over" in ln]
+    assert len(closing) == 1 and region in closing[0] and "operational set" not in closing[0], cap.out
+    assert out["summary"]["region"] == [[30.0, 46.0], [-6.0, 6.0]]
+    assert region in (out["path"] / "table.md").read_text()
+    from pipeline.certify.figures import scope
+
+    assert scope(None) == "the operational set"  # without a region the wording stays

@@ -410,3 +410,31 @@ def test_near_target_error_is_reported_next_to_the_operational_set(tmp_path):
     with pytest.raises(ConfigError, match="near_target_radius"):
         run(_cfg(tmp_path, "near_target_radius=-1"), perception_map=StubMap(field), occlusions={"none": None},
             dataset=StubDataset(samples))
+
+
+def test_the_error_map_bench_uses_the_trained_map_beside_a_newer_policy(tiny_maps, tmp_path, monkeypatch):
+    """`make bench`'s error-map rows said "trained model unusable (KeyError)": `make run` ends with `make learned`,
+    whose imitation policy (a bare state dict in model.pt, no map `hparams`) is then the newest folder under
+    outputs/models. The bench skips policies and times the newest trained perception map."""
+    import shutil
+
+    import torch
+
+    from pipeline.errormap import bench
+    from pipeline.perception.maps import load_perception_map
+
+    root, ids = tiny_maps
+    monkeypatch.setattr(bench, "REPO_ROOT", tmp_path)  # the bench reads <repo>/outputs/models
+    models = tmp_path / "outputs" / "models"
+    shutil.copytree(root / "models" / ids["clean"], models / ids["clean"])
+    os.utime(models / ids["clean"], (0, 0))  # older than the policy even within the same second
+    with tracking.tracked_output(models, "imitation", "0123456789", {"kind": "imitation", "hparams": {}}) as tmp:
+        torch.save(torch.nn.Linear(2, 2).state_dict(), tmp / "model.pt")  # as pipeline.learned.imitate saves it
+    assert tracking.entries(models)[0].name == "imitation-0123456789"
+    predict, camera, label = bench._predictor()
+    assert label == f"model {ids['clean']}", label
+    p = np.array([[0.0, 10.0], [-20.0, 5.0], [30.0, -4.0]])
+    images = camera.render(p)
+    np.testing.assert_array_equal(predict(images), load_perception_map(ids["clean"], models_dir=models).predict(images))
+    _, _, label = bench._predictor(tmp_path / "nothing")
+    assert label == "no trained model; untrained PerceptionMap (same cost)"

@@ -14,12 +14,14 @@ import torch
 
 from pipeline.certify.renderer import pixel_window
 from pipeline.perception.network import FoldedPerceptionNet
+from pipeline.progress import progress as progress_bar
 
 PAD = 8  # the window may reach this far outside the image (padding, never read by the network)
 
 
-def pgd_worst(model, camera, cells, kappa: float = 0.0, steps: int = 25, seed: int = 0) -> torch.Tensor:
-    """`(N, 4)`: the largest `e_x`, `e_y`, `-e_x`, `-e_y` the attack reaches per cell `cells (N, 4)`."""
+def pgd_worst(model, camera, cells, kappa: float = 0.0, steps: int = 25, seed: int = 0, bar=None) -> torch.Tensor:
+    """`(N, 4)`: the largest `e_x`, `e_y`, `-e_x`, `-e_y` the attack reaches per cell `cells (N, 4)`; `bar` (a
+    progress bar, optional) advances by `N` after each direction's ascent."""
     cells = torch.as_tensor(cells, dtype=torch.float64)
     pw = pixel_window(camera, cells, kappa)
     n, (kr, kc) = len(cells), pw.lo.shape[-2:]
@@ -51,18 +53,23 @@ def pgd_worst(model, camera, cells, kappa: float = 0.0, steps: int = 25, seed: i
             (-obj.sum()).backward()
             opt.step()
         found.append(best)
+        if bar is not None:
+            bar.update(n)
     return torch.stack(found, 1)
 
 
 def pgd_check(model, camera, cells: np.ndarray, lower: np.ndarray, upper: np.ndarray, kappa: float, n_cells: int,
-              steps: int, seed: int, batch: int = 64) -> dict:
+              steps: int, seed: int, batch: int = 64, progress: bool = False) -> dict:
     """The attack on `n_cells` cells drawn at random (seeded) against their bounds `lower, upper (N, 2)`: how many
     directions it pushes past the bound (`violations`, with the worst as a counterexample), and how far towards
-    the bound it gets (`share`: the attack's largest error over the bound, per direction, max and median)."""
+    the bound it gets (`share`: the attack's largest error over the bound, per direction, max and median).
+    `progress`: the stage's progress (:mod:`pipeline.progress`), one ascent per cell and direction."""
     rng = np.random.default_rng([int(seed), 7919])
     pick = np.sort(rng.choice(len(cells), size=min(int(n_cells), len(cells)), replace=False))
-    worst = torch.cat([pgd_worst(model, camera, cells[pick[s:s + batch]], kappa, steps, seed)
-                       for s in range(0, len(pick), batch)]).numpy()
+    with progress_bar(total=4 * len(pick), desc=f"PGD kappa={float(kappa):g}", unit="ascent",
+                      enabled=progress) as bar:
+        worst = torch.cat([pgd_worst(model, camera, cells[pick[s:s + batch]], kappa, steps, seed, bar=bar)
+                           for s in range(0, len(pick), batch)]).numpy()
     limit = np.concatenate([upper[pick], -lower[pick]], 1)
     excess = worst - limit
     share = worst / np.maximum(np.abs(limit), 1e-9)

@@ -56,12 +56,23 @@ def write_figures(folder: Path, fields: dict, summary: dict, arena, formats) -> 
     ax.axvline(summary["margin_c_minus_r"], color="k", ls=":", label="c - r (hybrid's tolerated error)")
     ax.set_xscale("log")
     ax.set_xlabel("ε (world units)")
-    ax.set_ylabel("covered fraction of the operational set")
+    ax.set_ylabel("covered fraction of the region's operational cells" if summary.get("region") is not None
+                  else "covered fraction of the operational set")
     ax.set_title("Assumption 1's coverage: cells with bound ≤ ε", fontsize=9)
     ax.legend(fontsize=8)
     out += save(fig, folder / "coverage_curve", formats)
     plt.close(fig)
     return out
+
+
+def scope(region, n_cells: int | None = None) -> str:
+    """What the cells cover, for the reader: "the operational set", or the region's operational cells when a
+    `region` `[[x0, x1], [y0, y1]]` was given."""
+    if region is None:
+        return "the operational set"
+    (x0, x1), (y0, y1) = region
+    cells = "" if n_cells is None else f"{n_cells} "
+    return f"the region x in [{x0:g}, {x1:g}], y in [{y0:g}, {y1:g}] (its {cells}operational cells)"
 
 
 def _pgd(a: dict | None) -> str:
@@ -89,6 +100,7 @@ def write_table(path: Path, summary: dict) -> None:
     path.write_text(f"# Certified error map of {summary['name']}-{summary['model']['id']}\n\n"
                     f"Position head {summary['model'].get('position_head', 'flat')} "
                     f"({summary['model'].get('outputs', 'position')} map); "
-                    f"cells of {summary['cell']:g} units over the operational set, mode {summary['mode']}, "
+                    f"cells of {summary['cell']:g} units over {scope(summary.get('region'), summary['n_cells'])}, "
+                    f"mode {summary['mode']}, "
                     f"tolerance {summary['tolerance']:g}, max depth {summary['max_depth']}.\n\n"
                     + "\n".join(rows) + "\n")

@@ -22,7 +22,7 @@ from omegaconf import DictConfig
 from pipeline import identity, tracking
 from pipeline.certify.attack import pgd_check
 from pipeline.certify.bounds import prepare
-from pipeline.certify.figures import write_figures, write_table
+from pipeline.certify.figures import scope, write_figures, write_table
 from pipeline.certify.settings import CertifySettings
 from pipeline.certify.split import certify_cells, eps_of, pose_cells, sampled_errors
 from pipeline.config import build
@@ -73,7 +73,7 @@ def _per_kappa(prep, pmap, camera, cells, s, margin_cr, progress: bool):
     if s["pgd_cells"] > 0:  # an attacker on the bound: PGD over the position and the admissible images
         t2 = time.perf_counter()
         pgd = pgd_check(pmap.model, camera, bounded, lower, upper, prep.kappa, s["pgd_cells"], s["pgd_steps"],
-                        s["seed"])
+                        s["seed"], progress=progress)
         pgd["seconds"] = time.perf_counter() - t2
     per_cell = lambda v, f: None if v is None else f(v.reshape(len(cells), k, *v.shape[1:]), 1)  # noqa: E731
     lower, upper, heading, emp, head_emp = (per_cell(v, f) for v, f in ((lower, np.min), (upper, np.max),
@@ -146,13 +146,14 @@ def run(cfg: DictConfig, *, perception_map=None, camera=None) -> dict:
             full = np.full((len(cells), *v.shape[1:]), np.nan)
             full[op] = v
             fields[f"{k}_{float(kappa):g}"] = full.reshape(*shape, *v.shape[1:])
-        _say(pmap.name, r)
+        _say(pmap.name, r, s["region"])
     head = "keypoint" if getattr(pmap.model, "keypoint", False) else "flat"
     pose = bool(getattr(pmap.model, "pose", False))
     summary = {"id": id_, "name": pmap.name, "model": {"ref": str(cfg.maps), "id": str(pmap.id), "name": pmap.name,
                                                        "position_head": head, "outputs": "pose" if pose else "position"},
                **({"headings": int(s["headings"])} if pose else {}),
-               "cell": float(s["cell"]), "n_cells": int(op.sum()), "operational_margin": margin,
+               "cell": float(s["cell"]), "n_cells": int(op.sum()), "region": tracking.to_plain(s["region"]),
+               "operational_margin": margin,
                "mode": s["mode"], "tolerance": s["tolerance"], "max_depth": s["max_depth"], "samples": s["samples"],
                "margin_c_minus_r": margin_cr, "torch_threads": int(s["threads"]), "kappas": levels}
     meta = {"recipe": tracking.strip_keys(s, identity.CERTIFY_VOLATILE), "inputs": {"model": str(pmap.id)},
@@ -169,7 +170,7 @@ def run(cfg: DictConfig, *, perception_map=None, camera=None) -> dict:
     return {"path": final, "summary": summary, "skipped": False}
 
 
-def _say(name: str, r: dict) -> None:
+def _say(name: str, r: dict, region=None) -> None:
     e = r["eps_bar"]
     emp = f"; sampled p95 {r['eps_emp']['p95']:.3g}, max {r['eps_emp']['max']:.3g}; tightness median " \
           f"{r['tightness']['median']:.3g}; {r['soundness']['violations']} of {r['soundness']['samples']} sampled " \
@@ -181,6 +182,7 @@ def _say(name: str, r: dict) -> None:
         h = r["heading_bar_deg"]
         emp += f"; heading bound median {h['median']:.3g} deg, max {h['max']:.3g} deg" + (
             f" (sampled max {r['heading_emp_deg']['max']:.3g} deg)" if "heading_emp_deg" in r else "")
-    print(f"certify: {name} [kappa {r['kappa']:g}]: certified eps over the operational set mean {e['mean']:.3g}, "
+    print(f"certify: {name} [kappa {r['kappa']:g}]: certified eps over {scope(region, e['n'])} "
+          f"mean {e['mean']:.3g}, "
           f"p95 {e['p95']:.3g}, max {e['max']:.3g} (c - r = {r['theorem1']['margin_c_minus_r']:.3g}: "
           f"{'holds' if r['theorem1']['holds'] else 'not shown'}){emp}; {r['seconds']:.0f} s")

@@ -1,7 +1,7 @@
 """Benchmark: error-map points/s (render + infer, batched) vs raw inference of the same model (issue 5).
 
-The model is the newest trained perception map under outputs/models, else a fresh untrained
-`PerceptionMap` (same architecture, same cost).
+The model is the newest trained perception map under outputs/models (policies there are skipped), else a fresh
+untrained `PerceptionMap` (same architecture, same cost).
 """
 
 from __future__ import annotations
@@ -14,24 +14,39 @@ import torch
 from pipeline import tracking
 from pipeline.control import Scene
 from pipeline.errormap.estimates import arena_grid, error_field
+from pipeline.errors import PipelineError
 from pipeline.perception.maps import PerceptionMapPredictor, load_perception_map
 from pipeline.perception.network import PerceptionMap
 from pipeline.render import Camera, load_occlusion
 from pipeline.repo import REPO_ROOT
 
 
-def _predictor():
-    """`(predict, camera, label)`: the newest trained map's, else an untrained one's (the same cost)."""
-    models_dir = REPO_ROOT / "outputs" / "models"
-    found = tracking.entries(models_dir)
-    if found:
+def _trained_maps(models_dir) -> list:
+    """The perception maps under `models_dir`, newest first. The folder holds other tracked outputs too: `make
+    run` ends with `make learned`'s imitation policy (and `ppo-<id>`), whose model.pt is a bare state dict with no
+    map `hparams` (the newest entry, it made every row "trained model unusable (KeyError)")."""
+    maps = []
+    for d in tracking.entries(models_dir):
         try:
-            pmap = load_perception_map(found[0].name, models_dir=models_dir)
+            kind = tracking.read_manifest(d).get("kind")
+        except PipelineError:
+            continue
+        if kind in (None, "perception_map"):  # None: a map from before manifests said what they hold
+            maps.append(d)
+    return maps
+
+
+def _predictor(models_dir=None):
+    """`(predict, camera, label)`: the newest trained perception map's under `models_dir` (default
+    `outputs/models`), else an untrained one's (the same cost)."""
+    models_dir = REPO_ROOT / "outputs" / "models" if models_dir is None else models_dir
+    note = "no trained model; "
+    for folder in _trained_maps(models_dir):
+        try:
+            pmap = load_perception_map(folder, models_dir=models_dir)
             return pmap.predict, pmap.camera(), f"model {pmap.name}-{pmap.id}"
-        except Exception as err:  # noqa: BLE001 - fall back to an untrained network and say so
-            note = f"trained model unusable ({type(err).__name__}); "
-    else:
-        note = "no trained model; "
+        except Exception as err:  # noqa: BLE001 - try an older map, else an untrained network, and say so
+            note = f"trained model {folder.name} unusable ({type(err).__name__}); "
     # the predictor, not the raw network: the default map has four outputs (position + its variance)
     torch.manual_seed(0)
     pm = PerceptionMapPredictor(PerceptionMap.of())
