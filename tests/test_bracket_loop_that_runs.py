@@ -202,3 +202,16 @@ def test_a_start_cell_is_judged_alone_whatever_the_first_start_cell_is():
     behind_a_narrow_one = certified_starts(cert, np.concatenate([[[-50.0, -47.5, -30.0, -27.5]], cells]))[0][1:]
     assert alone.sum() >= 4
     np.testing.assert_array_equal(behind_a_narrow_one, alone)
+
+
+def test_the_stop_joins_the_inputs_from_the_loss_streak_that_can_trigger_it():
+    """Dead reckoning stops the vehicle once its uncertainty exceeds `max_drift`; `L` predicted frames at full speed
+    add `L T_s v̄ drift`, a sum that may round above `max_drift` when it equals it: the stop is in the proof from
+    there, and a stop in the inputs (0) certifies nothing that needs a strict decrease."""
+    assert not LostFrames(39, True, PERIOD, 10.0).may_stop
+    assert LostFrames(40, True, PERIOD, 10.0).may_stop
+    assert not LostFrames(40, False, PERIOD, 10.0).may_stop  # held frames: no dead reckoning, no stop
+    drift = 0.0
+    for _ in range(40):
+        drift += 0.1 * np.hypot(PERIOD * 10.0 * 0.6, PERIOD * 10.0 * 0.8)  # the simulator's sum, frame by frame
+    assert LostFrames(40, True, PERIOD, 10.0).may_stop or not drift > 2.0

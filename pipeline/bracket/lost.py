@@ -48,7 +48,7 @@ class LostFrames:
 
     @property
     def may_stop(self) -> bool:
-        return self.predict and self.reach * self.drift > self.max_drift
+        return self.predict and self.reach * self.drift >= self.max_drift * (1 - 1e-9)  # the sum of L steps may round up
 
     def eps(self, inner):
         """The error bound of the perceived point behind the held input (module docstring), from `inner`'s."""
