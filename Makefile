@@ -80,7 +80,10 @@ bench: $(STAMP) ## speed benchmarks, printed as a table
 lint: $(STAMP) ## ruff
 	$(PY) -m ruff check pipeline tests
 
+docs-check: $(STAMP) ## which map ids quoted in README.md and docs/*.md the current code still gives; tables without date or command (a report)
+	$(PY) -m pipeline.docs_check $(ARGS)
+
 clean: ## remove generated data and outputs (keeps .venv)
 	rm -rf data/datasets outputs/* && touch outputs/.gitkeep
 
-.PHONY: help setup run paper multi dagger generalisation learned simulate data verify-data train errormap certify bracket experiments test test-all bench lint clean
+.PHONY: help setup run paper multi dagger generalisation learned simulate data verify-data train errormap certify bracket experiments test test-all bench lint docs-check clean
