@@ -1,5 +1,6 @@
 """Errors a user can act on. Stages print them as one line and exit non-zero (see `pipeline.cli`)."""
 
+import difflib
 import re
 
 
@@ -33,6 +34,8 @@ def hydra_error(err: BaseException) -> ConfigError:
     from hydra.errors import MissingConfigException
 
     text = str(err)
+    if isinstance(err, MissingConfigException) and text.startswith("Cannot find primary config"):
+        return unknown_config(str(err.missing_cfg_file))
     if isinstance(err, MissingConfigException) and err.missing_cfg_file:
         group, _, option = str(err.missing_cfg_file).rpartition("/")
         opts = f" (available: {', '.join(sorted(err.options))})" if err.options else ""
@@ -53,3 +56,13 @@ def hydra_error(err: BaseException) -> ConfigError:
         return ConfigError(m.group(1).split("=")[0].lstrip("+"), f"invalid value in {m.group(1)!r}")
     lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
     return ConfigError("overrides", " ".join(lines[:2]) if lines else type(err).__name__)
+
+
+def unknown_config(name: str) -> ConfigError:
+    """`--config-name` naming no config: the configs of conf/ (its top-level yaml files), the closest first."""
+    from pipeline.repo import CONF_DIR
+
+    names = sorted(p.stem for p in CONF_DIR.glob("*.yaml"))
+    close = difflib.get_close_matches(name, names, n=len(names), cutoff=0.6)
+    return ConfigError("--config-name", f"unknown config {name!r}; the configs of conf/, the closest first: "
+                                        f"{', '.join([*close, *(n for n in names if n not in close)])}")

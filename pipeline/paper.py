@@ -118,6 +118,22 @@ def experiment_pins(experiments_cfg, map_refs: dict[str, str], em_refs: dict[str
                    if n in em_refs and k in experiments_cfg.errormaps]
 
 
+def experiment_jobs(experiments: list[str], pins: list[str], paths: list[str], rest: list[str]) -> list[Job]:
+    """One experiments job per experiment, with the pins of the inputs it reads only (the stage rejects an
+    override that its experiment never reads: :func:`pipeline.experiments.checks.inputs_read`)."""
+    from pipeline.experiments.checks import inputs_read
+
+    jobs = []
+    for exp in experiments:
+        try:
+            read = inputs_read(compose("experiments", [f"experiment={exp}", *paths, *rest], check=False))[1]
+        except PipelineError:  # the job says what is wrong
+            read = {}
+        kept = [p for p in pins if (k := p.split("=", 1)[0].split("."))[0] not in read or k[1] in read[k[0]]]
+        jobs.append(Job("experiments", [f"experiment={exp}", *kept, *paths, *rest], f"experiments {exp}"))
+    return jobs
+
+
 def run_stage(stage: str, argv: list[str], timings: dict, stop: bool, *, tag: str = "paper",
               label: str | None = None) -> bool:
     """Run `python -m pipeline.<stage> <argv>` alone, its output on the terminal (`make dagger`'s rounds); its time
@@ -365,7 +381,7 @@ def _experiments(cfg, experiments, paths, args, map_refs, em_refs, lock, runner)
     stamp = paper_dir / f".{Path(cfg.lock).stem}.experiments.json"  # what the last run was started with
     if not experiments_up_to_date(stamp, argv, experiments, lock):
         stamp.unlink(missing_ok=True)
-        one = [Job("experiments", [f"experiment={e}", *argv[2:]], f"experiments {e}") for e in experiments]
+        one = experiment_jobs(experiments, pins, paths, ["publish=true", *args["experiments"]])
         if runner.stage("experiments", one):
             stamp.write_text(json.dumps({"stamp": experiments_stamp(argv, lock)}) + "\n")
     out = {}
