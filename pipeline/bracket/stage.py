@@ -1,8 +1,11 @@
 """Stage: the bracket `[ε_lo, ε_hi]` per controller and start cell (`python -m pipeline.bracket`; docs/bracket.md).
 
-Writes to the Hydra run dir: `bracket.csv` (one row per controller and start cell: `x0, x1, y0, y1`, `eps_lo` (the
-largest uniform ε certified; NaN: none), `certified_map` (certified with the error map's ε̄, when given),
-`eps_hi` (inf: no failure found up to `eps_max`), the adversary and outcome of the counterexample; with
+Writes to the Hydra run dir: `bracket.csv` (one row per controller and start cell: `x0, x1, y0, y1`, `start` (the
+cell holds starts the simulator accepts: not wholly in the diamond), `eps_lo` (the largest uniform ε certified
+within `sim.horizon`; NaN: none), `arrival_bound` (seconds: the certified arrival bound at that ε),
+`arrival_nominal` (seconds: the falsifier's start without error), `certified_map` (certified with the error map's
+ε̄, when given), `eps_hi` (inf: no failure found up to `eps_max`; NaN: no start), the adversary and outcome of the
+counterexample; with
 `bracket.camera_map` also `kappa_hi` (the falsifier through the camera, pixel levels; inf: none up to `kappa_max`),
 `camera_adversary`, `camera_outcome`), `table.md` (the bracket table), `certificate.json` (the abstraction's sizes
 and counts per controller and ε), `counterexamples.npz` (the paths; `<controller>_camera`: through the camera) and
