@@ -243,10 +243,9 @@ def run(cfg) -> dict:
         lock["learned"] = _learned(cfg, list(cfg.learned), paths, args, map_refs, runner)
     lock = {k: {n: f for n, f in v.items() if tracking.is_complete(f)} for k, v in lock.items()}
     lock_path = write_lock(Path(cfg.paths.paper_dir) / cfg.lock, lock, debug=cfg.get("debug") or "none")
-    if (Path(cfg.paths.paper_dir) / "index").is_dir():
-        write_index(Path(cfg.paths.paper_dir))
     total = time.perf_counter() - t0
     runner.write_profile(total)
+    write_index(Path(cfg.paths.paper_dir))  # after the profile and the copied files: it links every file there
     line = ", ".join(f"{k} {v:.0f} s" for k, v in timings.items()) or "every stage up to date"
     print(f"\n[paper] done in {total / 60:.1f} min ({line}); see {cfg.paths.paper_dir}/index.md; inputs pinned in "
           f"{lock_path}")

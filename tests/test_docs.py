@@ -212,6 +212,27 @@ def test_the_cheap_documented_commands_run_at_a_tiny_size(where, words, tmp_path
         assert out, f"{where}: {' '.join(words)}: job {job} returned nothing"
 
 
+def test_the_readme_multirun_example_shows_a_difference(tmp_path):
+    """README's multirun sweep (issue 46), run as written at a tiny size: its jobs do not all score the same (with
+    the default `init=points`, the paper's two starts, every job reached the target: a sweep that showed nothing)."""
+    import subprocess
+    import sys
+
+    import pandas as pd
+
+    sweeps = [w for where, w in RUNS if where.startswith("README.md") and "-m" in w[3:]]
+    assert len(sweeps) == 1, sweeps
+    args = sweeps[0][3:]
+    tiny = _tiny("simulate", _expand([a for a in args if a != "-m"])[0])
+    proc = subprocess.run([sys.executable, *sweeps[0][1:], *tiny, "plot=false", f"paths.root_dir={tmp_path}",
+                           f"hydra.sweep.dir={tmp_path / 'sweep'}"], cwd=REPO_ROOT, capture_output=True, text=True,
+                          timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    summary = pd.read_csv(tmp_path / "sweep" / "summary.csv")
+    assert len(summary) == 6 and (summary["status"] == "ok").all(), summary
+    assert summary["success_rate"].nunique() > 1, summary[["overrides", "success_rate"]]
+
+
 # ------------------------------------------------------------------------------------------ Python snippets
 PY_BLOCKS = [(f"{md.name}:{line}", mark, body) for md, line, mark, body in _blocks({"python"})]
 

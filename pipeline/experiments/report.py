@@ -4,13 +4,15 @@ tables (CSV + Markdown + LaTeX) and `index.md`."""
 from __future__ import annotations
 
 import json
+import re
+from fnmatch import fnmatch
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
 from pipeline.control import Scene
-from pipeline.repo import write_atomic
+from pipeline.repo import CONF_DIR, REPO_ROOT, write_atomic
 from pipeline.viz import draw_scene, save
 
 # The paper's figures, in its order, then ours (fig8 on): stem -> (experiment id, what it reproduces)
@@ -110,7 +112,9 @@ def publish(paper_dir: Path, entry: dict, figures: dict = FIGURES) -> Path:
 
 def write_index(paper_dir: Path, figures: dict = FIGURES) -> Path:
     """index.md from every experiment's entry in `<paper_dir>/index/*.json`, in the paper's figure order
-    (`figures`: stem -> (experiment id, what it reproduces)); paths relative to `paper_dir`."""
+    (`figures`: stem -> (experiment id, what it reproduces)); paths relative to `paper_dir`. Every other file of the
+    folder (the lock, the profile, the tables and figures `make paper` copies from the learned and bracket stages,
+    the entries themselves) is linked under "Other files", and a gap in the figure numbers is explained."""
     paper_dir = Path(paper_dir)
     entries = {e["id"]: e for e in (json.loads(p.read_text()) for p in sorted((paper_dir / "index").glob("*.json")))}
     order = list(dict.fromkeys([exp for exp, _ in (figures or {}).values()] + sorted(entries)))
@@ -121,7 +125,7 @@ def write_index(paper_dir: Path, figures: dict = FIGURES) -> Path:
     if locks:
         lines.append("Every input of this folder, with its config hash and code version: "
                      + ", ".join(f"[{name}]({name})" for name in locks) + ".")
-    lines.append("")
+    lines += ["", *numbering_note(paper_dir, figures)]
     for exp in order:
         e = entries.get(exp)
         if e is None:
@@ -137,7 +141,82 @@ def write_index(paper_dir: Path, figures: dict = FIGURES) -> Path:
             label = f" ({it['reproduces']})" if it.get("reproduces") else ""
             lines.append(f"- {it['kind']}{label}: {it['caption']} — {files}")
         lines.append("")
+    lines += other_files(paper_dir, set(re.findall(r"\]\(([^)]+)\)", "\n".join(lines))))
     return write_atomic(paper_dir / "index.md", "\n".join(lines))
+
+
+# The files of a paper folder that no experiment's entry lists: (pattern, what it is), the first match wins
+OTHER_FILES = [
+    ("*.lock.yaml", "the lock: every input of the run that wrote this folder, with its config hash and code version"),
+    ("*.profile.md", "the profile of the last run of the config of the same name (`make paper`, `make multi`) that "
+                     "started a job: wall and CPU time per stage and job, and the phases each job timed"),
+    ("*.profile.json", "that run's walls per job, as JSON (the next run starts the longest jobs first)"),
+    ("tab_learned.md", "learned end-to-end policies against the paper's architecture: success, collision and stall "
+                       "rates (make learned's comparison; copied from `outputs/learned/learned-<id>/`, "
+                       "the lock's `learned.comparison`; docs/learned.md)"),
+    ("fig_learned_switching_set.png", "the imitated policy's switching set over the arena (e_b · π(h(p)); black: "
+                                      "its own set K), from make learned's comparison (docs/learned.md)"),
+    ("tab_bracket_*.md", "the closed loop's bracket for one tuning: certified ε_lo and falsified ε_hi per controller "
+                         "(copied from `outputs/bracket/bracket-<id>/`; docs/bracket.md)"),
+    ("fig_bracket_*.png", "the same bracket drawn over the start cells (docs/bracket.md)"),
+    ("index/*.json", "an experiment's index entry: the record this page is written from"),
+    (".*.experiments.json", "the experiments stage's stamp: the command its last run started with (the stage is not "
+                            "started again while it and every file of its entries are unchanged)"),
+]
+
+
+def other_files(paper_dir: Path, linked: set[str]) -> list[str]:
+    """Lines linking every file under `paper_dir` that is not in `linked` (index.md and half-written temporaries
+    aside), each with what it is (:data:`OTHER_FILES`)."""
+    names = sorted(str(p.relative_to(paper_dir)) for p in Path(paper_dir).rglob("*") if p.is_file())
+    rest = [n for n in names if n not in linked and n != "index.md" and not fnmatch(Path(n).name, ".*.tmp")]
+    if not rest:
+        return []
+    unknown = ("no entry of this index lists it: left by an earlier run or another command (or written by an "
+               "experiment still running, not recorded yet)")
+    groups: dict[str, list[str]] = {w: [] for _, w in OTHER_FILES} | {unknown: []}  # in OTHER_FILES' order
+    for n in rest:
+        groups[next((w for pattern, w in OTHER_FILES if fnmatch(n, pattern)), unknown)].append(n)
+    groups = {w: files for w, files in groups.items() if files}
+    lines = ["## Other files in this folder", ""]
+    lines += [f"- {what} — " + ", ".join(f"[{n}]({n})" for n in files) for what, files in groups.items()]
+    return [*lines, ""]
+
+
+def numbering_note(paper_dir: Path, figures: dict = FIGURES) -> list[str]:
+    """A line naming each figure number below the highest in `paper_dir` that the folder lacks (the numbers are one
+    sequence over `make paper`, `make generalisation` and `make multi`), with the configs that make it."""
+    present = {int(m.group(1)) for p in Path(paper_dir).glob("fig*") if (m := re.match(r"fig(\d+)_", p.name))}
+    missing = [(stem, exp) for stem, (exp, _) in (figures or {}).items()
+               if (m := re.match(r"fig(\d+)_", stem)) and int(m.group(1)) not in present
+               and present and int(m.group(1)) < max(present)]
+    if not missing:
+        return []
+    runs = _configs_running()
+    parts = [f"{stem} (experiment `{exp}`, made by " + (" or ".join(runs.get(exp, [])) or "no config of conf/")
+             + ")" for stem, exp in missing]
+    return ["Figure numbers are one sequence over `make paper`, `make generalisation` and `make multi` "
+            "(`pipeline/experiments/report.py`, FIGURES); not in this folder: " + "; ".join(parts) + ".", ""]
+
+
+def _configs_running() -> dict[str, list[str]]:
+    """experiment id -> the commands of the paper configs (conf/*.yaml with an `experiments` list) that run it:
+    `make <target>` where the Makefile has one, else `python -m pipeline.paper --config-name <config>`."""
+    import yaml
+
+    makefile = REPO_ROOT / "Makefile"
+    targets = dict((c, t) for t, c in re.findall(r"^([\w-]+):[^\n]*\n\t\$\(PY\) -m pipeline\.paper --config-name (\w+)",
+                                                 makefile.read_text() if makefile.is_file() else "", re.M))
+    out: dict[str, list[str]] = {}
+    for path in sorted(CONF_DIR.glob("*.yaml")):
+        exps = (yaml.safe_load(path.read_text()) or {}).get("experiments")
+        if isinstance(exps, list):
+            name = path.stem
+            cmd = f"`make {targets.get(name, 'paper')}`" if name in targets or name == "paper" else \
+                f"`python -m pipeline.paper --config-name {name}`"
+            for exp in exps:
+                out.setdefault(str(exp), []).append(cmd)
+    return out
 
 
 def draw_frame(ax, scene: Scene, arena, diamond: bool = True):

@@ -69,15 +69,24 @@ def draw_camera_attack(scen, ctx, res, out) -> None:
     out.figure(fig, f"fig14_{scen.id}",
                "Proposition 1 through the camera: starts near K, the clean map in the loop, each frame perturbed by "
                "PGD within |δ|∞ <= κ to push the estimate along -sign(b(p)) e_b; success and stall rates (95% "
-               "Wilson CIs) per controller (dashed: the loop gated by the map's uncertainty head) and the estimate "
-               "error the attack induces near K.")
+               f"Wilson CIs) per controller ({gated_words(res)[0]}) and the estimate error the attack induces near K.")
     _table(scen, res, out, f"tab_{scen.id}",
            f"Pixel attack (PGD) vs κ from {int(res.tables['summary']['n'].iloc[0])} starts near K: success, stall and "
            "collision rates with 95% Wilson CIs; the induced estimate error (attacked - clean) along -sign(b) e_b and "
            "in norm near K (a < -c, |b| < band), on the first frame (the starts) and over the run; the uncertainty "
-           f"head's flag rate on attacked frames at gate {_gate(res)} and the share of frames the gated loop held.")
+           f"head's flag rate on attacked frames at gate {_gate(res)} and {gated_words(res)[1]}.")
     for note in res.info.get("notes", []):
         print(f"[experiments] {scen.id}: {note}")
+
+
+def gated_words(res) -> tuple[str, str]:
+    """What the figure's and the table's captions say of the gated loop: it ran (its dashed lines, the share of
+    frames it held) or it did not (`experiment.gated` empty, or a map without an uncertainty head)."""
+    if res.tables["summary"]["gated"].astype(bool).any():
+        return ("dashed: the loop gated by the map's uncertainty head", "the share of frames the gated loop held")
+    return ("ungated loops only; the gated loop (dashed) is run and drawn only when `experiment.gated` names a "
+            "controller and the map has an uncertainty head", "gated_share, 0 here: no gated loop ran "
+            "(`experiment.gated` is empty, or the map has no uncertainty head)")
 
 
 def _gate(res) -> str:
@@ -90,11 +99,11 @@ def draw_worst_cloud(scen, ctx, res, out) -> None:
     out.figure(fig, f"fig15_{scen.id}",
                f"The worst cloud: each frame the worst of {ctx.cfg.disturbances[scen.attack].candidates} cloud layouts "
                f"of the level per agent, the {scen.map} map in the loop, starts near K; success and stall rates "
-               "(95% CIs) and the estimate error the clouds induce near K.")
+               f"(95% CIs) per controller ({gated_words(res)[0]}) and the estimate error the clouds induce near K.")
     _table(scen, res, out, f"tab_{scen.id}",
            "Worst cloud vs level from starts near K: success, stall and collision rates with 95% Wilson CIs; the "
            "induced estimate error (clouded - clear) along -sign(b) e_b and in norm near K, first frame and run; "
-           f"flag rate of the uncertainty head at gate {_gate(res)} and the share the gated loop held.")
+           f"flag rate of the uncertainty head at gate {_gate(res)} and {gated_words(res)[1]}.")
     if res.info.get("record") is not None and "rec_smooth_p" in res.arrays and "rec_hybrid_p" in res.arrays:
         _worst_cloud_gif(scen, ctx, res, out)
 
