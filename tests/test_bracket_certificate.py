@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from budget import examples  # tests/budget.py: more examples under make test-explore
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -70,7 +71,7 @@ def test_decisions_cover_the_laws_jump_set(law_cls):
             assert jump[j, q - 1].all() and stay[~j, q - 1].all()
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=examples(60), deadline=None)
 @given(st.lists(st.floats(-5, 5), min_size=len(DIRS), max_size=len(DIRS)), st.floats(0, 2 * np.pi))
 def test_support_at_bounds_the_polytope(vals, ang):
     """`support_at` is an upper bound of `max x·u` over points `u` inside the polytope `{d_j·u <= h_j}`."""

@@ -10,6 +10,7 @@ import sys
 
 import numpy as np
 import pytest
+from budget import examples  # tests/budget.py: more examples under make test-explore
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -38,7 +39,7 @@ def corridor(n: int, speed: float, period: float) -> Abstraction:
                        np.zeros(n, bool), 1)
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=examples(40), deadline=None)
 @given(n=st.integers(2, 12), speed=st.floats(0.3, 10.0), period=st.floats(0.01, 0.2))
 def test_the_arrival_bound_covers_the_slowest_run_through_a_transient_component(n, speed, period):
     """A run entering the far end of the corridor needs `ceil((n - 1) / (speed T_s))` frames to reach the goal cell:

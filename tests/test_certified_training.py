@@ -11,6 +11,7 @@ import lightning as L
 import numpy as np
 import pytest
 import torch
+from budget import examples  # tests/budget.py: more examples under make test-explore
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
@@ -30,7 +31,7 @@ def camera():
     return Camera(SCENE)
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=examples(60), deadline=None)
 @example(warm=1.0, ramp=2e-228, ibp=0.0, t1=1.0, t2=1.0)  # a ramp below the warm-up's float spacing (a bug fixed)
 @given(warm=st.floats(0, 5), ramp=st.floats(0, 5), ibp=st.floats(0, 5), t1=st.floats(0, 20), t2=st.floats(0, 20))
 def test_schedule_ramps_as_documented(warm, ramp, ibp, t1, t2):

@@ -13,6 +13,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
+from budget import examples  # tests/budget.py: more examples under make test-explore
 from hypothesis import Phase, given, settings
 from hypothesis import strategies as st
 
@@ -93,7 +94,7 @@ def _fit(m, camera, seed: int, steps: int):
 
 
 # ----------------------------------------------------------------------------------------- renderer
-@settings(max_examples=12, deadline=None, phases=PHASES)
+@settings(max_examples=examples(12), deadline=None, phases=PHASES)
 @given(seed=st.integers(0, 10_000), side=st.sampled_from([0.01, 0.25, 0.7, 1.5]))
 def test_pixel_forms_contain_the_uint8_render(camera, seed, side):
     rng = np.random.default_rng(seed)
@@ -136,7 +137,7 @@ def _check(model, camera, cells, c, h, p, mode, dtype):
     return b, e
 
 
-@settings(max_examples=8, deadline=None, phases=PHASES)
+@settings(max_examples=examples(8), deadline=None, phases=PHASES)
 @given(seed=st.integers(0, 10_000), side=st.sampled_from([0.05, 0.25, 0.5]),
        mode=st.sampled_from(["ibp", "forward", "crown"]))
 def test_bound_contains_sampled_errors_amplified_net(camera, seed, side, mode):
@@ -145,7 +146,7 @@ def test_bound_contains_sampled_errors_amplified_net(camera, seed, side, mode):
     _check(_amplified(seed), camera, cells, c, h, _samples(rng, c, h, 24), mode, torch.float64)
 
 
-@settings(max_examples=8, deadline=None, phases=PHASES)
+@settings(max_examples=examples(8), deadline=None, phases=PHASES)
 @given(seed=st.integers(0, 10_000), side=st.sampled_from([0.05, 0.25, 1.0]),
        mode=st.sampled_from(["forward", "crown"]), dtype=st.sampled_from([torch.float32, torch.float64]))
 def test_bound_contains_sampled_errors_trained_net(camera, trained, seed, side, mode, dtype):
@@ -170,7 +171,7 @@ def _coverage(u, idx, size):
     return np.clip(np.minimum(idx + 1, u + size / 2) - np.maximum(idx, u - size / 2), 0.0, 1.0)
 
 
-@settings(max_examples=10, deadline=None, phases=PHASES)
+@settings(max_examples=examples(10), deadline=None, phases=PHASES)
 @given(seed=st.integers(0, 10_000))
 def test_single_linear_layer_on_the_renderer_is_exact(camera, seed):
     """One linear layer on the image (no blocks, no clamp), cells that are segments in x between the coverage's
@@ -250,7 +251,7 @@ def _at(form, t):
         + form[:, 2] * t[:, 1].view(-1, *[1] * (form.dim() - 2))
 
 
-@settings(max_examples=20, deadline=None, phases=PHASES)
+@settings(max_examples=examples(20), deadline=None, phases=PHASES)
 @given(seed=st.integers(0, 10_000), spread=st.sampled_from([0.1, 1.0, 10.0]))
 def test_pool_and_relu_relaxations_hold_pointwise(seed, spread):
     from pipeline.certify.cone import _pool, _relu
@@ -320,7 +321,7 @@ def _keypoint_map(seed: int, trained_on=None, camera=None):
     return _fit(m, camera, seed, trained_on)
 
 
-@settings(max_examples=10, deadline=None, phases=PHASES)
+@settings(max_examples=examples(10), deadline=None, phases=PHASES)
 @given(seed=st.integers(0, 10_000), side=st.sampled_from([0.05, 0.25, 1.0]), mode=st.sampled_from(["ibp", "forward", "crown"]),
        trained_steps=st.sampled_from([None, 60]))
 def test_bound_contains_sampled_errors_keypoint_head(camera, seed, side, mode, trained_steps):

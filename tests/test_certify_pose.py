@@ -9,6 +9,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
+from budget import examples  # tests/budget.py: more examples under make test-explore
 from hypothesis import Phase, given, settings
 from hypothesis import strategies as st
 
@@ -55,7 +56,7 @@ def _pose_map(seed, gain=4.0):
     return m
 
 
-@settings(max_examples=8, deadline=None, phases=PHASES)
+@settings(max_examples=examples(8), deadline=None, phases=PHASES)
 @given(seed=st.integers(0, 10_000), side=st.sampled_from([0.01, 0.25, 1.0]), width=st.sampled_from([0.01, 0.2, 1.0]),
        symbolic=st.booleans())
 def test_marker_forms_contain_the_uint8_render(camera, seed, side, width, symbolic):
@@ -102,7 +103,7 @@ def test_pose_bound_contains_sampled_errors(camera, mode, side, width):
     assert np.all(b.heading.numpy() <= math.pi + 1e-12)
 
 
-@settings(max_examples=60, deadline=None, phases=PHASES)
+@settings(max_examples=examples(60), deadline=None, phases=PHASES)
 @given(cx=st.floats(-3, 3), cy=st.floats(-3, 3), wx=st.floats(0, 1.5), wy=st.floats(0, 1.5),
        th=st.floats(-math.pi, math.pi), w=st.floats(0, 0.6))
 def test_heading_error_is_the_exact_range(cx, cy, wx, wy, th, w):

@@ -28,11 +28,14 @@ class CentroidMap:
 
 @pytest.mark.parametrize("env_id", list(envs.IDS))
 def test_check_env_passes_for_every_id(env_id):
-    env = gym.make(env_id)
+    env = gym.make(env_id, render_mode="rgb_array")
     check_env(env.unwrapped, skip_render_check=False)
     obs, info = env.reset(seed=3)
     assert env.observation_space.contains(obs) and info["outcome"] == "running"
-    assert env.render().shape == (*env.unwrapped.objects.camera.shape, 3) if env.render_mode else True
+    frame = env.render()  # the camera's image of the first agent (was `... if env.render_mode else True`: never checked)
+    assert frame.dtype == np.uint8 and frame.shape == (*env.unwrapped.objects.camera.shape, 3)
+    image = obs["image"] if isinstance(obs, dict) else obs
+    np.testing.assert_array_equal(frame, image)
 
 
 def test_unicycle_observes_its_heading_when_asked():
