@@ -1,5 +1,7 @@
 """The Gymnasium environments (SPEC §6): the API checker, the simulator's trajectories, the vector environment."""
 
+import warnings
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -38,6 +40,58 @@ def test_check_env_passes_for_every_id(env_id):
     np.testing.assert_array_equal(frame, image)
 
 
+@pytest.mark.parametrize("env_id", list(envs.IDS))
+def test_check_env_passes_with_warnings_as_errors_on_the_normalised_action(env_id):
+    """Issue 46: the action space is `[-1, 1]` per component (the velocity in units of `u_max`, the unicycle's
+    `(v / u_max, ω / ω_max)`), so neither Gymnasium's nor SB3's checker warns (it recommended a normalised space)."""
+    from stable_baselines3.common.env_checker import check_env as sb3_check_env
+
+    env = gym.make(env_id)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check_env(env.unwrapped)
+        sb3_check_env(env.unwrapped, warn=True)
+    assert env.action_space.shape == (2,)
+    np.testing.assert_array_equal(env.action_space.low, -1.0)
+    np.testing.assert_array_equal(env.action_space.high, 1.0)
+    venv = envs.make_vector(env_id, 2)
+    np.testing.assert_array_equal(venv.single_action_space.high, 1.0)
+
+
+def _old_velocity_step(o, c, u, every):
+    """The state after one frame under the velocity `u` as the env took it before issue 46 (the norm clipped to
+    `u_max`; the unicycle's `v` to `u_max`, `ω` to `ω_max`), integrated by the plant itself in `every` steps."""
+    u_max = o.controller.u_max
+    if o.plant.heading:
+        u = np.array([np.clip(u[0], -u_max, u_max), np.clip(u[1], -o.plant.omega_max, o.plant.omega_max)])
+    else:
+        u = u * min(1.0, u_max / np.hypot(*u))
+    c = np.array(c, float)[None]
+    for _ in range(every):
+        c = o.plant.step(c, u[None], o.sim.dt)
+    return c[0]
+
+
+@pytest.mark.parametrize("env_id", list(envs.IDS))
+def test_a_normalised_action_moves_the_vehicle_exactly_as_its_velocity_did(env_id):
+    """`u / scale` (scale `u_max`, the unicycle's `(u_max, ω_max)`) moves the vehicle exactly as the velocity `u`
+    did: inside the limits, and past them (the action's norm clipped to 1 is the velocity's clipped to `u_max`)."""
+    env = gym.make(env_id)
+    o, core = env.unwrapped.objects, env.unwrapped.core
+    u_max = o.controller.u_max
+    scale = np.array([u_max, o.plant.omega_max if o.plant.heading else u_max])
+    for u in ([3.0, -4.0], [7.5, 2.0], [-6.0, 1.5], [20.0, 15.0], [-15.0, -30.0]):
+        u = np.array(u)
+        assert np.array_equal(u / scale * scale, u)  # the test's velocities survive the round trip bit for bit
+        _, info = env.reset(seed=0, options={"start": [-40.0, 20.0], "heading": 0.3})
+        c0 = info["state"]
+        _, _, term, trunc, info = env.step((u / scale).astype(np.float64))
+        assert not (term or trunc)
+        np.testing.assert_array_equal(info["state"], _old_velocity_step(o, c0, u, core.every))
+        np.testing.assert_array_equal(core.action(u), u / scale)  # the inverse, for agents that compute velocities
+    np.testing.assert_array_equal(core.scale, scale)
+
+
 def test_unicycle_observes_its_heading_when_asked():
     env = gym.make("hycontrol/NavigateUnicycle-v0", overrides=["env.observe_heading=true"])
     check_env(env.unwrapped)
@@ -48,7 +102,8 @@ def test_unicycle_observes_its_heading_when_asked():
 
 @pytest.mark.parametrize("overrides, field", [(["occlusion=foo"], "occlusion"), (["env.progres=1"], "env.progres"),
                                               (["env.arrival=-1"], "env.arrival"),
-                                              (["camera.period=0.013"], "camera.period")])
+                                              (["camera.period=0.013"], "camera.period"),
+                                              (["controller.u_max=null"], "controller.u_max")])
 def test_bad_override_is_one_line_naming_the_field(overrides, field):
     with pytest.raises(ConfigError) as err:
         gym.make("hycontrol/Navigate-v0", overrides=overrides)
@@ -118,7 +173,7 @@ def test_random_agent_and_the_hybrid_policy_through_gymnasium_make():
 def test_vector_env_autoresets_and_reports_the_final_state():
     venv = envs.make_vector("hycontrol/Navigate-v0", 4)
     obs, info = venv.reset(seed=0, options={"start": [[39.5, 0.0], [-40.0, 0.0], [0.0, 4.3], [-49.8, 0.0]]})
-    obs, r, term, trunc, info = venv.step(np.array([[10.0, 0.0], [0.0, 0.0], [0.0, -10.0], [-10.0, 0.0]]))
+    obs, r, term, trunc, info = venv.step(np.array([[1.0, 0.0], [0.0, 0.0], [0.0, -1.0], [-1.0, 0.0]]))  # ±u_max
     assert term.tolist() == [True, False, True, True]
     assert info["outcome"].tolist() == [1, 0, 2, 3]
     assert info["_final_obs"].tolist() == [True, False, True, True]

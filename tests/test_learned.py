@@ -33,13 +33,110 @@ def test_expert_rolled_out_in_the_env_is_the_simulators_hybrid_controller_on_the
     for _ in range(60):
         labels, mask = expert.labels(info["state"])
         assert labels.shape == (4, HEADS, 2) and mask[:, 0].all()
-        _, _, term, trunc, info = venv.step(labels[:, 0])
+        _, _, term, trunc, info = venv.step(venv.core.action(labels[:, 0]))
         p.append(info["position"].copy())
     p = np.array(p)
     k = min(len(p), len(res.p))
     live = ~np.isnan(res.metrics["time_to_target"]) & (res.metrics["time_to_target"] > k * 0.05)
     np.testing.assert_allclose(p[:k, live], res.p[:k, live], atol=1e-9)
     np.testing.assert_allclose(p[:k, ~live][:5], res.p[:k, ~live][:5], atol=1e-9)
+
+
+class _Recorder:
+    """The vector env, recording the actions it is handed and the true states it reaches."""
+
+    def __init__(self, venv):
+        self.venv, self.actions, self.states = venv, [], []
+
+    def __getattr__(self, name):
+        return getattr(self.venv, name)
+
+    def reset(self, **kw):
+        obs, info = self.venv.reset(**kw)
+        self.states.append(info["state"].copy())
+        return obs, info
+
+    def step(self, actions):
+        self.actions.append(np.array(actions, dtype=float))
+        out = self.venv.step(actions)
+        self.states.append(out[4]["state"].copy())
+        return out
+
+
+def _integrate(o, c, u, every):
+    """`every` steps of the plant under the velocity `u`, its norm clipped to `u_max` (the env's saturation)."""
+    u = u * np.minimum(1.0, o.controller.u_max / np.maximum(np.hypot(*u.T), 1e-300))[:, None]
+    for _ in range(every):
+        c = o.plant.step(c, u, o.sim.dt)
+    return c
+
+
+def test_the_expert_hands_the_env_its_velocity_over_u_max_and_keeps_the_controllers_trajectory():
+    """Issue 46: the imitation's rollout (round 0: the expert acts) hands the env the expert's velocity over `u_max`
+    (the normalised action), and the trajectory is the one the controller's velocity gives, integrated by the plant
+    without the env, on a fixed seed; its labels are that velocity in world units."""
+    from pipeline.learned.imitate import rollout
+
+    starts = [[-12.0, 2.0], [-30.0, -0.2], [-20.0, 0.1], [-40.0, 20.0]]
+    venv = envs.make_vector("hycontrol/Navigate-v0", 4, autoreset=False,
+                            overrides=["init=points", f"init.points={starts}".replace(" ", "")])
+    o, frames = venv.objects, 25
+    rec = _Recorder(venv)
+    expert = Expert(o.controller, o.plant, o.scene, venv.core.period)  # its scale: the env's controller's u_max
+    _, labels, _, outcome = rollout(rec, expert, None, seed=3, max_frames=frames, record_every=1)
+    assert (outcome == 4).all() and len(rec.actions) == frames  # nobody stopped: every frame recorded
+    labels = labels.reshape(frames, 4, HEADS, 2)
+    actions = np.array(rec.actions)
+    np.testing.assert_array_equal(actions, labels[:, :, 0] / o.controller.u_max)
+    assert np.abs(actions).max() <= 1.0 and np.hypot(*actions.reshape(-1, 2).T).max() > 0.99  # saturated: |a| = 1
+    reference = Expert(o.controller, o.plant, o.scene, venv.core.period)  # the controller, no env
+    c = np.array(starts)
+    np.testing.assert_array_equal(rec.states[0], c)
+    for k in range(frames):
+        u = reference.labels(c)[0][:, 0]
+        np.testing.assert_allclose(labels[k, :, 0], u, rtol=0, atol=1e-9)
+        c = _integrate(o, c, u, venv.core.every)
+        np.testing.assert_allclose(rec.states[k + 1], c, rtol=0, atol=1e-9)
+
+
+def test_the_imitated_policy_through_the_evaluation_follows_its_networks_velocity():
+    """The imitated policy (a fixed-seed tiny network) through the evaluation's code: its action is the network's
+    velocity over `u_max`, and the paths are the ones the network's velocity on the frames of the path gives,
+    integrated by the plant without the env."""
+    o = envs.objects()
+    model = _tiny_model(5).eval()
+    policy = ImitatedPolicy(model, np.full(2, o.controller.u_max))  # the env's scale
+    starts, frames = np.array([[-40.0, 20.0], [-40.0, -20.0], [10.0, -20.0]]), 12
+    res = run_policy(o, policy, starts, frames=frames)
+    p, every = starts.copy(), round(o.camera_settings.period / o.sim.dt)
+    for k in range(frames):
+        images = o.camera.render(p)
+        u = model.act(torch.from_numpy(images), 0).double().numpy()
+        np.testing.assert_allclose(policy.act(images) * o.controller.u_max, u, rtol=0, atol=1e-12)
+        p = _integrate(o, p, u, every)
+        np.testing.assert_allclose(res["paths"][k + 1], p, rtol=0, atol=1e-9)
+    assert np.abs(res["paths"][-1] - starts).max() > 0.1  # it moved
+
+
+def test_a_ppo_model_of_the_velocity_action_space_acts_as_it_did(tmp_path):
+    """A PPO model trained before issue 46 (action space `Box(-u_max, u_max)`: its actions are velocities) hands the
+    env its clipped mean over `u_max`, so the velocity is the one it had; the attack's net gives that velocity."""
+    from gymnasium import spaces
+    from stable_baselines3 import PPO
+
+    from pipeline.learned.ppo import PPOPolicy, SB3VecEnv
+
+    env = SB3VecEnv(envs.make_vector("hycontrol/Navigate-v0", 2))
+    env.action_space = spaces.Box(-10.0, 10.0, (2,), dtype=np.float32)  # the old env's
+    model = PPO("CnnPolicy", env, n_steps=8, batch_size=16, n_epochs=1, seed=0, device="cpu")
+    with torch.no_grad():
+        model.policy.action_net.bias.copy_(torch.tensor([30.0, -0.5]))
+    obs = env.reset()
+    old = model.predict(obs, deterministic=True)[0]  # its velocity, clipped to ±10 as SB3 clips
+    agent = PPOPolicy(model, scale=[10.0, 10.0])
+    np.testing.assert_allclose(agent.act(obs), old / 10.0, atol=1e-6)
+    assert np.all(agent.act(obs)[:, 0] == 1.0)
+    np.testing.assert_allclose(agent.velocity(obs), old, atol=1e-5)
 
 
 def test_each_modes_flow_passes_the_obstacle_on_its_own_side():
@@ -103,7 +200,7 @@ def test_one_evaluation_code_runs_the_architecture_and_the_learned_policies():
     res = run_policy(o, hybrid, near, frames=200)
     assert (res["outcome"] == "reached").all() and np.all(res["time"] > 0)
     model = _tiny_model()
-    for policy in (ImitatedPolicy(model), LearnedHybridPolicy(model, pm, o.controller, o.plant, o.scene, 0.05)):
+    for policy in (ImitatedPolicy(model, o.scale), LearnedHybridPolicy(model, pm, o.controller, o.plant, o.scene, 0.05)):
         res = run_policy(o, policy, near, frames=30)
         assert set(res["outcome"]) <= {"reached", "collided", "left_view", "stalled", "timed_out"}
     assert ARRIVED == 1
@@ -174,7 +271,7 @@ def test_ppo_runs_on_the_vector_environment_through_sb3(tmp_path):
     venv = envs.make_vector("hycontrol/Navigate-v0", 3)
     env = SB3VecEnv(venv)
     obs = env.reset()
-    obs, r, done, infos = env.step(np.array([[10.0, 0.0], [0.0, 0.0], [-10.0, 0.0]]))
+    obs, r, done, infos = env.step(np.array([[1.0, 0.0], [0.0, 0.0], [-1.0, 0.0]]))  # ±u_max along x
     assert obs.shape == (3, 60, 100, 3) and r.dtype == np.float32 and len(infos) == 3
     cfg = compose("ppo", ["ppo.num_envs=4", "ppo.total_timesteps=32", "ppo.n_steps=8", "ppo.batch_size=16",
                           "ppo.n_epochs=1", "init=points", "init.points=[[39.0,0.5]]",
@@ -227,13 +324,13 @@ def test_table_rows_count_outcomes_with_wilson_intervals(tmp_path):
 
 
 class _Creep:
-    """A policy that creeps along +x at `speed` units/s (no camera needed)."""
+    """A policy that creeps along +x at `speed` units/s (no camera needed): the env's action `speed / u_max`."""
 
-    def __init__(self, speed):
-        self.speed = speed
+    def __init__(self, speed, u_max=10.0):
+        self.speed, self.u_max = speed, u_max
 
     def act(self, obs):
-        return np.tile(np.array([self.speed, 0.0], np.float32), (len(obs), 1))
+        return np.tile(np.array([self.speed / self.u_max, 0.0]), (len(obs), 1))
 
 
 @pytest.mark.parametrize(("share", "expected"), [(0.2, "stalled"), (0.05, "timed_out")])
@@ -307,11 +404,12 @@ def test_the_ppo_agent_acts_as_sb3_predicts_and_its_attack_net_is_that_action(tm
     with torch.no_grad():  # a bias that pushes the mean action past the bound: clipped like SB3's
         model.policy.action_net.bias.copy_(torch.tensor([30.0, -0.5]))
     obs = env.reset()
-    agent = PPOPolicy(model, u_max=10.0)
+    agent = PPOPolicy(model, scale=[10.0, 10.0])
     np.testing.assert_allclose(agent.act(obs), model.predict(obs, deterministic=True)[0], atol=1e-5)
-    assert np.all(agent.act(obs)[:, 0] == 10.0)
-    net_out = agent.net(torch.from_numpy(obs).float()).detach().numpy()
-    np.testing.assert_allclose(net_out, agent.act(obs), atol=1e-6)
+    assert np.all(agent.act(obs)[:, 0] == 1.0)  # the env's action space is [-1, 1] (issue 46): u_max
+    net_out = agent.net(torch.from_numpy(obs).float()).detach().numpy()  # the attack's: the velocity (units/s)
+    np.testing.assert_allclose(net_out, 10.0 * agent.act(obs), atol=1e-5)
+    np.testing.assert_allclose(agent.velocity(obs), net_out, atol=1e-6)
 
 
 def test_make_learned_end_to_end_on_tiny_maps_with_clouds_and_the_worst_cloud(tiny_maps, tmp_path, monkeypatch):

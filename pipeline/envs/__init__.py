@@ -1,8 +1,12 @@
 """Gymnasium environments of the project (SPEC §6; docs/learned.md). Importing this package registers the ids:
 
-- `hycontrol/Navigate-v0`: the default scene, the single integrator (action: the velocity, `|u| <= u_max`);
+- `hycontrol/Navigate-v0`: the default scene, the single integrator (action: the velocity in units of `u_max`,
+  `Box(-1, 1, (2,))`, its norm clipped to 1: the velocity `u = u_max * action`, `|u| <= u_max`);
 - `hycontrol/NavigateField-v0`: the seeded 5-disc field (`scene=field`);
-- `hycontrol/NavigateUnicycle-v0`: the default scene, the unicycle (action `(v, ω)`).
+- `hycontrol/NavigateUnicycle-v0`: the default scene, the unicycle (action `(v / u_max, ω / ω_max)`, each in [-1, 1]).
+
+An agent that computes a velocity hands the env `env.unwrapped.core.action(u)` (`u / scale`, the scale of
+:func:`pipeline.envs.core.action_scale`); the env maps it back (`core.velocity`).
 
 `gymnasium.make(id, overrides=[...])` composes conf/env.yaml with the id's overrides and the caller's (the
 caller's last); `make_vector(id, num_envs, overrides=[...])` gives the batched :class:`NavigateVectorEnv`.

@@ -10,17 +10,19 @@ import numpy as np
 from pipeline.envs.navigate import NavigateEnv, NavigateVectorEnv, objects
 
 
-def _actions(n: int, steps: int, seed: int = 0) -> np.ndarray:
-    """Velocities towards +x with a random transverse part (few agents stop within the run)."""
+def _actions(n: int, steps: int, obj, seed: int = 0) -> np.ndarray:
+    """Velocities towards +x with a random transverse part (few agents stop within the run), as the env's
+    normalised actions (`u / scale`)."""
     rng = np.random.default_rng(seed)
-    return np.stack([np.full((steps, n), 4.0), rng.uniform(-3.0, 3.0, (steps, n))], -1)
+    return np.stack([np.full((steps, n), 4.0), rng.uniform(-3.0, 3.0, (steps, n))], -1) / obj.scale
 
 
 def vector_rate(n: int, steps: int, obj=None) -> float:
     """Agent-steps per second of one :class:`NavigateVectorEnv` of `n` agents (autoreset on)."""
-    venv = NavigateVectorEnv(n, objects_=obj or objects())
+    obj = obj or objects()
+    venv = NavigateVectorEnv(n, objects_=obj)
     venv.reset(seed=0)
-    acts = _actions(n, steps)
+    acts = _actions(n, steps, obj)
     t0 = time.perf_counter()
     for k in range(steps):
         venv.step(acts[k])
@@ -33,7 +35,7 @@ def single_rate(n: int, steps: int, obj=None) -> float:
     envs = [NavigateEnv(objects_=obj) for _ in range(n)]
     for i, env in enumerate(envs):
         env.reset(seed=i)
-    acts = _actions(n, steps)
+    acts = _actions(n, steps, obj)
     t0 = time.perf_counter()
     for k in range(steps):
         for i, env in enumerate(envs):

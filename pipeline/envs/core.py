@@ -1,12 +1,16 @@
 """The batched core of the Gymnasium environments (SPEC §6): N agents, one step = one camera frame.
 
-One step of every agent is one frame of the sampled loop of :func:`pipeline.sim.simulate` (SPEC §1, §3.3): the
-action (the velocity `u`, or `(v, ω)` for the unicycle) is clipped to the vehicle's limits and held for the
-frame, the plant integrates it exactly in `every` steps of `dt` (`plant.step`, the experiments' own
-integration), arrival (`|p - p_T| <= δ`), collision (`|p - c_i| < r_i`, judged first, as the simulator's
-monitor does) and leaving the camera's view are checked after every step of `dt`, and an agent that stops stays
-where it stopped. Then the camera renders the next frame of every agent in one batched call (with the clouds;
-a frame lost with probability `p_fail` repeats the last image, as the simulator holds the last estimate).
+One step of every agent is one frame of the sampled loop of :func:`pipeline.sim.simulate` (SPEC §1, §3.3). The
+action is normalised (issue 46): :meth:`NavigationCore.velocity` multiplies it by :func:`action_scale` (`u_max`
+per component; the unicycle's `(u_max, ω_max)`) into the velocity `u` (or `(v, ω)`), clips that to the vehicle's
+limits as before (the norm of `u` to `u_max`, i.e. the action's norm to 1; `|v| <= u_max`, `|ω| <= ω_max`) and
+holds it for the frame; :meth:`NavigationCore.action` is the inverse (`u / scale`), for the agents that compute
+a velocity. The plant integrates the held input exactly in `every` steps of `dt` (`plant.step`, the
+experiments' own integration), arrival (`|p - p_T| <= δ`), collision (`|p - c_i| < r_i`, judged first, as the
+simulator's monitor does) and leaving the camera's view are checked after every step of `dt`, and an agent that
+stops stays where it stopped. Then the camera renders the next frame of every agent in one batched call (with
+the clouds; a frame lost with probability `p_fail` repeats the last image, as the simulator holds the last
+estimate).
 
 Reward per step (`env.*`, SPEC §6): `progress * (|p_k - p_T| - |p_{k+1} - p_T|) + arrival * [arrived]
 - collision * [collided or left the view]`.
@@ -18,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.errors import ConfigError
 from pipeline.schema import NonNegative, checked
 from pipeline.sim.metrics import StallMonitor
 from pipeline.sim.monitor import ArrivalCollision
@@ -41,13 +46,33 @@ class EnvSettings:
     observe_heading: bool = False
 
 
+def action_scale(plant, u_max) -> np.ndarray:
+    """The velocity of the unit action per component (the action is `velocity / scale`): `(u_max, u_max)` for the
+    single integrator, `(u_max, ω_max)` for the unicycle (`u_max / d`, the steering's largest turn rate at full
+    speed, when `ω_max` is null: then nothing clips `ω`, as before). `u_max` must be finite."""
+    if u_max is None or not np.isfinite(u_max) or u_max <= 0:
+        raise ConfigError("controller.u_max", f"the environments' action is the velocity in units of u_max: it must "
+                                              f"be a positive number, got {u_max!r}")
+    if not plant.heading:
+        return np.array([u_max, u_max], dtype=float)
+    om = plant.omega_max if plant.omega_max is not None else u_max / plant.lookahead
+    return np.array([u_max, om], dtype=float)
+
+
+def to_action(velocity, scale) -> np.ndarray:
+    """The env's normalised action of a velocity `u` (or `(v, ω)`): `u / scale` (the one conversion every agent
+    that computes a velocity uses; :meth:`NavigationCore.velocity` maps it back)."""
+    return np.asarray(velocity, dtype=float) / scale
+
+
 class NavigationCore:
     """N agents of the sampled loop (see the module docstring); no Gymnasium API here."""
 
-    def __init__(self, n: int, *, scene, plant, camera, u_max: float, dt: float, every: int, frames: int,
+    def __init__(self, n: int, *, scene, plant, camera, scale, dt: float, every: int, frames: int,
                  delta: float, occlusion=None, p_fail: float = 0.0, settings: EnvSettings | None = None):
         self.n, self.scene, self.plant, self.camera = n, scene, plant, camera
-        self.u_max, self.dt, self.every, self.frames, self.delta = float(u_max), dt, every, frames, delta
+        self.scale = np.asarray(scale, dtype=float).reshape(plant.inputs)  # :func:`action_scale`
+        self.u_max, self.dt, self.every, self.frames, self.delta = float(self.scale[0]), dt, every, frames, delta
         self.occlusion = occlusion if occlusion is not None and getattr(occlusion, "active", False) else None
         self.p_fail, self.settings = float(p_fail), settings or EnvSettings()
         self.period = dt * every
@@ -72,9 +97,18 @@ class NavigationCore:
         heading = c[:, 2] if self.plant.heading else None
         return self.camera.render(self.position(c), None, occlusion=self.occlusion, rng=rng, heading=heading)
 
-    def clip(self, action) -> np.ndarray:
-        """The held input: `|u| <= u_max` by scaling (the controllers' saturation); `(v, ω)`: each clipped."""
-        a = np.asarray(action, dtype=float).reshape(self.n, self.plant.inputs)
+    def action(self, velocity) -> np.ndarray:
+        """The normalised action of a velocity `u` (or `(v, ω)`): :func:`to_action` with this env's scale."""
+        return to_action(velocity, self.scale)
+
+    def velocity(self, action) -> np.ndarray:
+        """The held input of a normalised action: `action * scale`, then the vehicle's limits (:meth:`clip`)."""
+        return self.clip(np.asarray(action, dtype=float).reshape(self.n, self.plant.inputs) * self.scale)
+
+    def clip(self, u) -> np.ndarray:
+        """The vehicle's limits on a velocity: `|u| <= u_max` by scaling (the controllers' saturation; the action's
+        norm clipped to 1); `(v, ω)`: each clipped (`|v| <= u_max`, `|ω| <= ω_max` unless null)."""
+        a = np.asarray(u, dtype=float).reshape(self.n, self.plant.inputs)
         a = np.where(np.isfinite(a), a, 0.0)
         if self.plant.heading:
             om = getattr(self.plant, "omega_max", None)
@@ -97,7 +131,7 @@ class NavigationCore:
 
     def step(self, action, rng: np.random.Generator):
         """One frame of every agent: `(reward, code)` per agent (`code` in OUTCOMES' order: why it stopped, if)."""
-        w = self.clip(action)
+        w = self.velocity(action)
         d0 = self.distance()
         code = np.zeros(self.n, dtype=np.int8)
         active = np.ones(self.n, dtype=bool)

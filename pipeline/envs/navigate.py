@@ -3,7 +3,9 @@
 - :class:`NavigateEnv`: one agent (`gymnasium.Env`); :class:`NavigateVectorEnv`: N agents stepped in one call of
   the batched plant and renderer (`gymnasium.vector.VectorEnv`, same-step autoreset: the final frame and true
   state of an agent that stopped are in `info["final_obs"]`, `info["final_state"]`). Both run
-  :class:`~pipeline.envs.core.NavigationCore`, so one agent of either is the same loop.
+  :class:`~pipeline.envs.core.NavigationCore`, so one agent of either is the same loop. The action is
+  normalised, `Box(-1, 1, (2,))`: the core scales it by `EnvObjects.scale` (`u_max`, the unicycle's
+  `(u_max, ω_max)`) into the velocity.
 - :func:`objects` builds everything from the composed config `env` (conf/env.yaml) with `hydra.utils.instantiate`
   through :func:`pipeline.config.build`; a bad override is one :class:`~pipeline.errors.ConfigError` line.
 """
@@ -19,7 +21,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from omegaconf import DictConfig
 
 from pipeline.config import build, compose
-from pipeline.envs.core import OUTCOMES, RUNNING, EnvSettings, NavigationCore
+from pipeline.envs.core import OUTCOMES, RUNNING, EnvSettings, NavigationCore, action_scale
 from pipeline.errors import ConfigError
 from pipeline.sim.settings import check_vehicle, frame_steps
 
@@ -39,11 +41,15 @@ class EnvObjects:
     init: object
     settings: EnvSettings
 
+    @property
+    def scale(self) -> np.ndarray:
+        """The velocity of the unit action per component (:func:`pipeline.envs.core.action_scale`)."""
+        return action_scale(self.plant, self.controller.u_max)
+
     def core(self, n: int) -> NavigationCore:
         every = frame_steps(self.sim.dt, self.camera_settings.period)
         frames = -(-self.sim.n_steps // every)
-        u_max = self.controller.u_max if self.controller.u_max is not None else np.inf
-        return NavigationCore(n, scene=self.scene, plant=self.plant, camera=self.camera, u_max=u_max,
+        return NavigationCore(n, scene=self.scene, plant=self.plant, camera=self.camera, scale=self.scale,
                               dt=self.sim.dt, every=every, frames=frames, delta=self.sim.delta,
                               occlusion=self.occlusion, p_fail=self.camera_settings.p_fail, settings=self.settings)
 
@@ -81,25 +87,22 @@ def objects_from(cfg: DictConfig) -> EnvObjects:
     sim, cam = build(cfg.sim, "sim"), build(cfg.camera, "camera")
     frame_steps(sim.dt, cam.period)
     check_vehicle(plant, sim)
+    controller = build(cfg.controller, "controller", scene=plant.steering_scene(scene))
+    action_scale(plant, controller.u_max)  # the action's unit: a finite u_max (one ConfigError line, preflight)
     return EnvObjects(cfg=cfg, scene=scene, plant=plant, camera=build(cfg.render, "render", scene=scene),
-                      controller=build(cfg.controller, "controller", scene=plant.steering_scene(scene)),
-                      occlusion=build(cfg.occlusion, "occlusion"), sim=sim, camera_settings=cam,
-                      init=build(cfg.init, "init"), settings=build(cfg.env, "env"))
+                      controller=controller, occlusion=build(cfg.occlusion, "occlusion"), sim=sim,
+                      camera_settings=cam, init=build(cfg.init, "init"), settings=build(cfg.env, "env"))
 
 
 def _spaces(obj: EnvObjects, core: NavigationCore):
+    """The frame (or the unicycle's Dict of it and its heading), and the normalised action `Box(-1, 1, (2,))`:
+    the velocity (or `(v, ω)`) is the action times `core.scale` (issue 46: SB3's recommended space)."""
     h, w = obj.camera.shape
     image = spaces.Box(0, 255, (h, w, 3), dtype=np.uint8)
     obs = image
     if obj.plant.heading and obj.settings.observe_heading:
         obs = spaces.Dict({"image": image, "heading": spaces.Box(-1.0, 1.0, (2,), dtype=np.float32)})
-    u = np.float32(min(core.u_max, np.finfo(np.float32).max))
-    if obj.plant.heading:
-        om = obj.plant.omega_max if obj.plant.omega_max is not None else np.finfo(np.float32).max
-        act = spaces.Box(np.array([-u, -om], np.float32), np.array([u, om], np.float32), dtype=np.float32)
-    else:
-        act = spaces.Box(-u, u, (2,), dtype=np.float32)
-    return obs, act
+    return obs, spaces.Box(-1.0, 1.0, (core.plant.inputs,), dtype=np.float32)
 
 
 def _observe(obj: EnvObjects, core: NavigationCore, idx=None):

@@ -1,13 +1,16 @@
 """Policies over the environments' observations (SPEC §6), so one evaluation code runs every agent.
 
 A policy is batched: `reset(obs)` at the first frame of the agents that (re)start, `act(obs) -> actions` at every
-frame (`(N, 2)`: the velocity, or `(v, ω)` for the unicycle). Observations are the frames `(N, H, W, 3)`.
+frame: `(N, 2)` actions of the environment's normalised action space (issue 46: the velocity `u`, or `(v, ω)`
+for the unicycle, divided by the env's `scale`, :func:`pipeline.envs.core.action_scale`; the env multiplies it
+back). Observations are the frames `(N, H, W, 3)`.
 
 - :class:`ArchitecturePolicy`: the paper's architecture: the perception map's estimate `m = l(θ)` fed to a
   feedback law of :mod:`pipeline.control` (hybrid, smooth, CBF) through the sampled loop of the simulator
   (:class:`pipeline.sim.closed_loop.SampledLoop` and the solver's own frame update: sample, jump where
   `x ∈ D`, hold the input through the sampled-data guard). It carries the law's logic state (mode `q`,
   active obstacle `i`) per agent; with the same map, camera and starts its trajectories are the simulator's.
+  :meth:`ArchitecturePolicy.velocity` is the law's held input, `act` that input as the env's action.
 - :class:`RandomPolicy`: uniform actions of the action space (a seeded baseline).
 """
 
@@ -15,6 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from pipeline.envs.core import action_scale, to_action
 from pipeline.hybrid.sampled import frame_update
 from pipeline.sim.closed_loop import SampledLoop
 
@@ -25,10 +29,15 @@ def frames(obs):
 
 
 class ArchitecturePolicy:
-    """Perception map + feedback law (see the module docstring). `predict(images) -> (N, 2 | 3)` estimates."""
+    """Perception map + feedback law (see the module docstring). `predict(images) -> (N, 2 | 3)` estimates.
 
-    def __init__(self, perception_map, controller, plant, scene, period: float, name: str | None = None):
+    `scale`: the environment's (`env.core.scale`: its action is `velocity / scale`); None: the law's own limits
+    (:func:`pipeline.envs.core.action_scale` of `controller.u_max`), the env's when the law is its controller."""
+
+    def __init__(self, perception_map, controller, plant, scene, period: float, name: str | None = None,
+                 scale=None):
         self.map, self.controller, self.plant = perception_map, controller, plant
+        self.scale = action_scale(plant, controller.u_max) if scale is None else np.asarray(scale, dtype=float)
         self.name = name or f"{controller.name}+map"
         self._est = None
         self.loop = SampledLoop(scene, controller, plant, None, measure=self._measure, dt=period, every=1)
@@ -56,7 +65,11 @@ class ArchitecturePolicy:
             self.x.put(np.asarray(idx), x0)
 
     def act(self, obs, restarted: np.ndarray | None = None) -> np.ndarray:
-        """The held input of every agent at this frame; `restarted` rows start afresh (an autoreset)."""
+        """The env's action of every agent at this frame: :meth:`velocity` over `scale`."""
+        return to_action(self.velocity(obs, restarted), self.scale)
+
+    def velocity(self, obs, restarted: np.ndarray | None = None) -> np.ndarray:
+        """The held input of every agent at this frame (world units); `restarted` rows start afresh (an autoreset)."""
         if self.x is None:
             self.reset(obs)
             restarted = None
@@ -77,7 +90,7 @@ class ArchitecturePolicy:
 
 
 class RandomPolicy:
-    """Uniform actions of `action_space` (a single agent's Box), seeded."""
+    """Uniform actions of `action_space` (a single agent's Box: the normalised actions), seeded."""
 
     name = "random"
 

@@ -83,13 +83,14 @@ def _policies(obj, laws, pm, model, names, ppo=None):
     out = {}
     for name in names:
         if name in laws:
-            out[name] = ArchitecturePolicy(pm, laws[name], obj.plant, obj.scene, period, name=f"map+{name}")
+            out[name] = ArchitecturePolicy(pm, laws[name], obj.plant, obj.scene, period, name=f"map+{name}",
+                                           scale=obj.scale)
         elif name == "imitated":
-            out[name] = ImitatedPolicy(model)
+            out[name] = ImitatedPolicy(model, obj.scale)
         elif name == "ppo":
             out[name] = ppo
         else:
-            out[name] = LearnedHybridPolicy(model, pm, obj.controller, obj.plant, obj.scene, period)
+            out[name] = LearnedHybridPolicy(model, pm, obj.controller, obj.plant, obj.scene, period, scale=obj.scale)
     return out
 
 
@@ -105,7 +106,7 @@ def _decision(name, pm, model, ppo=None):
 
     if name == "imitated":
         return lambda images: model.act(torch.from_numpy(np.ascontiguousarray(images)), 0).double().numpy()
-    return ppo.act if name == "ppo" else pm.predict
+    return ppo.velocity if name == "ppo" else pm.predict
 
 
 def _needs(s) -> dict[str, list[str]]:
@@ -144,7 +145,8 @@ def learned_id(cfg, folders: dict) -> str:
                                tracking.to_plain(cfg.clouds), names, tracking.code_version(*CODE))
 
 
-def _load(cfg, folders: dict) -> dict:
+def _load(cfg, folders: dict, scale) -> dict:
+    """The maps and networks of `folders`; PPO's acting in the env whose unit action is the velocity `scale`."""
     from pipeline.learned.imitate import load_policy_model
     from pipeline.learned.policies import load_map
     from pipeline.learned.ppo import PPOPolicy, load_ppo
@@ -152,7 +154,7 @@ def _load(cfg, folders: dict) -> dict:
     models = Path(cfg.paths.models_dir)
     out = {k: None if v is None else load_map(v, models) if k.startswith("map") else load_policy_model(v, models)
            for k, v in folders.items() if k != "ppo"}
-    out["ppo"] = PPOPolicy(load_ppo(folders["ppo"], models), cfg.controller.u_max) if folders["ppo"] else None
+    out["ppo"] = PPOPolicy(load_ppo(folders["ppo"], models), scale) if folders["ppo"] else None
     return out
 
 
@@ -199,7 +201,7 @@ def run(cfg: DictConfig) -> dict:
     if tracking.is_complete(root / f"learned-{id_}") and not cfg.force:
         print(f"learned: up to date -> {root / f'learned-{id_}'}")
         return {"path": root / f"learned-{id_}"}
-    got = _load(cfg, folders)
+    got = _load(cfg, folders, obj.scale)
     random = st.Random(n=s.agents, seed=s.seed, margin=2.0)(obj.scene)
     near = st.NearK(n=s.near_k, seed=s.seed, band=s.band, a_range=list(s.a_range))(obj.scene)
     direction = proposition1_direction(obj.scene)

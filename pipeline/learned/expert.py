@@ -31,22 +31,33 @@ class TrueState:
 
 
 class Expert:
-    """The hybrid controller on the true state, one logic state per agent (an ArchitecturePolicy with a perfect map)."""
+    """The hybrid controller on the true state, one logic state per agent (an ArchitecturePolicy with a perfect map).
 
-    def __init__(self, controller, plant, scene, period: float):
+    Its labels are velocities in world units (what the network imitates); `act` is the env's normalised action
+    (`velocity / scale`, `scale` the env's: None, the controller's `u_max`, the env's own when it is the env's
+    controller). Each of `act`, `velocity`, `labels` advances the logic state one frame: call one per frame."""
+
+    def __init__(self, controller, plant, scene, period: float, scale=None):
         self.eye = TrueState()
-        self.policy = ArchitecturePolicy(self.eye, controller, plant, scene, period, name="expert")
+        self.policy = ArchitecturePolicy(self.eye, controller, plant, scene, period, name="expert", scale=scale)
         self.controller, self.plant, self.period = controller, plant, period
 
+    def velocity(self, state: np.ndarray, restarted: np.ndarray | None = None) -> np.ndarray:
+        """The controller's held input at the true states (world units)."""
+        self.eye.see(state)
+        return self.policy.velocity(state, restarted)
+
     def act(self, state: np.ndarray, restarted: np.ndarray | None = None) -> np.ndarray:
+        """The env's action: :meth:`velocity` over the env's scale."""
         self.eye.see(state)
         return self.policy.act(state, restarted)
 
     def labels(self, state: np.ndarray, restarted: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """`(labels (N, HEADS, 2), mask (N, HEADS))`: the expert's action (its mode carried), each mode's flow."""
+        """`(labels (N, HEADS, 2), mask (N, HEADS))`, velocities in world units: the expert's (its mode carried),
+        each mode's flow. The env's action of the first is `env.core.action(labels[:, 0])`."""
         out = np.zeros((len(state), HEADS, 2))
         mask = np.ones((len(state), HEADS), dtype=bool)
-        out[:, 0] = self.act(state, restarted)
+        out[:, 0] = self.velocity(state, restarted)
         out[:, 1:], mask[:, 1:] = mode_flows(self.controller, self.plant.point(state), self.policy.x.i, self.period)
         return out, mask
 

@@ -2,7 +2,8 @@
 
 Round 0 rolls the expert (the hybrid controller at the true state) out in the vector environment from
 `imitation.agents` random starts and records every `record_every`-th frame with its labels
-(:class:`pipeline.learned.expert.Expert`: the expert's action, its mode carried along, and each mode's flow);
+(:class:`pipeline.learned.expert.Expert`: the expert's velocity, its mode carried along, and each mode's flow;
+velocities in world units, the network's targets; the env is handed their normalised action, `u / scale`);
 the network (:class:`pipeline.learned.network.VelocityPolicy`) is fitted for `epochs` with the project's
 Lightning trainer (the `trainer` node). Each DAgger round rolls the *learner* out from fresh starts, the expert
 labelling the frames it visits (its mode carried along the learner's trajectory, initialised by §3.3's rule),
@@ -97,7 +98,7 @@ def rollout(venv: NavigateVectorEnv, expert, learner, seed: int, max_frames: int
             frames.append(obs[alive])
             labels.append(lab[alive])
             masks.append(mask[alive])
-        action = lab[:, 0] if learner is None else learner.act(obs)
+        action = venv.core.action(lab[:, 0]) if learner is None else learner.act(obs)  # the env's unit action
         obs, _, term, trunc, info = venv.step(action)
         outcome[(term | trunc) & (outcome == 0)] = info["outcome"][(term | trunc) & (outcome == 0)]
         if venv.done.all():
@@ -166,11 +167,11 @@ def run(cfg: DictConfig) -> dict:
         ref = s.trunk_from if ckpt else Path(cfg.paths.models_dir) / ready.trunk
         model.load_trunk(load_map(ref, cfg.paths.models_dir).model)
     venv = NavigateVectorEnv(s.agents, objects_=obj, autoreset=False)
-    expert = Expert(obj.controller, obj.plant, obj.scene, venv.core.period)
+    expert = Expert(obj.controller, obj.plant, obj.scene, venv.core.period, scale=venv.core.scale)
     data, rounds = None, []
     for r in range(s.rounds + 1):
         t0 = time.perf_counter()
-        learner = None if r == 0 else ImitatedPolicy(model)
+        learner = None if r == 0 else ImitatedPolicy(model, venv.core.scale)
         new = rollout(venv, expert, learner, seed=s.seed * 1000 + r, max_frames=s.max_frames,
                       record_every=s.record_every)
         data = new[:3] if data is None else tuple(np.concatenate([a, b]) for a, b in zip(data, new[:3]))

@@ -5,6 +5,10 @@
 - :class:`LearnedHybridPolicy`: heads 1 and 2 (the imitated flows of mode 1 and 2), switched by §3.3's hysteresis
   on the perception map's estimate `m = l(θ)` (the HyRL idea through the camera): the mode logic is the hybrid
   controller's own (:class:`pipeline.envs.policies.ArchitecturePolicy`), the velocity the network's.
+
+The network gives velocities in world units (:class:`pipeline.learned.network.VelocityPolicy`, trained on the
+expert's velocities); `act` hands the env its normalised action, that velocity over the env's `scale`
+(`env.core.scale`, issue 46), `velocity` the network's own output.
 """
 
 from __future__ import annotations
@@ -14,32 +18,38 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from pipeline.envs.core import to_action
 from pipeline.envs.policies import ArchitecturePolicy, frames
 from pipeline.errors import ConfigError
 
 
 class ImitatedPolicy:
+    """Head `head` of the network; `scale`: the env's (its action is `velocity / scale`)."""
+
     name = "imitated"
 
-    def __init__(self, model, head: int = 0):
-        self.model, self.head = model, head
+    def __init__(self, model, scale, head: int = 0):
+        self.model, self.head, self.scale = model, head, np.asarray(scale, dtype=float)
 
     def reset(self, obs, idx=None) -> None:
         pass
 
-    def act(self, obs, restarted=None) -> np.ndarray:
+    def velocity(self, obs, restarted=None) -> np.ndarray:
         return self.model.act(torch.from_numpy(np.ascontiguousarray(frames(obs))), self.head).double().numpy()
+
+    def act(self, obs, restarted=None) -> np.ndarray:
+        return to_action(self.velocity(obs, restarted), self.scale)
 
 
 class LearnedHybridPolicy(ArchitecturePolicy):
     """The mode by the hysteresis on the map's estimate; the velocity by the imitated flow of that mode."""
 
-    def __init__(self, model, perception_map, controller, plant, scene, period: float):
-        super().__init__(perception_map, controller, plant, scene, period, name="learned_hybrid")
+    def __init__(self, model, perception_map, controller, plant, scene, period: float, scale=None):
+        super().__init__(perception_map, controller, plant, scene, period, name="learned_hybrid", scale=scale)
         self.model = model
 
-    def act(self, obs, restarted=None) -> np.ndarray:
-        super().act(obs, restarted)  # the hybrid logic on the map's estimate (its mode jumps)
+    def velocity(self, obs, restarted=None) -> np.ndarray:
+        super().velocity(obs, restarted)  # the hybrid logic on the map's estimate (its mode jumps)
         q = torch.from_numpy(np.asarray(self.mode, dtype=np.int64))
         return self.model.act(torch.from_numpy(np.ascontiguousarray(frames(obs))), q).double().numpy()
 

@@ -3,7 +3,8 @@ environment (`python -m pipeline.learned.ppo`; docs/learned.md states the budget
 
 :class:`SB3VecEnv` adapts :class:`pipeline.envs.NavigateVectorEnv` (N agents in one batched plant and render call,
 same-step autoreset) to SB3's `VecEnv` interface (a list of per-agent infos, `terminal_observation` in the info of
-an agent that stopped, `TimeLimit.truncated` on the horizon). The trained model is written to
+an agent that stopped, `TimeLimit.truncated` on the horizon); its action space is the env's, `[-1, 1]` per
+component (the velocity in units of `u_max`, issue 46). The trained model is written to
 `outputs/models/ppo-<id>/` (id: this config and the code), with the learning curve (`curve.csv`: mean episode
 return and success per rollout).
 """
@@ -127,33 +128,58 @@ def run(cfg: DictConfig) -> dict:
 
 
 class PPONet(torch.nn.Module):
-    """`net(float NHWC frames in [0, 255]) -> (N, 2)`: the mean action of a stable-baselines3 PPO `CnnPolicy` (its
-    frames channel-first, scaled by the policy itself), clipped to `|u_i| <= u_max` as SB3 clips its actions."""
+    """`net(float NHWC frames in [0, 255]) -> (N, 2)`: the velocity (world units) of a stable-baselines3 PPO
+    `CnnPolicy`'s mean action (its frames channel-first, scaled by the policy itself), the mean clipped to the
+    model's action space as SB3 clips its actions; :meth:`action` is that clipped mean as the env's normalised
+    action. The env's action space is `[-1, 1]` (issue 46): the velocity is the action times `scale` (the env's,
+    `env.core.scale`). A model trained before (on the velocity, `Box(-u_max, u_max)`) acts in velocities: its
+    action is its clipped mean over `scale`, so its trajectories are the ones it had."""
 
-    def __init__(self, policy, u_max: float):
+    def __init__(self, policy, scale):
         super().__init__()
-        self.policy, self.u_max = policy, float(u_max)
+        space = policy.action_space
+        self.policy, self.in_velocity = policy, not np.allclose(space.high, 1.0)
+        self.register_buffer("low", torch.as_tensor(space.low, dtype=torch.float32), persistent=False)
+        self.register_buffer("high", torch.as_tensor(space.high, dtype=torch.float32), persistent=False)
+        self.register_buffer("scale", torch.as_tensor(np.asarray(scale, float), dtype=torch.float32),
+                             persistent=False)
 
-    def forward(self, x):
+    def mean(self, x):
+        """The policy's mean action clipped to its action space (SB3's deterministic action)."""
         obs = x.permute(0, 3, 1, 2)
         features = self.policy.extract_features(obs, self.policy.pi_features_extractor)
         mean = self.policy.action_net(self.policy.mlp_extractor.forward_actor(features))
-        return mean.clamp(-self.u_max, self.u_max)
+        return mean.clamp(self.low, self.high)
+
+    def action(self, x):
+        m = self.mean(x)
+        return m / self.scale if self.in_velocity else m
+
+    def forward(self, x):
+        m = self.mean(x)
+        return m if self.in_velocity else m * self.scale
 
 
 class PPOPolicy:
-    """The end-to-end policy PPO learned (`python -m pipeline.learned.ppo`): its deterministic (mean) action."""
+    """The end-to-end policy PPO learned (`python -m pipeline.learned.ppo`): its deterministic (mean) action, in
+    the env whose unit action is the velocity `scale` (`env.core.scale`)."""
 
     name = "ppo"
 
-    def __init__(self, model, u_max: float):
-        self.net = PPONet(model.policy, u_max).eval()
+    def __init__(self, model, scale):
+        self.net = PPONet(model.policy, scale).eval()
 
     def reset(self, obs, idx=None) -> None:
         pass
 
     @torch.no_grad()
     def act(self, obs, restarted=None) -> np.ndarray:
+        """The env's normalised action (SB3's `predict(obs, deterministic=True)`)."""
+        return self.net.action(torch.from_numpy(np.ascontiguousarray(obs)).float()).double().numpy()
+
+    @torch.no_grad()
+    def velocity(self, obs) -> np.ndarray:
+        """That action's velocity in world units (what the worst cloud pushes along `d`)."""
         return self.net(torch.from_numpy(np.ascontiguousarray(obs)).float()).double().numpy()
 
 

@@ -108,7 +108,8 @@ class PolicyWorstCloud:
 
 def run_policy(obj, policy, starts: np.ndarray, *, seed: int = 0, attack: PolicyAttack | PolicyWorstCloud | None = None,
                frames: int | None = None) -> dict:
-    """Every start's episode under `policy`: `outcome` (CLASSES), `time` (s, NaN unless reached), `paths`. The
+    """Every start's episode under `policy` (its `act`: the env's normalised actions, issue 46): `outcome`
+    (CLASSES), `time` (s, NaN unless reached), `paths`. The
     stall speed and window are the run's `sim` (:func:`pipeline.sim.simulator.stall_threshold`: `sim.stall_speed`,
     or `sim.stall_share` of the controller's `u_max` when it is null)."""
     stall_speed, stall_time = stall_threshold(obj.sim, obj.controller), obj.sim.stall_time
