@@ -35,7 +35,7 @@ def hydra_error(err: BaseException) -> ConfigError:
 
     text = str(err)
     if isinstance(err, MissingConfigException) and text.startswith("Cannot find primary config"):
-        return unknown_config(str(err.missing_cfg_file))
+        return unknown_config(str(err.missing_cfg_file), text)
     if isinstance(err, MissingConfigException) and err.missing_cfg_file:
         group, _, option = str(err.missing_cfg_file).rpartition("/")
         opts = f" (available: {', '.join(sorted(err.options))})" if err.options else ""
@@ -58,11 +58,12 @@ def hydra_error(err: BaseException) -> ConfigError:
     return ConfigError("overrides", " ".join(lines[:2]) if lines else type(err).__name__)
 
 
-def unknown_config(name: str) -> ConfigError:
-    """`--config-name` naming no config: the configs of conf/ (its top-level yaml files), the closest first."""
-    from pipeline.repo import CONF_DIR
+def unknown_config(name: str, text: str) -> ConfigError:
+    """`--config-name` naming no config: the configs of the search path's folders (Hydra's message lists them;
+    conf/'s top-level yaml files), the closest first."""
+    from pathlib import Path
 
-    names = sorted(p.stem for p in CONF_DIR.glob("*.yaml"))
+    names = sorted({p.stem for d in re.findall(r"path=file://(\S+)", text) for p in Path(d).glob("*.yaml")})
     close = difflib.get_close_matches(name, names, n=len(names), cutoff=0.6)
     return ConfigError("--config-name", f"unknown config {name!r}; the configs of conf/, the closest first: "
                                         f"{', '.join([*close, *(n for n in names if n not in close)])}")
