@@ -216,3 +216,32 @@ def test_the_stop_joins_the_inputs_from_the_loss_streak_that_can_trigger_it():
     for _ in range(40):
         drift += 0.1 * np.hypot(PERIOD * 10.0 * 0.6, PERIOD * 10.0 * 0.8)  # the simulator's sum, frame by frame
     assert LostFrames(40, True, PERIOD, 10.0).may_stop or not drift > 2.0
+
+
+def test_the_default_bracket_certificate_holds_in_the_simulator():
+    """`make bracket`'s own settings (conf/bracket.yaml: 1-unit cells at 45°, edges over 4 frames, the 30 s horizon),
+    the hybrid law at its largest default ε: 3 random accepted points of each of 30 certified start cells, run by
+    `pipeline.sim.simulate` under this file's error signals, reach the goal disc by their certified bound."""
+    from pipeline.bracket.stage import objects, start_cells
+    from pipeline.config import compose
+
+    scene, laws, bs, sim_cfg, camera, _, _, lost = objects(compose("bracket", []))
+    law, eps = laws["hybrid"], max(bs.eps)
+    n_frames = int(round(sim_cfg.horizon / camera.period))
+    cert = certify(law, Uniform(eps), h=bs.cell, angle=bs.angle, period=camera.period, goal_radius=bs.goal_radius,
+                   n_split=bs.n_split, window=bs.window, frames=bs.frames, horizon=n_frames, lost=lost["hybrid"])
+    starts = start_cells(scene, bs.start_cell)
+    ok, bound, _ = certified_starts(cert, starts)
+    assert ok.mean() > 0.3 and (bound[ok] <= n_frames).all()
+    rng = np.random.default_rng(12)
+    cells = np.repeat(rng.choice(np.flatnonzero(ok), 30, replace=False), 3)
+    lo, hi = starts[cells][:, [0, 2]], starts[cells][:, [1, 3]]
+    p0 = lo + rng.uniform(0, 1, (len(cells), 2)) * (hi - lo)
+    keep = ~in_diamond(scene, p0)
+    p0, cells = p0[keep], cells[keep]
+    sim = SimSettings(horizon=sim_cfg.horizon, delta=bs.goal_radius, record_every=1000)
+    res = simulate(scene, law, p0, sim=sim, camera=CameraSettings(period=camera.period),
+                   measure=_lossy_errors(len(p0), eps, 0, 5), record=False)
+    m = res.metrics
+    assert m["success"].all() and not m["collision"].any(), p0[~m["success"]]
+    assert (m["time_to_target"] <= bound[cells] * camera.period + 1e-9).all()
