@@ -182,3 +182,20 @@ def test_table_counts_map_certified_cells_the_clean_camera_loop_breaks():
     assert row["soundness: map-certified, κ_hi = 0"] == 2
     assert row["map ε̄: certified"] == "75% (2/2 behind)"
     assert "soundness: map-certified, κ_hi = 0" not in table(df.drop(columns="kappa_hi"), scene, [0.1], True)
+
+
+def test_table_counts_the_start_cells_the_bracket_leaves_open():
+    """`undecided at ε`: start cells neither certified at the largest ε nor falsified up to it (the bracket's open
+    share, issue 48's measure); cells without a start (wholly in the diamond) are counted apart, not in any share."""
+    from pipeline.bracket.stage import table
+    from pipeline.config import build
+
+    scene = build(compose("bracket").scene, "scene")
+    rows = [(0.5, np.inf, True), (np.nan, 0.25, True), (np.nan, np.inf, True), (0.25, np.inf, True),
+            (np.nan, np.nan, False)]
+    df = pd.DataFrame([{"controller": "hybrid", "x0": 20.0 + 5 * i, "x1": 25.0 + 5 * i, "y0": 10.0, "y1": 15.0,
+                        "start": s, "eps_lo": lo, "certified_map": False, "eps_hi": hi}
+                       for i, (lo, hi, s) in enumerate(rows)])
+    row = table(df, scene, [0.25, 0.5]).iloc[0]
+    assert row["undecided at ε=0.5"] == "50%"  # the uncertified-unfalsified one and the one certified only at 0.25
+    assert row["start cells"] == "4 (+1 in the diamond)"

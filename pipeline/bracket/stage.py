@@ -255,7 +255,8 @@ def camera_rows(loop: FrameLoop, pmap, bs, centres: np.ndarray, inside: np.ndarr
 
 def table(df: pd.DataFrame, scene, eps_list, with_map: bool = False) -> pd.DataFrame:
     """Per controller, over the start cells holding a start the simulator accepts (`start`; the others, inside the
-    diamond, are counted apart): certified share at each ε (within the horizon), falsified shares, behind the
+    diamond, are counted apart): certified share at each ε (within the horizon), falsified shares, the share still
+    undecided at the largest ε (neither certified at it nor falsified up to it), behind the
     obstacle (frame coordinate `a < -c`, `|b| < 15`), the median `ε_hi` on `K` (the row of cells centred on the axis
     behind); the certified arrival bound beside the nominal run's arrival (seconds, medians over certified cells)
     and the certified cells whose nominal run arrives later than the bound (a soundness bug); with a `kappa_hi`
@@ -275,6 +276,8 @@ def table(df: pd.DataFrame, scene, eps_list, with_map: bool = False) -> pd.DataF
             row[f"certified ε={eps:g}"] = f"{(g.eps_lo >= eps).mean():.0%}"
         for eps in eps_list:
             row[f"falsified ε<={eps:g}"] = f"{(g.eps_hi <= eps).mean():.0%}"
+        top_eps = max(eps_list)  # the bracket still open there: neither certified at it nor falsified up to it
+        row[f"undecided at ε={top_eps:g}"] = f"{(~(g.eps_lo >= top_eps) & ~(g.eps_hi <= top_eps)).mean():.0%}"
         bh = g[behind[g.index]]
         top = f" (ε_lo up to {bh.eps_lo.max():g})" if bh.eps_lo.notna().any() else ""
         row["behind: certified"] = f"{int(bh.eps_lo.notna().sum())}/{len(bh)}{top}"
