@@ -8,6 +8,7 @@ folder) and reports without rejecting: exit 0 with the list, also when the field
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -73,6 +74,8 @@ def run(cfg: DictConfig) -> dict:
         print(f"  {v.line}")
     rr = g["radii"]
     ana = analyse_field(g["centers"], rr, g["target"], starts=P, arena=g["arena"], h=h, u_max=u_max, T_s=T_s)
+    # rr are already the grown radii r_i + d: the analysis is the same, and it records (and prints) the d used
+    ana = dataclasses.replace(ana, inflation=g["inflation"])
     print("Feasible covering settings (uniform in the radius r_i" + (" + d" if g["inflation"] else "") + "):")
     print("  " + ana.summary().replace("\n", "\n  "))
     R = g["apex"] + math.sqrt(2.0) * g["reach"]

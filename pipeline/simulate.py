@@ -46,6 +46,16 @@ def objects(cfg: DictConfig):
     return scene, controller, disturbance, x0, kw
 
 
+def preset(group: str, default: str) -> str:
+    """The option chosen for the config group `group` (`controller=hybrid_dense`: "hybrid_dense") when this stage
+    runs as its own Hydra app (`python -m pipeline.simulate`), else `default`."""
+    from hydra.core.hydra_config import HydraConfig
+
+    if not HydraConfig.initialized() or HydraConfig.get().job.config_name != "simulate":
+        return default
+    return HydraConfig.get().runtime.choices.get(group) or default
+
+
 def check(cfg: DictConfig) -> tuple:
     """Preflight: build every object (no simulation); the run uses them."""
     return objects(cfg)
@@ -57,6 +67,8 @@ def run(cfg: DictConfig) -> dict:
     for line in steering_warnings(kw["plant"], controller):  # valid, but the unicycle cannot follow (SPEC §3.7)
         print(f"warning: {line}", file=sys.stderr)
     run_dir = Path(cfg.paths.output_dir)
+    name = preset("controller", controller.name)
+    name = name if name == controller.name else f"{name} ({controller.name})"
     t0 = time.perf_counter()
     result = simulate(scene, controller, x0, disturbance=disturbance, progress=len(x0) >= 1000, **kw)
     elapsed = time.perf_counter() - t0
@@ -68,11 +80,11 @@ def run(cfg: DictConfig) -> dict:
         from pipeline.viz import save, trajectory_figure  # matplotlib: not imported by the preflight
 
         fig = trajectory_figure(scene, result.p, result.metrics["success"], arena=scene.bounds,
-                                title=f"{controller.name} controller, disturbance {disturbance.name}, {kw['sim'].model}")
+                                title=f"{name} controller, disturbance {disturbance.name}, {kw['sim'].model}")
         save(fig, run_dir / "trajectories")
     med = df.time_to_target.dropna().median() if df.success.any() else float("nan")
     vehicle = f", {kw['plant'].name}" if kw["plant"].heading else ""
-    print(f"simulate ({kw['sim'].model}{vehicle}): {controller.name} / {disturbance.name}: {len(df)} agents, "
+    print(f"simulate ({kw['sim'].model}{vehicle}): {name} / {disturbance.name}: {len(df)} agents, "
           f"success {df.success.mean():.1%}, collision {df.collision.mean():.1%}, median time {med:.2f} s, "
           f"{elapsed:.2f} s -> {run_dir}")
     return {"metrics": df, "result": result, "run_dir": run_dir}

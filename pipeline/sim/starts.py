@@ -63,41 +63,63 @@ class Points:
         return _clear_of_diamonds(scene, np.asarray(self.points, dtype=float), f"{field_}.points")
 
 
+SHOWN_STARTS = 3  # violations of the start rule listed in full; the rest are counted by kind
+
+
 def _clear_of_diamonds(scene: Scene, pts: np.ndarray, name: str) -> np.ndarray:
-    """`pts`, after checking SPEC §3.6's start rule: every start outside every obstacle and every diamond."""
+    """`pts`, after checking SPEC §3.6's start rule: every start outside every obstacle and every diamond. One
+    ConfigError lists the first SHOWN_STARTS violations and counts all of them by kind (issue 45)."""
     inside = _in_obstacle(scene, pts)
-    if inside.any():
-        i = int(np.flatnonzero(inside)[0])
-        raise ConfigError(name, f"start {pts[i].tolist()} lies inside an obstacle")
     arr = scene.arrays
     rel = pts[:, None, :] - arr["center"][None]
     a = np.einsum("nmk,mk->nm", rel, arr["e_a"])
     b = np.einsum("nmk,mk->nm", rel, arr["e_b"])
-    hit = np.abs(a) + np.abs(b) <= arr["c"][None]
-    if hit.any():
-        k, i = (int(x[0]) for x in np.nonzero(hit))
-        raise ConfigError(name, f"start {pts[k].tolist()} lies inside obstacle {i}'s diamond |a| + |b| <= c = "
-                                f"{arr['c'][i]:.3g} (SPEC §3.6: every start outside every diamond); move it or "
-                                f"shrink scene.obstacles[{i}].apex")
-    return pts
+    hit = (np.abs(a) + np.abs(b) <= arr["c"][None]) & ~inside[:, None]
+    if not (inside.any() or hit.any()):
+        return pts
+
+    def at(k) -> str:
+        return f"start {k} ({pts[k, 0]:.4g}, {pts[k, 1]:.4g})"
+
+    lines = [(k, f"{at(k)} lies inside an obstacle") for k in np.flatnonzero(inside)]
+    lines += [(k, f"{at(k)} lies inside obstacle {i}'s diamond |a| + |b| <= c = {arr['c'][i]:.3g}")
+              for k, i in zip(*np.nonzero(hit))]
+    lines.sort(key=lambda x: x[0])
+    n_obs, n_dia = int(inside.sum()), int(hit.sum())
+    more = f"; ... and {len(lines) - SHOWN_STARTS} more" if len(lines) > SHOWN_STARTS else ""
+    first = int(np.nonzero(hit)[1][0]) if n_dia else 0
+    fix = f"; move them or shrink scene.obstacles[{first}].apex" if n_dia else "; move them"
+    raise ConfigError(name, f"{len(lines)} start-rule violation(s) ({n_obs} inside an obstacle, {n_dia} inside a "
+                            f"diamond; SPEC §3.6: every start outside every obstacle and every diamond): "
+                            + "; ".join(line for _, line in lines[:SHOWN_STARTS]) + more + fix)
 
 
 @checked("init")
 @dataclass(frozen=True)
 class Circle:
     """`n` starts evenly spaced on the circle of `radius` about `center` (null: the target), from angle `phase`
-    (radians): the hybrid-RL benchmark's starts (radius 7 about the goal). Every start must lie outside every
-    diamond (SPEC §3.6)."""
+    (radians): the hybrid-RL benchmark's starts (radius 7 about the goal). `angles` `[from, to]` (degrees, a span
+    of at most 360, both ends included) puts them on that arc instead (from `phase` + from); null: the full circle.
+    Every start must lie outside every diamond (SPEC §3.6)."""
 
     n: PositiveInt = 100
     radius: Positive = 7.0
     center: Pair | None = None
     phase: float = 0.0
+    angles: Interval | None = None
+
+    def __post_init__(self):
+        if self.angles is not None and self.angles[1] - self.angles[0] > 360.0:
+            raise ConfigError("init.angles", f"the arc {list(self.angles)} spans more than 360 degrees")
 
     def on_circle(self, target) -> np.ndarray:
         """The starts `(n, 2)` about `center` (null: `target`), before the start rule is checked."""
         c = np.asarray(target if self.center is None else self.center, dtype=float)
-        th = self.phase + 2.0 * np.pi * np.arange(self.n) / self.n
+        if self.angles is None:
+            th = self.phase + 2.0 * np.pi * np.arange(self.n) / self.n
+        else:
+            lo, hi = np.radians(np.asarray(self.angles, dtype=float))
+            th = self.phase + lo + (hi - lo) * np.arange(self.n) / max(self.n - 1, 1)
         return c + self.radius * np.stack([np.cos(th), np.sin(th)], axis=1)
 
     def __call__(self, scene: Scene, field_: str = "init") -> np.ndarray:
