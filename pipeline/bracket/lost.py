@@ -25,6 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.bracket.abstraction import dilate
+
 
 @dataclass(frozen=True)
 class LostFrames:
@@ -78,5 +80,5 @@ class Stale:
     def __call__(self, points, boxes=None, frame=None):
         if boxes is None:
             raise ValueError("a stale bound needs the grid cells")
-        grown = boxes + self.reach * np.array([-1.0, 1.0, -1.0, 1.0])
+        grown = dilate(boxes, np.full(len(boxes), self.reach))
         return self.inner(points, boxes=grown, frame=frame) + self.add
