@@ -21,6 +21,11 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
+from pipeline import tracking
+from pipeline.config import compose
+from pipeline.errors import PipelineError
+from pipeline.identity import certify_id
+from pipeline.lineage import errormap_identity, expected_map_id
 from pipeline.repo import REPO_ROOT
 
 CONFIGS = ("paper", "multi")  # the configs of `make paper` and `make multi`
@@ -64,12 +69,6 @@ def _derived_ids(cfg, name: str, map_id: str, overrides: list[str]) -> dict[str,
     """{id: kind} of the error map and certified error map `cfg` (a paper config; `overrides` join each stage's,
     as the paper job passes its own on) makes of the map `name-map_id`, where that map is built (their ids hash its
     manifest); empty when it is not."""
-    from pipeline import tracking
-    from pipeline.config import compose
-    from pipeline.errors import PipelineError
-    from pipeline.identity import certify_id
-    from pipeline.lineage import errormap_identity
-
     folder = Path(cfg.paths.models_dir) / f"{name}-{map_id}"
     if not (folder / tracking.MANIFEST).is_file():
         return {}
@@ -93,9 +92,6 @@ def expected_ids(configs: Iterable[str] = CONFIGS, overrides: Iterable[str] = ()
     config: the map's id as `python -m pipeline.paper --config-name <config>` computes it before training (`paper's
     map`), and its error map's and certified error map's where it is built (`paper's error map`). `overrides`
     (`paths.*`, `debug=<level>`) join the paper config and each stage's, as the paper job passes its own on."""
-    from pipeline.config import compose
-    from pipeline.lineage import expected_map_id
-
     overrides = list(overrides)
     out: dict[str, dict[str, str]] = {}
     for config in configs:

@@ -4,21 +4,31 @@ valid (apex / barrier reach factors, the largest cell hysteresis), instead of th
 
 It reads the same config as `python -m pipeline.simulate` (the `fieldcheck` config is `simulate` with its own run
 folder) and reports without rejecting: exit 0 with the list, also when the field is invalid.
+
+`write=FILE` (issue 45): a covering from the discs alone. It writes the scene (the same discs, target, arena and
+barrier) with the largest covering V1–V3 and the starts admit for the loop it will run in (`controller.u_max`,
+`controller.cell_hysteresis`, `camera.period`, the vehicle's look-ahead), uniform in the radius: apex
+`f (r_i + d)`, reach `g (r_i + d)` with `f + sqrt(2) g = sqrt(2) + (1 - write_margin) (kappa_max - sqrt(2))`, the
+headroom split evenly between apex and reach (the apex capped by the starts), checked by SPEC §3.6's rules before
+anything is written. Where no covering exists: one line naming the pair of discs (or the disc and the target, or
+the start) that makes every covering impossible and by how much, exit 2.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+from pathlib import Path
 
 import numpy as np
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from pipeline import tracking
 from pipeline.cli import stage_main
 from pipeline.config import build
-from pipeline.control.fields import analyse_field
+from pipeline.control.fields import SQRT2, FieldAnalysis, analyse_field
 from pipeline.control.validity import field_violations
+from pipeline.errors import ConfigError
 from pipeline.sim import starts
 
 
@@ -85,7 +95,69 @@ def run(cfg: DictConfig) -> dict:
         h_max = float(np.min(np.hypot(*(g["centers"][ii] - g["centers"][jj]).T) - R[ii] - R[jj] - step))
         print(f"Largest cell hysteresis h with this covering (V2, V3): {h_max:.4g}"
               + ("" if h_max > 0 else " (none: shrink the covering first)"))
-    return {"violations": found, "analysis": ana}
+    out = {"violations": found, "analysis": ana}
+    if cfg.get("write"):
+        out["written"] = write_covering(cfg, g, ana, P, h=h, u_max=u_max, T_s=T_s)
+    return out
+
+
+def impossible(g: dict, ana: FieldAnalysis, P) -> ConfigError:
+    """The one line of a field no covering admits: what binds (a pair of discs, a disc and the target, a start)
+    and by how much (world units)."""
+    rr = g["radii"]
+    if ana.start_apex_max <= SQRT2 and ana.start_apex.size:
+        k, i = np.unravel_index(int(np.argmin(ana.start_apex)), ana.start_apex.shape)
+        short = (SQRT2 - ana.start_apex_max) * rr[i]
+        return ConfigError(f"init.points[{k}]", f"start {np.round(P[k], 3).tolist()} lies within the smallest diamond "
+                                                f"of scene.obstacles[{i}] (apex sqrt(2) (r + d)): every covering "
+                                                f"contains it; move it {short:.3g} further out")
+    field, cond = ana.kappa_binding
+    if cond == "V1":
+        i = int(np.argmin(ana.target_kappa))
+        short = (SQRT2 - ana.kappa_max) * rr[i]
+        return ConfigError(field, f"the target is {np.hypot(*(g['target'] - g['centers'][i])):.3g} from this disc "
+                                  f"(r + d = {rr[i]:.3g}): every covering holds it (V1 needs more than sqrt(2) (r + d));"
+                                  f" short by {short:.3g}")
+    i, j = (int(x) for x in ana.pairs[0])
+    need = ana.pair_distance[0] + (SQRT2 - ana.pair_kappa[0]) * (rr[i] + rr[j])
+    return ConfigError(field, f"discs {i} and {j} are {ana.pair_distance[0]:.4g} apart; every covering needs more "
+                              f"than {need:.4g} ({cond}: h + 2 u_max T_s + sqrt(2) (r_i + r_j + 2 d)): short by "
+                              f"{need - ana.pair_distance[0]:.3g}")
+
+
+def write_covering(cfg: DictConfig, g: dict, ana: FieldAnalysis, P, *, h, u_max, T_s) -> str:
+    """The scene with the largest uniform covering the field admits, written to `cfg.write` (module docstring)."""
+    margin = float(cfg.get("write_margin", 0.1))
+    if not 0.0 < margin < 1.0:
+        raise ConfigError("write_margin", f"the share of the headroom kept back must be in (0, 1), got {margin!r}")
+    if not ana.feasible:
+        raise impossible(g, ana, P)
+    kappa = SQRT2 + (1.0 - margin) * (ana.kappa_max - SQRT2)
+    f = min(SQRT2 + 0.5 * (kappa - SQRT2), SQRT2 + (1.0 - margin) * (ana.start_apex_max - SQRT2))
+    reach_f = (kappa - f) / SQRT2
+    rr, d = g["radii"], g["inflation"]
+    bad = field_violations(g["centers"], rr, g["target"], apex=f * rr, reach=reach_f * rr, h=h, u_max=u_max, T_s=T_s,
+                           arena=g["arena"], starts=P)
+    if bad:  # the analysis and the rules disagree: nothing is written
+        raise ConfigError(bad[0].field, f"the covering apex {f:.4g} (r + d), reach {reach_f:.4g} (r + d) still "
+                                        f"violates: {bad[0].message}")
+    node = tracking.to_plain(cfg.scene)
+    rho = float((node.get("barrier") or {}).get("rho", 0.5))
+    r0 = rr - d  # written for the scene's own radii: the unicycle's steering grows apex and reach by (r + d) / r
+    node["obstacles"] = [{"center": [float(x) for x in c], "radius": float(r), "apex": round(float(f * r), 6),
+                          "barrier_scale": round(float(reach_f * r / math.sqrt(rho)), 6)}
+                         for c, r in zip(g["centers"], r0)]
+    node.setdefault("barrier", {})["scale"] = None
+    node["name"] = f"{node.get('name', 'scene')}_covered"
+    path = Path(str(cfg.write))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    header = (f"# Written by python -m pipeline.fieldcheck write={path}: apex {f:.4f} (r + d), reach {reach_f:.4f} "
+              f"(r + d), d = {d:g}\n# (kappa {kappa:.4f} of the admitted sup {ana.kappa_max:.4f}; h = {h:g}, u_max = "
+              f"{u_max}, T_s = {T_s}). Use it with scene=<this file's name> from conf/scene/ or +scene=...\n")
+    path.write_text(header + OmegaConf.to_yaml(OmegaConf.create(node)))
+    print(f"Wrote the covered scene to {path} (apex {f:.4f} (r + d), reach {reach_f:.4f} (r + d), kappa {kappa:.4f} "
+          f"< {ana.kappa_max:.4f}); 0 violations")
+    return str(path)
 
 
 main = stage_main("fieldcheck", run="pipeline.fieldcheck:run")

@@ -21,6 +21,7 @@ from pathlib import Path
 
 from pipeline.errors import PipelineError
 from pipeline.profiling import ENV as PROFILE_ENV
+from pipeline.repo import REPO_ROOT
 
 TAIL_LINES = 25  # lines of a failed job's log printed with its failure
 
@@ -87,8 +88,6 @@ def run_jobs(jobs: list[Job], *, workers: int, tag: str, stop: bool, log_dir: Pa
     """Run `jobs`, `workers` at a time (longest first by `order`: label -> expected seconds). A failure prints
     its log's tail and raises `PipelineError` (`stop`: the other running jobs are ended first) or is returned.
     Ctrl-C reaches every job (each says so in one line) and ends the run with exit code 130."""
-    from pipeline.cli import REPO_ROOT
-
     order = order or {}
     queue = deque(sorted(jobs, key=lambda j: -order.get(j.label, 0.0)))
     parallel = workers > 1 and len(jobs) > 1

@@ -124,19 +124,14 @@ def resolve_dataset(ref, datasets_dir, overrides=(), check: bool = True) -> Path
 
 
 # ------------------------------------------------------------------------------------- perception maps
-def map_identity(cfg) -> tuple[str, str]:
-    """(name, id) of the map a composed train config trains."""
-    ds_name, ds_id = train_dataset_id(cfg)
-    return identity.map_identity(tracking.to_plain_lenient(cfg), ds_name, ds_id)
-
-
 def expected_map_id(name: str, overrides=()) -> str | None:
     """Id of the map `map_command(name) [overrides]` trains (None: no config makes `name`)."""
     made_by = map_recipe(name)
     if made_by is None:
         return None
     recipe, extra = made_by
-    model_name, id_ = map_identity(compose("train", [f"data={recipe}", *extra, *overrides]))
+    cfg = compose("train", [f"data={recipe}", *extra, *overrides])
+    model_name, id_ = identity.map_identity(tracking.to_plain_lenient(cfg), *train_dataset_id(cfg))
     return id_ if model_name == name else None
 
 
@@ -189,6 +184,29 @@ def resolve_errormap(ref, errormaps_dir, map_folder: Path | None = None, overrid
         return tracking.check_intact(folder, "error map", f"{command} force=true")
     return tracking.resolve(Path(errormaps_dir), ref, kind="error map", command=COMMANDS["error map"],
                             field="errormaps")
+
+
+# ------------------------------------------------------------------------------------------- PPO models
+# Here, not in pipeline.learned.ppo (torch and stable-baselines3 at import): the paper job and the learned stage's
+# preflight compute a PPO model's id without them.
+PPO_CODE = ("envs", "learned/ppo", "learned/spec")
+
+
+def ppo_identity(cfg) -> str:
+    """Id of the PPO model a composed ppo config trains (`python -m pipeline.learned.ppo`): its settings, the scene,
+    the reward, the clouds and the code."""
+    return tracking.content_id(tracking.to_plain(cfg.ppo), tracking.to_plain(cfg.scene), tracking.to_plain(cfg.env),
+                               tracking.to_plain(cfg.occlusion), tracking.code_version(*PPO_CODE))
+
+
+def ppo_folder(ref, models_dir, field: str = "policies.ppo") -> Path:
+    """A trained PPO model's folder (outputs/models/ppo-<id>: path, name-id, id; `ppo`: the one the current
+    conf/ppo.yaml makes)."""
+    def expected(name: str) -> str | None:
+        return ppo_identity(compose("ppo", [f"paths.models_dir={Path(models_dir).resolve()}"])) if name == "ppo" else None
+
+    return tracking.resolve(Path(models_dir), ref, kind="PPO policy", field=field,
+                            command="python -m pipeline.learned.ppo", expected=expected)
 
 
 # ------------------------------------------------------------------------------------------------ lock

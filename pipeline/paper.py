@@ -23,18 +23,25 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from pipeline import tracking
+from pipeline.bracket.stage import bracket_id
+from pipeline.bracket.stage import objects as bracket_objects
 from pipeline.cli import CONF_DIR, stage_main
 from pipeline.config import build, compose, settings
 from pipeline.errors import ConfigError, PipelineError
+from pipeline.experiments import checks as experiment_checks  # not `inputs_read` here: stage_main reads it
 from pipeline.experiments.report import write_index
-from pipeline.identity import certify_id
+from pipeline.identity import certify_id, map_identity
 from pipeline.jobs import Job, run_jobs
+from pipeline.learned.evaluate import inputs as learned_inputs
+from pipeline.learned.evaluate import learned_id
+from pipeline.learned.imitate import identity as imitation_id
 from pipeline.lineage import (
     dataset_identity,
     debug_overrides,
     expected_errormap_id,
-    map_identity,
     map_recipe,
+    ppo_identity,
+    train_dataset_id,
     write_lock,
 )
 from pipeline.paper_profile import Runner
@@ -121,12 +128,10 @@ def experiment_pins(experiments_cfg, map_refs: dict[str, str], em_refs: dict[str
 def experiment_jobs(experiments: list[str], pins: list[str], paths: list[str], rest: list[str]) -> list[Job]:
     """One experiments job per experiment, with the pins of the inputs it reads only (the stage rejects an
     override that its experiment never reads: :func:`pipeline.experiments.checks.inputs_read`)."""
-    from pipeline.experiments.checks import inputs_read
-
     jobs = []
     for exp in experiments:
         try:
-            read = inputs_read(compose("experiments", [f"experiment={exp}", *paths, *rest], check=False))[1]
+            read = experiment_checks.inputs_read(compose("experiments", [f"experiment={exp}", *paths, *rest], check=False))[1]
         except PipelineError:  # the job says what is wrong
             read = {}
         kept = [p for p in pins if (k := p.split("=", 1)[0].split("."))[0] not in read or k[1] in read[k[0]]]
@@ -206,9 +211,12 @@ def run(cfg) -> dict:
         return {n: ds_root / f"{n}-{dataset_identity(compose('data', [f'data={n}', *paths, *args['data']]))[1]}"
                 for n in datasets}
 
+    def map_folder(name: str) -> Path:
+        c = compose("train", [f"data={map_recipe(name)[0]}", *map_recipe(name)[1], *paths, *args["train"]])
+        return models_root / "-".join(map_identity(tracking.to_plain_lenient(c), *train_dataset_id(c)))
+
     def map_folders():
-        return {n: models_root / "-".join(map_identity(compose("train", [f"data={map_recipe(n)[0]}", *map_recipe(n)[1],
-                                                                         *paths, *args["train"]]))) for n in maps}
+        return {n: map_folder(n) for n in maps}
 
     def errormap_folders():
         return {n: Path(cfg.paths.errormaps_dir) / "-".join(expected_errormap_id(
@@ -277,8 +285,6 @@ def _bracket(cfg, tunings, paths, args, lock, runner) -> dict[str, Path]:
     uniform ε and, where `bracket_map` names a certified map, with its certified error map (pinned by id); not started
     when every output the current config makes is there. Each table and figure is copied into the paper folder
     (`tab_bracket_<tuning>.md`, `fig_bracket_<tuning>.png`)."""
-    from pipeline.bracket.stage import bracket_id, objects
-
     paths = [p for p in paths if not p.startswith("debug=")]  # the bracket's small sizes are args.bracket
     pin = [f"bracket.error_map={lock['certified'][cfg.bracket_map].name}"] if cfg.get("bracket_map") else []
     argv = {t: [f"tuning={t}", *pin, *paths, *args["bracket"]] for t in tunings}
@@ -287,7 +293,7 @@ def _bracket(cfg, tunings, paths, args, lock, runner) -> dict[str, Path]:
         out = {}
         for t, a in argv.items():
             c = compose("bracket", a)
-            _, _, bs, _, _, emap, cam, _ = objects(c)
+            _, _, bs, _, _, emap, cam, _ = bracket_objects(c)
             out[t] = Path(c.paths.bracket_dir) / f"bracket-{bracket_id(c, bs, emap, cam)[0]}"
         return out
 
@@ -321,10 +327,6 @@ def _learned(cfg, configs, paths, args, map_refs, runner) -> dict[str, Path]:
     the comparison with every map and network pinned; each not started when what its current config makes is
     there. The comparison's table and
     figure are copied into the paper folder (`tab_learned.md`, `fig_learned_switching_set.png`)."""
-    from pipeline.learned.evaluate import inputs, learned_id
-    from pipeline.learned.imitate import identity
-    from pipeline.learned.ppo import ppo_identity
-
     paths = [p for p in paths if not p.startswith("debug=")]  # their tiny sizes are args (conf/debug/paper/)
     ppo = "ppo" in configs
     configs = [c for c in configs if c != "ppo"]
@@ -334,7 +336,7 @@ def _learned(cfg, configs, paths, args, map_refs, runner) -> dict[str, Path]:
 
     argv = {c: [*trunk_pin(c), *paths, *args["imitate"]] for c in configs}
     composed = {c: compose(c, a) for c, a in argv.items()}
-    policies = {c: Path(k.paths.models_dir) / f"{k.name}-{identity(k)}" for c, k in composed.items()}
+    policies = {c: Path(k.paths.models_dir) / f"{k.name}-{imitation_id(k)}" for c, k in composed.items()}
     jobs = [Job("imitate", ["--config-name", c, *a], f"imitate {c}", module="pipeline.learned.imitate")
             for c, a in argv.items()]
     if ppo:
@@ -352,7 +354,7 @@ def _learned(cfg, configs, paths, args, map_refs, runner) -> dict[str, Path]:
 
     def comparison() -> dict[str, Path]:
         k = compose("learned", learned_argv)
-        folders = inputs(k, build(k.learned, "learned"))
+        folders = learned_inputs(k, build(k.learned, "learned"))
         return {"comparison": Path(k.paths.outputs_dir) / "learned" / f"learned-{learned_id(k, folders)}"}
 
     found = up_to_date("learned", comparison)

@@ -156,10 +156,32 @@ def test_pixel_attack_through_the_folded_perception_net(camera, positions):
     assert np.all(res_m.along > 0)
 
 
+def test_pixel_attack_takes_a_budget_per_image(camera, positions):
+    """One PGD (issue 47, the camera falsifier's): a budget per image is each image attacked alone with its own
+    budget, and a constant one is the scalar budget, bit for bit."""
+    imgs, d, net = camera.render(positions), directions(positions), Centroid(thr=100.0)
+    one = pixel_attack(net, imgs, d, kappa=4, steps=3, rng=np.random.default_rng(3))
+    same = pixel_attack(net, imgs, d, kappa=np.full(len(imgs), 4.0), steps=3, rng=np.random.default_rng(3))
+    for a, b in ((one.images, same.images), (one.clean, same.clean), (one.attacked, same.attacked)):
+        np.testing.assert_array_equal(a, b)
+    kappa = np.array([0.0, 0.9, 2.0, 6.0, 12.0, 3.0, 1.0, 0.0, 16.0, 5.0, 4.0, 7.0])
+    res = pixel_attack(net, imgs, d, kappa=kappa, steps=3, batch_size=5)
+    for i in range(len(imgs)):
+        alone = pixel_attack(net, imgs[i:i + 1], d[i:i + 1], kappa=kappa[i], steps=3)
+        np.testing.assert_array_equal(res.images[i], alone.images[0])
+        np.testing.assert_allclose(res.attacked[i], alone.attacked[0], atol=1e-9)
+    moved = np.abs(res.images.astype(int) - imgs.astype(int)).max((1, 2, 3))
+    assert (moved <= np.floor(kappa)).all() and (moved[kappa >= 2] > 0).all() and (res.along >= 0).all()
+
+
 def test_pixel_attack_validates_its_budget(camera, positions):
     imgs = camera.render(positions[:2])
     with pytest.raises(ConfigError, match="attack.kappa"):
         pixel_attack(Centroid(), imgs, E_B, kappa=-1)
+    with pytest.raises(ConfigError, match=r"attack.kappa\[1\]: must be a number in \[0, 255\], got 300"):
+        pixel_attack(Centroid(), imgs, E_B, kappa=np.array([1.0, 300.0]))
+    with pytest.raises(ValueError, match=r"kappa must be one budget or one per image \(2,\), got shape \(3,\)"):
+        pixel_attack(Centroid(), imgs, E_B, kappa=np.ones(3))
     with pytest.raises(ValueError, match="direction"):
         pixel_attack(Centroid(), imgs, np.zeros((3, 2)), kappa=1)
 

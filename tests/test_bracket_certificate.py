@@ -113,8 +113,8 @@ def test_face_aligned_certificate_is_sound_and_reads_a_cell_table(tmp_path):
     starts exist, and the adversaries at the table's largest bound break none of them."""
     import pandas as pd
 
+    from pipeline.bracket.bounds import CellTable
     from pipeline.bracket.certify_loop import certified_starts, certify
-    from pipeline.bracket.errors import CellTable
 
     xs, ys = np.arange(-50, 50, 5.0), np.arange(-30, 30, 5.0)
     X, Y = np.meshgrid(xs, ys, indexing="ij")
@@ -136,7 +136,7 @@ def test_face_aligned_certificate_is_sound_and_reads_a_cell_table(tmp_path):
 def test_cell_table_bad_input_names_the_field(tmp_path):
     import pandas as pd
 
-    from pipeline.bracket.errors import CellTable
+    from pipeline.bracket.bounds import CellTable
     from pipeline.errors import ConfigError
 
     pd.DataFrame({"x0": [0.0], "x1": [1.0], "y0": [0.0]}).to_csv(tmp_path / "t.csv", index=False)

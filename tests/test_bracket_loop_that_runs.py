@@ -15,9 +15,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pipeline.bracket.abstraction import Abstraction, Grid
+from pipeline.bracket.bounds import Uniform
 from pipeline.bracket.certify_loop import certified_starts, certify
 from pipeline.bracket.enclosures import DIRS
-from pipeline.bracket.errors import Uniform
 from pipeline.bracket.lost import LostFrames
 from pipeline.bracket.winning import win
 from pipeline.control import HybridController, Scene, SmoothController, in_diamond

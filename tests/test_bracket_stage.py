@@ -126,7 +126,7 @@ def test_several_error_maps_give_the_smallest_bound_per_cell(tmp_path):
     the refined bound, one the region covers only in part keeps the whole table's; two maps' tables are refused."""
     from types import SimpleNamespace
 
-    from pipeline.bracket.errors import Finest
+    from pipeline.bracket.bounds import Finest
     from pipeline.bracket.stage import error_map
 
     whole = _certify_output(tmp_path / "c" / "m-aaa", "m1", [[x, x + 1, y, y + 1, 2.0] for x in range(-4, 4)

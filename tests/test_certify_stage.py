@@ -42,7 +42,7 @@ def test_certify_tiny_end_to_end(tiny_maps, tmp_path):
     assert np.all(cells["eps_0"][cells["operational"]] >= emp)  # the bound holds the sampled maximum
     assert np.all(cells["eps_1"][cells["operational"]] >= cells["eps_0"][cells["operational"]] - 1e-6)
     assert s["margin_c_minus_r"] == pytest.approx(2 * np.sqrt(2) * 4 - 4)
-    from pipeline.bracket.errors import CellTable
+    from pipeline.bracket.bounds import CellTable
 
     for k in s["kappas"]:  # the cell table the bracket reads (bracket.error_map=<this folder>: kappa 0's)
         t = np.loadtxt(folder / f"error_map_kappa{k}.csv", delimiter=",", skiprows=1)

@@ -67,8 +67,10 @@ def test_a_current_id_a_stale_one_and_a_table_without_provenance_are_told_apart(
 
 
 def test_every_map_make_paper_and_make_multi_train_gets_the_id_the_paper_job_computes():
+    from pipeline import tracking
     from pipeline.config import compose
-    from pipeline.lineage import map_identity, map_recipe
+    from pipeline.identity import map_identity
+    from pipeline.lineage import map_recipe, train_dataset_id
 
     expected = expected_ids()
     for config in ("paper", "multi"):
@@ -76,7 +78,8 @@ def test_every_map_make_paper_and_make_multi_train_gets_the_id_the_paper_job_com
         for name in cfg["maps"]:
             recipe, extra = map_recipe(name)
             train = [*((cfg.get("args") or {}).get("train") or [])]
-            assert map_identity(compose("train", [f"data={recipe}", *extra, *train])) == \
+            tcfg = compose("train", [f"data={recipe}", *extra, *train])
+            assert map_identity(tracking.to_plain_lenient(tcfg), *train_dataset_id(tcfg)) == \
                 (name, _map_id(expected, name, config))
 
 

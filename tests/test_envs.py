@@ -8,9 +8,9 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import pipeline.envs as envs
-from pipeline.envs.core import ARRIVED, COLLIDED
 from pipeline.envs.policies import ArchitecturePolicy, RandomPolicy
 from pipeline.errors import ConfigError
+from pipeline.sim.metrics import Outcome
 
 
 class CentroidMap:
@@ -135,13 +135,13 @@ def test_trajectories_equal_the_simulators_for_the_same_policy(scene):
         if ended.all():
             break
     p = np.array(p)
-    assert (code == ARRIVED).sum() >= 5
-    np.testing.assert_array_equal(code == ARRIVED, res.metrics["success"])
-    np.testing.assert_array_equal(code == COLLIDED, res.metrics["collision"])
+    assert (code == Outcome.REACHED).sum() >= 5
+    np.testing.assert_array_equal(code == Outcome.REACHED, res.metrics["success"])
+    np.testing.assert_array_equal(code == Outcome.COLLIDED, res.metrics["collision"])
     t_env = np.argmax((p[:, :, 0] - 40.0) ** 2 + p[:, :, 1] ** 2 <= 1.0, axis=0)  # frames to arrival
-    for a in np.flatnonzero(code == ARRIVED):
-        k = t_env[a]  # the frames before the arrival frame are the simulator's, to rounding
-        np.testing.assert_allclose(p[:k, a], res.p[:k, a], atol=1e-9)
+    for a in np.flatnonzero(code == Outcome.REACHED):
+        k = t_env[a]  # every frame up to the arrival frame is the simulator's (one frame engine), to rounding
+        np.testing.assert_allclose(p[:k + 1, a], res.p[:k + 1, a], atol=1e-9)
         assert abs(k * venv.core.period - res.metrics["time_to_target"][a]) < venv.core.period
 
 
@@ -155,7 +155,7 @@ def test_random_agent_and_the_hybrid_policy_through_gymnasium_make():
         total, n = total + r, n + 1
         if term or trunc:
             break
-    assert info["outcome"] in ("arrived", "collided", "left_view", "truncated") and np.isfinite(total)
+    assert info["outcome"] in ("reached", "collided", "left_view", "timed_out") and np.isfinite(total)
     o = env.unwrapped.objects
     policy = ArchitecturePolicy(CentroidMap(o.camera), o.controller, o.plant, o.scene, env.unwrapped.core.period)
     obs, info = env.reset(seed=1, options={"start": [-12.0, 2.0]})
@@ -165,7 +165,7 @@ def test_random_agent_and_the_hybrid_policy_through_gymnasium_make():
         total += r
         if term or trunc:
             break
-    assert info["outcome"] == "arrived" and info["is_success"]
+    assert info["outcome"] == "reached" and info["is_success"]
     # the shaped reward: progress telescopes to the distance gained, plus the arrival bonus
     assert total == pytest.approx(d0 - info["distance"] + o.settings.arrival)
 

@@ -314,3 +314,18 @@ def test_a_failed_atomic_write_leaves_the_file_as_it_was(tmp_path):
     with pytest.raises(TypeError):
         write_atomic(target, None)  # the write itself fails
     assert target.read_text() == "before" and [p.name for p in tmp_path.iterdir()] == ["index.md"]
+
+
+def test_a_node_read_but_not_in_the_cache_key_is_an_error(tmp_path, monkeypatch):
+    """Issue 47: the experiments' cache keys come from each scenario's `uses()`; the stage checks that the
+    computation read nothing else (a node read and not keyed would let a changed node reuse a stale result)."""
+    from pipeline.experiments.paper.camera_loop import NoiseFailure
+    from pipeline.experiments.stage import run
+
+    def no_controllers(self):
+        return {"controllers": [], "disturbances": [], "occlusions": []}
+
+    monkeypatch.setattr(NoiseFailure, "uses", no_controllers)
+    with pytest.raises(RuntimeError, match=r"read controllers\.hybrid.*uses\(\)"):
+        run(_cfg(tmp_path, "experiment=noise_failure", "perception=oracle"))
+    assert not list((tmp_path / "out" / "experiments").glob("noise_failure-*"))  # nothing stored under the key

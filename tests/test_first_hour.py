@@ -426,7 +426,9 @@ def test_make_experiments_runs_the_experiments_make_paper_builds_inputs_for():
 
 # ----------------------------------------------------------------------------------- debug=tiny (item 1)
 def test_debug_tiny_shrinks_every_stage_and_each_finds_the_tiny_upstream_by_id():
-    from pipeline.lineage import dataset_identity, expected_dataset_id, expected_map_id, map_identity
+    from pipeline import tracking
+    from pipeline.identity import map_identity
+    from pipeline.lineage import dataset_identity, expected_dataset_id, expected_map_id, train_dataset_id
 
     data = compose("data", ["data=occluded", "debug=tiny"])
     train = compose("train", ["data=occluded", "debug=tiny"])
@@ -434,7 +436,7 @@ def test_debug_tiny_shrinks_every_stage_and_each_finds_the_tiny_upstream_by_id()
     assert dataset_identity(data)[1] == dataset_identity(train)[1] == expected_dataset_id("occluded", ["debug=tiny"])
     assert dataset_identity(data)[1] != expected_dataset_id("occluded")
     assert train.trainer.max_epochs == 1 and compose("train").trainer.max_epochs > 1
-    assert map_identity(train)[1] == expected_map_id("occluded", ["debug=tiny"]) != expected_map_id("occluded")
+    assert map_identity(tracking.to_plain_lenient(train), *train_dataset_id(train))[1] == expected_map_id("occluded", ["debug=tiny"]) != expected_map_id("occluded")
     em = compose("errormap", ["debug=tiny"])
     assert em.grid.step > compose("errormap").grid.step and em.train_samples < 1000
     exp = compose("experiments", ["experiment=hysteresis_margin", "debug=tiny"])

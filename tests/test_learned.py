@@ -8,12 +8,12 @@ import pytest
 import torch
 
 import pipeline.envs as envs
-from pipeline.envs.core import ARRIVED
 from pipeline.learned.expert import Expert, mode_flows
 from pipeline.learned.network import HEADS, VelocityPolicy
 from pipeline.learned.policies import ImitatedPolicy, LearnedHybridPolicy
 from pipeline.learned.rollouts import HeadNet, PolicyAttack, run_policy
 from pipeline.perception.adversary import proposition1_direction
+from pipeline.sim.metrics import Outcome
 from tests.test_envs import CentroidMap
 
 
@@ -84,7 +84,7 @@ def test_the_expert_hands_the_env_its_velocity_over_u_max_and_keeps_the_controll
     rec = _Recorder(venv)
     expert = Expert(o.controller, o.plant, o.scene, venv.core.period)  # its scale: the env's controller's u_max
     _, labels, _, outcome = rollout(rec, expert, None, seed=3, max_frames=frames, record_every=1)
-    assert (outcome == 4).all() and len(rec.actions) == frames  # nobody stopped: every frame recorded
+    assert (outcome == Outcome.TIMED_OUT).all() and len(rec.actions) == frames  # nobody stopped: every frame recorded
     labels = labels.reshape(frames, 4, HEADS, 2)
     actions = np.array(rec.actions)
     np.testing.assert_array_equal(actions, labels[:, :, 0] / o.controller.u_max)
@@ -203,7 +203,6 @@ def test_one_evaluation_code_runs_the_architecture_and_the_learned_policies():
     for policy in (ImitatedPolicy(model, o.scale), LearnedHybridPolicy(model, pm, o.controller, o.plant, o.scene, 0.05)):
         res = run_policy(o, policy, near, frames=30)
         assert set(res["outcome"]) <= {"reached", "collided", "left_view", "stalled", "timed_out"}
-    assert ARRIVED == 1
 
 
 def test_imitation_stage_writes_a_tracked_policy_that_reloads(tmp_path):
@@ -310,7 +309,7 @@ def test_trunk_from_a_perception_map_is_copied_and_stays_frozen():
 def test_table_rows_count_outcomes_with_wilson_intervals(tmp_path):
     import pandas as pd
 
-    from pipeline.learned.evaluate import rows
+    from pipeline.learned.comparison import rows
     from pipeline.learned.report import write_tables
 
     res = {"outcome": np.array(["reached", "stalled", "reached", "collided"]), "time": np.array([3.0, np.nan, 5.0,
@@ -417,7 +416,7 @@ def test_make_learned_end_to_end_on_tiny_maps_with_clouds_and_the_worst_cloud(ti
     comparison with every row (clean, pixel attack, the clouds' level, the worst cloud), tracked by id: a second
     run is up to date, and another clouded network changes the id."""
     from pipeline.cli import compose
-    from pipeline.learned.evaluate import run as evaluate
+    from pipeline.learned.comparison import run as evaluate
     from pipeline.learned.imitate import run as imitate
 
     root, ids = tiny_maps

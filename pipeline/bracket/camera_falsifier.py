@@ -13,7 +13,8 @@ a target direction `d` that the state falsifier's adversaries choose:
   push-out, else the least progress) among `n_dirs` directions around the clean estimate `l(x)`, at the radius the
   attack reached on the run's previous frame (the first frame: a probe along the fixed direction).
 
-The PGD is batched over runs with a budget per run (every run of one bisection step in one batch of images).
+The PGD is batched over runs with a budget per run (every run of one bisection step in one batch of images): it is
+:func:`~pipeline.perception.attacks.pixel_attack` with a budget per image.
 `κ_hi` is the smallest budget found failing by bisection on the integer levels `[0, kappa_max]` (a uint8 image moves
 by whole levels: `κ` and `floor(κ)` deliver the same images); `κ = 0` is the map's own error (the clean loop, no
 attack): a start it already breaks has `κ_hi = 0`; `inf`: no failure up to `kappa_max`. As for `ε_hi`, the search is a
@@ -27,10 +28,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-import torch
 
 from pipeline.bracket.falsifier import attack, directions, fixed_error, mode_aware_error, scatter
 from pipeline.bracket.loop import RUNNING, FrameLoop
+from pipeline.perception.attacks import pixel_attack
 
 CAMERA_ADVERSARIES = ("fixed", "mode_aware")
 REACH_FLOOR = 0.05  # world units: the smallest radius of the mode-aware choice (a budget that moved nothing yet)
@@ -39,58 +40,12 @@ REACH_FLOOR = 0.05  # world units: the smallest radius of the mode-aware choice 
 # ------------------------------------------------------------------------------------------ PGD per run
 def pgd(net, images: np.ndarray, direction: np.ndarray, kappa: np.ndarray, steps: int, *, device="cpu",
         batch_size: int = 256) -> tuple[np.ndarray, np.ndarray]:
-    """`(clean, attacked)` estimates `(N, 2)`: PGD on uint8 images `(N, H, W, 3)` towards unit `direction` `(N, 2)`
-    with a budget `kappa` `(N,)` per image (levels; `floor(κ)` after the camera's rounding), the rule of
-    :func:`pipeline.perception.attacks.pixel_attack` (which takes one budget for the batch): sign steps of
-    `2.5 κ / steps` from the clean image, projected on the ball and the box; the rounded image re-clipped to the
-    integer budget; the clean image kept where the attacked one does worse along the direction. `net`: the
-    network contract of :mod:`pipeline.perception.attacks` (float NHWC in `[0, 255]` -> world coordinates)."""
-    n = len(images)
-    clean, attacked = np.empty((n, 2)), np.empty((n, 2))
-    kappa = np.broadcast_to(np.asarray(kappa, np.float64), (n,))
-    steps = 0 if (np.floor(kappa) == 0).all() else int(steps)
-    dev = torch.device(device)
-    was_training = net.training
-    net.eval()
-    try:
-        with torch.inference_mode(False), torch.enable_grad():
-            for s in range(0, n, batch_size):
-                sl = slice(s, min(s + batch_size, n))
-                x0 = torch.from_numpy(np.ascontiguousarray(images[sl])).to(dev, torch.float32)
-                d = torch.from_numpy(np.ascontiguousarray(direction[sl], np.float32)).to(dev)
-                k = torch.from_numpy(np.ascontiguousarray(kappa[sl], np.float32)).to(dev).view(-1, 1, 1, 1)
-                clean[sl], attacked[sl] = _pgd_batch(net, x0, d, k, steps)
-    finally:
-        net.train(was_training)
-    return clean, attacked
-
-
-def _pgd_batch(net, x0, d, k, steps: int):
-    alpha = 2.5 * k / max(steps, 1)
-    budget = torch.floor(k)
-    delta = torch.zeros_like(x0)
-    out_clean = None
-    for _ in range(steps):
-        delta.requires_grad_(True)
-        out = net(x0 + delta)[:, :2]
-        if out_clean is None:
-            out_clean = out.detach()
-        (grad,) = torch.autograd.grad((out * d).sum(), delta)
-        with torch.no_grad():
-            delta = torch.maximum(torch.minimum(delta.detach() + alpha * grad.sign(), k), -k)
-            delta = (x0 + delta).clamp(0.0, 255.0) - x0
-    with torch.no_grad():
-        if out_clean is None:
-            out_clean = net(x0)[:, :2]
-        if steps == 0:
-            out_adv = out_clean.clone()
-        else:
-            adv = torch.round(x0 + delta)
-            adv = torch.minimum(torch.maximum(adv, x0 - budget), x0 + budget).clamp(0.0, 255.0)
-            out_adv = net(adv)[:, :2]
-            worse = ((out_adv - out_clean) * d).sum(1) < 0
-            out_adv[worse] = out_clean[worse]
-    return out_clean.double().cpu().numpy(), out_adv.double().cpu().numpy()
+    """`(clean, attacked)` estimates `(N, 2)`: :func:`pipeline.perception.attacks.pixel_attack` on uint8 images
+    `(N, H, W, 3)` towards `direction` `(N, 2)` with a budget `kappa` `(N,)` per image (levels; `floor(κ)` after
+    the camera's rounding), from the clean image. `net`: the network contract of :mod:`pipeline.perception.attacks`
+    (float NHWC in `[0, 255]` -> world coordinates)."""
+    res = pixel_attack(net, images, direction, kappa=kappa, steps=steps, device=device, batch_size=batch_size)
+    return res.clean, res.attacked
 
 
 # ------------------------------------------------------------------------------------------ the loop

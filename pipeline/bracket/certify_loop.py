@@ -33,7 +33,7 @@ def certify(law, eps_world, *, h: float, angle: float, period: float, goal_radiu
             window: int = 8, frames: int = 1, horizon: float = np.inf, lost: LostFrames | None = None) -> Certificate:
     """`law`'s certificate on cells of side `h` in the frame rotated by `angle`; `eps_world(points (N, 2)) ->
     (N,)` the error bound at world points of a cell (`max` over its corners and centre is taken, so `eps_world`
-    must be the largest bound over any cell it is asked about: see :mod:`pipeline.bracket.errors`). `horizon`: the
+    must be the largest bound over any cell it is asked about: see :mod:`pipeline.bracket.bounds`). `horizon`: the
     frames a run has (a start is certified when its arrival bound fits); `lost`: frames that may be lost
     (:mod:`pipeline.bracket.lost`; None: every frame delivered)."""
     frame = Frame(angle)

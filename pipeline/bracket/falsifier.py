@@ -54,8 +54,7 @@ def mode_aware_error(loop: FrameLoop, st: dict, eps: np.ndarray, dirs: np.ndarra
     P = np.repeat(st["p"], k, axis=0)
     xd = {name: np.repeat(a, k) for name, a in st["xd"].items()}
     m = (P if base is None else np.repeat(np.asarray(base, float), k, axis=0)) + E
-    xd1, jumped = loop.decide(m, xd)
-    u = loop.held(m, xd1)
+    xd1, jumped, u = loop.decision(m, xd)
     ev = loop.controller.evaluate(m, xd1)
     pushed = ~loop.controller.flow_set(m, xd1, ev=ev) & ~loop.controller.jump_set(m, xd1, ev=ev)
     pT = loop.scene.p_T

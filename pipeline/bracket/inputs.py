@@ -13,6 +13,7 @@ import numpy as np
 from pipeline.bracket.enclosures import (
     BIG,
     DIRS,
+    affine_range,
     arc_range,
     attraction_corners,
     bp_barrier_g,
@@ -175,8 +176,6 @@ def _apex_guard(h, mu_lo, mu_hi, nu_lo, nu_hi, du, dv, u_max, cs):
 
 
 def _a_range(sub, cov):
-    from pipeline.bracket.enclosures import affine_range
-
     return affine_range(sub, cov.e_a, -cov.e_a @ cov.p_0)
 
 

@@ -1,23 +1,34 @@
 """The sampled closed loop of SPEC §3.3 frame by frame, with the error signal chosen per frame (the falsifier's plant).
 
-Single integrator, one obstacle: between two camera frames the held velocity `u_k` moves the vehicle along the
-straight segment `p_k -> p_k + T_s u_k`, so this steps one frame at a time and checks the segment exactly (the
-obstacle disc, the success disc, the arena) instead of on a grid of `dt`. At frame `k`: `m_k = p_k + e_k`, jump
-where the law's jump set holds (at frame 0 after `initial_state`), `u_k = hold(flow_map(m_k))` (the guard). The
-same sequence as :func:`pipeline.hybrid.sampled.frame_update` (tested: the fixed adversary's frames agree with
-:func:`pipeline.sim.simulate`).
+Single integrator, one obstacle. The loop is the simulator's own (:class:`pipeline.sim.SampledLoop` stepped by
+the one frame engine :class:`pipeline.hybrid.sampled.FrameRun`), with the falsifier's error signal as its
+disturbance (:class:`pipeline.sim.disturbances.Played`: `m_k = p_k + e_k`) and one step of `dt = T_s` per frame,
+which is exact for the held velocity: the vehicle moves along the straight segment `p_k -> p_k + T_s u_k`.
+The monitor (:class:`Segments`) checks that segment exactly (the obstacle disc, the success disc, the arena)
+instead of on a grid of `dt`. `start` takes the first frame (`m_0 = p_0 + e_0`: the law's initial state); every
+`step` then samples a frame with its own error (the falsifier may choose frame 0's input error apart from the
+initial state's, a stronger adversary than one measurement, covered by the certificate all the same).
 
-A batch is a dict of arrays: `p` `(N, 2)`, `xd` the law's logic state, `t`, `outcome` (0 running, then the codes
-of :data:`OUTCOMES`), `clearance` (the smallest distance to the obstacle so far) and a short position history for
-the stall test.
+A batch is a dict of arrays: `p` `(N, 2)`, `m` the last measurement, `xd` the law's logic state, `t`, `outcome`
+(an :class:`pipeline.sim.metrics.Outcome`), `clearance` (the smallest distance to the obstacle so far) and a
+short position history for the stall test.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-OUTCOMES = ("running", "reached", "collided", "left_view", "stalled", "timed_out")
-RUNNING, REACHED, COLLIDED, LEFT, STALLED, TIMED_OUT = range(6)
+from pipeline.hybrid import Monitor, State
+from pipeline.hybrid.sampled import FrameRun, frame_update
+from pipeline.plants import SingleIntegrator
+from pipeline.sim.closed_loop import SampledLoop
+from pipeline.sim.disturbances import Played
+from pipeline.sim.metrics import NAMES as OUTCOMES
+from pipeline.sim.metrics import Outcome
+
+RUNNING, REACHED, COLLIDED, LEFT, STALLED, TIMED_OUT = (Outcome.RUNNING, Outcome.REACHED, Outcome.COLLIDED,
+                                                      Outcome.LEFT_VIEW, Outcome.STALLED, Outcome.TIMED_OUT)
+__all__ = ["COLLIDED", "LEFT", "OUTCOMES", "REACHED", "RUNNING", "STALLED", "TIMED_OUT", "FrameLoop", "Segments"]
 
 
 def segment_distance(p0: np.ndarray, p1: np.ndarray, c: np.ndarray) -> np.ndarray:
@@ -29,6 +40,37 @@ def segment_distance(p0: np.ndarray, p1: np.ndarray, c: np.ndarray) -> np.ndarra
     t = np.clip(t, 0.0, 1.0)
     x = p0 + t[:, None] * d
     return np.hypot(x[:, 0] - c[0], x[:, 1] - c[1])
+
+
+class Segments(Monitor):
+    """The falsifier's exact checks on each step's straight segment: a collision where it meets the open obstacle
+    disc (whatever else), an arrival where it meets the success disc, leaving the view where it ends outside the
+    arena. `clear`: the last segments' distances to the obstacle's edge."""
+
+    codes = ("target", "collision", "left_view")
+    stops = (True, True, True)
+
+    def __init__(self, scene, delta: float):
+        self.p0, self.r, self.pT, self.delta = np.asarray(scene.p_0, float), float(scene.obstacle_radius), \
+            scene.p_T, float(delta)
+        (self.x0, self.x1), (self.y0, self.y1) = scene.bounds
+        self.prev = self.clear = None
+
+    def start(self, c):
+        self.prev = np.array(c, dtype=float)
+        return np.zeros(len(c), dtype=np.int8)
+
+    def step(self, k, t, c, active):
+        p, p1 = self.prev, c
+        self.clear = segment_distance(p, p1, self.p0) - self.r
+        arrived = segment_distance(p, p1, self.pT) <= self.delta
+        left = (p1[:, 0] < self.x0) | (p1[:, 0] > self.x1) | (p1[:, 1] < self.y0) | (p1[:, 1] > self.y1)
+        codes = np.zeros(len(c), dtype=np.int8)
+        codes[active & left] = LEFT
+        codes[active & arrived] = REACHED
+        codes[active & (self.clear < 0)] = COLLIDED  # a segment through the obstacle is a collision, whatever else
+        self.prev = np.array(c, dtype=float)
+        return codes
 
 
 class FrameLoop:
@@ -49,54 +91,48 @@ class FrameLoop:
         self.stall_frames = max(1, int(round(stall_time / period)))
         self.stall_dist = stall_speed * stall_time
         self.p0, self.r = np.asarray(scene.p_0, float), float(scene.obstacle_radius)
-        (self.x0, self.x1), (self.y0, self.y1) = scene.bounds
+        self.error = Played()
+        self.system = SampledLoop(scene, controller, SingleIntegrator(), self.error, dt=self.period, every=1)
+        self.monitor = Segments(scene, delta)
+        self._rng = np.random.default_rng(0)  # unused: no lost frames, the error is played
 
-    # ---- the law at a perceived position ---------------------------------------------------------------------
-    def decide(self, m: np.ndarray, xd: dict) -> tuple[dict, np.ndarray]:
-        """The frame's jump decision at `m`: the logic state after it and the rows that jumped."""
-        c = self.controller
-        ev = c.evaluate(m, xd)
-        jump = c.jump_set(m, xd, ev=ev)
-        if not jump.any():
-            return xd, jump
-        new = c.jump_map(m, xd, ev=ev)
-        return {k: np.where(jump, new[k], xd[k]).astype(xd[k].dtype) for k in xd}, jump
+    # ---- the law at a perceived position: the engine's frame decision ----------------------------------------
+    def decision(self, m: np.ndarray, xd: dict) -> tuple[dict, np.ndarray, np.ndarray]:
+        """The frame's decision at the perceived points `m`: the logic state after the jump, the rows that jumped
+        and the velocity held for the frame (the flow map through the sampled-data guard)."""
+        x = State(np.asarray(m, float), m=np.asarray(m, float), **xd)
+        x, w, jumped, *_ = frame_update(self.system, x, 0, self._rng, np.ones(len(m), dtype=bool))
+        return {k: x.d[k] for k in xd}, jumped, w
 
     def held(self, m: np.ndarray, xd: dict) -> np.ndarray:
-        """The velocity held for one frame: the flow map at `m` through the sampled-data guard."""
-        c = self.controller
-        ev = c.evaluate(m, xd)
-        u = c.flow_map(m, xd, ev=ev)
-        return c.hold(u, m, xd, ev, self.period)[0]
+        """The velocity held for a frame in the logic state `xd` (no jump decided): the loop's input at `m`."""
+        return self.system.input(State(np.asarray(m, float), m=np.asarray(m, float), **xd))
 
     # ---- a batch of runs ------------------------------------------------------------------------------------
     def start(self, p0: np.ndarray, e0: np.ndarray) -> dict:
         """Runs from `p0` `(N, 2)` whose first frame perceives `p0 + e0` (the law's initial state there)."""
         p0 = np.array(p0, dtype=float)
-        xd = self.controller.initial_state(p0 + e0)
+        self.error.e = np.broadcast_to(np.asarray(e0, float), p0.shape)
+        x = self.system.initial(p0, self._rng)
         n = len(p0)
         hist = np.repeat(p0[None], self.stall_frames + 1, axis=0)
-        st = {"p": p0, "xd": xd, "frame": 0, "outcome": np.zeros(n, np.int8), "t_end": np.full(n, np.nan),
+        st = {"p": p0, "m": x.m, "xd": {k: x.d[k] for k in self.controller.logic}, "frame": 0,
+              "outcome": np.zeros(n, np.int8), "t_end": np.full(n, np.nan),
               "clearance": np.hypot(*(p0 - self.p0).T) - self.r, "hist": hist, "jumps": np.zeros(n, np.int64)}
         st["outcome"][st["clearance"] < 0] = COLLIDED
         return st
 
-    def step(self, st: dict, e: np.ndarray, first: bool = False) -> dict:
+    def step(self, st: dict, e: np.ndarray) -> dict:
         """One frame with errors `e` `(N, 2)` (rows already ended stay where they ended)."""
         run = st["outcome"] == RUNNING
-        m = st["p"] + e
-        xd, jumped = self.decide(m, st["xd"])
-        u = self.held(m, xd)
-        u[~run] = 0.0
-        p1 = st["p"] + self.period * u
-        clear = segment_distance(st["p"], p1, self.p0) - self.r
-        arrived = segment_distance(st["p"], p1, self.scene.p_T) <= self.delta
-        out = st["outcome"].copy()
+        self.error.e = np.asarray(e, float)
+        x = State(st["p"], m=st["m"], **st["xd"])
+        engine = FrameRun(self.system, x, dt=self.period, every=1, rng=self._rng, monitor=self.monitor,
+                          frame=st["frame"] + 1, active=run)
+        ended = engine.advance()
+        p1, clear = engine.x.c, self.monitor.clear
+        out = np.where(ended > 0, ended, st["outcome"]).astype(np.int8)
         t = (st["frame"] + 1) * self.period
-        left = (p1[:, 0] < self.x0) | (p1[:, 0] > self.x1) | (p1[:, 1] < self.y0) | (p1[:, 1] > self.y1)
-        out[run & left] = LEFT
-        out[run & arrived] = REACHED
-        out[run & (clear < 0)] = COLLIDED  # a segment through the obstacle is a collision, whatever else
         t_end = np.where(run & (out != RUNNING), t, st["t_end"])
         hist = np.concatenate([st["hist"][1:], p1[None]], axis=0)
         frame = st["frame"] + 1
@@ -105,10 +141,10 @@ class FrameLoop:
             moved = np.hypot(*(hist[-1] - hist[0]).T)
             out[still] = np.where(moved[still] < self.stall_dist, STALLED, TIMED_OUT)
             t_end = np.where(still, t, t_end)
-        xd = {k: np.where(run, xd[k], st["xd"][k]).astype(xd[k].dtype) for k in xd}
-        return {"p": np.where(run[:, None], p1, st["p"]), "xd": xd, "frame": frame, "outcome": out, "t_end": t_end,
-                "clearance": np.minimum(st["clearance"], np.where(run, clear, np.inf)), "hist": hist,
-                "jumps": st["jumps"] + (jumped & run)}
+        xd = {k: np.where(run, engine.x.d[k], st["xd"][k]).astype(st["xd"][k].dtype) for k in st["xd"]}
+        return {"p": np.where(run[:, None], p1, st["p"]), "m": engine.x.m, "xd": xd, "frame": frame, "outcome": out,
+                "t_end": t_end, "clearance": np.minimum(st["clearance"], np.where(run, clear, np.inf)), "hist": hist,
+                "jumps": st["jumps"] + (engine.jumps.astype(bool) & run)}
 
     @staticmethod
     def take(st: dict, idx) -> dict:

@@ -24,8 +24,8 @@ import pandas as pd
 from omegaconf import DictConfig
 
 from pipeline import lineage, tracking
+from pipeline.bracket.bounds import CellTable, Finest, Uniform
 from pipeline.bracket.certify_loop import certified_starts, certify
-from pipeline.bracket.errors import CellTable, Finest, Uniform
 from pipeline.bracket.falsifier import Search, falsify
 from pipeline.bracket.loop import OUTCOMES, REACHED, RUNNING, FrameLoop
 from pipeline.bracket.lost import LostFrames

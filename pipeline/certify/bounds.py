@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -25,6 +26,9 @@ class Prepared:
     static: Static
     camera: object
     kappa: float
+    # a map of the renderer's pixel window (its forms in float64) before the network reads it, e.g. one cloud
+    # layout over the image (:mod:`.clouds`; `static` then the static image under that layout); None: as rendered
+    pixels: Callable | None = None
 
 
 def prepare(model, camera, kappa: float = 0.0, dtype: torch.dtype = torch.float32) -> Prepared:
@@ -116,6 +120,8 @@ def certified_error_bound(prep: Prepared, cells: torch.Tensor, mode: str = "crow
     if (cells.shape[1] == 6) != (net.heading is not None):
         raise ValueError("a pose map's cells carry a heading interval (N, 6), a position map's do not (N, 4)")
     pw = pixel_window(prep.camera, cells, prep.kappa, symbolic=mode != "ibp")
+    if prep.pixels is not None:
+        pw = prep.pixels(pw)
     lo, hi = pw.lo.to(dtype), pw.hi.to(dtype)
     cone = forward(net, prep.static, pw.origin, lo, hi, ibp=mode == "ibp")
     if net.keypoint is not None:

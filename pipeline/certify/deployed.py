@@ -1,10 +1,11 @@
 """The perception map as deployed, in the form the bounds read (SPEC §5.2).
 
-:func:`deployed` rewrites a position map (`PerceptionMap`, eval-mode semantics) exactly as
-`pipeline.perception.network.FoldedPerceptionNet` does (BatchNorm folded into the convolutions with its running
-statistics, the input scaling `x / 255 - 0.5` and the CoordConv channels folded into the first convolution's
-weights and a per-pixel bias map, dropout dropped), but **without detaching**: every tensor is a differentiable
-function of the model's parameters, so a training loss can backpropagate through a bound.
+:func:`deployed` rewrites a position map (`PerceptionMap`, eval-mode semantics) with the folding of the inference
+network `pipeline.perception.network.FoldedPerceptionNet`, :func:`pipeline.perception.network.fold` (BatchNorm folded
+into the convolutions with its running statistics, the input scaling `x / 255 - 0.5` and the CoordConv channels
+folded into the first convolution's weights and a per-pixel bias map, dropout dropped), but **without detaching**:
+every tensor is a differentiable function of the model's parameters, so a training loss can backpropagate through a
+bound.
 
 :func:`static_pass` is the nominal forward pass on the camera's static image (background, obstacle, target: no
 robot), optionally as intervals under a pixel budget `kappa` (every pixel `±kappa` levels, clipped to
@@ -21,6 +22,7 @@ from torch.nn import functional as F
 
 from pipeline.errors import ConfigError
 from pipeline.perception.heading import AttentionHeadingHead
+from pipeline.perception.network import fold
 
 
 @dataclass
@@ -54,15 +56,6 @@ class Deployed:
         return len(self.weights)
 
 
-def _fold(conv: nn.Conv2d, bn: nn.BatchNorm2d | None) -> tuple[torch.Tensor, torch.Tensor]:
-    w = conv.weight
-    b = conv.bias if conv.bias is not None else torch.zeros(w.shape[0], dtype=w.dtype, device=w.device)
-    if bn is None:
-        return w, b
-    scale = bn.weight / torch.sqrt(bn.running_var + bn.eps)
-    return w * scale.view(-1, 1, 1, 1), (b - bn.running_mean) * scale + bn.bias
-
-
 def deployed(model, dtype: torch.dtype = torch.float32) -> Deployed:
     """The map `model` (a `PerceptionMap`: a flat head without a hidden layer, or the keypoint head; a pose map
     with the attention heading head) as :class:`Deployed`.
@@ -82,20 +75,10 @@ def deployed(model, dtype: torch.dtype = torch.float32) -> Deployed:
     if not keypoint and len(lin) != 1:
         raise ConfigError("certify.maps", "the certified bound covers a flat head without a hidden layer "
                                           "(model.hidden=0)")
-    mods = list(model.features)
-    blocks = [_fold(m, mods[i + 1] if i + 1 < len(mods) and isinstance(mods[i + 1], nn.BatchNorm2d) else None)
-              for i, m in enumerate(mods) if isinstance(m, nn.Conv2d)]
+    weights, biases = fold(model, dtype, grad=True)
     h, w, _ = model.image_shape
-    w0, b0 = blocks[0]
-    ones = torch.ones(1, 3, h, w, dtype=w0.dtype, device=w0.device)
-    bias_map = -0.5 * F.conv2d(ones, w0[:, :3], padding=1)[0]
-    if model.coord_channels:
-        bias_map = bias_map + F.conv2d(model.coords.to(w0.dtype), w0[:, 3:], padding=1)[0]
-    bias_map = bias_map + b0.view(-1, 1, 1)
-    weights = [w0[:, :3] / 255.0] + [wk for wk, _ in blocks[1:]]
-    biases = [bias_map] + [bk for _, bk in blocks[1:]]
     grids = [(h, w)]
-    for _ in blocks:
+    for _ in weights:
         grids.append((grids[-1][0] // 2, grids[-1][1] // 2))
     c_last = weights[-1].shape[0]
     cast = lambda t: t.to(dtype)  # noqa: E731
@@ -109,8 +92,8 @@ def deployed(model, dtype: torch.dtype = torch.float32) -> Deployed:
         kp = (cast(head_w), cast(head_b), cast(head.cx.flatten()), cast(head.cy.flatten()), cast(head.cell.flatten()))
     else:
         head_w, head_b = lin[0].weight.reshape(lin[0].out_features, c_last, *grids[-1]), lin[0].bias
-    return Deployed([cast(t) for t in weights], [cast(t) for t in biases], cast(head_w), cast(head_b),
-                    cast(model.center), cast(model.half_range), bool(model.clamp), grids, kp, heading)
+    return Deployed(weights, biases, cast(head_w), cast(head_b), cast(model.center), cast(model.half_range),
+                    bool(model.clamp), grids, kp, heading)
 
 
 def _conv_interval(lo, hi, w, b, level0: bool):

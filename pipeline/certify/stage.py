@@ -34,7 +34,7 @@ from pipeline.lineage import debug_overrides, resolve_map
 from pipeline.perception.maps import load_perception_map
 
 
-def _cells(arena, cell: float, region, scene, margin: float):
+def cells_of(arena, cell: float, region, scene, margin: float):
     """The grid of cells (`(x0, x1, y0, y1)` rows), its shape and centres, and the operational ones."""
     try:
         points, shape, xs, ys = core.arena_grid(arena, cell)
@@ -131,7 +131,7 @@ def run(cfg: DictConfig, *, perception_map=None, camera=None) -> dict:
         print(f"certify: {final} is complete (force=true to recompute)")
         return {"path": final, "summary": json.loads((final / "summary.json").read_text()), "skipped": True}
     margin = operational_margin(s["operational_margin"], camera)
-    cells, shape, xs, ys, op = _cells(arena, float(s["cell"]), s["region"], scene, margin)
+    cells, shape, xs, ys, op = cells_of(arena, float(s["cell"]), s["region"], scene, margin)
     cov = scene.covering(0)
     margin_cr = float(cov.c - cov.obstacle_radius)
     torch.set_num_threads(int(s["threads"]))

@@ -28,10 +28,13 @@ from pipeline.preflight import prepared
 def _visits(p: Plan) -> tuple[object, dict]:
     """Load the recipe's map (on `closed_loop.device`) and simulate its closed loop once (the train split's
     pool, cached); returns the map and what the manifest records about its visits."""
-    # torch is imported only for a recipe with a map in the loop
-    from pipeline.perception.maps import load_perception_map
+    from pipeline.perception.maps import load_perception_map, resolve_device  # torch: a map in the loop
 
     cl = p.recipe.closed_loop
+    try:
+        resolve_device(cl.device)
+    except ConfigError as err:
+        raise ConfigError("data.sampling.closed_loop.device", err.reason) from None
     pm = load_perception_map(p.map_path, device=cl.device)
     t0 = time.perf_counter()
     visits = split_pool(p.recipe, "train", p.camera, p.occlusion, pm)
@@ -56,13 +59,6 @@ def run(cfg: DictConfig) -> dict:
         tracking.check_intact(p.path, "dataset", f"{rerun_command('data', [f'data={p.recipe.name}'], cfg)} force=true")
         print(f"data: {p.folder_name} exists and matches its manifest -> {p.path} (nothing to do; force=true re-renders)")
         return {**out, "skipped": True, "seconds": time.perf_counter() - t0}
-    if p.map_path is not None:
-        from pipeline.perception.maps import resolve_device
-
-        try:
-            resolve_device(p.recipe.closed_loop.device)
-        except ConfigError as err:
-            raise ConfigError("data.sampling.closed_loop.device", err.reason) from None
     pm, visits = _visits(p) if p.map_path is not None else (None, {})
     with tracking.tracked_output(p.root, p.recipe.name, p.id, {**p.meta(), **visits}) as tmp:
         render_into(tmp, p, pm)

@@ -18,6 +18,7 @@ import gymnasium as gym
 
 from pipeline.envs.core import OUTCOMES, EnvSettings, NavigationCore
 from pipeline.envs.navigate import NavigateEnv, NavigateVectorEnv, compose_env, objects
+from pipeline.errors import ConfigError
 
 IDS = {
     "hycontrol/Navigate-v0": [],
@@ -38,8 +39,6 @@ def make_vector(env_id: str, num_envs: int, overrides: list[str] | None = None, 
                 autoreset: bool = True) -> NavigateVectorEnv:
     """The batched environment of a registered id."""
     if env_id not in IDS:
-        from pipeline.errors import ConfigError
-
         raise ConfigError("env_id", f"unknown id {env_id!r}; known: {', '.join(IDS)}")
     return NavigateVectorEnv(num_envs, [*IDS[env_id], *(overrides or [])], render_mode=render_mode,
                              autoreset=autoreset)

@@ -5,12 +5,14 @@ action is normalised (issue 46): :meth:`NavigationCore.velocity` multiplies it b
 per component; the unicycle's `(u_max, ω_max)`) into the velocity `u` (or `(v, ω)`), clips that to the vehicle's
 limits as before (the norm of `u` to `u_max`, i.e. the action's norm to 1; `|v| <= u_max`, `|ω| <= ω_max`) and
 holds it for the frame; :meth:`NavigationCore.action` is the inverse (`u / scale`), for the agents that compute
-a velocity. The plant integrates the held input exactly in `every` steps of `dt` (`plant.step`, the
-experiments' own integration), arrival (`|p - p_T| <= δ`), collision (`|p - c_i| < r_i`, judged first, as the
-simulator's monitor does) and leaving the camera's view are checked after every step of `dt`, and an agent that
-stops stays where it stopped. Then the camera renders the next frame of every agent in one batched call (with
-the clouds; a frame lost with probability `p_fail` repeats the last image, as the simulator holds the last
-estimate).
+a velocity. The frame runs through the simulator's own frame engine (:class:`pipeline.hybrid.sampled.FrameRun`,
+the action as the held input): the plant integrates it exactly in `every` steps of `dt`, and the simulator's
+monitor (:class:`pipeline.sim.monitor.ArrivalCollision` with the camera's view as a third stop set) checks
+collision (`|p - c_i| < r_i`, judged first), arrival (`|p - p_T| <= δ`) and leaving the view after every step;
+an agent's run ends at the step it enters one (its outcome, :class:`pipeline.sim.metrics.Outcome`; `TIMED_OUT`
+at the frame limit), and it completes the frame under its held input, as in the simulator. Then the camera
+renders the next frame of every agent in one batched call (with the clouds; a frame lost with probability
+`p_fail` repeats the last image, as the simulator holds the last estimate).
 
 Reward per step (`env.*`, SPEC §6): `progress * (|p_k - p_T| - |p_{k+1} - p_T|) + arrival * [arrived]
 - collision * [collided or left the view]`.
@@ -23,12 +25,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.errors import ConfigError
+from pipeline.hybrid import HybridSystem, State
+from pipeline.hybrid.sampled import FrameRun
 from pipeline.schema import NonNegative, checked
-from pipeline.sim.metrics import StallMonitor
+from pipeline.sim.metrics import NAMES, Outcome, StallMonitor
 from pipeline.sim.monitor import ArrivalCollision
 
-RUNNING, ARRIVED, COLLIDED, EXITED, TRUNCATED = 0, 1, 2, 3, 4
-OUTCOMES = ("running", "arrived", "collided", "left_view", "truncated")
+OUTCOMES = NAMES  # the outcome names by code (`info["outcome"]` of the single-agent environment)
+RUNNING, TIMED_OUT = Outcome.RUNNING, Outcome.TIMED_OUT
+ENDED = (Outcome.REACHED, Outcome.COLLIDED, Outcome.LEFT_VIEW)  # the environments' terminations
 
 
 @checked("env")
@@ -65,6 +70,16 @@ def to_action(velocity, scale) -> np.ndarray:
     return np.asarray(velocity, dtype=float) / scale
 
 
+class HeldAction(HybridSystem):
+    """The loop of an agent that acts from outside (a policy): its input is the velocity set for the frame."""
+
+    def __init__(self, plant):
+        self.plant, self.u = plant, None
+
+    def input(self, x: State) -> np.ndarray:
+        return self.u
+
+
 class NavigationCore:
     """N agents of the sampled loop (see the module docstring); no Gymnasium API here."""
 
@@ -76,10 +91,10 @@ class NavigationCore:
         self.occlusion = occlusion if occlusion is not None and getattr(occlusion, "active", False) else None
         self.p_fail, self.settings = float(p_fail), settings or EnvSettings()
         self.period = dt * every
-        # the simulator's stop sets (arrival, collision) on the plant's position
+        # the simulator's stop sets (arrival, collision) and the camera's view, on the plant's position
         self._monitor = ArrivalCollision(scene, plant, n, delta=delta, stop_on_success=True,
-                                         stall=StallMonitor(n, 1.0, 1.0, dt))
-        (self.x0, self.x1), (self.y0, self.y1) = scene.bounds
+                                         stall=StallMonitor(n, 1.0, 1.0, dt), arena=scene.bounds)
+        self._system = HeldAction(plant)
         self.c = np.zeros((n, plant.dim))
         self.k = np.zeros(n, dtype=np.int64)
         self.images = np.zeros((n, *camera.shape, 3), dtype=np.uint8)
@@ -118,10 +133,6 @@ class NavigationCore:
         scale = np.where(norm > self.u_max, self.u_max / np.maximum(norm, 1e-300), 1.0)
         return a * scale[:, None]
 
-    def outside(self, c) -> np.ndarray:
-        p = self.position(c)
-        return (p[:, 0] < self.x0) | (p[:, 0] > self.x1) | (p[:, 1] < self.y0) | (p[:, 1] > self.y1)
-
     # --------------------------------------------------------------------------------------- API
     def reset(self, idx: np.ndarray, c0: np.ndarray, rng: np.random.Generator) -> None:
         """Agents `idx` start at the states `c0` `(len(idx), n)`; their first frame is always delivered."""
@@ -130,27 +141,17 @@ class NavigationCore:
         self.images[idx] = self.render(self.c[idx], rng)
 
     def step(self, action, rng: np.random.Generator):
-        """One frame of every agent: `(reward, code)` per agent (`code` in OUTCOMES' order: why it stopped, if)."""
-        w = self.velocity(action)
+        """One frame of every agent: `(reward, code)` per agent (`code`: an :class:`Outcome`, why it stopped, if)."""
+        self._system.u = self.velocity(action)
         d0 = self.distance()
-        code = np.zeros(self.n, dtype=np.int8)
-        active = np.ones(self.n, dtype=bool)
-        mon = self._monitor
-        for _ in range(self.every):
-            c1 = self.plant.step(self.c, w, self.dt)
-            self.c[active] = c1[active]
-            hit, arrived, out = mon._collides(self.c), mon._arrived(self.c), self.outside(self.c)
-            new = active & (hit | arrived | out)
-            if new.any():
-                code[new] = np.where(hit[new], COLLIDED, np.where(arrived[new], ARRIVED, EXITED))
-                active &= ~new
-                if not active.any():
-                    break
+        run = FrameRun(self._system, State(self.c), dt=self.dt, every=self.every, rng=rng, monitor=self._monitor)
+        code = run.advance()
+        self.c = run.x.c
         self.k += 1
-        code[(code == RUNNING) & (self.k >= self.frames)] = TRUNCATED
+        code[(code == RUNNING) & (self.k >= self.frames)] = TIMED_OUT
         s = self.settings
-        reward = s.progress * (d0 - self.distance()) + s.arrival * (code == ARRIVED) \
-            - s.collision * ((code == COLLIDED) | (code == EXITED))
+        reward = s.progress * (d0 - self.distance()) + s.arrival * (code == Outcome.REACHED) \
+            - s.collision * ((code == Outcome.COLLIDED) | (code == Outcome.LEFT_VIEW))
         self._next_frames(code, rng)
         return reward, code
 

@@ -21,8 +21,9 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from omegaconf import DictConfig
 
 from pipeline.config import build, compose
-from pipeline.envs.core import OUTCOMES, RUNNING, EnvSettings, NavigationCore, action_scale
+from pipeline.envs.core import ENDED, OUTCOMES, RUNNING, TIMED_OUT, EnvSettings, NavigationCore, action_scale
 from pipeline.errors import ConfigError
+from pipeline.sim.metrics import Outcome
 from pipeline.sim.settings import check_vehicle, frame_steps
 
 
@@ -151,12 +152,12 @@ class NavigateEnv(gym.Env):
     def step(self, action):
         reward, code = self.core.step(np.asarray(action).reshape(1, -1), self.np_random)
         c = int(code[0])
-        return (_observe(self.objects, self.core, 0), float(reward[0]), c in (1, 2, 3), c == 4, self._info(c))
+        return (_observe(self.objects, self.core, 0), float(reward[0]), c in ENDED, c == TIMED_OUT, self._info(c))
 
     def _info(self, code: int) -> dict:
         info = {k: v[0] for k, v in self.core.info().items()}
         info["outcome"] = OUTCOMES[code]
-        info["is_success"] = code == 1
+        info["is_success"] = code == Outcome.REACHED
         return info
 
     def render(self):
@@ -195,7 +196,7 @@ class NavigateVectorEnv(VectorEnv):
         reward, code = self.core.step(actions, self.np_random)
         code[self.done] = 0
         reward[self.done] = 0.0
-        term, trunc = np.isin(code, (1, 2, 3)), code == 4
+        term, trunc = np.isin(code, ENDED), code == TIMED_OUT
         info = {**self.core.info(), "outcome": code}
         ended = term | trunc
         if ended.any():

@@ -18,7 +18,9 @@ class Composed:
 
     # composed objects --------------------------------------------------------------------------
     def _node(self, group: str, name: str):
-        """The node `<group>.<name>` a scenario names (in `experiment.<group>`)."""
+        """The node `<group>.<name>` a scenario names (in `experiment.<group>`); recorded in `read` (the cache key
+        must hold every node read: :func:`pipeline.experiments.stage.check_reads`)."""
+        self.__dict__.setdefault("read", set()).add((group, name))
         nodes = self.cfg[group]
         if name not in nodes:
             raise ConfigError(f"experiment.{group}", f"unknown {group[:-1]} {name!r}; known: {', '.join(nodes)}")
@@ -57,15 +59,18 @@ class Composed:
             raise ConfigError("experiment.attack", f"{name!r} is a state disturbance, not an attack through the camera "
                                                    "(pixel_attack, worst_cloud)")
         if att.kind == "cloud":  # the node's own level too (a sweep sets another): every key's bad value is caught
+            self.read.add(("occlusions", att.level))
             load_occlusion(att.level, self.cfg.occlusions, field=f"disturbances.{name}.level")
         att = self.disturbance(name, **params) if params else att
         if att.kind == "cloud":
+            self.read.add(("occlusions", att.level))
             load_occlusion(att.level, self.cfg.occlusions, field="experiment.levels")
         return att
 
     def occlusion(self, level: str | None):
         if level is None:
             return None
+        self.__dict__.setdefault("read", set()).add(("occlusions", level))
         built = self.__dict__.setdefault("_built", {})
         if ("occlusion", level) not in built:
             built["occlusion", level] = load_occlusion(level, self.cfg.occlusions, field="experiment.occlusion")

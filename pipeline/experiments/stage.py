@@ -96,6 +96,16 @@ def cache_key(cfg, scen: Scenario, ctx: Context) -> dict:
     return key
 
 
+def check_reads(scen: Scenario, ctx: Context) -> None:
+    """The composed nodes the computation read (`ctx.read`: controllers, disturbances, cloud levels) must all be in
+    its cache key (`scen.uses()`): a node read and not keyed would let a changed node reuse a stale result."""
+    used = scen.uses()
+    missing = sorted(f"{g}.{n}" for g, n in getattr(ctx, "read", ()) if n not in used.get(g, ()))
+    if missing:
+        raise RuntimeError(f"experiment {scen.id!r} read {', '.join(missing)}, which its uses() does not list: its "
+                           "cache key would not change with them (add them to the scenario's uses())")
+
+
 def run(cfg) -> dict:
     t0 = time.perf_counter()
     scen, ctx = prepared(cfg, check)  # the preflight's, when it checked this job
@@ -115,6 +125,7 @@ def run(cfg) -> dict:
         with progress(desc=f"[experiments] {scen.id}", unit="runs") as ctx.bar, phase("compute"):
             res = scen.compute(ctx)  # one bar step per simulation
         ctx.bar = None
+        check_reads(scen, ctx)  # before the result is stored under a key that may miss what it read
         with tracking.tracked_output(root, scen.id, cid, {"kind": "experiment", "code_version": key_parts["code"],
                                                           **key_parts}) as tmp:
             res.save(tmp)

@@ -22,9 +22,12 @@ from omegaconf import DictConfig, OmegaConf
 
 from pipeline import tracking
 from pipeline.cli import stage_main
-from pipeline.config import build
+from pipeline.config import build, compose
+from pipeline.envs.core import OUTCOMES
 from pipeline.envs.navigate import NavigateVectorEnv, objects_from
 from pipeline.errors import ConfigError
+from pipeline.lineage import resolve_map
+from pipeline.preflight import prepared
 from pipeline.repo import CONF_DIR
 from pipeline.schema import NonNegativeInt, PositiveInt, checked
 from pipeline.train.callbacks import epoch_line
@@ -62,8 +65,6 @@ def trunk_source(cfg: DictConfig) -> str | None:
         if not Path(str(ref)).is_file():
             raise ConfigError("imitation.trunk_from", f"no checkpoint {ref}")
         return Path(str(ref)).name
-    from pipeline.lineage import resolve_map
-
     return resolve_map(ref, cfg.paths.models_dir, field="imitation.trunk_from").name
 
 
@@ -83,8 +84,6 @@ def identity(cfg: DictConfig, trunk: str | None | object = _UNRESOLVED) -> str:
 
 def rollout(venv: NavigateVectorEnv, expert, learner, seed: int, max_frames: int, record_every: int):
     """Frames, labels and masks along the trajectories of `learner` (None: the expert acts), and the outcomes."""
-    from pipeline.envs.core import OUTCOMES
-
     obs, info = venv.reset(seed=seed)
     expert.policy.x = None
     if learner is not None and hasattr(learner, "reset"):
@@ -103,7 +102,7 @@ def rollout(venv: NavigateVectorEnv, expert, learner, seed: int, max_frames: int
         outcome[(term | trunc) & (outcome == 0)] = info["outcome"][(term | trunc) & (outcome == 0)]
         if venv.done.all():
             break
-    outcome[outcome == 0] = OUTCOMES.index("truncated")
+    outcome[outcome == 0] = OUTCOMES.index("timed_out")
     return np.concatenate(frames), np.concatenate(labels), np.concatenate(masks), outcome
 
 
@@ -141,12 +140,11 @@ def check(cfg: DictConfig) -> Prepared:
 
 
 def run(cfg: DictConfig) -> dict:
-    import torch
+    import torch  # torch and the torch modules below: not in the preflight (this module is the stage's entry)
 
-    from pipeline.learned.expert import Expert
-    from pipeline.learned.network import VelocityPolicy
-    from pipeline.learned.policies import ImitatedPolicy
-    from pipeline.preflight import prepared
+    from pipeline.learned.expert import Expert  # torch
+    from pipeline.learned.network import VelocityPolicy  # torch, Lightning
+    from pipeline.learned.policies import ImitatedPolicy, load_map  # torch
 
     ready = prepared(cfg, check)  # the preflight's, when it checked this job
     obj, s = ready.obj, ready.settings
@@ -161,8 +159,6 @@ def run(cfg: DictConfig) -> dict:
     torch.manual_seed(s.seed)
     model = VelocityPolicy(build(cfg.model, "model", image_shape=(*obj.camera.shape, 3)))
     if s.trunk_from is not None:
-        from pipeline.learned.policies import load_map
-
         ckpt = str(s.trunk_from).endswith(".ckpt")  # else the map folder check() resolved (by its id)
         ref = s.trunk_from if ckpt else Path(cfg.paths.models_dir) / ready.trunk
         model.load_trunk(load_map(ref, cfg.paths.models_dir).model)
@@ -200,8 +196,6 @@ def policy_folder(ref, models_dir, field: str = "policies.imitation") -> Path:
         return config if name.startswith("imitation") and (CONF_DIR / f"{config}.yaml").is_file() else None
 
     def expected(name: str) -> str | None:  # the name means what its imitate config makes now
-        from pipeline.config import compose
-
         config = config_of(name)
         return None if config is None else identity(compose(config, [f"paths.models_dir={Path(models_dir).resolve()}"]))
 
@@ -215,9 +209,9 @@ def policy_folder(ref, models_dir, field: str = "policies.imitation") -> Path:
 
 def load_policy_model(ref, models_dir, field: str = "policies.imitation"):
     """The trained imitation network :func:`policy_folder` finds, in eval mode."""
-    import torch
+    import torch  # not in the preflight (this module is the stage's entry)
 
-    from pipeline.learned.network import VelocityPolicy
+    from pipeline.learned.network import VelocityPolicy  # torch, Lightning
 
     folder = policy_folder(ref, models_dir, field)
     m = tracking.read_manifest(folder)

@@ -21,6 +21,8 @@ import torch
 from pipeline.envs.core import to_action
 from pipeline.envs.policies import ArchitecturePolicy, frames
 from pipeline.errors import ConfigError
+from pipeline.perception.maps import PerceptionMapPredictor, load_perception_map
+from pipeline.perception.network import PerceptionMap
 
 
 class ImitatedPolicy:
@@ -57,15 +59,10 @@ class LearnedHybridPolicy(ArchitecturePolicy):
 def load_map(ref, models_dir):
     """The perception map `maps.clean`: a tracked map (name, name-id, id, folder), or a training checkpoint
     (`.ckpt`, e.g. a map whose build has not finished: its best epoch so far), named by its file."""
-    from pipeline.perception.maps import PerceptionMapPredictor, load_perception_map
-    from pipeline.perception.network import PerceptionMap
-
     path = Path(str(ref))
     if path.suffix == ".ckpt":
         if not path.is_file():
             raise ConfigError("maps.clean", f"no checkpoint {path}")
-        import torch
-
         blob = torch.load(path, map_location="cpu", weights_only=False)  # a Lightning checkpoint: the map's fields
         model = PerceptionMap.of(**blob["hyper_parameters"])
         model.load_state_dict(blob["state_dict"])

@@ -5,8 +5,8 @@ environment (`python -m pipeline.learned.ppo`; docs/learned.md states the budget
 same-step autoreset) to SB3's `VecEnv` interface (a list of per-agent infos, `terminal_observation` in the info of
 an agent that stopped, `TimeLimit.truncated` on the horizon); its action space is the env's, `[-1, 1]` per
 component (the velocity in units of `u_max`, issue 46). The trained model is written to
-`outputs/models/ppo-<id>/` (id: this config and the code), with the learning curve (`curve.csv`: mean episode
-return and success per rollout).
+`outputs/models/ppo-<id>/` (id: this config and the code, :func:`pipeline.lineage.ppo_identity`), with the
+learning curve (`curve.csv`: mean episode return and success per rollout).
 """
 
 from __future__ import annotations
@@ -17,12 +17,16 @@ from pathlib import Path
 import numpy as np
 import torch
 from omegaconf import DictConfig
+from stable_baselines3 import PPO
+from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import VecEnv
 
 from pipeline import tracking
 from pipeline.cli import stage_main
 from pipeline.config import build
 from pipeline.envs.navigate import NavigateVectorEnv, objects_from
+from pipeline.lineage import ppo_folder, ppo_identity
+from pipeline.preflight import prepared
 
 
 class SB3VecEnv(VecEnv):
@@ -73,24 +77,12 @@ class SB3VecEnv(VecEnv):
         return [indices] if isinstance(indices, int) else indices
 
 
-def ppo_identity(cfg: DictConfig) -> str:
-    """The id of a PPO model: its settings, the scene, the reward, the clouds and the code."""
-    return tracking.content_id(tracking.to_plain(cfg.ppo), tracking.to_plain(cfg.scene), tracking.to_plain(cfg.env),
-                               tracking.to_plain(cfg.occlusion), tracking.code_version("envs", "learned/ppo", "learned/spec"))
-
-
 def check(cfg: DictConfig):
     """Preflight: the environment's objects and the settings, built once (the run uses them)."""
     return objects_from(cfg), build(cfg.ppo, "ppo")
 
 
 def run(cfg: DictConfig) -> dict:
-    import torch
-    from stable_baselines3 import PPO
-    from stable_baselines3.common.callbacks import BaseCallback
-
-    from pipeline.preflight import prepared
-
     obj, s = prepared(cfg, check)  # the preflight's, when it checked this job
     if s.threads is not None:
         torch.set_num_threads(s.threads)
@@ -183,22 +175,8 @@ class PPOPolicy:
         return self.net(torch.from_numpy(np.ascontiguousarray(obs)).float()).double().numpy()
 
 
-def ppo_folder(ref, models_dir, field: str = "policies.ppo") -> Path:
-    """A trained PPO model's folder (outputs/models/ppo-<id>: path, name-id, id; `ppo`: the one the current
-    conf/ppo.yaml makes)."""
-    def expected(name: str) -> str | None:
-        from pipeline.config import compose
-
-        return ppo_identity(compose("ppo", [f"paths.models_dir={Path(models_dir).resolve()}"])) if name == "ppo" else None
-
-    return tracking.resolve(Path(models_dir), ref, kind="PPO policy", field=field,
-                            command="python -m pipeline.learned.ppo", expected=expected)
-
-
 def load_ppo(ref, models_dir, field: str = "policies.ppo"):
     """The PPO model :func:`ppo_folder` finds."""
-    from stable_baselines3 import PPO
-
     folder = ppo_folder(ref, models_dir, field)
     model = PPO.load(folder / "model.zip", device="cpu")
     model.tracked_name = folder.name

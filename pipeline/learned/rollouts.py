@@ -24,9 +24,10 @@ from torch import nn
 
 from pipeline.envs.core import OUTCOMES
 from pipeline.envs.navigate import NavigateVectorEnv
+from pipeline.sim.metrics import Outcome
 from pipeline.sim.simulator import stall_threshold
 
-CLASSES = ("reached", "collided", "left_view", "stalled", "timed_out")
+CLASSES = OUTCOMES[1:]  # :class:`pipeline.sim.metrics.Outcome`'s names but `running`
 
 
 class HeadNet(nn.Module):
@@ -134,7 +135,8 @@ def run_policy(obj, policy, starts: np.ndarray, *, seed: int = 0, attack: Policy
     paths = np.array(paths)
     window = int(round(stall_time / venv.core.period))
     moved = np.hypot(*(paths[-1] - paths[max(0, len(paths) - 1 - window)]).T)
-    names = np.asarray(OUTCOMES)[code]
-    outcome = np.where(names == "arrived", "reached", np.where(names == "collided", "collided", np.where(
-        names == "left_view", "left_view", np.where(moved < stall_speed * stall_time, "stalled", "timed_out"))))
+    at_horizon = (code == Outcome.RUNNING) | (code == Outcome.TIMED_OUT)
+    code = np.where(at_horizon & (moved < stall_speed * stall_time), Outcome.STALLED,
+                    np.where(code == Outcome.RUNNING, Outcome.TIMED_OUT, code))
+    outcome = np.asarray(OUTCOMES)[code]
     return {"outcome": outcome, "time": np.where(outcome == "reached", t_end, np.nan), "paths": paths}

@@ -30,6 +30,7 @@ import numpy as np
 
 from pipeline.perception.measure import OracleMap, check_gate
 from pipeline.schema import Kappa, Name, Positive, PositiveInt, check_fields
+from pipeline.sim.disturbances import Adversarial
 
 ATTACKS = ("pixel", "cloud")
 
@@ -43,8 +44,6 @@ def proposition1_direction(scene) -> Callable[[np.ndarray], np.ndarray]:
     def direction(p: np.ndarray) -> np.ndarray:
         p = np.asarray(p, dtype=np.float64).reshape(-1, 2)
         if getattr(scene, "n_obstacles", 1) > 1:
-            from pipeline.sim.disturbances import Adversarial
-
             return Adversarial(eps=1.0)(p, 0, None, scene)
         _, b = scene.to_frame(p)
         sign = np.where(np.asarray(b) >= 0, 1.0, -1.0)
@@ -179,7 +178,7 @@ class AttackedCamera:
         self.uncertain = bool(getattr(self.perception_map, "has_uncertainty", False))
 
     def _attack(self, p, direction, rng):
-        from pipeline.perception.attacks import pixel_attack, worst_cloud
+        from pipeline.perception.attacks import pixel_attack, worst_cloud  # torch: when a frame is attacked
 
         pm = self.perception_map
         if self.attack == "pixel":

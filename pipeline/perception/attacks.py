@@ -39,8 +39,7 @@ This module takes the network, predictor and camera as arguments; it imports onl
 
 from __future__ import annotations
 
-import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -131,7 +130,7 @@ def _unit_directions(direction, n: int) -> np.ndarray:
 
 # ------------------------------------------------------------------------------------ pixel attack
 @checked("attack")
-def pixel_attack(net: nn.Module, images, direction, *, kappa: Kappa, steps: NonNegativeInt = 5,
+def pixel_attack(net: nn.Module, images, direction, *, kappa: Kappa | Sequence[Kappa], steps: NonNegativeInt = 5,
                  step_size: NonNegative | None = None, device="cpu", batch_size: PositiveInt = 512,
                  rng: np.random.Generator | None = None) -> AttackResult:
     """L-infinity PGD on the camera image, pushing the estimate along `direction` (one row per image).
@@ -139,36 +138,39 @@ def pixel_attack(net: nn.Module, images, direction, *, kappa: Kappa, steps: NonN
     With `x` the clean image (float, `[0, 255]`), `l = net(.)[:, :2]` the estimate (world units) and
     `d_n = direction_n / |direction_n|`, each image's perturbation solves (approximately)
 
-        max_delta  d_n . l(x_n + delta_n)    s.t.  |delta_n|_inf <= kappa,   0 <= x_n + delta_n <= 255,
+        max_delta  d_n . l(x_n + delta_n)    s.t.  |delta_n|_inf <= kappa_n,   0 <= x_n + delta_n <= 255,
 
     the image-space counterpart of SPEC §3.5's Proposition-1 attack `e = -eps sign(b(p)) e_b`: pass
-    `direction = -sign(b(p)) e_b` (:func:`proposition1_direction`). The objective is the sum over the batch
-    (images are independent, so this is each image's own ascent). Steps: `delta <- P(delta + alpha
-    sign(grad))`, `alpha = step_size` (default `2.5 kappa / steps`), `P` the projection onto the ball and the
+    `direction = -sign(b(p)) e_b` (:func:`proposition1_direction`). `kappa`: one budget, or one per image `(N,)`
+    (the camera falsifier's runs, :mod:`pipeline.bracket.camera_falsifier`). The objective is the sum over the
+    batch (images are independent, so this is each image's own ascent). Steps: `delta <- P(delta + alpha
+    sign(grad))`, `alpha = step_size` (default `2.5 kappa_n / steps`), `P` the projection onto the ball and the
     box. `rng` given: a uniform random start inside the ball (drawn in image order, so batching does not
     change it); None: start at `delta = 0`.
 
     The result is what a camera delivers: `round(x + delta)` as uint8, re-clipped to
-    `[x - floor(kappa), x + floor(kappa)]` so the budget holds exactly in integer levels. Where the rounded
+    `[x - floor(kappa_n), x + floor(kappa_n)]` so the budget holds exactly in integer levels. Where the rounded
     image does worse along `d` than the clean one, the clean image is kept (`delta = 0` is feasible), so the
     attack never helps the controller. Runs in eval mode (restored afterwards) in batches of `batch_size` on
     `device`; only the input gets gradients (`torch.autograd.grad`), nothing accumulates in the network's
     parameters. See the module docstring for the network contract.
     """
-    kappa, steps, batch_size = float(kappa), int(steps), int(batch_size)
-    alpha = 2.5 * kappa / max(steps, 1) if step_size is None else float(step_size)
+    steps, batch_size = int(steps), int(batch_size)
     imgs = images.detach().cpu().numpy() if isinstance(images, torch.Tensor) else np.asarray(images)
     if imgs.ndim != 4 or imgs.shape[-1] != 3 or imgs.dtype != np.uint8:
         raise ValueError(f"images must be uint8 (N, H, W, 3), got {imgs.dtype} {imgs.shape}")
     n = len(imgs)
     d = _unit_directions(direction, n)
+    kap = np.asarray(kappa, dtype=np.float64)
+    if kap.shape not in ((), (n,)):
+        raise ValueError(f"kappa must be one budget or one per image ({n},), got shape {kap.shape}")
+    kap = np.broadcast_to(kap, (n,)).copy()
+    alpha = 2.5 * kap / max(steps, 1) if step_size is None else np.full(n, float(step_size))
+    budget = np.floor(kap)  # the integer levels a uint8 image can move within the budget
+    start = rng if rng is not None and (kap > 0).any() else None  # a random start (it draws from `rng`)
+    idle = not budget.any() or (steps == 0 and rng is None)  # nothing can move: the clean image, no gradient
     dev = torch.device(device)
-    budget = math.floor(kappa)  # the integer levels a uint8 image can move within the budget
-    out = np.empty_like(imgs)
-    clean = np.empty((n, 2))
-    attacked = np.empty((n, 2))
-    extra = None
-    idle = budget == 0 or (steps == 0 and rng is None)  # nothing can move: the clean image, no gradient
+    out, clean, attacked, extra = np.empty_like(imgs), np.empty((n, 2)), np.empty((n, 2)), None
     was_training = net.training
     net.eval()
     try:
@@ -176,9 +178,10 @@ def pixel_attack(net: nn.Module, images, direction, *, kappa: Kappa, steps: NonN
             for s in range(0, n, batch_size):
                 e = min(s + batch_size, n)
                 x0 = torch.from_numpy(np.ascontiguousarray(imgs[s:e])).to(dev).to(torch.float32)
-                db = torch.from_numpy(d[s:e]).to(dev, torch.float32)
-                adv, out_clean, out_adv = _pgd_batch(net, x0, db, kappa=kappa, alpha=alpha, budget=budget,
-                                                     steps=0 if idle else steps, idle=idle, rng=rng)
+                per_image = [torch.from_numpy(np.ascontiguousarray(v[s:e])).to(dev, torch.float32)
+                             for v in (d, kap, alpha, budget)]
+                adv, out_clean, out_adv = _pgd_batch(net, x0, *per_image, steps=0 if idle else steps, idle=idle,
+                                                     rng=start)
                 out[s:e] = adv.to(torch.uint8).cpu().numpy()
                 clean[s:e] = out_clean[:, :2].double().cpu().numpy()
                 attacked[s:e] = out_adv[:, :2].double().cpu().numpy()
@@ -190,12 +193,14 @@ def pixel_attack(net: nn.Module, images, direction, *, kappa: Kappa, steps: NonN
     return AttackResult(out, clean, attacked, d, extra=np.empty((0, 0)) if extra is None else extra)
 
 
-def _pgd_batch(net: nn.Module, x0, db, *, kappa: float, alpha: float, budget: int, steps: int, idle: bool, rng):
-    """One batch of :func:`pixel_attack` (gradients enabled by the caller): the projected sign-gradient steps
-    from the clean or a random start, then the camera's rounding and the keep-the-clean-image rule. Returns
-    `(attacked images, clean outputs, attacked outputs)` as tensors."""
+def _pgd_batch(net: nn.Module, x0, db, kappa, alpha, budget, *, steps: int, idle: bool, rng):
+    """One batch of :func:`pixel_attack` (gradients enabled by the caller), the budget `kappa`, step `alpha` and
+    integer `budget` per image `(n,)`: the projected sign-gradient steps from the clean or (`rng` given) a random
+    start, then the camera's rounding and the keep-the-clean-image rule. Returns `(attacked images, clean
+    outputs, attacked outputs)` as tensors."""
+    kappa, alpha, budget = (v.view(-1, 1, 1, 1) for v in (kappa, alpha, budget))
     out_clean = None
-    if rng is not None and kappa > 0:
+    if rng is not None:
         u = rng.random(tuple(x0.shape))  # float64: one 64-bit draw each, batch-invariant
         delta = torch.from_numpy(u).to(x0.device, torch.float32).mul_(2 * kappa).sub_(kappa)
         delta = (x0 + delta).clamp_(0.0, 255.0).sub_(x0)
@@ -208,7 +213,7 @@ def _pgd_batch(net: nn.Module, x0, db, *, kappa: float, alpha: float, budget: in
             out_clean = full.detach()
         (grad,) = torch.autograd.grad((full[:, :2] * db).sum(), delta)
         with torch.no_grad():
-            delta = delta.detach().add_(grad.sign(), alpha=alpha).clamp_(-kappa, kappa)
+            delta = torch.clamp(delta.detach() + alpha * grad.sign(), -kappa, kappa)
             delta = (x0 + delta).clamp_(0.0, 255.0).sub_(x0)
     with torch.no_grad():
         if out_clean is None:

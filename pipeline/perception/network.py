@@ -11,6 +11,7 @@ arena and the module scales them back.
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import dataclasses
 from collections.abc import Sequence
@@ -271,8 +272,42 @@ def _to_world(z: torch.Tensor, center, half_range, sigma_scale, clamp: bool, pos
 
 
 # -------------------------------------------------------------------------------------- inference
+def fold(model: PerceptionMap, dtype: torch.dtype = torch.float32,
+         grad: bool = False) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+    """The convolution blocks of `model` as deployed, `(weights, biases)`: block `k`'s 3x3 convolution (padding 1).
+
+    The one folding of both :class:`FoldedPerceptionNet` (inference) and `pipeline.certify.deployed.deployed` (the
+    bounds): eval-mode BatchNorm (running statistics, whatever `model.training` is) folded into each convolution;
+    block 0 reads images in `[0, 255]`: its weight is `w0[:, :3] / 255` and its bias the per-pixel map `(C, H, W)`
+    of the input's `-0.5` centring, the CoordConv channels (zero padding included) and the convolution's bias; the
+    other biases are `(C,)`. Folded in the parameters' dtype, then cast to `dtype`. `grad`: differentiable functions
+    of the model's parameters (a certified training's bound backpropagates through them), else detached."""
+    with contextlib.nullcontext() if grad else torch.no_grad():
+        mods, blocks = list(model.features), []
+        for i, conv in enumerate(mods):
+            if not isinstance(conv, nn.Conv2d):
+                continue
+            wt = conv.weight
+            b = conv.bias if conv.bias is not None else torch.zeros(wt.shape[0], dtype=wt.dtype, device=wt.device)
+            bn = mods[i + 1] if i + 1 < len(mods) and isinstance(mods[i + 1], nn.BatchNorm2d) else None
+            if bn is not None:
+                scale = bn.weight / torch.sqrt(bn.running_var + bn.eps)
+                wt, b = wt * scale.view(-1, 1, 1, 1), (b - bn.running_mean) * scale + bn.bias
+            blocks.append((wt, b))
+        (w0, b0), (h, w, _) = blocks[0], model.image_shape
+        conv0 = lambda x, wk: nn.functional.conv2d(x, wk.contiguous(), padding=1)[0]  # noqa: E731 (one layout)
+        bias_map = -0.5 * conv0(torch.ones(1, 3, h, w, dtype=w0.dtype, device=w0.device), w0[:, :3])
+        if model.coord_channels:
+            bias_map = bias_map + conv0(model.coords.to(w0.dtype), w0[:, 3:])
+        weights = [w0[:, :3] / 255.0] + [wk for wk, _ in blocks[1:]]
+        biases = [bias_map + b0.view(-1, 1, 1)] + [bk for _, bk in blocks[1:]]
+        cast = (lambda t: t.to(dtype)) if grad else (lambda t: t.detach().to(dtype))  # noqa: E731
+        return [cast(t) for t in weights], [cast(t) for t in biases]
+
+
 class FoldedPerceptionNet(nn.Module):
-    """The eval-mode `PerceptionMap` rewritten for fast inference (same outputs up to float rounding).
+    """The eval-mode `PerceptionMap` rewritten for fast inference (same outputs up to float rounding); its
+    convolutions are :func:`fold`'s, the very ones the certificate bounds (`pipeline.certify.deployed`).
 
     - BatchNorm folded into the preceding convolution (one pass instead of three per block);
     - the input scaling (`x / 255 - 0.5`) and the CoordConv channels folded into the first convolution: its
@@ -284,19 +319,12 @@ class FoldedPerceptionNet(nn.Module):
 
     def __init__(self, model: PerceptionMap):
         super().__init__()
-        blocks = _folded_convs(model.features)
-        h, w, _ = model.image_shape
-        w0, b0 = blocks[0]
-        with torch.no_grad():
-            bias_map = -0.5 * nn.functional.conv2d(torch.ones(1, 3, h, w), w0[:, :3], padding=1)
-            if model.coord_channels:
-                bias_map += nn.functional.conv2d(model.coords, w0[:, 3:], padding=1)
-            bias_map += b0.view(1, -1, 1, 1)
-        self.register_buffer("w0", (w0[:, :3] / 255.0).contiguous(memory_format=torch.channels_last))
-        self.register_buffer("bias_map", bias_map.contiguous(memory_format=torch.channels_last))
+        weights, biases = fold(model)
+        self.register_buffer("w0", weights[0].contiguous(memory_format=torch.channels_last))
+        self.register_buffer("bias_map", biases[0][None].contiguous(memory_format=torch.channels_last))
         self.convs = nn.ModuleList()
-        for wk, bk in blocks[1:]:
-            conv = nn.Conv2d(wk.shape[1], wk.shape[0], 3, padding=1)
+        for wk, bk in zip(weights[1:], biases[1:]):
+            conv = nn.Conv2d(wk.shape[1], wk.shape[0], 3, padding=1)  # its init draws from the global stream
             with torch.no_grad():
                 conv.weight.copy_(wk)
                 conv.bias.copy_(bk)
@@ -329,20 +357,3 @@ class FoldedPerceptionNet(nn.Module):
             z = torch.cat([z, self.var_head(torch.cat([f, thumb], 1))], 1)
         return _to_world(z, self.center, self.half_range, self.sigma_scale, self.clamp, self.pose)
 
-
-def _folded_convs(features: nn.Sequential) -> list[tuple[torch.Tensor, torch.Tensor]]:
-    """(weight, bias) per Conv2d with the following eval-mode BatchNorm2d folded in."""
-    mods = list(features)
-    out = []
-    for i, conv in enumerate(mods):
-        if not isinstance(conv, nn.Conv2d):
-            continue
-        wt = conv.weight.detach().float()
-        b = conv.bias.detach().float() if conv.bias is not None else torch.zeros(wt.shape[0])
-        bn = mods[i + 1] if i + 1 < len(mods) and isinstance(mods[i + 1], nn.BatchNorm2d) else None
-        if bn is not None:
-            scale = bn.weight.detach() / torch.sqrt(bn.running_var + bn.eps)
-            wt = wt * scale.view(-1, 1, 1, 1)
-            b = (b - bn.running_mean) * scale + bn.bias.detach()
-        out.append((wt.contiguous(), b.contiguous()))
-    return out

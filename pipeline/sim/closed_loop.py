@@ -25,7 +25,7 @@ import numpy as np
 
 from pipeline.hybrid import HybridSystem, State
 from pipeline.hybrid.system import row_norm
-from pipeline.sim.disturbances import NoDisturbance, PerAgent
+from pipeline.sim.disturbances import NoDisturbance
 
 # measure(c_true (n, dim), idx (n,), frame, rng) -> measured states (n, dim), before the disturbance
 Measure = Callable[[np.ndarray, np.ndarray, int, np.random.Generator], np.ndarray]
@@ -83,7 +83,7 @@ class _Loop(HybridSystem):
     def _disturb(self, c: np.ndarray, frame: int, rng, idx: np.ndarray | None = None) -> np.ndarray:
         """The disturbance on the position part of a measured state (SPEC §3.5); `idx`: the agents of `c` in the
         batch, where only some are measured (a per-agent disturbance reads it)."""
-        args = (idx,) if idx is not None and isinstance(self.disturbance, PerAgent) else ()
+        args = (idx,) if idx is not None and getattr(self.disturbance, "per_agent", False) else ()
         e = self.disturbance(self.plant.position(c), frame, rng, self.scene, *args)
         if c.shape[1] == 2:
             return e

@@ -23,6 +23,7 @@ class Disturbance:
     """`e = disturbance(p_true, frame, rng, scene)`, shape `(N, 2)`."""
 
     name = "none"
+    per_agent = False  # True: called with `idx`, the batch indices of the agents measured (a subset at a lost frame)
 
     def __call__(self, p: np.ndarray, frame: int, rng: np.random.Generator, scene) -> np.ndarray:
         return np.zeros_like(p)
@@ -104,6 +105,7 @@ class PerAgent(Disturbance):
     `idx` (the loop passes it): the batch indices of the agents in `p`, where a sampled loop measures only some."""
 
     name = "per_agent"
+    per_agent = True  # the loop passes the batch indices of the agents it measures
 
     def __init__(self, parts: list[Disturbance], sizes: list[int]):
         if len(parts) != len(sizes):
@@ -122,3 +124,17 @@ class PerAgent(Disturbance):
                 out[mine] = part(p[mine], frame, rng, scene)
         return out
 
+
+
+class Played(Disturbance):
+    """An error signal set from outside before each frame (`e` `(N, 2)`, one row per agent of the batch): the
+    bracket's falsifier plays its adversaries through the simulator's own loop with it."""
+
+    name = "played"
+    per_agent = True
+
+    def __init__(self):
+        self.e = None
+
+    def __call__(self, p, frame, rng, scene, idx: np.ndarray | None = None):
+        return self.e if idx is None else self.e[idx]

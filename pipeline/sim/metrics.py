@@ -1,5 +1,9 @@
 """Per-agent outcomes and the table a reviewer asks for (issue 12 §2).
 
+:class:`Outcome` is the one vocabulary of how a run ended, for the simulator, the Gymnasium environments, the
+bracket's falsifier and the learned agents' rollouts (each produces the classes its loop can reach: the
+simulator has no arena stop, so `OUTCOMES`, its table's classes, has no `left_view`).
+
 `outcome(...)` classifies each agent as `reached`, `collided`, `stalled` (slower than `stall_speed` for the
 last `stall_time` seconds away from the target: the undesired equilibria of the smooth and CBF controllers,
 Proposition 1) or `timed_out` (still moving at the horizon). `summarise_agents(df, by)` turns a per-agent
@@ -9,11 +13,27 @@ table (the columns of `SimResult.metrics_frame()`) into one row per group. Pure 
 from __future__ import annotations
 
 import math
+from enum import IntEnum
 
 import numpy as np
 import pandas as pd
 
-OUTCOMES = ("reached", "collided", "stalled", "timed_out")
+
+class Outcome(IntEnum):
+    """How a run ended: `RUNNING` (not yet), `REACHED` the success disc, `COLLIDED` with an obstacle, `LEFT_VIEW`
+    (left the camera's view, the arena), `STALLED` (at the horizon, slower than the stall speed: an undesired
+    equilibrium, Proposition 1) or `TIMED_OUT` (still moving at the horizon; the environments' truncation)."""
+
+    RUNNING = 0
+    REACHED = 1
+    COLLIDED = 2
+    LEFT_VIEW = 3
+    STALLED = 4
+    TIMED_OUT = 5
+
+
+NAMES = tuple(o.name.lower() for o in Outcome)  # "running", "reached", ... indexed by code
+OUTCOMES = ("reached", "collided", "stalled", "timed_out")  # the simulator's classes (its table's columns)
 
 
 class StallMonitor:

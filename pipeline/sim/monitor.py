@@ -4,7 +4,8 @@
 is the success disc `|p - p_T| <= delta` (it ends the run with `stop_on_success`, else only its first entry
 time is kept), stop set 2 any obstacle `|p - c_i| < r_i`; it keeps the smallest squared distance to each
 obstacle and to the target seen along the arc, and the positions of the last `stall_time` seconds
-(:class:`~pipeline.sim.metrics.StallMonitor`). Positions are the plant's (`plant.position(c)`).
+(:class:`~pipeline.sim.metrics.StallMonitor`). Positions are the plant's (`plant.position(c)`). With an `arena`
+(the environments: the camera's view), leaving it is stop set 3. The codes are :class:`~pipeline.sim.metrics.Outcome`'s.
 """
 
 from __future__ import annotations
@@ -12,9 +13,9 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.hybrid.system import Monitor
-from pipeline.sim.metrics import StallMonitor
+from pipeline.sim.metrics import Outcome, StallMonitor
 
-TARGET, COLLISION = 1, 2
+TARGET, COLLISION, LEFT_VIEW = Outcome.REACHED, Outcome.COLLIDED, Outcome.LEFT_VIEW
 
 
 def _sq(X, c):
@@ -27,7 +28,8 @@ class ArrivalCollision(Monitor):
     codes = ("target", "collision")
     precedence = (COLLISION, TARGET)  # a step that ends in an obstacle is a collision, whatever else
 
-    def __init__(self, scene, plant, n: int, *, delta: float, stop_on_success: bool, stall: StallMonitor):
+    def __init__(self, scene, plant, n: int, *, delta: float, stop_on_success: bool, stall: StallMonitor,
+                 arena: tuple | None = None):
         self.plant = plant
         arr = scene.arrays
         self.centers, self.r2 = arr["center"], arr["radius"] ** 2
@@ -40,6 +42,10 @@ class ArrivalCollision(Monitor):
         self.min_d2 = np.full((n, len(self.centers)), np.inf)
         self.min_e2 = np.full(n, np.inf)
         self.conditions = (self._arrived, self._collides)
+        self.arena = arena  # ((x0, x1), (y0, y1)): leaving it ends a run (stop set 3)
+        if arena is not None:
+            self.codes, self.stops = (*self.codes, "left_view"), (*self.stops, True)
+            self.conditions = (*self.conditions, self._left)
 
     # the stop sets ------------------------------------------------------------------------------------
     def _d2(self, p: np.ndarray) -> np.ndarray:
@@ -52,12 +58,18 @@ class ArrivalCollision(Monitor):
     def _arrived(self, c: np.ndarray) -> np.ndarray:
         return _sq(self.plant.position(c), self.pT) <= self.delta2
 
+    def _left(self, c: np.ndarray) -> np.ndarray:
+        p = self.plant.position(c)
+        (x0, x1), (y0, y1) = self.arena
+        return (p[:, 0] < x0) | (p[:, 0] > x1) | (p[:, 1] < y0) | (p[:, 1] > y1)
+
     # the sampled loop ----------------------------------------------------------------------------------
     def start(self, c):
         p = self.plant.position(c)
         d2 = self._d2(p)
         self.min_d2 = d2.copy()
         self.min_e2 = _sq(p, self.pT)
+        self.t_hit[:] = np.nan  # a new run (the environments start one per frame)
         self.stall.sample(p)
         return np.where((d2 < self.r2).any(axis=1), COLLISION, 0).astype(np.int8)
 
@@ -78,6 +90,9 @@ class ArrivalCollision(Monitor):
             self.t_hit[reached] = t
             if self.stops[0]:
                 codes[reached] = TARGET
+        if self.arena is not None:
+            left = active & (codes == 0) & self._left(c)
+            codes[left] = LEFT_VIEW
         if (k + 1) % self.stall.every == 0:
             self.stall.sample(p)
         return codes

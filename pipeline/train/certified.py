@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import torch
 
+from pipeline.certify import certified_error_bound, prepare
 from pipeline.train.settings import CertifiedTraining
 
 
@@ -36,8 +37,6 @@ class CertifiedTerm:
     def __call__(self, model, labels: torch.Tensor, epoch: float) -> torch.Tensor | None:
         """The term at fractional epoch `epoch` on cells around the first `cells_per_step` positions of `labels`;
         None during the warm-up (nothing computed)."""
-        from pipeline.certify import certified_error_bound, prepare  # torch-heavy; only when the term is on
-
         w, side, mode = self.settings.schedule(epoch)
         if w == 0:
             self.last = {"weight": 0.0, "cell": side, "mode": mode}
