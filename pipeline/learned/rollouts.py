@@ -24,6 +24,7 @@ from torch import nn
 
 from pipeline.envs.core import OUTCOMES
 from pipeline.envs.navigate import NavigateVectorEnv
+from pipeline.perception.attacks import pixel_attack, worst_cloud
 from pipeline.sim.metrics import Outcome
 from pipeline.sim.simulator import stall_threshold
 
@@ -53,8 +54,6 @@ class PolicyAttack:
     norm: list = field(default_factory=list)
 
     def __call__(self, images: np.ndarray, p: np.ndarray, alive: np.ndarray) -> np.ndarray:
-        from pipeline.perception.attacks import pixel_attack
-
         out = images.copy()
         idx = np.flatnonzero(alive)
         if idx.size == 0:
@@ -91,8 +90,6 @@ class PolicyWorstCloud:
         self.rng = np.random.default_rng(self.seed)
 
     def __call__(self, images: np.ndarray, p: np.ndarray, alive: np.ndarray) -> np.ndarray:
-        from pipeline.perception.attacks import worst_cloud
-
         out = images.copy()
         idx = np.flatnonzero(alive)
         if idx.size == 0:
