@@ -261,8 +261,8 @@ def run(cfg) -> dict:
 
 
 def _certified(cfg, names, paths, args, lock, runner) -> dict[str, Path]:
-    """The certify stage (docs/certify.md) on the maps `names` this run built: not started when every certified
-    error map the current certify config makes for them is there."""
+    """The certify stage (docs/certify.md) on the maps `names` this run built (not started when what the current
+    certify config makes is there); their tables and heat maps copied into the paper folder (`tab_/fig_certified_*`)."""
     argv = {n: [f"maps={lock['maps'][n].name}", *paths, *args["certify"]] for n in names}
 
     def folders():
@@ -277,14 +277,14 @@ def _certified(cfg, names, paths, args, lock, runner) -> dict[str, Path]:
     found = up_to_date("certify", folders)
     if found is None:
         runner.stage("certify", [Job("certify", argv[n], f"certify {n}") for n in names])
-    return found or folders()
+    for n, folder in (found := found or folders()).items():  # Theorem 1's hypothesis for the map
+        publish(folder, Path(cfg.paths.paper_dir), {"table.md": f"tab_certified_{n}.md", "certified_error_map.png": f"fig_certified_{n}.png"})
+    return found
 
 
 def _bracket(cfg, tunings, paths, args, lock, runner) -> dict[str, Path]:
-    """The closed loop's bracket (docs/bracket.md) for each named tuning of `tunings` (conf/tuning/), certified with
-    uniform ε and, where `bracket_map` names a certified map, with its certified error map (pinned by id); not started
-    when every output the current config makes is there. Each table and figure is copied into the paper folder
-    (`tab_bracket_<tuning>.md`, `fig_bracket_<tuning>.png`)."""
+    """The closed loop's bracket (docs/bracket.md) per tuning of `tunings` (conf/tuning/), with uniform ε and with the
+    certified error map of `bracket_map` (pinned by id), unless up to date; `tab_/fig_bracket_<tuning>` copied."""
     paths = [p for p in paths if not p.startswith("debug=")]  # the bracket's small sizes are args.bracket
     pin = [f"bracket.error_map={lock['certified'][cfg.bracket_map].name}"] if cfg.get("bracket_map") else []
     argv = {t: [f"tuning={t}", *pin, *paths, *args["bracket"]] for t in tunings}

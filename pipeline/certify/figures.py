@@ -13,11 +13,15 @@ from matplotlib.colors import LogNorm
 from pipeline.viz import save
 
 
-def _heat(ax, values, extent, norm, title):
+def _heat(ax, values, extent, norm, title, region=None):
     im = ax.imshow(np.where(np.isfinite(values), np.maximum(values, norm.vmin), np.nan), origin="lower",
                    extent=extent, norm=norm, cmap="viridis", interpolation="nearest")
     ax.set_title(title, fontsize=9)
     ax.set_aspect("equal")
+    if region is not None:  # a region's map: drawn at its own scale (1 unit around it)
+        (rx0, rx1), (ry0, ry1) = region
+        ax.set_xlim(rx0 - 1.0, rx1 + 1.0)
+        ax.set_ylim(ry0 - 1.0, ry1 + 1.0)
     return im
 
 
@@ -31,9 +35,11 @@ def write_figures(folder: Path, fields: dict, summary: dict, arena, formats) -> 
         panels.insert(0, (emp, f"sampled ε_emp(P) ({summary['samples']} positions per cell)"))
     vals = np.concatenate([np.ravel(v)[np.isfinite(np.ravel(v))] for v, _ in panels])
     norm = LogNorm(vmin=max(float(np.percentile(vals, 1)), 1e-3), vmax=max(float(vals.max()), 1e-2))
-    fig, axes = plt.subplots(len(panels), 1, figsize=(7, 3.2 * len(panels)), squeeze=False)
+    region = summary.get("region")
+    fig, axes = plt.subplots(len(panels), 1, figsize=(7, (3.2 if region is None else 2.0) * len(panels)),
+                             squeeze=False)
     for ax, (v, title) in zip(axes[:, 0], panels):
-        im = _heat(ax, v, extent, norm, title)
+        im = _heat(ax, v, extent, norm, title, region)
     fig.colorbar(im, ax=axes[:, 0].tolist(), label="error bound (world units)")
     out = save(fig, folder / "certified_error_map", formats)
     plt.close(fig)
@@ -42,7 +48,7 @@ def write_figures(folder: Path, fields: dict, summary: dict, arena, formats) -> 
         fig, ax = plt.subplots(figsize=(7, 3.4))
         finite = tight[np.isfinite(tight)]
         im = _heat(ax, tight, extent, LogNorm(vmin=1.0, vmax=max(float(finite.max()), 1.01)),
-                   f"tightness ε̄ / ε_emp (κ = 0): median {np.median(finite):.2f}")
+                   f"tightness ε̄ / ε_emp (κ = 0): median {np.median(finite):.2f}", region)
         fig.colorbar(im, ax=ax)
         out += save(fig, folder / "tightness_map", formats)
         plt.close(fig)

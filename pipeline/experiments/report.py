@@ -156,6 +156,10 @@ OTHER_FILES = [
                        "the lock's `learned.comparison`; docs/learned.md)"),
     ("fig_learned_switching_set.png", "the imitated policy's switching set over the arena (e_b · π(h(p)); black: "
                                       "its own set K), from make learned's comparison (docs/learned.md)"),
+    ("tab_certified_*.md", "the certified error map of one perception map (make paper: the occluded map on the band "
+                           "behind the obstacle): its certified ε̄ against c - r, Theorem 1's hypothesis, the sampled "
+                           "and attacked errors beside it (copied from `outputs/certified/<map>-<id>/`; docs/certify.md)"),
+    ("fig_certified_*.png", "the same certified error map drawn beside the sampled one (docs/certify.md)"),
     ("tab_bracket_*.md", "the closed loop's bracket for one tuning: certified ε_lo and falsified ε_hi per controller "
                          "(copied from `outputs/bracket/bracket-<id>/`; docs/bracket.md)"),
     ("fig_bracket_*.png", "the same bracket drawn over the start cells (docs/bracket.md)"),
