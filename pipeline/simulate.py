@@ -16,10 +16,10 @@ from pipeline.cli import stage_main
 from pipeline.config import build
 from pipeline.errors import ConfigError
 from pipeline.perception.adversary import is_attack
-from pipeline.plants import SingleIntegrator, explain_steering, steering_warnings
+from pipeline.plants import steering_warnings
 from pipeline.preflight import prepared
-from pipeline.sim import frame_steps, simulate
-from pipeline.sim.settings import check_vehicle
+from pipeline.sim import simulate
+from pipeline.sim.composed import loop_parts
 
 
 def objects(cfg: DictConfig):
@@ -28,20 +28,14 @@ def objects(cfg: DictConfig):
     The controller steers the vehicle's steered point in `vehicle.steering_scene(scene)` (the unicycle's discs
     inflated by its look-ahead, SPEC §3.7); the keywords of :func:`pipeline.sim.simulate` carry the `sim` and
     `camera` settings, the plant and its initial headings."""
-    scene = build(cfg.scene, "scene")
-    plant = build(cfg.vehicle, "vehicle") if cfg.get("vehicle") is not None else SingleIntegrator()
-    try:
-        controller = build(cfg.controller, "controller", scene=plant.steering_scene(scene))
-    except ConfigError as err:
-        raise explain_steering(plant, err) from None
+    parts = loop_parts(cfg)
+    scene, plant, sim, camera = parts.scene, parts.plant, parts.sim, parts.camera
+    controller = parts.law(cfg.controller)
     disturbance = build(cfg.disturbance, "disturbance")
     if is_attack(disturbance):
         raise ConfigError("disturbance", f"{disturbance.name} acts through the camera, and this stage simulates the "
                                          "true state: run it in a camera experiment (experiment=camera_attack)")
     x0 = build(cfg.init, "init")(scene)
-    sim, camera = build(cfg.sim, "sim"), build(cfg.camera, "camera")
-    frame_steps(sim.dt, camera.period)
-    check_vehicle(plant, sim)
     kw = {"sim": sim, "camera": camera, "plant": plant, "heading0": plant.initial_heading(x0, scene)}
     return scene, controller, disturbance, x0, kw
 

@@ -33,20 +33,20 @@ from pipeline.config import build
 from pipeline.control import in_diamond
 from pipeline.errors import ConfigError, DatasetError
 from pipeline.experiments.report import markdown_table
+from pipeline.sim.composed import loop_parts
 from pipeline.sim.simulator import stall_threshold
 
 
 def objects(cfg: DictConfig):
     """(scene, {name: law}, settings, sim, camera, error map or None, camera map folder or None, {name: the lost
     frames the proof covers}), built and checked before any work."""
-    scene = build(cfg.scene, "scene")
+    parts = loop_parts(cfg)  # the one builder of the loop (pipeline.sim.composed): the single integrator here
+    scene, sim, camera = parts.scene, parts.sim, parts.camera
     if scene.n_obstacles != 1 or scene.barrier.kind != "squared":
         raise ConfigError("scene", "the bracket covers one obstacle with the squared barrier (SPEC §5.5's scope)")
     bs = build(cfg.bracket, "bracket")
-    laws = {}
-    for name in bs.controllers:
-        node = cfg.controller if name == "hybrid" else cfg.controllers[name]
-        laws[name] = build(node, "controller" if name == "hybrid" else f"controllers.{name}", scene=scene)
+    laws = {name: parts.law(cfg.controller if name == "hybrid" else cfg.controllers[name],
+                            "controller" if name == "hybrid" else f"controllers.{name}") for name in bs.controllers}
     hybrid = laws.get("hybrid")
     if hybrid is not None:  # the enclosures model §3.3's law: a rule they do not model would make a certificate unsound
         if getattr(hybrid, "theta", None) is not None:
@@ -55,7 +55,6 @@ def objects(cfg: DictConfig):
         if getattr(hybrid, "saturation", "radial") != "radial":
             raise ConfigError("controller.saturation", "the bracket's input enclosures model the radial saturation "
                                                        "(§3.3's flow scaled to u_max): radial here")
-    sim, camera = build(cfg.sim, "sim"), build(cfg.camera, "camera")
     if camera.period is None:
         raise ConfigError("camera.period", "the bracket needs a frame period (the sampled loop), got null")
     lost = lost_frames(sim, camera, bs, laws)

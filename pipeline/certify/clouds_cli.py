@@ -4,8 +4,11 @@ certified under clouds (issue 44; :mod:`pipeline.certify.clouds`), a Hydra app (
 For the map and the cells of `clouds.region`: a sound bound per cell and cloud layout (N layouts of the level's
 own process), the Clopper-Pearson `eps_bar_delta` per cell, and two checks of it: `samples` positions per cell and
 layout rendered with that layout through the real camera (none may pass its layout's bound) and `fresh` frames per
-cell under fresh layouts (the share above `eps_bar_delta` should sit under `delta`). Writes `table.csv` (one row
-per cell) and `summary.json` to the run dir and prints one summary line. Not yet a tracked stage (no id, no
+cell under fresh layouts (the share above `eps_bar_delta` should sit under `delta`). With `clouds.gate` (a number,
+`camera.gate`'s units; null: no gate) the map's predicted error is bounded too (:mod:`pipeline.certify.gate`): the
+table adds `eps_bar_delta_gated`, `flagged_share`, `undecided_share` (a flagged frame is dropped, no error). Writes
+`table.csv` (one row per cell) and `clouds.json` (the summary; the run dir's `summary.json` is Hydra's job
+record) to the run dir and prints one summary line (two with a gate). Not yet a tracked stage (no id, no
 sharding): its outputs are a run's, like `python -m pipeline.simulate`'s. Bad settings: one line, exit 2.
 """
 
@@ -40,6 +43,9 @@ def check(cfg: DictConfig) -> dict:
         raise ConfigError(f"{F}.limit", f"must be null or a positive integer, got {s['limit']!r}")
     if not isinstance(s["cell"], (int, float)) or s["cell"] <= 0:
         raise ConfigError(f"{F}.cell", f"must be a positive number, got {s['cell']!r}")
+    gate = s.get("gate")
+    if gate is not None and (isinstance(gate, bool) or not isinstance(gate, (int, float)) or not 0 < gate < np.inf):
+        raise ConfigError(f"{F}.gate", f"must be null or a positive number (camera.gate's world units), got {gate!r}")
     if s["mode"] not in ("crown", "forward", "ibp"):
         raise ConfigError(f"{F}.mode", f"must be crown, forward or ibp, got {s['mode']!r}")
     reg = np.asarray(s["region"], dtype=object)

@@ -23,8 +23,9 @@ from omegaconf import DictConfig
 from pipeline.config import build, compose
 from pipeline.envs.core import ENDED, OUTCOMES, RUNNING, TIMED_OUT, EnvSettings, NavigationCore, action_scale
 from pipeline.errors import ConfigError
+from pipeline.sim.composed import loop_parts
 from pipeline.sim.metrics import Outcome
-from pipeline.sim.settings import check_vehicle, frame_steps
+from pipeline.sim.settings import frame_steps
 
 
 @dataclass
@@ -83,12 +84,9 @@ def objects(overrides=None) -> EnvObjects:
 
 def objects_from(cfg: DictConfig) -> EnvObjects:
     """The objects of a composed config holding the env's nodes (conf/env.yaml's, or a stage's that includes them)."""
-    scene = build(cfg.scene, "scene")
-    plant = build(cfg.vehicle, "vehicle")
-    sim, cam = build(cfg.sim, "sim"), build(cfg.camera, "camera")
-    frame_steps(sim.dt, cam.period)
-    check_vehicle(plant, sim)
-    controller = build(cfg.controller, "controller", scene=plant.steering_scene(scene))
+    parts = loop_parts(cfg)
+    scene, plant, sim, cam = parts.scene, parts.plant, parts.sim, parts.camera
+    controller = parts.law(cfg.controller)
     action_scale(plant, controller.u_max)  # the action's unit: a finite u_max (one ConfigError line, preflight)
     return EnvObjects(cfg=cfg, scene=scene, plant=plant, camera=build(cfg.render, "render", scene=scene),
                       controller=controller, occlusion=build(cfg.occlusion, "occlusion"), sim=sim,

@@ -9,7 +9,6 @@ from pipeline.config import build
 from pipeline.control import Scene
 from pipeline.errors import ConfigError
 from pipeline.perception.adversary import is_attack
-from pipeline.plants import explain_steering
 from pipeline.render import load_occlusion
 
 
@@ -37,11 +36,7 @@ class Composed:
             return done[1]
         node = self._node("controllers", name)
         node = node if not params else {**tracking.to_plain(node), **params}
-        try:
-            ctrl = build(node, "controller" if name == "hybrid" else f"controllers.{name}",
-                         scene=self.vehicle.steering_scene(scene))
-        except ConfigError as err:
-            raise explain_steering(self.vehicle, err) from None
+        ctrl = self.parts.law(node, "controller" if name == "hybrid" else f"controllers.{name}", scene)
         ctrl.name = name
         if not params:
             built["controller", name] = (scene, ctrl)

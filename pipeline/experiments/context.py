@@ -5,15 +5,13 @@ and the run helpers (:mod:`.runs`). Cached results depend on this code, not on t
 from __future__ import annotations
 
 from pipeline import tracking
-from pipeline.config import build, settings
+from pipeline.config import settings
 from pipeline.control import Scene
 from pipeline.experiments.composed import Composed
 from pipeline.experiments.maps import MapsById
 from pipeline.experiments.runs import Runs
 from pipeline.experiments.settings import ExperimentSettings
-from pipeline.plants import SingleIntegrator
-from pipeline.sim import frame_steps
-from pipeline.sim.settings import check_vehicle
+from pipeline.sim.composed import loop_parts
 
 
 class Context(Composed, MapsById, Runs):
@@ -26,17 +24,15 @@ class Context(Composed, MapsById, Runs):
         self._load_map = load_map
         self.settings: ExperimentSettings = settings(cfg, ExperimentSettings)
         self.scene_cfg = tracking.to_plain(cfg.scene)
-        self.scene: Scene = build(cfg.scene, "scene")
+        # the loop's parts (pipeline.sim.composed, the one builder): the plant of every run (`vehicle`, SPEC §3.7)
+        # is the one whose steered point the controllers steer in its steering scene
+        self.parts = loop_parts(cfg)
+        self.scene: Scene = self.parts.scene
         self.arena = self.scene.bounds
         self.scale = self.settings.scale
         self.perception = self.settings.perception
-        self.camera_settings = build(cfg.camera, "camera")
-        self.sim = build(cfg.sim, "sim")
-        # the plant of every run (`vehicle`, SPEC §3.7): controllers steer its steered point in its steering scene
-        self.vehicle = build(cfg.vehicle, "vehicle") if cfg.get("vehicle") is not None else SingleIntegrator()
-        check_vehicle(self.vehicle, self.sim)
+        self.camera_settings, self.sim, self.vehicle = self.parts.camera, self.parts.sim, self.parts.plant
         self.dt, self.horizon, self.delta = self.sim.dt, self.sim.horizon, self.sim.delta
-        frame_steps(self.dt, self.camera_settings.period)
         self.frame_period = self.camera_settings.period
         self.gate = self.camera_settings.gate  # camera.gate: doubtful frames of a map with an uncertainty head are failures
         self.seed = self.sim.seed
