@@ -263,8 +263,8 @@ def test_an_all_transparent_layout_is_the_clean_bound_exactly(camera, keypoint):
 
 # ---- the Hydra app: bad settings are one line (exit 2) before any work; a tiny run writes its table and summary
 def test_the_clouds_app_checks_its_settings_and_runs_tiny(tiny_maps, tmp_path):
-    from pipeline.certify.clouds import run
     from pipeline.certify.clouds_cli import check
+    from pipeline.certify.clouds_run import run
     from pipeline.cli import compose
 
     root, ids = tiny_maps

@@ -168,8 +168,8 @@ def test_eps_delta_gated_counts_only_what_is_neither_certified_nor_flagged():
 
 # --------------------------------------------- (c) gate null is today's app, (d) a bad gate is one line naming it
 def test_the_clouds_app_with_and_without_a_gate(tiny_maps, tmp_path):
-    from pipeline.certify.clouds import run
     from pipeline.certify.clouds_cli import check
+    from pipeline.certify.clouds_run import run
     from pipeline.cli import compose
 
     root, ids = tiny_maps

@@ -30,27 +30,19 @@ covered yet: `kappa > 0` under clouds, pose maps' heading under clouds (the posi
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import dataclass
-from pathlib import Path
 
 import cv2
 import numpy as np
 import torch
 
 from pipeline.certify.bounds import Prepared, prepare
-from pipeline.certify.clouds_cli import F, check
 from pipeline.certify.cone import MARGIN
 from pipeline.certify.deployed import static_pass
 from pipeline.certify.renderer import PixelWindow
 from pipeline.certify.split import certify_cells, eps_of
-from pipeline.certify.stage import cells_of
-from pipeline.config import build
-from pipeline.errormap.analysis import operational_margin
-from pipeline.errors import ConfigError
-from pipeline.perception.maps import load_perception_map
 from pipeline.render.occlusion import CloudSample, Occlusion
 
 ROUNDING = 0.5  # the apply's uint8 rounding of `img (255 - a) / 255` (checked exhaustively in the tests)
@@ -228,12 +220,10 @@ def sampled_check(predict, camera, occ: Occlusion, cells: np.ndarray, lower, upp
 
 def certify_clouds(model, camera, cells: np.ndarray, occ: Occlusion, layouts: int = 299, delta: float = 0.01,
                    confidence: float = 0.95, seed: int = 0, mode: str = "crown", tolerance: float = np.inf,
-                   max_depth: int = 0, batch: int = 1024, at: float | None = None, dtype=torch.float32,
-                   gate: float | None = None) -> dict:
+                   max_depth: int = 0, batch: int = 1024, at: float | None = None, dtype=torch.float32) -> dict:
     """The table under clouds (Hydra-free): per cell `eps_bar_delta`, the layouts, the certified share at `at`
-    (`c - r`, say), the clean bound; and the cost. Layouts: `occ.sample(layouts, default_rng(seed))`. With a
-    `gate` (a map with an uncertainty head): the gate statistic's bounds `gate_lower, gate_upper (C, L)`,
-    `eps_bar_delta_gated` and (with `at`) the flagged and undecided shares (:mod:`.gate`)."""
+    (`c - r`, say), the clean bound; and the cost. Layouts: `occ.sample(layouts, default_rng(seed))`. The gate's
+    columns: :func:`pipeline.certify.clouds_run.certify_gated`."""
     t0 = time.perf_counter()
     prep = prepare(model, camera, 0.0, dtype)
     draws = layout_maps(occ, occ.sample(layouts, np.random.default_rng(seed), camera.shape), camera.background)
@@ -244,116 +234,4 @@ def certify_clouds(model, camera, cells: np.ndarray, occ: Occlusion, layouts: in
            "delta": delta, "confidence": confidence, "seconds": time.perf_counter() - t0}
     if at is not None:
         out.update(at=at, **certified_share(eps, at, confidence), cells_certified=float((ed <= at).mean()))
-    if gate is not None:
-        from pipeline.certify import gate as g
-
-        t1 = time.perf_counter()
-        glo, ghi = g.layout_gate(model, prep, np.asarray(cells, np.float64), draws, mode)
-        eg = g.eps_delta_gated(eps, glo, gate, delta, confidence)
-        out.update(gate=gate, gate_lower=glo, gate_upper=ghi, eps_bar_delta_gated=eg,
-                   gate_seconds=time.perf_counter() - t1)
-        out["seconds"] = time.perf_counter() - t0
-        if at is not None:
-            out.update(**g.shares(eps, glo, at, gate), cells_certified_gated=float((eg <= at).mean()))
     return out
-
-
-# ------------------------------------------------------------------------ the app's run (clouds_cli: its check)
-def fresh_check(predict, camera, occ, cells, eps_delta, frames: int, seed: int) -> dict:
-    """Frames at uniform positions of each cell under fresh layouts of the level (the loop's draw): the share whose
-    error exceeds the cell's `eps_bar_delta` (to sit under `delta`, up to sampling)."""
-    rng = np.random.default_rng([seed, 4404])
-    t = rng.uniform(size=(len(cells), frames, 2))
-    p = np.stack([cells[:, None, 0] + t[..., 0] * (cells[:, None, 1] - cells[:, None, 0]),
-                  cells[:, None, 2] + t[..., 1] * (cells[:, None, 3] - cells[:, None, 2])], -1).reshape(-1, 2)
-    imgs = camera.render(p, occlusion=occ, rng=rng)
-    e = np.linalg.norm(np.asarray(predict(imgs), np.float64)[:, :2] - p, axis=-1).reshape(len(cells), frames)
-    above = e > eps_delta[:, None]
-    return {"frames": int(above.size), "above": int(above.sum()), "rate": float(above.mean()),
-            "worst_cell_rate": float(above.mean(1).max())}
-
-
-def run(cfg) -> dict:
-    """`python -m pipeline.certify.clouds_cli` (module docstring there): the run after its preflight."""
-    checked = check(cfg)
-    s, occ, folder = checked["settings"], checked["occlusion"], checked["folder"]
-    torch.set_num_threads(int(s["threads"]))
-    pmap = load_perception_map(folder, device="cpu")
-    camera = pmap.camera()
-    scene = build(pmap.manifest["scene"], "scene")
-    arena = tuple((float(lo), float(hi)) for lo, hi in camera.arena)
-    cells, _, _, _, op = cells_of(arena, float(s["cell"]), s["region"], scene, operational_margin("auto", camera))
-    cells = cells[op]
-    if s["limit"] and len(cells) > int(s["limit"]):
-        cells = cells[np.linspace(0, len(cells) - 1, int(s["limit"])).round().astype(int)]
-    cov = scene.covering(0)
-    margin = float(cov.c - cov.obstacle_radius)
-    gate = s.get("gate")
-    if gate is not None and getattr(pmap.model, "var_head", None) is None:
-        raise ConfigError(f"{F}.gate", f"perception map {folder.name} has no uncertainty head (train it with "
-                                       "model.uncertainty=gaussian, or gate=null)")
-    r = certify_clouds(pmap.model, camera, cells, occ, int(s["layouts"]), float(s["delta"]), float(s["confidence"]),
-                       int(s["seed"]), s["mode"], float(s["tolerance"]), int(s["max_depth"]), at=margin,
-                       gate=None if gate is None else float(gate))
-    t0 = time.perf_counter()
-    bad, worst = sampled_check(pmap.predict, camera, occ, cells, r["lower"], r["upper"], r["layouts"],
-                               int(s["samples"]), int(s["seed"])) if s["samples"] else (0, None)
-    fresh = fresh_check(pmap.predict, camera, occ, cells, r["eps_bar_delta"], int(s["fresh"]), int(s["seed"]) + 1)
-    if gate is not None:
-        from pipeline.certify.gate import gate_fresh_check, gate_sampled_check
-
-        g_bad, g_worst = gate_sampled_check(pmap.predicted_error, camera, occ, cells, r["gate_lower"],
-                                            r["gate_upper"], r["layouts"], int(s["samples"]), int(s["seed"])) \
-            if s["samples"] else (0, None)
-        g_fresh = gate_fresh_check(pmap.predicted_error, camera, occ, cells, r["eps_bar_delta_gated"], r["gate"],
-                                   int(s["fresh"]), int(s["seed"]) + 1)
-    check_s = time.perf_counter() - t0
-    clean = r["eps"][:, np.flatnonzero(r["layouts"].clear)[:1]] if r["layouts"].clear.any() else None
-    ed = r["eps_bar_delta"]
-    summary = {"map": folder.name, "occlusion": occ.name, "cells": len(cells), "layouts": r["n_layouts"],
-               "k_star": r["k_star"], "delta": r["delta"], "confidence": r["confidence"], "c_minus_r": margin,
-               "eps_bar_delta": {"median": float(np.median(ed)), "p95": float(np.percentile(ed, 95, method='higher')),
-                                 "max": float(ed.max())},
-               "cells_eps_delta_below_c_minus_r": r["cells_certified"],
-               "layout_bounds_below_c_minus_r": float(r["share"].mean()),
-               "sampled": {"frames": len(cells) * len(r["layouts"]) * int(s["samples"]), "violations": bad,
-                           "worst_excess": worst},
-               "fresh": fresh, "seconds": r["seconds"], "check_seconds": check_s,
-               "seconds_per_cell_layout": r["seconds"] / (len(cells) * r["n_layouts"]),
-               "settings": {k: v for k, v in s.items() if k != "gate" or v is not None}}  # gate null: as before
-    out = Path(cfg.paths.output_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    table = np.column_stack([cells, ed, np.full(len(cells), r["n_layouts"]), r["share"], r["violation_cp"],
-                             np.full(len(cells), np.nan) if clean is None else clean[:, 0]])
-    np.savetxt(out / "table.csv", table, delimiter=",", comments="", fmt="%.10g",
-               header="x0,x1,y0,y1,eps_bar_delta,n_layouts,share_certified_at_c_minus_r,violation_cp,eps_clear")
-    if gate is not None:
-        eg = r["eps_bar_delta_gated"]
-        summary["gated"] = {"gate": r["gate"], "eps_bar_delta_gated": {
-            "median": float(np.median(eg)), "p95": float(np.percentile(eg, 95, method="higher")), "max": float(eg.max())},
-            "cells_eps_delta_gated_below_c_minus_r": r["cells_certified_gated"],
-            "flagged_share": float(r["flagged_share"].mean()), "undecided_share": float(r["undecided_share"].mean()),
-            "sampled": {"frames": len(cells) * len(r["layouts"]) * int(s["samples"]), "violations": g_bad,
-                        "worst_relative_excess": g_worst},
-            "fresh": g_fresh, "seconds": r["gate_seconds"]}
-        table = np.column_stack([table, eg, r["flagged_share"], r["undecided_share"]])
-        np.savetxt(out / "table.csv", table, delimiter=",", comments="", fmt="%.10g",
-                   header="x0,x1,y0,y1,eps_bar_delta,n_layouts,share_certified_at_c_minus_r,violation_cp,eps_clear,"
-                          "eps_bar_delta_gated,flagged_share,undecided_share")
-    (out / "clouds.json").write_text(json.dumps(summary, indent=2, default=str))
-    print(f"clouds: {folder.name} under {occ.name}, {len(cells)} cells x {r['n_layouts']} layouts: eps_bar_delta "
-          f"(delta {r['delta']:g}, confidence {r['confidence']:g}) median {np.median(ed):.3g}, p95 "
-          f"{np.percentile(ed, 95, method='higher'):.3g}, max {ed.max():.3g}; {r['cells_certified']:.0%} of cells below c - r = "
-          f"{margin:.3g}; sampled {bad} of {summary['sampled']['frames']} past their layout's bound; fresh layouts "
-          f"{fresh['rate']:.2%} of {fresh['frames']} frames above eps_bar_delta; {r['seconds']:.0f} s "
-          f"({summary['seconds_per_cell_layout'] * 1e3:.0f} ms per cell-layout)")
-    if gate is not None:
-        gs = summary["gated"]
-        print(f"gate {gate:g}: eps_bar_delta_gated median {gs['eps_bar_delta_gated']['median']:.3g}, p95 "
-              f"{gs['eps_bar_delta_gated']['p95']:.3g}, max {gs['eps_bar_delta_gated']['max']:.3g}; "
-              f"{gs['cells_eps_delta_gated_below_c_minus_r']:.0%} of cells below c - r; at c - r the layouts are "
-              f"{gs['flagged_share']:.1%} flagged, {gs['undecided_share']:.1%} undecided; sampled {g_bad} of "
-              f"{gs['sampled']['frames']} predicted errors past their bounds; fresh layouts "
-              f"{g_fresh['rate']:.2%} of {g_fresh['frames']} frames above eps_bar_delta_gated and not dropped "
-              f"({g_fresh['dropped']:.1%} dropped); {r['gate_seconds']:.0f} s for the gate")
-    return summary

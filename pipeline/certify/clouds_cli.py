@@ -56,7 +56,7 @@ def check(cfg: DictConfig) -> dict:
     return {"settings": s, "occlusion": occ, "folder": folder}
 
 
-main = stage_main("certify_clouds", run="pipeline.certify.clouds:run", check="pipeline.certify.clouds_cli:check")
+main = stage_main("certify_clouds", run="pipeline.certify.clouds_run:run", check="pipeline.certify.clouds_cli:check")
 
 if __name__ == "__main__":
     main()

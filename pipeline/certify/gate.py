@@ -31,6 +31,7 @@ import torch
 from torch import nn
 
 from pipeline.certify.bounds import Prepared
+from pipeline.certify.clouds import apply_table, eps_delta, layout_prep
 from pipeline.certify.cone import MARGIN, concretize, forward, gather, pad
 from pipeline.certify.renderer import pixel_window
 from pipeline.perception.network import LOGVAR_RANGE, THUMB_SCALE
@@ -155,8 +156,6 @@ def gate_range(vh: VarHead, prep: Prepared, cells, mode: str = "crown") -> tuple
 def layout_gate(model, prep: Prepared, cells: np.ndarray, layouts, mode: str = "crown"):
     """`(lower, upper) (C, L)`: the gate statistic's bounds for every cell and layout (clear layouts: the clean
     bound, once), as :func:`.clouds.layout_bounds` goes over them."""
-    from pipeline.certify.clouds import apply_table, layout_prep
-
     vh, table = var_head(model), torch.as_tensor(apply_table())
     lower, upper = np.empty((len(cells), len(layouts))), np.empty((len(cells), len(layouts)))
     clean = None
@@ -180,8 +179,6 @@ def verdicts(eps: np.ndarray, gate_lower: np.ndarray, at: float, gate: float) ->
 def eps_delta_gated(eps: np.ndarray, gate_lower: np.ndarray, gate: float, delta: float = 0.01,
                     confidence: float = 0.95) -> np.ndarray:
     """Per cell the smallest `e` whose CP upper bound on `Pr(neither eps_bar <= e nor flagged)` is `<= delta`."""
-    from pipeline.certify.clouds import eps_delta
-
     return eps_delta(np.where(gate_lower > gate, 0.0, eps), delta, confidence)
 
 
