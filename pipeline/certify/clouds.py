@@ -130,23 +130,30 @@ def layout_prep(prep: Prepared, layouts: Layouts, j: int, table: torch.Tensor | 
     return Prepared(prep.net, static_pass(prep.net, bg), prep.camera, 0.0, win)
 
 
-def layout_bounds(prep: Prepared, cells: np.ndarray, layouts: Layouts, mode: str = "crown",
-                  tolerance: float = np.inf, max_depth: int = 0, batch: int = 1024):
-    """`eps_bar(P, layout)` for every cell and layout: `eps (C, L)`, per-coordinate `lower, upper (C, L, 2)` (the
-    stage's :func:`.split.certify_cells` on each layout; clear layouts share the clean bound, computed once)."""
+def over_layouts(prep: Prepared, layouts: Layouts, bound, shape: tuple[int, ...]):
+    """`bound(prepared under one layout) -> (lo, hi)` for every layout, as `lower, upper (C, L, ...)` (`shape`:
+    `(C, ...)`); clear layouts share the clean bound, computed once."""
     table = torch.as_tensor(apply_table())
-    lower, upper = np.empty((len(cells), len(layouts), 2)), np.empty((len(cells), len(layouts), 2))
+    lower, upper = (np.empty((shape[0], len(layouts), *shape[1:])) for _ in range(2))
     clean = None
     with torch.no_grad():
         for j in range(len(layouts)):
             if layouts.clear[j] and clean is not None:
                 lower[:, j], upper[:, j] = clean
                 continue
-            lo, hi = certify_cells(layout_prep(prep, layouts, j, table), cells, mode, tolerance, max_depth, batch,
-                                   progress=False)[:2]
+            lo, hi = bound(layout_prep(prep, layouts, j, table))
             lower[:, j], upper[:, j] = lo, hi
             if layouts.clear[j]:
                 clean = (lo, hi)
+    return lower, upper
+
+
+def layout_bounds(prep: Prepared, cells: np.ndarray, layouts: Layouts, mode: str = "crown",
+                  tolerance: float = np.inf, max_depth: int = 0, batch: int = 1024):
+    """`eps_bar(P, layout)` for every cell and layout: `eps (C, L)`, per-coordinate `lower, upper (C, L, 2)` (the
+    stage's :func:`.split.certify_cells` on each layout; clear layouts share the clean bound, computed once)."""
+    lower, upper = over_layouts(prep, layouts, lambda p: certify_cells(p, cells, mode, tolerance, max_depth, batch,
+                                                                       progress=False)[:2], (len(cells), 2))
     return eps_of(lower, upper), lower, upper
 
 

@@ -31,7 +31,7 @@ import torch
 from torch import nn
 
 from pipeline.certify.bounds import Prepared
-from pipeline.certify.clouds import apply_table, eps_delta, layout_prep
+from pipeline.certify.clouds import eps_delta, over_layouts
 from pipeline.certify.cone import MARGIN, concretize, forward, gather, pad
 from pipeline.certify.renderer import pixel_window
 from pipeline.perception.network import LOGVAR_RANGE, THUMB_SCALE
@@ -156,19 +156,8 @@ def gate_range(vh: VarHead, prep: Prepared, cells, mode: str = "crown") -> tuple
 def layout_gate(model, prep: Prepared, cells: np.ndarray, layouts, mode: str = "crown"):
     """`(lower, upper) (C, L)`: the gate statistic's bounds for every cell and layout (clear layouts: the clean
     bound, once), as :func:`.clouds.layout_bounds` goes over them."""
-    vh, table = var_head(model), torch.as_tensor(apply_table())
-    lower, upper = np.empty((len(cells), len(layouts))), np.empty((len(cells), len(layouts)))
-    clean = None
-    with torch.no_grad():
-        for j in range(len(layouts)):
-            if layouts.clear[j] and clean is not None:
-                lower[:, j], upper[:, j] = clean
-                continue
-            lo, hi = (t.numpy() for t in gate_range(vh, layout_prep(prep, layouts, j, table), cells, mode))
-            lower[:, j], upper[:, j] = lo, hi
-            if layouts.clear[j]:
-                clean = (lo, hi)
-    return lower, upper
+    vh = var_head(model)
+    return over_layouts(prep, layouts, lambda p: [t.numpy() for t in gate_range(vh, p, cells, mode)], (len(cells),))
 
 
 def verdicts(eps: np.ndarray, gate_lower: np.ndarray, at: float, gate: float) -> np.ndarray:
