@@ -62,3 +62,24 @@ def tiny_maps(tmp_path_factory):
                                           f"paths.models_dir={root / 'models'}"]))
         ids[recipe] = f"{out['name']}-{out['id']}"
     return root, ids
+
+
+@pytest.fixture(scope="session")
+def production():
+    """Make paper's occluded keypoint map at production size (filters 16-32-64, BatchNorm, CoordConv, the keypoint
+    head and a gaussian uncertainty head; the weights of `occluded_keypoint-f87011bfec`, committed as
+    `tests/fixtures/occluded_keypoint.pt`, 1.7 MB): `(model, its deployed network, the default scene's camera)`."""
+    from pathlib import Path
+    from types import SimpleNamespace
+
+    import torch
+
+    from pipeline.perception.network import FoldedPerceptionNet, PerceptionMap
+    from pipeline.render import Camera
+
+    blob = torch.load(Path(__file__).parent / "fixtures" / "occluded_keypoint.pt", weights_only=True)
+    model = PerceptionMap.of(**blob["hparams"])
+    model.load_state_dict(blob["state_dict"])
+    assert tuple(blob["hparams"]["filters"]) == (16, 32, 64) and model.var_head is not None
+    scene = SimpleNamespace(obstacle_center=(0.0, 0.0), obstacle_radius=4.0, target=(40.0, 0.0))
+    return model.eval(), FoldedPerceptionNet(model.eval()), Camera(scene)

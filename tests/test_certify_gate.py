@@ -29,8 +29,7 @@ from pipeline.certify.gate import (
     verdicts,
 )
 from pipeline.errors import ConfigError
-from pipeline.perception.network import FoldedPerceptionNet, PerceptionMap
-from pipeline.render import Camera
+from pipeline.perception.network import PerceptionMap
 from pipeline.render.occlusion import CloudSample, Occlusion, load_occlusion
 
 SCENE = SimpleNamespace(obstacle_center=(0.0, 0.0), obstacle_radius=4.0, target=(40.0, 0.0))
@@ -39,15 +38,6 @@ REL = 1e-4  # float32: the deployed network's own rounding, relative to the pred
 GATE = 0.5626522205725629  # the map's clean-image gate (its manifest's calibration.clean_gate_px; 1 px = 1 unit)
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # tests/conftest.py
-
-
-@pytest.fixture(scope="module")
-def production():
-    blob = torch.load(FIXTURE, weights_only=True)
-    model = PerceptionMap.of(**blob["hparams"])
-    model.load_state_dict(blob["state_dict"])
-    assert model.var_head is not None
-    return model.eval(), FoldedPerceptionNet(model.eval()), Camera(SCENE)
 
 
 def _band_cells(rng, n, side=0.25):

@@ -16,8 +16,6 @@ import pytest
 import torch
 
 from pipeline.certify import certified_error_bound, prepare
-from pipeline.perception.network import FoldedPerceptionNet, PerceptionMap
-from pipeline.render import Camera
 
 SCENE = SimpleNamespace(obstacle_center=(0.0, 0.0), obstacle_radius=4.0, target=(40.0, 0.0))
 C_MINUS_R = 8.0 * np.sqrt(2.0) - 4.0  # the diamond's half-diagonal minus the radius (the default scene)
@@ -25,15 +23,6 @@ SLACK = 1e-4  # float32: the deployed network's own rounding (world units)
 FIXTURE = Path(__file__).parent / "fixtures" / "occluded_keypoint.pt"
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # tests/conftest.py
-
-
-@pytest.fixture(scope="module")
-def production():
-    blob = torch.load(FIXTURE, weights_only=True)
-    model = PerceptionMap.of(**blob["hparams"])
-    model.load_state_dict(blob["state_dict"])
-    assert tuple(blob["hparams"]["filters"]) == (16, 32, 64)  # production size
-    return model.eval(), FoldedPerceptionNet(model.eval()), Camera(SCENE)
 
 
 def _errors(net, camera, p):
