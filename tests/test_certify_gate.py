@@ -6,8 +6,6 @@ read by the deployed network (`FoldedPerceptionNet`), on make paper's occluded m
 occluded_keypoint.pt`, production size, a gaussian variance head).
 """
 
-from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -32,8 +30,6 @@ from pipeline.errors import ConfigError
 from pipeline.perception.network import PerceptionMap
 from pipeline.render.occlusion import CloudSample, Occlusion, load_occlusion
 
-SCENE = SimpleNamespace(obstacle_center=(0.0, 0.0), obstacle_radius=4.0, target=(40.0, 0.0))
-FIXTURE = Path(__file__).parent / "fixtures" / "occluded_keypoint.pt"
 REL = 1e-4  # float32: the deployed network's own rounding, relative to the predicted error
 GATE = 0.5626522205725629  # the map's clean-image gate (its manifest's calibration.clean_gate_px; 1 px = 1 unit)
 

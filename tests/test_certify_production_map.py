@@ -8,8 +8,6 @@ and at the positions a hill-climb inside each cell pushes towards the bound; and
 hypothesis `ε̄ < c - r` in the median cell, the sampled error reaching a tenth of the bound in the median cell).
 """
 
-from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -17,10 +15,8 @@ import torch
 
 from pipeline.certify import certified_error_bound, prepare
 
-SCENE = SimpleNamespace(obstacle_center=(0.0, 0.0), obstacle_radius=4.0, target=(40.0, 0.0))
 C_MINUS_R = 8.0 * np.sqrt(2.0) - 4.0  # the diamond's half-diagonal minus the radius (the default scene)
 SLACK = 1e-4  # float32: the deployed network's own rounding (world units)
-FIXTURE = Path(__file__).parent / "fixtures" / "occluded_keypoint.pt"
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # tests/conftest.py
 
