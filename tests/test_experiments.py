@@ -329,3 +329,15 @@ def test_a_node_read_but_not_in_the_cache_key_is_an_error(tmp_path, monkeypatch)
     with pytest.raises(RuntimeError, match=r"read controllers\.hybrid.*uses\(\)"):
         run(_cfg(tmp_path, "experiment=noise_failure", "perception=oracle"))
     assert not list((tmp_path / "out" / "experiments").glob("noise_failure-*"))  # nothing stored under the key
+
+
+def test_a_table_reads_the_same_fresh_and_from_the_cache(tmp_path):
+    """A result's table is drawn from the computation (a fresh run) or from its cached CSV (every later run): both
+    must print the same markdown (an empty note was '' fresh and NaN cached: the same table read two ways)."""
+    from pipeline.experiments.report import markdown_table
+    from pipeline.experiments.results import Results
+
+    df = pd.DataFrame({"note": ["", "cell skipped: the starts meet the diamond"], "eps": [0.5, np.nan],
+                       "valid": [True, False]})
+    Results(tables={"t": df}).save(tmp_path)
+    assert markdown_table(Results.load(tmp_path).tables["t"]) == markdown_table(df)

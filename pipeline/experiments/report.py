@@ -54,6 +54,8 @@ def figure_stem(experiment: str) -> str:
 
 # ----------------------------------------------------------------------------------------- writers
 def _fmt(v) -> str:
+    if isinstance(v, str) and not v:  # as a cached result reads it back (an empty CSV field is NaN): one table
+        return "–"
     if isinstance(v, float | np.floating):
         if not np.isfinite(v):
             return "–"
