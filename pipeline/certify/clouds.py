@@ -207,6 +207,13 @@ def certified_share(eps: np.ndarray, at: float, confidence: float = 0.95) -> dic
     return {"share": 1 - k / eps.shape[1], "violation_cp": cp_upper(k, eps.shape[1], confidence)}
 
 
+def cell_points(rng: np.random.Generator, cells: np.ndarray, k: int) -> np.ndarray:
+    """`k` uniform positions in each cell `(C, 4)` (`x0, x1, y0, y1`), cell by cell: `(C * k, 2)`."""
+    t = rng.uniform(size=(len(cells), k, 2))
+    return np.stack([cells[:, None, 0] + t[..., 0] * (cells[:, None, 1] - cells[:, None, 0]),
+                     cells[:, None, 2] + t[..., 1] * (cells[:, None, 3] - cells[:, None, 2])], -1).reshape(-1, 2)
+
+
 def sampled_check(predict, camera, occ: Occlusion, cells: np.ndarray, lower, upper, layouts: Layouts,
                   samples: int, seed: int = 0):
     """Positions drawn in each cell, rendered by the camera with each layout (`Camera.render(occlusion, clouds)`,
@@ -214,9 +221,7 @@ def sampled_check(predict, camera, occ: Occlusion, cells: np.ndarray, lower, upp
     rng = np.random.default_rng([seed, 44])
     bad, worst = 0, -np.inf
     for j in range(len(layouts)):
-        t = rng.uniform(size=(len(cells), samples, 2))
-        p = np.stack([cells[:, None, 0] + t[..., 0] * (cells[:, None, 1] - cells[:, None, 0]),
-                      cells[:, None, 2] + t[..., 1] * (cells[:, None, 3] - cells[:, None, 2])], -1).reshape(-1, 2)
+        p = cell_points(rng, cells, samples)
         cl = layouts.clouds[np.full(len(p), j)]
         e = np.asarray(predict(camera.render(p, occlusion=occ, clouds=cl)), np.float64)[:, :2] - p
         e = e.reshape(len(cells), samples, 2)

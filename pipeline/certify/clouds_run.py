@@ -14,7 +14,7 @@ import torch
 
 from pipeline.certify import gate as g
 from pipeline.certify.bounds import prepare
-from pipeline.certify.clouds import certify_clouds, sampled_check
+from pipeline.certify.clouds import cell_points, certify_clouds, sampled_check
 from pipeline.certify.clouds_cli import F, check
 from pipeline.certify.stage import cells_of
 from pipeline.config import build
@@ -50,9 +50,7 @@ def fresh_check(predict, camera, occ, cells, eps_delta, frames: int, seed: int) 
     """Frames at uniform positions of each cell under fresh layouts of the level (the loop's draw): the share whose
     error exceeds the cell's `eps_bar_delta` (to sit under `delta`, up to sampling)."""
     rng = np.random.default_rng([seed, 4404])
-    t = rng.uniform(size=(len(cells), frames, 2))
-    p = np.stack([cells[:, None, 0] + t[..., 0] * (cells[:, None, 1] - cells[:, None, 0]),
-                  cells[:, None, 2] + t[..., 1] * (cells[:, None, 3] - cells[:, None, 2])], -1).reshape(-1, 2)
+    p = cell_points(rng, cells, frames)
     imgs = camera.render(p, occlusion=occ, rng=rng)
     e = np.linalg.norm(np.asarray(predict(imgs), np.float64)[:, :2] - p, axis=-1).reshape(len(cells), frames)
     above = e > eps_delta[:, None]

@@ -31,7 +31,7 @@ import torch
 from torch import nn
 
 from pipeline.certify.bounds import Prepared
-from pipeline.certify.clouds import eps_delta, over_layouts
+from pipeline.certify.clouds import cell_points, eps_delta, over_layouts
 from pipeline.certify.cone import MARGIN, concretize, forward, gather, pad
 from pipeline.certify.renderer import pixel_window
 from pipeline.perception.network import LOGVAR_RANGE, THUMB_SCALE
@@ -185,9 +185,7 @@ def gate_sampled_check(predicted_error_fn, camera, occ, cells: np.ndarray, lower
     rng = np.random.default_rng([seed, 4405])
     bad, worst = 0, -np.inf
     for j in range(len(layouts)):
-        t = rng.uniform(size=(len(cells), samples, 2))
-        p = np.stack([cells[:, None, 0] + t[..., 0] * (cells[:, None, 1] - cells[:, None, 0]),
-                      cells[:, None, 2] + t[..., 1] * (cells[:, None, 3] - cells[:, None, 2])], -1).reshape(-1, 2)
+        p = cell_points(rng, cells, samples)
         err = np.asarray(predicted_error_fn(camera.render(p, occlusion=occ, clouds=layouts.clouds[np.full(len(p), j)]))[1],
                          np.float64).reshape(len(cells), samples)
         excess = np.maximum(lower[:, j, None] - err, err - upper[:, j, None]) / np.maximum(upper[:, j, None], 1e-12)
@@ -201,9 +199,7 @@ def gate_fresh_check(predicted_error_fn, camera, occ, cells: np.ndarray, eps_gat
     :func:`.clouds.fresh_check`): the share whose error exceeds `eps_bar_delta_gated` and that the gate keeps
     (to sit under `delta`, up to sampling), and the share dropped."""
     rng = np.random.default_rng([seed, 4406])
-    t = rng.uniform(size=(len(cells), frames, 2))
-    p = np.stack([cells[:, None, 0] + t[..., 0] * (cells[:, None, 1] - cells[:, None, 0]),
-                  cells[:, None, 2] + t[..., 1] * (cells[:, None, 3] - cells[:, None, 2])], -1).reshape(-1, 2)
+    p = cell_points(rng, cells, frames)
     est, err = predicted_error_fn(camera.render(p, occlusion=occ, rng=rng))
     e = np.linalg.norm(np.asarray(est, np.float64)[:, :2] - p, axis=-1).reshape(len(cells), frames)
     kept = (np.asarray(err) <= gate).reshape(len(cells), frames)
