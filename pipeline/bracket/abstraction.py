@@ -9,7 +9,8 @@ for every cell `P'` meeting `E` and every mode `q'` the next frame's decision al
 bounds of `V_1, V_2` against the hysteresis `χ - λ`).
 
 Goal: cells inside `B(p_T, δ_c)`. A node is unsafe when a cell meeting `S` meets the obstacle disc or lies outside
-the arena (the camera's view), or `E` spans more than `window` cells per axis. `Win` is the least fixed point
+the arena (the camera's view), `S` may leave the arena (a cell straddling its edge holds positions on its part
+inside, `P ∩ A`), or `E` spans more than `window` cells per axis. `Win` is the least fixed point
 `goal ∪ {n safe: every successor in Win}`, with the transience rule: a strongly connected set of nodes outside the
 goal counts as transient when along every input of every node in it a fixed direction `d_j·p` or `|p - p_T|²`
 strictly decreases over a frame (`Tarjan` emits the sets sinks first, so one pass in that order is the fixed
@@ -147,12 +148,13 @@ def cell_hits(grid: Grid, H: np.ndarray, window: int):
     return ok[r], ix[r, w] * grid.ny + iy[r, w], overflow
 
 
-def _frames(grid: Grid, hP, Uq, period, frames, window, bad_cell, stop):
+def _frames(grid: Grid, hP, Uq, period, frames, window, bad_cell, stop, view=None):
     """Edges over `frames` frames where nothing can interrupt them: `R_0 = P`, `R_{i+1} = R_i ⊕ T_s U_i` with
     `U_i` the hull of `U` over the cells meeting `R_i` (the position at frame `i` is in one of them, in the same
     mode: no cell met can jump, `stop`), each frame's swept set checked for safety. A node whose reach set meets a
-    goal or jump cell (or spreads over `window` cells) before the last frame keeps one-frame edges. Returns the
-    endpoint sets, the unsafe nodes and the hull of the inputs used (for the transience rule)."""
+    goal or jump cell (or spreads over `window` cells) before the last frame keeps one-frame edges. `view` (`(J,)`
+    bounds, :meth:`pipeline.bracket.frame.Frame.view_bounds`): a swept set that may leave the arena is unsafe.
+    Returns the endpoint sets, the unsafe nodes and the hull of the inputs used (for the transience rule)."""
     n = len(hP)
     R, used = hP.copy(), Uq.copy()
     unsafe = np.zeros(n, bool)
@@ -173,6 +175,8 @@ def _frames(grid: Grid, hP, Uq, period, frames, window, bad_cell, stop):
         r, c, over = cell_hits(grid, S, window)
         bad = over.copy()
         np.logical_or.at(bad, r, bad_cell[c])
+        if view is not None:
+            bad |= (S > view + TOUCH).any(axis=1)
         if i == 0:
             unsafe |= bad
             E1 = hP + period * Uq
@@ -186,12 +190,16 @@ def _frames(grid: Grid, hP, Uq, period, frames, window, bad_cell, stop):
 
 def build(law, grid: Grid, eps_cells: np.ndarray, period: float, goal_radius: float, n_split: int = 4,
           window: int = 8, in_view: np.ndarray | None = None, frames: int = 1, keep_mode: bool = False,
-          may_stop: bool = False) -> Abstraction:
+          may_stop: bool = False, view: np.ndarray | None = None) -> Abstraction:
     """The abstraction of `law`'s sampled loop on `grid` with the error bound `eps_cells` `(cells,)` (module doc).
 
     Lost frames (SPEC §5.6; :mod:`pipeline.bracket.lost`, which widens `eps_cells` for the input held from an older
     frame): `keep_mode`, a frame may bring no decision (the mode is kept: every node also steps to its own mode);
-    `may_stop`, a frame's input may be 0 (the predicting gate's stop past `max_drift`)."""
+    `may_stop`, a frame's input may be 0 (the predicting gate's stop past `max_drift`).
+
+    The camera's view: `in_view` `(cells,)` the cells a run may be in (others are unsafe); with `view` (the arena
+    as `(J,)` support bounds) a cell may straddle the arena's edge: its positions are the cell's part inside the
+    arena (its polygon clipped by `view`), and a swept set that may leave the arena is unsafe."""
     kind = law_kind(law)
     modes = 2 if kind == "hybrid" else 1
     boxes = grid.boxes()
@@ -204,6 +212,8 @@ def build(law, grid: Grid, eps_cells: np.ndarray, period: float, goal_radius: fl
         U = np.maximum(U, 0.0)  # the polytope's hull with the origin
     cen = grid.centres()
     hP = cen @ DIRS.T + 0.5 * grid.h * (np.abs(DIRS[:, 0]) + np.abs(DIRS[:, 1]))
+    if view is not None:  # a cell's part inside the arena (cells out of view keep theirs: they are unsafe)
+        hP = np.where(np.ones(grid.n, bool)[:, None] if in_view is None else in_view[:, None], np.minimum(hP, view), hP)
     d_lo, _ = dist_range(boxes, scene.p_0)
     bad_cell = d_lo <= scene.obstacle_radius
     if in_view is not None:
@@ -223,7 +233,8 @@ def build(law, grid: Grid, eps_cells: np.ndarray, period: float, goal_radius: fl
     multi = np.zeros(n_nodes, bool)
     for q in range(modes):
         no_jump = ~jump[:, q] if modes == 2 else np.ones(grid.n, bool)
-        E, unsafe, used, multi_q = _frames(grid, hP, U[:, q], period, frames, window, bad_cell, goal | ~no_jump)
+        E, unsafe, used, multi_q = _frames(grid, hP, U[:, q], period, frames, window, bad_cell, goal | ~no_jump,
+                                             view)
         multi[np.arange(grid.n) * modes + q] = multi_q
         safe[np.arange(grid.n) * modes + q] = ~unsafe & ~bad_cell
         rate_U[:, q] = used

@@ -26,7 +26,7 @@ class Certificate:
     certified: np.ndarray  # (grid cells,) within the horizon
     stats: dict
     arrival: np.ndarray    # (grid cells,) frames to the goal from the cell, every initial node (inf: not in Win)
-    no_start: np.ndarray   # (grid cells,) inside the closed diamond: no start of the simulator lies there
+    no_start: np.ndarray   # (grid cells,) inside the closed diamond or outside the arena: no start lies there
 
 
 def certify(law, eps_world, *, h: float, angle: float, period: float, goal_radius: float, n_split: int = 4,
@@ -40,18 +40,21 @@ def certify(law, eps_world, *, h: float, angle: float, period: float, goal_radiu
     rlaw = frame.law(law)
     scene = rlaw.scene
     anchor = scene.p_0 - scene.c * np.sqrt(0.5) * np.ones(2)  # the faces' lines are grid lines at 45°
-    grid = Grid.over(scene.bounds, h, anchor=anchor)
+    (x0, x1), (y0, y1) = scene.bounds  # one cell more on each side: a set at the arena's corner is inside the grid
+    grid = Grid.over([[x0 - h, x1 + h], [y0 - h, y1 + h]], h, anchor=anchor)
     boxes = grid.boxes()
     lost = lost or LostFrames(0, False, period, 0.0)
     eps = lost.eps(eps_world)(frame.to_world(grid.centres()), boxes=boxes, frame=frame)
-    view = frame.in_view(boxes, law.scene.bounds)
+    bounds = frame.view_bounds(law.scene.bounds)  # cells straddling the arena's edge: their part inside it
+    view = frame.in_view(boxes, law.scene.bounds) if bounds is None else frame.meets_view(boxes, law.scene.bounds)
     ab = build(rlaw, grid, eps, period, goal_radius, n_split=n_split, window=window, in_view=view, frames=frames,
-               keep_mode=lost.keep_mode, may_stop=lost.may_stop)
+               keep_mode=lost.keep_mode, may_stop=lost.may_stop, view=bounds)
     W, stats, to_goal = win(ab, period, scene.p_T)
     arrival = np.where(view, arrival_frames(ab, to_goal), np.inf)
     cert = certified_cells(ab, W, to_goal, horizon) & view
     corners = np.stack([boxes[:, [0, 2]], boxes[:, [1, 2]], boxes[:, [1, 3]], boxes[:, [0, 3]]], axis=1)
     no_start = in_diamond(law.scene, frame.to_world(corners.reshape(-1, 2))).reshape(-1, 4).all(axis=1)
+    no_start |= ~frame.meets_view(boxes, law.scene.bounds)  # outside the arena (a start on its edge: in a cell inside)
     stats = {**stats, "nodes": int(len(ab.safe)), "edges": int(len(ab.succ)), "cells": int(grid.n),
              "horizon_frames": float(horizon), "beyond_horizon": int((certified_cells(ab, W) & view & ~cert).sum()),
              "lost_frames": lost.describe()}

@@ -14,7 +14,10 @@ import math
 
 import numpy as np
 
+from pipeline.bracket.enclosures import DIRS
 from pipeline.control import CBFController, HybridController, Scene, SmoothController
+
+VIEW_TOL = 1e-9  # world units: a corner this far outside the arena counts as on its edge
 
 
 def rotation(angle_deg: float) -> np.ndarray:
@@ -64,6 +67,30 @@ class Frame:
         (x0, x1), (y0, y1) = arena
         C = np.stack([boxes[:, [0, 2]], boxes[:, [1, 2]], boxes[:, [1, 3]], boxes[:, [0, 3]]], axis=1)
         W = self.to_world(C.reshape(-1, 2)).reshape(-1, 4, 2)
-        tol = 1e-9
+        tol = VIEW_TOL
         return ((W[..., 0] >= x0 - tol) & (W[..., 0] <= x1 + tol) & (W[..., 1] >= y0 - tol)
                 & (W[..., 1] <= y1 + tol)).all(axis=1)
+
+    def view_bounds(self, arena) -> np.ndarray | None:
+        """The world arena in the grid frame as bounds on the support directions: `(J,)` with the arena's offset in
+        its four outward normals and `+inf` elsewhere (`{g: DIRS g <= H}` is the rotated arena), or None when a
+        normal is not one of `DIRS` (an angle not a multiple of `360° / J`: cells then count only wholly inside)."""
+        (x0, x1), (y0, y1) = arena
+        H = np.full(len(DIRS), np.inf)
+        for n_world, offset in (((1.0, 0.0), x1), ((-1.0, 0.0), -x0), ((0.0, 1.0), y1), ((0.0, -1.0), -y0)):
+            n = self.to_grid(np.array(n_world))
+            j = int(np.argmax(DIRS @ n))
+            if not np.allclose(DIRS[j], n, rtol=0.0, atol=1e-12):
+                return None
+            H[j] = float(offset)
+        return H
+
+    def meets_view(self, boxes: np.ndarray, arena) -> np.ndarray:
+        """Grid cells `(N, 4)` whose interior meets the world arena's (no separating axis among the cell's and the
+        arena's edge normals): a run can be in them, on their part inside the arena."""
+        (x0, x1), (y0, y1) = arena
+        A = self.to_grid(np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]], float))  # (4, 2)
+        C = np.stack([boxes[:, [0, 2]], boxes[:, [1, 2]], boxes[:, [1, 3]], boxes[:, [0, 3]]], axis=1)  # (N, 4, 2)
+        normals = np.vstack([np.eye(2), self.to_grid(np.eye(2))])  # the cells' and the arena's edge normals
+        pc, pa = C @ normals.T, A @ normals.T  # (N, 4, 4), (4, 4)
+        return ((pc.min(axis=1) < pa.max(axis=0) - VIEW_TOL) & (pa.min(axis=0) < pc.max(axis=1) - VIEW_TOL)).all(axis=1)
