@@ -136,16 +136,16 @@ def cell_hits(grid: Grid, H: np.ndarray, window: int):
     ox, oy = np.meshgrid(np.arange(window), np.arange(window), indexing="ij")
     ix = ixl[ok, None] + ox.ravel()[None]
     iy = iyl[ok, None] + oy.ravel()[None]
-    inside = (ix <= ixh[ok, None]) & (iy <= iyh[ok, None])
+    r, w = np.nonzero((ix <= ixh[ok, None]) & (iy <= iyh[ok, None]))  # the cells of each set's bounding box
+    ix, iy = ix[r, w], iy[r, w]
     cx, cy = grid.x0 + (ix + 0.5) * grid.h, grid.y0 + (iy + 0.5) * grid.h
     rad = 0.5 * grid.h * (np.abs(DIRS[:, 0]) + np.abs(DIRS[:, 1]))
-    lo = cx[..., None] * DIRS[:, 0] + cy[..., None] * DIRS[:, 1] - rad  # min over the closed cell of d_j·x
+    lo = cx[:, None] * DIRS[:, 0] + cy[:, None] * DIRS[:, 1] - rad  # min over the closed cell of d_j·x
     # half-open cells [x0, x1) x [y0, y1) and sets P + T_s U of half-open P: in every direction either the
     # cell's minimum or the set's maximum lies on an open side (see docs/bracket.md), so they meet only if
     # lo < H strictly (to TOUCH in floating point)
-    meets = inside & (lo < H[ok, None, :] - TOUCH).all(axis=-1)
-    r, w = np.nonzero(meets)
-    return ok[r], ix[r, w] * grid.ny + iy[r, w], overflow
+    meets = (lo < H[ok[r]] - TOUCH).all(axis=-1)
+    return ok[r[meets]], ix[meets] * grid.ny + iy[meets], overflow
 
 
 def _frames(grid: Grid, hP, Uq, period, frames, window, bad_cell, stop, view=None):

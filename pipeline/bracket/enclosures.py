@@ -36,6 +36,11 @@ def directions(n: int = J) -> np.ndarray:
 DIRS = directions()
 
 
+def wrap(angle: np.ndarray) -> np.ndarray:
+    """Angles wrapped into `[-π, π)` (what `np.angle(np.exp(1j x))` computes, without complex exponentials)."""
+    return np.remainder(np.asarray(angle) + np.pi, 2.0 * np.pi) - np.pi
+
+
 def support_at(h: np.ndarray, x: np.ndarray) -> np.ndarray:
     """An upper bound `(...)` of `max_u x·u` over the polytope `{d_j·u <= h_j}` (`h` `(..., J)`) at vectors `x`
     `(..., 2)` (broadcast against `h`'s rows): `x = α d_j + β d_{j+1}` with `α, β >= 0` (the directions around `x`),
@@ -147,7 +152,7 @@ def arc_range(box: np.ndarray, c: np.ndarray):
     """The directions `e(α)` of `m - c` over boxes: `(α_mid, half-width)`; half-width π where `c` is in a box."""
     C = corners(box) - c
     mid = np.arctan2(C[..., 1].mean(-1), C[..., 0].mean(-1))
-    rel = np.angle(np.exp(1j * (np.arctan2(C[..., 1], C[..., 0]) - mid[..., None])))
+    rel = wrap(np.arctan2(C[..., 1], C[..., 0]) - mid[..., None])
     lo, hi = rel.min(-1), rel.max(-1)
     centre = mid + 0.5 * (lo + hi)
     half = 0.5 * (hi - lo)

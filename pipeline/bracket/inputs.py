@@ -24,6 +24,7 @@ from pipeline.bracket.enclosures import (
     sq_dist_range,
     support_at,
     wedge_ranges,
+    wrap,
 )
 from pipeline.control import CBFController, HybridController, SmoothController
 
@@ -45,7 +46,7 @@ def saturated_support(X: np.ndarray, u_max: float | None, rays: np.ndarray | Non
     norm = np.hypot(X[..., 0], X[..., 1])
     mean = X.mean(axis=-2)
     mdir = np.arctan2(mean[..., 1], mean[..., 0])
-    rel = np.angle(np.exp(1j * (np.arctan2(X[..., 1], X[..., 0]) - mdir[..., None])))
+    rel = wrap(np.arctan2(X[..., 1], X[..., 0]) - mdir[..., None])
     lo, hi = rel.min(-1), rel.max(-1)
     pointed = (hi - lo < np.pi - 1e-6) & (norm.min(-1) > 1e-12) & (np.hypot(mean[..., 0], mean[..., 1]) > 1e-12)
     bis = mdir + 0.5 * (lo + hi)
@@ -55,7 +56,7 @@ def saturated_support(X: np.ndarray, u_max: float | None, rays: np.ndarray | Non
     leaves_ball = norm.max(-1) > u_max
     theta_d = np.arctan2(DIRS[:, 1], DIRS[:, 0])
     a1, a2 = (mdir + lo)[..., None], (mdir + hi)[..., None]
-    rel_d = np.angle(np.exp(1j * (theta_d - (mdir + 0.5 * (lo + hi))[..., None])))
+    rel_d = wrap(theta_d - (mdir + 0.5 * (lo + hi))[..., None])
     within = np.abs(rel_d) <= 0.5 * (hi - lo)[..., None]
     arc = np.where(within, 1.0, np.maximum(np.cos(theta_d - a1), np.cos(theta_d - a2))) * u_max
     inner = np.minimum(hX, u_max)
@@ -69,7 +70,7 @@ def saturated_support(X: np.ndarray, u_max: float | None, rays: np.ndarray | Non
 def _arc_support(centre, half, radius) -> np.ndarray:
     """Support `(..., J)` of the arc `radius e(α)`, `|α - centre| <= half`."""
     theta_d = np.arctan2(DIRS[:, 1], DIRS[:, 0])
-    rel = np.angle(np.exp(1j * (theta_d - centre[..., None])))
+    rel = wrap(theta_d - centre[..., None])
     inside = np.abs(rel) <= half[..., None]
     best = np.where(inside, 1.0, np.maximum(np.cos(np.abs(rel) - half[..., None]), -1.0))
     return radius * best
@@ -156,12 +157,12 @@ def _apex_guard(h, mu_lo, mu_hi, nu_lo, nu_hi, du, dv, u_max, cs):
     of equal pieces of the arc plus the Lipschitz constant `u_max + cs` in the angle (`|∂ P_n d/∂φ| = |d| = 1`,
     `max |u| <= u_max`)."""
     theta = np.arctan2(*(-(du + dv))[::-1])  # the quarter arc's bisector
-    ends = [np.angle(np.exp(1j * (np.arctan2(a * du[1] + b * dv[1], a * du[0] + b * dv[0]) - theta)))
+    ends = [wrap(np.arctan2(a * du[1] + b * dv[1], a * du[0] + b * dv[0]) - theta)
             for a, b in ((mu_lo, nu_hi), (mu_hi, nu_lo))]
     touches = (mu_hi >= 0) & (nu_hi >= 0)
     lo = np.where(touches, -np.pi / 4, np.clip(np.minimum(*ends), -np.pi / 4, np.pi / 4))[:, None]
     hi = np.where(touches, np.pi / 4, np.clip(np.maximum(*ends), -np.pi / 4, np.pi / 4))[:, None]
-    rel = np.angle(np.exp(1j * (np.arctan2(DIRS[:, 1], DIRS[:, 0]) - theta)))
+    rel = wrap(np.arctan2(DIRS[:, 1], DIRS[:, 0]) - theta)
     dn = np.where((rel >= lo - 1e-12) & (rel <= hi + 1e-12), 1.0, np.maximum(np.cos(rel - lo), np.cos(rel - hi)))
     beta = np.maximum(0.0, u_max - cs)[:, None]
     out = h + beta * np.maximum(dn, 0.0)
@@ -230,7 +231,7 @@ def _trig_ranges(centre, half):
         a1, a2 = centre - half, centre + half
         lo, hi = np.minimum(f(a1), f(a2)), np.maximum(f(a1), f(a2))
         for peak, val in zip(peaks, (1.0, -1.0)):
-            rel = np.angle(np.exp(1j * (peak - centre)))
+            rel = wrap(peak - centre)
             hit = np.abs(rel) <= half
             lo = np.where(hit & (val < 0), -1.0, lo)
             hi = np.where(hit & (val > 0), 1.0, hi)
