@@ -421,11 +421,12 @@ def test_the_error_map_bench_uses_the_trained_map_beside_a_newer_policy(tiny_map
     import torch
 
     from pipeline.errormap import bench
+    from pipeline.perception import maps
     from pipeline.perception.maps import load_perception_map
 
     root, ids = tiny_maps
-    monkeypatch.setattr(bench, "REPO_ROOT", tmp_path)  # the bench reads <repo>/outputs/models
     models = tmp_path / "outputs" / "models"
+    monkeypatch.setattr(maps, "DEFAULT_MODELS_DIR", models)  # the bench reads <repo>/outputs/models
     shutil.copytree(root / "models" / ids["clean"], models / ids["clean"])
     os.utime(models / ids["clean"], (0, 0))  # older than the policy even within the same second
     with tracking.tracked_output(models, "imitation", "0123456789", {"kind": "imitation", "hparams": {}}) as tmp:
@@ -438,3 +439,23 @@ def test_the_error_map_bench_uses_the_trained_map_beside_a_newer_policy(tiny_map
     np.testing.assert_array_equal(predict(images), load_perception_map(ids["clean"], models_dir=models).predict(images))
     _, _, label = bench._predictor(tmp_path / "nothing")
     assert label == "no trained model; untrained PerceptionMap (same cost)"
+
+
+def test_the_closed_loop_bench_times_the_trained_map_and_bounds_its_ratio(tiny_maps, tmp_path, monkeypatch):
+    """`make bench`'s closed-loop rows timed an untrained network (they looked for a map named `clean`, which
+    `make run` does not build) and held the ratio to a target no batching can reach on a small machine. They now
+    time the newest trained map, on its own camera, and print the ratio's bound: the fp32 ceiling's image rate over
+    the per-agent loop's."""
+    import shutil
+
+    from pipeline.experiments import bench
+    from pipeline.perception import maps
+
+    root, ids = tiny_maps
+    models = tmp_path / "models"
+    shutil.copytree(root / "models" / ids["occluded"], models / ids["occluded"])
+    monkeypatch.setattr(maps, "DEFAULT_MODELS_DIR", models)
+    rows = {r["case"]: r for r in bench.bench(quick=True)}
+    assert f"raw batched inference (model {ids['occluded']})" in rows, list(rows)
+    bound = rows["inference at the fp32 ceiling / per-agent loop"]["value"]
+    assert bound > 0 and f"at most {bound:.1f}x" in rows["closed loop / per-agent loop"]["note"]

@@ -11,46 +11,23 @@ import time
 import numpy as np
 import torch
 
-from pipeline import tracking
 from pipeline.control import Scene
 from pipeline.errormap.estimates import arena_grid, error_field
-from pipeline.errors import PipelineError
-from pipeline.perception.maps import PerceptionMapPredictor, load_perception_map
+from pipeline.perception.maps import PerceptionMapPredictor, newest_perception_map
 from pipeline.perception.network import PerceptionMap
 from pipeline.render import Camera, load_occlusion
-from pipeline.repo import REPO_ROOT
-
-
-def _trained_maps(models_dir) -> list:
-    """The perception maps under `models_dir`, newest first. The folder holds other tracked outputs too: `make
-    run` ends with `make learned`'s imitation policy (and `ppo-<id>`), whose model.pt is a bare state dict with no
-    map `hparams` (the newest entry, it made every row "trained model unusable (KeyError)")."""
-    maps = []
-    for d in tracking.entries(models_dir):
-        try:
-            kind = tracking.read_manifest(d).get("kind")
-        except PipelineError:
-            continue
-        if kind in (None, "perception_map"):  # None: a map from before manifests said what they hold
-            maps.append(d)
-    return maps
 
 
 def _predictor(models_dir=None):
     """`(predict, camera, label)`: the newest trained perception map's under `models_dir` (default
     `outputs/models`), else an untrained one's (the same cost)."""
-    models_dir = REPO_ROOT / "outputs" / "models" if models_dir is None else models_dir
-    note = "no trained model; "
-    for folder in _trained_maps(models_dir):
-        try:
-            pmap = load_perception_map(folder, models_dir=models_dir)
-            return pmap.predict, pmap.camera(), f"model {pmap.name}-{pmap.id}"
-        except Exception as err:  # noqa: BLE001 - try an older map, else an untrained network, and say so
-            note = f"trained model {folder.name} unusable ({type(err).__name__}); "
+    pmap, note = newest_perception_map(models_dir)
+    if pmap is not None:
+        return pmap.predict, pmap.camera(), note
     # the predictor, not the raw network: the default map has four outputs (position + its variance)
     torch.manual_seed(0)
     pm = PerceptionMapPredictor(PerceptionMap.of())
-    return pm.predict, Camera(Scene(target=[40.0, 0.0])), note + "untrained PerceptionMap (same cost)"
+    return pm.predict, Camera(Scene(target=[40.0, 0.0])), note + "; untrained PerceptionMap (same cost)"
 
 
 def _best(fn, repeat: int) -> float:

@@ -17,7 +17,7 @@ import torch
 
 from pipeline import tracking
 from pipeline.config import build
-from pipeline.errors import ConfigError, DatasetError, ModelError
+from pipeline.errors import ConfigError, DatasetError, ModelError, PipelineError
 from pipeline.lineage import resolve_map
 from pipeline.perception.network import FoldedPerceptionNet, PerceptionMap
 from pipeline.repo import REPO_ROOT
@@ -198,3 +198,32 @@ def load_perception_map(ref, models_dir=None, *, verify: bool = False, device="a
     model = PerceptionMap.of(**hparams)
     model.load_state_dict(blob["state_dict"])
     return PerceptionMapPredictor(model, manifest=manifest, path=folder, device=dev, compile=compile)
+
+
+def trained_maps(models_dir=None) -> list[Path]:
+    """The perception maps under `models_dir` (default outputs/models), newest first. The folder holds other tracked
+    outputs too: `make run` ends with `make learned`'s imitation policy (and `ppo-<id>`), whose model.pt is a bare
+    state dict with no map `hparams` (as the newest entry it made the benchmarks' rows "trained model unusable")."""
+    maps = []
+    for d in tracking.entries(Path(models_dir) if models_dir else DEFAULT_MODELS_DIR):
+        try:
+            kind = tracking.read_manifest(d).get("kind")
+        except PipelineError:
+            continue
+        if kind in (None, "perception_map"):  # None: a map from before manifests said what they hold
+            maps.append(d)
+    return maps
+
+
+def newest_perception_map(models_dir=None, device="cpu") -> tuple[PerceptionMapPredictor | None, str]:
+    """The newest trained perception map that loads (benchmarks: the map `make run` deploys), and a note saying
+    which, or why none (None: the caller falls back to an untrained network of the same cost)."""
+    note = "no trained model"
+    for folder in trained_maps(models_dir):
+        try:
+            pmap = load_perception_map(folder, models_dir=models_dir, device=device)
+            return pmap, f"model {pmap.name}-{pmap.id}"
+        except Exception as err:  # noqa: BLE001 - try an older map, else none, and say so
+            note = f"trained model {folder.name} unusable ({type(err).__name__})"
+    return None, note
+
