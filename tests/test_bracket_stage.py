@@ -45,6 +45,21 @@ def test_tiny_bracket_run(tmp_path):
     assert other["path"] != folder and not other["skipped"]
 
 
+def test_laws_side_by_side_give_the_same_bytes(tmp_path, monkeypatch):
+    """The laws run in spawned processes, one per core of the job's share (`OMP_NUM_THREADS`, as `make paper` sets
+    it), and the bracket's files are byte-identical to the run one law after another."""
+    from pipeline.bracket import stage
+
+    files = {}
+    for cores in ("1", "2"):
+        monkeypatch.setenv("OMP_NUM_THREADS", cores)
+        assert stage.law_workers(3) == int(cores)
+        root = tmp_path / cores
+        out = stage.run(compose("bracket", [*TINY, f"paths.outputs_dir={root}", f"paths.output_dir={root / 'run'}"]))
+        files[cores] = {f: (out["path"] / f).read_bytes() for f in ("bracket.csv", "table.md")}
+    assert files["1"] == files["2"]
+
+
 @pytest.mark.parametrize("override,field", [
     ("bracket.commit=20", "bracket.commit"),
     ("bracket.eps=[0.5,0.1]", "bracket.eps"),

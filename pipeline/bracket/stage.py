@@ -16,7 +16,10 @@ from __future__ import annotations
 
 import hashlib
 import json
+import multiprocessing
+import os
 import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -318,6 +321,30 @@ def bracket_id(cfg: DictConfig, bs, emap, cam_folder: Path | None = None) -> tup
     return tracking.content_id(parts), {**parts, "error_map_ref": bs.error_map, "camera_map_ref": bs.camera_map}
 
 
+def law_workers(n_laws: int) -> int:
+    """Processes for the laws side by side: the job's share of the cores (`OMP_NUM_THREADS`, which `make paper`
+    sets per job; else every core this process may use), at most one per law."""
+    cores = os.environ.get("OMP_NUM_THREADS")
+    cores = int(cores) if cores and cores.isdigit() else len(os.sched_getaffinity(0))
+    return max(1, min(n_laws, cores))
+
+
+def each_law(laws: dict, scene, bs, sim, camera, emap, starts, pmap, lost):
+    """`(name, bracket_rows(...))` per law in the laws' order, as each is done: side by side in spawned processes
+    (:func:`law_workers`; each law's rows depend on nothing else, so the bytes are the same), or one after another
+    with a camera map (its torch network stays in this process)."""
+    workers = law_workers(len(laws)) if pmap is None else 1
+    if workers == 1:
+        for name, law in laws.items():
+            yield name, bracket_rows(name, law, scene, bs, sim, camera, emap, starts, pmap, lost[name])
+        return
+    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+        futures = {name: pool.submit(bracket_rows, name, law, scene, bs, sim, camera, emap, starts, None, lost[name])
+                   for name, law in laws.items()}
+        for name, future in futures.items():
+            yield name, future.result()
+
+
 def run(cfg: DictConfig) -> dict:
     scene, laws, bs, sim, camera, emap, cam_folder, lost = objects(cfg)
     id_, meta = bracket_id(cfg, bs, emap, cam_folder)
@@ -334,8 +361,7 @@ def run(cfg: DictConfig) -> dict:
 
         pmap = load_perception_map(cam_folder, models_dir=cfg.paths.models_dir, device=bs.camera_device)
     frames, stats, paths, cam_paths = [], {}, {}, {}
-    for name, law in laws.items():
-        rows, st, pth, cpth = bracket_rows(name, law, scene, bs, sim, camera, emap, starts, pmap, lost[name])
+    for name, (rows, st, pth, cpth) in each_law(laws, scene, bs, sim, camera, emap, starts, pmap, lost):
         frames.append(rows)
         stats[name], paths[name] = st, pth
         if cpth is not None:
