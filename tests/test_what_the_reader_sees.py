@@ -76,7 +76,7 @@ def test_a_paper_run_indexes_every_file_it_writes(tmp_path):
     links every file of the folder (the profile used to be written after it)."""
     root = tmp_path / "root"
     proc = subprocess.run([sys.executable, "-m", "pipeline.paper", "debug=tiny", f"paths.root_dir={root}",
-                           "datasets=[clean]", "maps=[]", "errormaps=[]", "certify=[]", "experiments=[coverings]", "learned=[]",
+                           "datasets=[clean]", "maps=[]", "errormaps=[]", "certify=[]", "bracket=[]", "bracket_map=null", "experiments=[coverings]", "learned=[]",
                            f"hydra.run.dir={tmp_path / 'run'}"],
                           cwd=REPO_ROOT, capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
