@@ -67,3 +67,31 @@ def test_the_bound_holds_and_says_something_on_the_band_behind_the_obstacle(prod
           f"{eps.max():.3g}; sampled and attacked error / bound: median {tight:.2f}, max {(reached / eps).max():.2f}")
     assert np.median(eps) < C_MINUS_R  # Theorem 1's hypothesis holds in the median cell (measured 1.34 against 7.31)
     assert tight > 0.1  # not vacuous: the error found reaches a tenth of the bound in the median cell (measured 0.22)
+
+
+def test_the_search_over_real_renders_stays_under_the_bound_and_finds_real_errors(production):
+    """Issue 44: the stage's PGD ascends over every image the relaxation admits; beside it, `render_worst` searches
+    the frames the camera really renders. Its errors are real (re-rendered at the positions it returns, inside their
+    cells, through the uint8 path), at least the 3 x 3 grid it starts from, and under the certified bound."""
+    from pipeline.certify.attack import render_worst
+
+    model, net, camera = production
+    rng = np.random.default_rng(44)
+    n, half = 12, 0.125
+    c = np.column_stack([rng.uniform(-30.0, -11.5, n), rng.uniform(-2.0, 2.0, n)])
+    cells = np.column_stack([c[:, 0] - half, c[:, 0] + half, c[:, 1] - half, c[:, 1] + half])
+    with torch.no_grad():
+        b = certified_error_bound(prepare(model, camera, 0.0, torch.float32), torch.as_tensor(cells), "crown")
+    best, at = render_worst(model, camera, cells)
+    assert ((at >= cells[:, None, [0, 2]]) & (at <= cells[:, None, [1, 3]])).all()
+    e = _errors(net, camera, at)  # (n, 4, 2): the error at each direction's point
+    again = np.stack([e[:, 0, 0], e[:, 1, 1], -e[:, 2, 0], -e[:, 3, 1]], axis=1)
+    np.testing.assert_allclose(again, best, atol=1e-4)
+    g = np.linspace(-1.0, 1.0, 3)
+    grid = c[:, None] + half * np.stack(np.meshgrid(g, g, indexing="ij"), -1).reshape(1, -1, 2)
+    eg = _errors(net, camera, grid)
+    assert (best >= np.concatenate([eg.max(1), -eg.min(1)], axis=1) - 1e-4).all()
+    limit = np.concatenate([b.upper.double().numpy(), -b.lower.double().numpy()], axis=1)
+    assert (best <= limit + SLACK).all(), "a rendered frame past its certified bound"
+    print(f"real renders, {n} cells: reach of the bound max {(best / limit).max():.2f}, median "
+          f"{np.median(best / limit):.2f}")

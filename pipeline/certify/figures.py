@@ -82,8 +82,13 @@ def scope(region, n_cells: int | None = None) -> str:
 
 
 def _pgd(a: dict | None) -> str:
-    return f"{a['violations']} of {4 * a['cells']} / max {a['share_max']:.0%}, median {a['share_median']:.0%}" \
-        if a else "-"
+    if not a:
+        return "-"
+    out = f"{a['violations']} of {4 * a['cells']} / max {a['share_max']:.0%}, median {a['share_median']:.0%}"
+    if "render_share_max" in a:  # κ = 0: the search over real renders beside the relaxed set's PGD
+        out += f"; real renders: {a['render_violations']} past, max {a['render_share_max']:.0%}, median " \
+               f"{a['render_share_median']:.0%}"
+    return out
 
 
 def write_table(path: Path, summary: dict) -> None:

@@ -176,8 +176,10 @@ def _say(name: str, r: dict, region=None) -> None:
           f"{r['tightness']['median']:.3g}; {r['soundness']['violations']} of {r['soundness']['samples']} sampled " \
           f"errors outside their bound" if "eps_emp" in r else ""
     a = r.get("pgd")
-    emp += f"; PGD on {a['cells']} cells: {a['violations']} past their bound, reaching at most " \
-           f"{a['share_max']:.0%} of it (median {a['share_median']:.0%})" if a else ""
+    emp += f"; PGD on {a['cells']} cells (every image the relaxation admits): {a['violations']} past their bound, " \
+           f"reaching at most {a['share_max']:.0%} of it (median {a['share_median']:.0%})" if a else ""
+    emp += f"; a search over real renders: {a['render_violations']} past, at most {a['render_share_max']:.0%} " \
+           f"(median {a['render_share_median']:.0%})" if a and "render_share_max" in a else ""
     if "heading_bar_deg" in r:
         h = r["heading_bar_deg"]
         emp += f"; heading bound median {h['median']:.3g} deg, max {h['max']:.3g} deg" + (
