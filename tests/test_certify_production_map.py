@@ -33,14 +33,20 @@ def _outside(b, e):
     return np.maximum(lo - e, e - hi).max(axis=(1, 2))
 
 
-def test_the_bound_holds_and_says_something_on_the_band_behind_the_obstacle(production):
-    model, net, camera = production
-    rng = np.random.default_rng(47)
-    n, half = 24, 0.125
+def _band(model, camera, seed: int, n: int, half: float = 0.125):
+    """`n` random cells of side `2 half` on the band behind the obstacle: centres, cells and their bound."""
+    rng = np.random.default_rng(seed)
     c = np.column_stack([rng.uniform(-30.0, -11.5, n), rng.uniform(-2.0, 2.0, n)])
     cells = np.column_stack([c[:, 0] - half, c[:, 0] + half, c[:, 1] - half, c[:, 1] + half])
     with torch.no_grad():
         b = certified_error_bound(prepare(model, camera, 0.0, torch.float32), torch.as_tensor(cells), "crown")
+    return rng, c, cells, b
+
+
+def test_the_bound_holds_and_says_something_on_the_band_behind_the_obstacle(production):
+    model, net, camera = production
+    n, half = 24, 0.125
+    rng, c, cells, b = _band(model, camera, 47, n, half)
     eps = b.eps.double().numpy()
     t = rng.uniform(-1, 1, (n, 64, 2))
     t[:, :4] = [[-1, -1], [1, 1], [-1, 1], [1, -1]]  # the corners
@@ -76,12 +82,8 @@ def test_the_search_over_real_renders_stays_under_the_bound_and_finds_real_error
     from pipeline.certify.attack import render_worst
 
     model, net, camera = production
-    rng = np.random.default_rng(44)
     n, half = 12, 0.125
-    c = np.column_stack([rng.uniform(-30.0, -11.5, n), rng.uniform(-2.0, 2.0, n)])
-    cells = np.column_stack([c[:, 0] - half, c[:, 0] + half, c[:, 1] - half, c[:, 1] + half])
-    with torch.no_grad():
-        b = certified_error_bound(prepare(model, camera, 0.0, torch.float32), torch.as_tensor(cells), "crown")
+    _, c, cells, b = _band(model, camera, 44, n, half)
     best, at = render_worst(model, camera, cells)
     assert ((at >= cells[:, None, [0, 2]]) & (at <= cells[:, None, [1, 3]])).all()
     e = _errors(net, camera, at)  # (n, 4, 2): the error at each direction's point
