@@ -46,7 +46,8 @@ def certify(law, eps_world, *, h: float, angle: float, period: float, goal_radiu
     lost = lost or LostFrames(0, False, period, 0.0)
     eps = lost.eps(eps_world)(frame.to_world(grid.centres()), boxes=boxes, frame=frame)
     bounds = frame.view_bounds(law.scene.bounds)  # cells straddling the arena's edge: their part inside it
-    view = frame.in_view(boxes, law.scene.bounds) if bounds is None else frame.meets_view(boxes, law.scene.bounds)
+    meets = frame.meets_view(boxes, law.scene.bounds)
+    view = frame.in_view(boxes, law.scene.bounds) if bounds is None else meets
     ab = build(rlaw, grid, eps, period, goal_radius, n_split=n_split, window=window, in_view=view, frames=frames,
                keep_mode=lost.keep_mode, may_stop=lost.may_stop, view=bounds)
     W, stats, to_goal = win(ab, period, scene.p_T)
@@ -54,7 +55,7 @@ def certify(law, eps_world, *, h: float, angle: float, period: float, goal_radiu
     cert = certified_cells(ab, W, to_goal, horizon) & view
     corners = np.stack([boxes[:, [0, 2]], boxes[:, [1, 2]], boxes[:, [1, 3]], boxes[:, [0, 3]]], axis=1)
     no_start = in_diamond(law.scene, frame.to_world(corners.reshape(-1, 2))).reshape(-1, 4).all(axis=1)
-    no_start |= ~frame.meets_view(boxes, law.scene.bounds)  # outside the arena (a start on its edge: in a cell inside)
+    no_start |= ~meets  # outside the arena (a start on its edge: in a cell inside)
     stats = {**stats, "nodes": int(len(ab.safe)), "edges": int(len(ab.succ)), "cells": int(grid.n),
              "horizon_frames": float(horizon), "beyond_horizon": int((certified_cells(ab, W) & view & ~cert).sum()),
              "lost_frames": lost.describe()}

@@ -325,7 +325,10 @@ def law_workers(n_laws: int) -> int:
     """Processes for the laws side by side: the job's share of the cores (`OMP_NUM_THREADS`, which `make paper`
     sets per job; else every core this process may use), at most one per law."""
     cores = os.environ.get("OMP_NUM_THREADS")
-    cores = int(cores) if cores and cores.isdigit() else len(os.sched_getaffinity(0))
+    if cores and cores.isdigit():
+        cores = int(cores)
+    else:
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
     return max(1, min(n_laws, cores))
 
 

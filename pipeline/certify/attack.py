@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from pipeline.certify.renderer import pixel_window
+from pipeline.perception.maps import PerceptionMapPredictor
 from pipeline.perception.network import FoldedPerceptionNet
 from pipeline.progress import progress as progress_bar
 
@@ -59,20 +60,19 @@ def pgd_worst(model, camera, cells, kappa: float = 0.0, steps: int = 25, seed: i
 
 
 def render_worst(model, camera, cells, rounds: int = 6, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """`(N, 4)` the largest `e_x`, `e_y`, `-e_x`, `-e_y` a search over the images the camera really renders
-    reaches per cell `cells (N, 4)` (no relaxation, no pixel budget), and `(N, 4, 2)` the positions where: a 3 x 3 grid and a random point per cell,
-    then `rounds` rounds of a pattern search (the best point ± half the step along each axis, clipped to the cell,
-    the step halved each round), each direction on its own. Beside :func:`pgd_worst` (every image the relaxation
-    admits), it says how close the bound comes to an error a rendered frame can have."""
+    """`(N, 4)`: the largest `e_x`, `e_y`, `-e_x`, `-e_y` that a search over the images the camera really renders
+    reaches per cell `cells (N, 4)` (no relaxation, no pixel budget), and `(N, 4, 2)`: the positions reaching them.
+    The search: a 3 x 3 grid and a random point per cell, then `rounds` rounds of a pattern search (the best point
+    ± the step along each axis, clipped to the cell, the step halved each round), each direction on its own; every
+    candidate rendered by the camera and read by the deployed predictor. Beside :func:`pgd_worst` (every image the
+    relaxation admits), it says how close the bound comes to an error a rendered frame can have."""
     cells = np.asarray(cells, float)
     n = len(cells)
-    net = FoldedPerceptionNet(model)
+    deployed = PerceptionMapPredictor(model)  # the folded network, in the loop's CPU chunks
     lo, hi = cells[:, [0, 2]], cells[:, [1, 3]]
 
     def errors(p: np.ndarray) -> np.ndarray:  # p (n, k, 2) -> signed errors (n, k, 4)
-        with torch.inference_mode():
-            est = net(torch.from_numpy(camera.render(p.reshape(-1, 2))).float())[:, :2].double().numpy()
-        e = est.reshape(p.shape) - p
+        e = deployed.predict(camera.render(p.reshape(-1, 2)))[:, :2].reshape(p.shape) - p
         return np.concatenate([e, -e], axis=-1)
 
     g = np.linspace(0.0, 1.0, 3)
