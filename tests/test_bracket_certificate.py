@@ -9,11 +9,12 @@ from budget import examples  # tests/budget.py: more examples under make test-ex
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.bracket.abstraction import Grid, build, decisions, dilate
+from pipeline.bracket.abstraction import Grid, build, dilate
 from pipeline.bracket.enclosures import DIRS, support_at
 from pipeline.bracket.falsifier import Search, attack
 from pipeline.bracket.inputs import support
 from pipeline.bracket.loop import FrameLoop
+from pipeline.bracket.modes import decisions
 from pipeline.bracket.winning import certified_cells, win
 from pipeline.control import CBFController, HybridController, Scene, SmoothController
 

@@ -25,8 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.bracket.enclosures import DIRS, affine_range, barrier_range, dist_range
-from pipeline.bracket.inputs import law_kind, support
+from pipeline.bracket.enclosures import DIRS, dist_range
+from pipeline.bracket.modes import Modes
 
 TOUCH = 1e-9  # world units: a set reaching a cell by less than this does not meet it (rounding of exact zeros)
 
@@ -67,44 +67,6 @@ class Grid:
 def dilate(boxes: np.ndarray, eps: np.ndarray) -> np.ndarray:
     e = np.asarray(eps, float)[:, None] * np.array([-1.0, 1.0, -1.0, 1.0])
     return boxes + e
-
-
-def decisions(law, boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """`(stay, jump)` `(N, 2)`: on perceived boxes, whether a frame in mode `q` (column `q - 1`) can stay / jump.
-
-    SPEC §3.3: jump iff `V_q >= f V_o` (`f = χ - λ`), `V_q > 0`, `V_o` finite. With `V = B + φ` (`φ = |m - p_T|²`
-    the same in both modes) that is `B_q - f B_o >= (f - 1) φ`: bounded with `B_q, B_o, φ` intervals separately,
-    so that far from both wedges (`B = 0`) no jump is possible, as for the law itself.
-    """
-    cov = law.scene.covering(0)
-    Bq = [barrier_range(boxes, cov, q) for q in (1, 2)]
-    phi_lo, phi_hi = (d**2 for d in dist_range(boxes, cov.p_T))
-    f = law.chi - law.lam
-    stay, jump = np.zeros((len(boxes), 2), bool), np.zeros((len(boxes), 2), bool)
-    for q in (1, 2):
-        (q_lo, q_hi), (o_lo, o_hi) = Bq[q - 1], Bq[2 - q]
-        with np.errstate(invalid="ignore"):
-            can = np.isinf(q_hi) | (q_hi - f * o_lo >= (f - 1) * phi_lo)
-            jump[:, q - 1] = can & np.isfinite(o_lo) & ((q_hi > 0) | (phi_hi > 0))
-            surely = np.isfinite(o_hi) & (np.isinf(q_lo) | (q_lo - f * o_hi >= (f - 1) * phi_hi)) & (phi_lo > 0)
-        stay[:, q - 1] = ~surely
-    return stay, jump
-
-
-def initial_modes(law, boxes: np.ndarray) -> np.ndarray:
-    """`(N, 2)`: modes a run can hold after frame 0 from a perceived box: the smaller `V_q` (the smaller barrier:
-    `φ` is common), ties to `q = 1` below `b = 0` (SPEC §3.3, :meth:`HybridController.initial_state`), then frame
-    0's jump."""
-    cov = law.scene.covering(0)
-    (l1, h1), (l2, h2) = barrier_range(boxes, cov, 1), barrier_range(boxes, cov, 2)
-    b_lo, b_hi = affine_range(boxes, cov.e_b, -cov.e_b @ cov.p_0)
-    tie = (l1 <= h2) & (l2 <= h1)
-    q0 = np.stack([(l1 < h2) | (tie & (b_lo < 0)), (l2 < h1) | (tie & (b_hi >= 0))], axis=1)
-    stay, jump = decisions(law, boxes)
-    out = q0 & stay
-    out[:, 0] |= q0[:, 1] & jump[:, 1]
-    out[:, 1] |= q0[:, 0] & jump[:, 0]
-    return out
 
 
 @dataclass
@@ -200,22 +162,23 @@ def build(law, grid: Grid, eps_cells: np.ndarray, period: float, goal_radius: fl
     The camera's view: `in_view` `(cells,)` the cells a run may be in (others are unsafe); with `view` (the arena
     as `(J,)` support bounds) a cell may straddle the arena's edge: its positions are the cell's part inside the
     arena (its polygon clipped by `view`), and a swept set that may leave the arena is unsafe."""
-    kind = law_kind(law)
-    modes = 2 if kind == "hybrid" else 1
     boxes = grid.boxes()
     scene = law.scene
     eps_cells = np.asarray(eps_cells, float)
     known = np.isfinite(eps_cells)  # a cell without a bound: its nodes are unsafe (nothing is known there)
     M = dilate(boxes, np.where(known, eps_cells, 0.0))
-    U = np.stack([support(law, M, q, period, n_split) for q in range(1, modes + 1)], axis=1)
+    logic = Modes(law, M, keep_mode)
+    modes = logic.modes
+    U = logic.inputs(period, n_split)
     if may_stop:
         U = np.maximum(U, 0.0)  # the polytope's hull with the origin
     cen = grid.centres()
     hP = cen @ DIRS.T + 0.5 * grid.h * (np.abs(DIRS[:, 0]) + np.abs(DIRS[:, 1]))
     if view is not None:  # a cell's part inside the arena (cells out of view keep theirs: they are unsafe)
         hP = np.where(np.ones(grid.n, bool)[:, None] if in_view is None else in_view[:, None], np.minimum(hP, view), hP)
-    d_lo, _ = dist_range(boxes, scene.p_0)
-    bad_cell = d_lo <= scene.obstacle_radius
+    bad_cell = np.zeros(grid.n, bool)
+    for cov in scene.coverings:  # a cell meeting an obstacle's disc
+        bad_cell |= dist_range(boxes, cov.p_0)[0] <= cov.obstacle_radius
     if in_view is not None:
         bad_cell |= ~in_view
     goal = (dist_range(boxes, scene.p_T)[1] <= goal_radius) & ~bad_cell
@@ -223,36 +186,23 @@ def build(law, grid: Grid, eps_cells: np.ndarray, period: float, goal_radius: fl
     n_nodes = grid.n * modes
     safe = np.ones(n_nodes, bool)
     rows_all, cols_all = [], []
-    jump = np.zeros((grid.n, 1), bool)
-    if modes == 2:
-        stay, jump = decisions(law, M)
-        initial = initial_modes(law, M)
-    else:
-        initial = np.ones((grid.n, 1), bool)
     rate_U = U.copy()
     multi = np.zeros(n_nodes, bool)
-    for q in range(modes):
-        no_jump = ~jump[:, q] if modes == 2 else np.ones(grid.n, bool)
-        E, unsafe, used, multi_q = _frames(grid, hP, U[:, q], period, frames, window, bad_cell, goal | ~no_jump,
-                                             view)
-        multi[np.arange(grid.n) * modes + q] = multi_q
-        safe[np.arange(grid.n) * modes + q] = ~unsafe & ~bad_cell
-        rate_U[:, q] = used
+    for k in range(modes):
+        E, unsafe, used, multi_k = _frames(grid, hP, U[:, k], period, frames, window, bad_cell,
+                                           goal | ~logic.no_jump(k), view)
+        multi[np.arange(grid.n) * modes + k] = multi_k
+        safe[np.arange(grid.n) * modes + k] = ~unsafe & ~bad_cell & logic.relevant[:, k]
+        rate_U[:, k] = used
         r, c, _ = cell_hits(grid, E, window)
-        if modes == 1:
-            rows_all.append(r), cols_all.append(c)
-        else:
-            s, j = stay[c, q] | keep_mode, jump[c, q]
-            rows_all += [r[s] * 2 + q, r[j] * 2 + q]
-            cols_all += [c[s] * 2 + q, c[j] * 2 + (1 - q)]
-    if modes == 1:
-        rows, cols = rows_all[0], cols_all[0]
-    else:
-        rows, cols = np.concatenate(rows_all), np.concatenate(cols_all)
+        for mask, k1 in logic.successors(k, c):
+            rows_all.append(r[mask] * modes + k)
+            cols_all.append(c[mask] * modes + k1)
+    rows, cols = np.concatenate(rows_all), np.concatenate(cols_all)
     order = np.lexsort((cols, rows))
     rows, cols = rows[order], cols[order]
     keep = np.ones(len(rows), bool)
     keep[1:] = (rows[1:] != rows[:-1]) | (cols[1:] != cols[:-1])
     rows, cols = rows[keep], cols[keep]
     indptr = np.searchsorted(rows, np.arange(n_nodes + 1))
-    return Abstraction(grid, modes, rate_U, safe, goal, indptr, cols, initial, multi, frames)
+    return Abstraction(grid, modes, rate_U, safe, goal, indptr, cols, logic.initial, multi, frames)

@@ -27,6 +27,7 @@ class Certificate:
     stats: dict
     arrival: np.ndarray    # (grid cells,) frames to the goal from the cell, every initial node (inf: not in Win)
     no_start: np.ndarray   # (grid cells,) inside the closed diamond or outside the arena: no start lies there
+    scene: object = None   # the world scene (its obstacles' diamonds)
 
 
 def certify(law, eps_world, *, h: float, angle: float, period: float, goal_radius: float, n_split: int = 4,
@@ -39,7 +40,8 @@ def certify(law, eps_world, *, h: float, angle: float, period: float, goal_radiu
     frame = Frame(angle)
     rlaw = frame.law(law)
     scene = rlaw.scene
-    anchor = scene.p_0 - scene.c * np.sqrt(0.5) * np.ones(2)  # the faces' lines are grid lines at 45°
+    cov = scene.covering(0)  # the first obstacle's faces are grid lines at 45°
+    anchor = cov.p_0 - cov.c * np.sqrt(0.5) * np.ones(2)
     (x0, x1), (y0, y1) = scene.bounds  # one cell more on each side: a set at the arena's corner is inside the grid
     grid = Grid.over([[x0 - h, x1 + h], [y0 - h, y1 + h]], h, anchor=anchor)
     boxes = grid.boxes()
@@ -59,7 +61,7 @@ def certify(law, eps_world, *, h: float, angle: float, period: float, goal_radiu
     stats = {**stats, "nodes": int(len(ab.safe)), "edges": int(len(ab.succ)), "cells": int(grid.n),
              "horizon_frames": float(horizon), "beyond_horizon": int((certified_cells(ab, W) & view & ~cert).sum()),
              "lost_frames": lost.describe()}
-    return Certificate(frame, grid, ab, W, cert, stats, arrival, no_start)
+    return Certificate(frame, grid, ab, W, cert, stats, arrival, no_start, law.scene)
 
 
 def certified_starts(cert: Certificate, starts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -79,5 +81,9 @@ def certified_starts(cert: Certificate, starts: np.ndarray) -> tuple[np.ndarray,
     arrival = np.full(len(starts), -np.inf)
     np.maximum.at(arrival, rows, cert.arrival[cells])
     no_start = ~over & (np.bincount(rows, minlength=len(starts)) == 0)
+    world = C.reshape(-1, 2)  # a start cell wholly in one closed diamond holds no start either
+    for cov in cert.scene.coverings:  # (grid cells straddling a diamond not aligned with the grid meet it outside)
+        a, b = cov.to_frame(world)
+        no_start |= (np.abs(a) + np.abs(b) <= cov.c).reshape(-1, 4).all(axis=1)
     arrival[over | no_start] = np.inf
     return ok & ~no_start, arrival, no_start

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pipeline.bracket.loop import COLLIDED, LEFT, REACHED, RUNNING, FrameLoop
+from pipeline.sim.disturbances import frame_b
 
 ADVERSARIES = ("fixed", "mode_aware", "receding")
 
@@ -37,10 +38,11 @@ def directions(n: int) -> np.ndarray:
 
 
 def fixed_error(loop: FrameLoop, st: dict, eps: np.ndarray) -> np.ndarray:
-    """§3.5's adversary: `-ε sign(b(p)) e_b` (ties `b = 0`: `-ε e_b`, as :class:`pipeline.sim.Adversarial`)."""
-    _, b = loop.scene.to_frame(st["p"])
+    """§3.5's adversary: `-ε sign(b(p)) e_b` (ties `b = 0`: `-ε e_b`, as :class:`pipeline.sim.Adversarial`), in the
+    frame of the obstacle whose centre is nearest (several obstacles, as the simulator's disturbances)."""
+    b, e_b = frame_b(st["p"], loop.scene)
     sign = np.where(b >= 0, 1.0, -1.0)
-    return -(eps * sign)[:, None] * loop.scene.e_b[None]
+    return -(eps * sign)[:, None] * e_b
 
 
 def mode_aware_error(loop: FrameLoop, st: dict, eps: np.ndarray, dirs: np.ndarray,

@@ -12,12 +12,17 @@ from pipeline.control import diamond_vertices
 
 
 def _scene(ax, scene):
-    ax.add_patch(Polygon(diamond_vertices(scene.covering(0)), closed=True, fill=False, ec="k", lw=0.8))
-    ax.add_patch(Circle(scene.p_0, scene.obstacle_radius, color="0.3"))
-    (x0, _), _ = scene.bounds
-    ax.plot([x0, scene.p_0[0] - 2 * scene.obstacle_radius], [scene.p_0[1]] * 2, "m--", lw=1.0, label="K")
-    ax.plot(*scene.p_T, "k*", ms=9)
     (x0, x1), (y0, y1) = scene.bounds
+    for i, cov in enumerate(scene.coverings):  # each obstacle, its diamond and K (its axis behind it, to the arena)
+        ax.add_patch(Polygon(diamond_vertices(cov), closed=True, fill=False, ec="k", lw=0.8))
+        ax.add_patch(Circle(cov.p_0, cov.obstacle_radius, color="0.3"))
+        back = -cov.e_a
+        steps = [(lim - p) / d for p, d, lims in zip(cov.p_0, back, ((x0, x1), (y0, y1))) if abs(d) > 1e-12
+                 for lim in lims]
+        reach = min(t for t in steps if t > 0)
+        ends = np.array([cov.p_0 + 2 * cov.obstacle_radius * back, cov.p_0 + reach * back])
+        ax.plot(ends[:, 0], ends[:, 1], "m--", lw=1.0, label="K" if i == 0 else None)
+    ax.plot(*scene.p_T, "k*", ms=9)
     ax.set_xlim(x0, x1), ax.set_ylim(y0, y1), ax.set_aspect("equal")
 
 

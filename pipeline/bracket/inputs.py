@@ -76,9 +76,10 @@ def _arc_support(centre, half, radius) -> np.ndarray:
     return radius * best
 
 
-def hybrid_support(law: HybridController, sub: np.ndarray, q: int, period: float) -> np.ndarray:
-    """`(N, S, J)` support of the hybrid law's held input in mode `q` per sub-box (module docstring)."""
-    cov = law.scene.covering(0)
+def hybrid_support(law: HybridController, sub: np.ndarray, q: int, period: float, obstacle: int = 0) -> np.ndarray:
+    """`(N, S, J)` support of the hybrid law's held input in mode `q` of the active obstacle `obstacle` per sub-box
+    (module docstring; with several obstacles the flow map is the active obstacle's own, SPEC §3.6)."""
+    cov = law.scene.covering(obstacle)
     k, u_max = law.k, law.u_max
     (u, v, du, dv) = wedge_ranges(sub, cov, q)
     (D_lo, D_hi), mu, nu = sq_dist_range(u, v)
@@ -183,9 +184,32 @@ def _a_range(sub, cov):
 def radial_support(law, sub: np.ndarray) -> np.ndarray:
     """`(N, S, J)` support of the smooth law's or the CBF filter's held input per sub-box: the attraction (box)
     plus a radial term `ρ e(α)` (a sector), saturated; inside the margin disc (or at the centre) the radial
-    push-out."""
-    cov = law.scene.covering(0)
-    k, u_max, R = law.k, law.u_max, 2.0 * cov.obstacle_radius
+    push-out. Several obstacles: :func:`_smooth_several`, :func:`_cbf_several`."""
+    covs = law.scene.coverings
+    if len(covs) > 1:
+        return (_smooth_several if isinstance(law, SmoothController) else _cbf_several)(law, sub, covs)
+    t = _radial_terms(law, sub, covs[0])
+    X = minkowski(t["A"], sector_points(t["r_lo"], np.minimum(t["r_hi"], BIG), t["centre"], t["half"]))
+    rays = t["r_hi"] >= BIG
+    h = saturated_support(X, law.u_max, rays)
+    h = np.where(t["flow"][..., None], h, -np.inf)
+    return _pushed(law, h, [(t["push"], t["centre"], t["half"])])
+
+
+def _pushed(law, h, arcs):
+    """`h` with the radial push-outs at `push_speed`: `arcs` `(rows, centre, half)` per obstacle that may push."""
+    speed = law.push_speed if law.u_max is None else min(law.push_speed, law.u_max)
+    for push, centre, half in arcs:
+        if push.any():
+            h = np.maximum(h, np.where(push[..., None], _arc_support(centre, half, speed), -np.inf))
+    return h
+
+
+def _radial_terms(law, sub: np.ndarray, cov) -> dict:
+    """One obstacle's part of :func:`radial_support`: the attraction's corners `A`, the radial term's interval
+    `r_lo, r_hi` and arc `centre, half`, where the flow map's formula applies (`flow`) and where it may push out
+    (`push`), and the distance range `d_lo, d_hi` to the centre."""
+    k, R = law.k, 2.0 * cov.obstacle_radius
     d_lo, d_hi = dist_range(sub, cov.p_0)
     centre, half = arc_range(sub, cov.p_0)
     A = attraction_corners(sub, k, cov.p_T)
@@ -214,13 +238,68 @@ def radial_support(law, sub: np.ndarray) -> np.ndarray:
                            axis=-2) - cov.p_T)
         flow = d_hi > 0
         push = d_lo <= 0
-    X = minkowski(A, sector_points(r_lo, np.minimum(r_hi, BIG), centre, half))
-    rays = r_hi >= BIG
-    h = saturated_support(X, u_max, rays)
-    h = np.where(flow[..., None], h, -np.inf)
-    if push.any():
-        speed = law.push_speed if u_max is None else min(law.push_speed, u_max)
-        h = np.maximum(h, np.where(push[..., None], _arc_support(centre, half, speed), -np.inf))
+    return {"A": A, "r_lo": r_lo, "r_hi": r_hi, "centre": centre, "half": half, "flow": flow, "push": push,
+            "d_lo": d_lo, "d_hi": d_hi, "R": R}
+
+
+def _ball(law, shape) -> np.ndarray:
+    """The support of every input the law can hold (`|u| <= u_max`; without a limit, unbounded: unsafe)."""
+    return np.full((*shape, len(DIRS)), BIG if law.u_max is None else float(law.u_max))
+
+
+def _nearest_candidates(terms) -> list[np.ndarray]:
+    """Per obstacle, the sub-boxes where its centre may be the nearest (the push-out's direction, `radial`)."""
+    far = np.minimum.reduce([t["d_hi"] for t in terms])
+    return [t["d_lo"] <= far for t in terms]
+
+
+def _smooth_several(law, sub: np.ndarray, covs) -> np.ndarray:
+    """The smooth law over several obstacles: the attraction plus the sum of each obstacle's radial term, the
+    sectors of the (at most two) obstacles whose barrier may act on a sub-box added as point sets (more than two:
+    every input of the speed limit); the push-out from any obstacle whose centre may be the nearest."""
+    terms = [_radial_terms(law, sub, cov) for cov in covs]
+    r_lo, r_hi, centre, half = (np.stack([t[key] for t in terms], -1) for key in ("r_lo", "r_hi", "centre", "half"))
+    active = r_hi > 0
+    order = np.argsort(~active, axis=-1, kind="stable")[..., :2]  # the first two acting obstacles
+    X, rays = terms[0]["A"], np.zeros(sub.shape[:-1], bool)
+    for k in range(2):
+        idx = order[..., k:k + 1]
+        on = np.take_along_axis(active, idx, -1)[..., 0]
+        lo, hi = (np.where(on, np.take_along_axis(a, idx, -1)[..., 0], 0.0) for a in (r_lo, r_hi))
+        c, w = (np.take_along_axis(a, idx, -1)[..., 0] for a in (centre, half))
+        X = minkowski(X, sector_points(lo, np.minimum(hi, BIG), c, w))
+        rays |= hi >= BIG
+    h = saturated_support(X, law.u_max, rays)
+    h = np.where(np.logical_and.reduce([t["flow"] for t in terms])[..., None], h, -np.inf)
+    h = np.where((active.sum(-1) > 2)[..., None], _ball(law, sub.shape[:-1]), h)
+    near = _nearest_candidates(terms)
+    push = np.logical_or.reduce([t["push"] for t in terms])
+    return _pushed(law, h, [(push & n, t["centre"], t["half"]) for t, n in zip(terms, near)])
+
+
+def _cbf_several(law, sub: np.ndarray, covs) -> np.ndarray:
+    """The CBF filter over several obstacles (the exact QP): on a sub-box, the one-constraint closed form of the
+    obstacle with the nearest margin disc, where every other constraint holds with slack for every input that
+    form can give (`α h_j >= 2 |m - c_j| |u|` bounded with intervals: then it is the QP's solution, the optimum of a
+    relaxation that is feasible); elsewhere every input of the speed limit."""
+    terms = [_radial_terms(law, sub, cov) for cov in covs]
+    best = np.argmin(np.stack([t["d_lo"] - t["R"] for t in terms], -1), axis=-1)
+    h = _ball(law, sub.shape[:-1])
+    for i, t in enumerate(terms):
+        rows = best == i
+        if not rows.any():
+            continue
+        X = minkowski(t["A"], sector_points(t["r_lo"], np.minimum(t["r_hi"], BIG), t["centre"], t["half"]))
+        rays = t["r_hi"] >= BIG
+        norm = np.hypot(X[..., 0], X[..., 1]).max(-1)
+        ok = rows & ~rays & np.isfinite(norm)
+        for j, o in enumerate(terms):
+            if j != i:
+                ok &= (o["d_lo"] > o["R"]) & (law.alpha * (o["d_lo"] ** 2 - o["R"] ** 2) >= 2.0 * o["d_hi"] * norm)
+        hi = saturated_support(X, law.u_max, rays)
+        hi = np.where(t["flow"][..., None], hi, -np.inf)
+        hi = _pushed(law, hi, [(t["push"], t["centre"], t["half"])])
+        h = np.where(ok[..., None], hi, h)
     return h
 
 
@@ -247,13 +326,15 @@ def _mul_hi(a, b):
     return np.maximum.reduce([a[0] * b[0], a[0] * b[1], a[1] * b[0], a[1] * b[1]])
 
 
-def support(law, boxes: np.ndarray, q: int, period: float, n_split: int = 4, chunk: int = 4096) -> np.ndarray:
+def support(law, boxes: np.ndarray, q: int, period: float, n_split: int = 4, chunk: int = 4096,
+            obstacle: int = 0) -> np.ndarray:
     """`(N, J)` support values of `U(M, q)` for perceived boxes `M` `(N, 4)` (`x0, x1, y0, y1`): the hull over
-    `n_split x n_split` sub-boxes. `-inf` rows: no velocity (mode `q` cannot flow there: never for these laws)."""
+    `n_split x n_split` sub-boxes (the hybrid law: in mode `q` of the active obstacle `obstacle`). `-inf` rows: no
+    velocity (mode `q` cannot flow there: never for these laws)."""
     kind = law_kind(law)
     out = np.empty((len(boxes), len(DIRS)))
     for s in range(0, len(boxes), chunk):
         sub = split(boxes[s:s + chunk], n_split)
-        h = hybrid_support(law, sub, q, period) if kind == "hybrid" else radial_support(law, sub)
+        h = hybrid_support(law, sub, q, period, obstacle) if kind == "hybrid" else radial_support(law, sub)
         out[s:s + chunk] = h.max(axis=1)
     return out

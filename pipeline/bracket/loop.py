@@ -1,6 +1,6 @@
 """The sampled closed loop of SPEC §3.3 frame by frame, with the error signal chosen per frame (the falsifier's plant).
 
-Single integrator, one obstacle. The loop is the simulator's own (:class:`pipeline.sim.SampledLoop` stepped by
+Single integrator, one obstacle or several (SPEC §3.6's fields). The loop is the simulator's own (:class:`pipeline.sim.SampledLoop` stepped by
 the one frame engine :class:`pipeline.hybrid.sampled.FrameRun`), with the falsifier's error signal as its
 disturbance (:class:`pipeline.sim.disturbances.Played`: `m_k = p_k + e_k`) and one step of `dt = T_s` per frame,
 which is exact for the held velocity: the vehicle moves along the straight segment `p_k -> p_k + T_s u_k`.
@@ -42,17 +42,28 @@ def segment_distance(p0: np.ndarray, p1: np.ndarray, c: np.ndarray) -> np.ndarra
     return np.hypot(x[:, 0] - c[0], x[:, 1] - c[1])
 
 
+def obstacles(scene) -> tuple[np.ndarray, np.ndarray]:
+    """The obstacles' centres `(M, 2)` and radii `(M,)`."""
+    return (np.array([cov.p_0 for cov in scene.coverings], float),
+            np.array([cov.obstacle_radius for cov in scene.coverings], float))
+
+
+def clearance(p: np.ndarray, centres: np.ndarray, radii: np.ndarray) -> np.ndarray:
+    """Distances of the points `p` `(N, 2)` to the nearest obstacle's edge (negative inside a disc)."""
+    return np.min([np.hypot(*(p - c).T) - r for c, r in zip(centres, radii)], axis=0)
+
+
 class Segments(Monitor):
-    """The falsifier's exact checks on each step's straight segment: a collision where it meets the open obstacle
+    """The falsifier's exact checks on each step's straight segment: a collision where it meets an open obstacle
     disc (whatever else), an arrival where it meets the success disc, leaving the view where it ends outside the
-    arena. `clear`: the last segments' distances to the obstacle's edge."""
+    arena. `clear`: the last segments' distances to the nearest obstacle's edge."""
 
     codes = ("target", "collision", "left_view")
     stops = (True, True, True)
 
     def __init__(self, scene, delta: float):
-        self.p0, self.r, self.pT, self.delta = np.asarray(scene.p_0, float), float(scene.obstacle_radius), \
-            scene.p_T, float(delta)
+        self.centres, self.radii = obstacles(scene)
+        self.pT, self.delta = scene.p_T, float(delta)
         (self.x0, self.x1), (self.y0, self.y1) = scene.bounds
         self.prev = self.clear = None
 
@@ -62,7 +73,7 @@ class Segments(Monitor):
 
     def step(self, k, t, c, active):
         p, p1 = self.prev, c
-        self.clear = segment_distance(p, p1, self.p0) - self.r
+        self.clear = np.min([segment_distance(p, p1, c) - r for c, r in zip(self.centres, self.radii)], axis=0)
         arrived = segment_distance(p, p1, self.pT) <= self.delta
         left = (p1[:, 0] < self.x0) | (p1[:, 0] > self.x1) | (p1[:, 1] < self.y0) | (p1[:, 1] > self.y1)
         codes = np.zeros(len(c), dtype=np.int8)
@@ -83,14 +94,12 @@ class FrameLoop:
 
     def __init__(self, scene, controller, *, period: float = 0.05, horizon: float = 30.0, delta: float = 1.0,
                  stall_speed: float = 0.25, stall_time: float = 5.0):
-        if scene.n_obstacles != 1:
-            raise ValueError("the bracket covers one obstacle (SPEC §5.5's scope)")
         self.scene, self.controller = scene, controller
         self.period, self.horizon, self.delta = float(period), float(horizon), float(delta)
         self.n_frames = int(round(horizon / period))
         self.stall_frames = max(1, int(round(stall_time / period)))
         self.stall_dist = stall_speed * stall_time
-        self.p0, self.r = np.asarray(scene.p_0, float), float(scene.obstacle_radius)
+        self.centres, self.radii = obstacles(scene)
         self.error = Played()
         self.system = SampledLoop(scene, controller, SingleIntegrator(), self.error, dt=self.period, every=1)
         self.monitor = Segments(scene, delta)
@@ -118,7 +127,7 @@ class FrameLoop:
         hist = np.repeat(p0[None], self.stall_frames + 1, axis=0)
         st = {"p": p0, "m": x.m, "xd": {k: x.d[k] for k in self.controller.logic}, "frame": 0,
               "outcome": np.zeros(n, np.int8), "t_end": np.full(n, np.nan),
-              "clearance": np.hypot(*(p0 - self.p0).T) - self.r, "hist": hist, "jumps": np.zeros(n, np.int64)}
+              "clearance": clearance(p0, self.centres, self.radii), "hist": hist, "jumps": np.zeros(n, np.int64)}
         st["outcome"][st["clearance"] < 0] = COLLIDED
         return st
 

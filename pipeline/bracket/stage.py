@@ -30,7 +30,7 @@ from pipeline import lineage, tracking
 from pipeline.bracket.bounds import CellTable, Finest, Uniform
 from pipeline.bracket.certify_loop import certified_starts, certify
 from pipeline.bracket.falsifier import Search, falsify
-from pipeline.bracket.loop import OUTCOMES, REACHED, RUNNING, FrameLoop
+from pipeline.bracket.loop import OUTCOMES, REACHED, RUNNING, FrameLoop, clearance, obstacles
 from pipeline.bracket.lost import LostFrames
 from pipeline.config import build
 from pipeline.control import in_diamond
@@ -45,8 +45,9 @@ def objects(cfg: DictConfig):
     frames the proof covers}), built and checked before any work."""
     parts = loop_parts(cfg)  # the one builder of the loop (pipeline.sim.composed): the single integrator here
     scene, sim, camera = parts.scene, parts.sim, parts.camera
-    if scene.n_obstacles != 1 or scene.barrier.kind != "squared":
-        raise ConfigError("scene", "the bracket covers one obstacle with the squared barrier (SPEC §5.5's scope)")
+    if scene.barrier.kind != "squared":
+        raise ConfigError("scene.barrier.kind", "the bracket's enclosures model the squared barrier (SPEC §5.5's "
+                                                f"scope), got {scene.barrier.kind!r}")
     bs = build(cfg.bracket, "bracket")
     laws = {name: parts.law(cfg.controller if name == "hybrid" else cfg.controllers[name],
                             "controller" if name == "hybrid" else f"controllers.{name}") for name in bs.controllers}
@@ -115,6 +116,9 @@ def camera_map_folder(cfg: DictConfig, bs, scene) -> Path | None:
     """The folder of `bracket.camera_map` (None: not set), checked: a position map rendering the bracket's scene."""
     if bs.camera_map is None:
         return None
+    if scene.n_obstacles != 1:
+        raise ConfigError("bracket.camera_map", f"the camera falsifier renders one obstacle; scene {scene.name!r} has "
+                                                f"{scene.n_obstacles}: null here")
     try:
         folder = lineage.resolve_map(bs.camera_map, cfg.paths.models_dir, field="bracket.camera_map",
                                      overrides=lineage.debug_overrides(cfg))
@@ -142,11 +146,12 @@ def check(cfg: DictConfig) -> None:
 
 
 def start_cells(scene, side: float) -> np.ndarray:
-    """Square start cells of side `side` with edges at `p_0 ± side/2 + k side` (a row of centres on `K`, the axis
-    behind the obstacle), clipped to the arena."""
+    """Square start cells of side `side` with edges at `p_0 ± side/2 + k side` (`p_0` the first obstacle's centre: a
+    row of centres on `K`, the axis behind it), clipped to the arena."""
     (x0, x1), (y0, y1) = scene.bounds
     edges = []
-    for lo, hi, c in ((x0, x1, scene.p_0[0]), (y0, y1, scene.p_0[1])):
+    p_0 = scene.covering(0).p_0
+    for lo, hi, c in ((x0, x1, p_0[0]), (y0, y1, p_0[1])):
         k0 = int(np.floor((lo - c - side / 2) / side))
         e = c - side / 2 + side * np.arange(k0, k0 + int((hi - lo) / side) + 3)
         e = np.unique(np.clip(e, lo, hi))
@@ -158,15 +163,26 @@ def start_cells(scene, side: float) -> np.ndarray:
 
 
 def falsifier_starts(scene, starts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per start cell the falsifier's start: the centre, or where the simulator refuses it (inside the closed
-    diamond, SPEC §3.6) the cell's corner farthest out of it; and whether that start is one the simulator accepts
-    (outside the diamond and the obstacle disc)."""
+    """Per start cell the falsifier's start: the centre, or where the simulator refuses it (inside a closed
+    diamond, SPEC §3.6) the cell's corner farthest out of the diamond (several obstacles: the point of a 5 x 5 grid
+    over the cell farthest out of every diamond); and whether that start is one the simulator accepts (outside every
+    diamond and obstacle disc)."""
     C = np.stack([starts[:, [0, 2]], starts[:, [1, 2]], starts[:, [1, 3]], starts[:, [0, 3]]], axis=1)
     centres = C.mean(axis=1)
-    a, b = scene.to_frame(C.reshape(-1, 2))
-    far = C[np.arange(len(C)), np.argmax((np.abs(a) + np.abs(b)).reshape(-1, 4), axis=1)]
+    if scene.n_obstacles == 1:
+        a, b = scene.to_frame(C.reshape(-1, 2))
+        far = C[np.arange(len(C)), np.argmax((np.abs(a) + np.abs(b)).reshape(-1, 4), axis=1)]
+    else:
+        t = np.linspace(0.0, 1.0, 5)
+        tx, ty = (g.ravel() for g in np.meshgrid(t, t, indexing="ij"))
+        P = np.stack([starts[:, :1] + tx * (starts[:, 1:2] - starts[:, :1]),
+                      starts[:, 2:3] + ty * (starts[:, 3:4] - starts[:, 2:3])], axis=-1)  # (N, 25, 2)
+        out = np.min([np.abs(a) + np.abs(b) - cov.c for cov in scene.coverings
+                      for a, b in [cov.to_frame(P.reshape(-1, 2))]], axis=0).reshape(len(P), -1)
+        far = P[np.arange(len(P)), np.argmax(out, axis=1)]
     p0 = np.where(in_diamond(scene, centres)[:, None], far, centres)
-    ok = ~in_diamond(scene, p0) & (np.hypot(*(p0 - scene.p_0).T) >= scene.obstacle_radius)
+    centres_, radii = obstacles(scene)
+    ok = ~in_diamond(scene, p0) & (clearance(p0, centres_, radii) >= 0)
     return p0, ok
 
 
@@ -258,16 +274,13 @@ def camera_rows(loop: FrameLoop, pmap, bs, centres: np.ndarray, inside: np.ndarr
 def table(df: pd.DataFrame, scene, eps_list, with_map: bool = False) -> pd.DataFrame:
     """Per controller, over the start cells holding a start the simulator accepts (`start`; the others, inside the
     diamond, are counted apart): certified share at each ε (within the horizon), falsified shares, the share still
-    undecided at the largest ε (neither certified at it nor falsified up to it), behind the
-    obstacle (frame coordinate `a < -c`, `|b| < 15`), the median `ε_hi` on `K` (the row of cells centred on the axis
-    behind); the certified arrival bound beside the nominal run's arrival (seconds, medians over certified cells)
+    undecided at the largest ε (neither certified at it nor falsified up to it), behind an
+    obstacle (its frame coordinate `a < -c`, `|b| < 15`), the median `ε_hi` on `K` (the cells the axis behind an
+    obstacle passes through); the certified arrival bound beside the nominal run's arrival (seconds, medians over certified cells)
     and the certified cells whose nominal run arrives later than the bound (a soundness bug); with a `kappa_hi`
     column, the share falsified through the camera and the median `κ_hi` on `K`; with both, the map-certified cells
     whose clean camera loop failed (a soundness bug of the chain: map bound, certificate)."""
-    cx, cy = (df.x0 + df.x1) / 2, (df.y0 + df.y1) / 2
-    a, b = scene.to_frame(np.stack([cx, cy], 1))
-    behind = (a < -scene.c) & (np.abs(b) < 15)
-    on_K = (a < -scene.c) & (df.y0 <= scene.p_0[1]) & (scene.p_0[1] < df.y1)
+    behind, on_K = behind_obstacles(df, scene)
     start = df["start"].to_numpy(bool) if "start" in df else np.ones(len(df), bool)
     out = []
     for name, whole in df.groupby("controller", sort=False):
@@ -302,6 +315,22 @@ def table(df: pd.DataFrame, scene, eps_list, with_map: bool = False) -> pd.DataF
             row["soundness: map-certified, κ_hi = 0"] = int((g.certified_map & (g.kappa_hi == 0)).sum())
         out.append(row)
     return pd.DataFrame(out)
+
+
+def behind_obstacles(df: pd.DataFrame, scene) -> tuple[np.ndarray, np.ndarray]:
+    """Start cells behind an obstacle (its frame's `a < -c`, `|b| < 15`) and on `K` (also crossed by its axis
+    `b = 0`), over the obstacles."""
+    cells = df[["x0", "x1", "y0", "y1"]].to_numpy(float)
+    centre = np.stack([(cells[:, 0] + cells[:, 1]) / 2, (cells[:, 2] + cells[:, 3]) / 2], 1)
+    C = np.stack([cells[:, [0, 2]], cells[:, [1, 2]], cells[:, [1, 3]], cells[:, [0, 3]]], axis=1).reshape(-1, 2)
+    behind, on_K = np.zeros(len(df), bool), np.zeros(len(df), bool)
+    for cov in scene.coverings:
+        a, b = cov.to_frame(centre)
+        back = (a < -cov.c) & (np.abs(b) < 15)
+        bc = cov.to_frame(C)[1].reshape(-1, 4)
+        behind |= back
+        on_K |= back & (bc.min(axis=1) <= 0) & (bc.max(axis=1) > 0)
+    return behind, on_K
 
 
 CODE = ("bracket", "control", "sim", "plants.py")  # the code the bracket's numbers depend on (its id)

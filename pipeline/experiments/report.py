@@ -162,7 +162,7 @@ OTHER_FILES = [
                            "behind the obstacle): its certified ε̄ against c - r, Theorem 1's hypothesis, the sampled "
                            "and attacked errors beside it (copied from `outputs/certified/<map>-<id>/`; docs/certify.md)"),
     ("fig_certified_*.png", "the same certified error map drawn beside the sampled one (docs/certify.md)"),
-    ("tab_bracket_*.md", "the closed loop's bracket for one tuning: certified ε_lo and falsified ε_hi per controller "
+    ("tab_bracket_*.md", "the closed loop's bracket for one tuning or field (make multi): certified ε_lo and falsified ε_hi per controller "
                          "(copied from `outputs/bracket/bracket-<id>/`; docs/bracket.md)"),
     ("fig_bracket_*.png", "the same bracket drawn over the start cells (docs/bracket.md)"),
     ("index/*.json", "an experiment's index entry: the record this page is written from"),

@@ -7,7 +7,7 @@ import numpy as np
 from pipeline.schema import NonNegative, Pair, checked
 
 
-def _frame_b(p: np.ndarray, scene) -> tuple[np.ndarray, np.ndarray]:
+def frame_b(p: np.ndarray, scene) -> tuple[np.ndarray, np.ndarray]:
     """`(b, e_b)`: each point's coordinate `b` in the frame of its nearest obstacle, and that frame's `e_b`
     (SPEC §3.6: the disturbances use the frame of the obstacle nearest to the true state)."""
     if scene.n_obstacles == 1:
@@ -63,7 +63,7 @@ class Alternating(Disturbance):
         sign = 1.0 if frame % 2 == 0 else -1.0
         if scene.n_obstacles == 1:
             return np.broadcast_to(sign * self.eps * scene.e_b, p.shape).copy()
-        return sign * self.eps * _frame_b(p, scene)[1]
+        return sign * self.eps * frame_b(p, scene)[1]
 
 
 @checked("disturbance")
@@ -76,7 +76,7 @@ class Adversarial(Disturbance):
         self.eps = float(eps)
 
     def __call__(self, p, frame, rng, scene):
-        b, e_b = _frame_b(p, scene)
+        b, e_b = frame_b(p, scene)
         sign = np.where(b >= 0, 1.0, -1.0)
         return -self.eps * sign[:, None] * e_b
 
