@@ -188,9 +188,9 @@ def test_the_nodes_of_an_obstacle_that_cannot_be_active_are_unsafe_and_unreached
 
 
 def test_the_camera_falsifier_is_refused_on_several_obstacles():
+    from pipeline.bracket.stage import objects
     from pipeline.config import compose
     from pipeline.errors import ConfigError
-    from pipeline.bracket.stage import objects
 
     with pytest.raises(ConfigError, match="bracket.camera_map"):
         objects(compose("bracket", ["tuning=two_in_row", "bracket.camera_map=some_map"]))
