@@ -12,7 +12,6 @@ A smoke run (`debug=tiny`) writes its figures, index and lock to `outputs/debug/
 from __future__ import annotations
 
 import json
-import shutil
 import sys
 import time
 from dataclasses import asdict, dataclass, field
@@ -22,29 +21,24 @@ from typing import Annotated
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from pipeline import tracking
-from pipeline.bracket.stage import bracket_id
-from pipeline.bracket.stage import objects as bracket_objects
+from pipeline import paper_stages, tracking
 from pipeline.cli import CONF_DIR, stage_main
-from pipeline.config import build, compose, settings
+from pipeline.config import compose, settings
 from pipeline.errors import ConfigError, PipelineError
 from pipeline.experiments import checks as experiment_checks  # not `inputs_read` here: stage_main reads it
 from pipeline.experiments.report import write_index
-from pipeline.identity import certify_id, map_identity
+from pipeline.identity import map_identity
 from pipeline.jobs import Job, run_jobs
-from pipeline.learned.evaluate import inputs as learned_inputs
-from pipeline.learned.evaluate import learned_id
-from pipeline.learned.imitate import identity as imitation_id
 from pipeline.lineage import (
     dataset_identity,
     debug_overrides,
     expected_errormap_id,
     map_recipe,
-    ppo_identity,
     train_dataset_id,
     write_lock,
 )
 from pipeline.paper_profile import Runner
+from pipeline.paper_stages import up_to_date
 from pipeline.schema import NonEmpty, Option, Pattern, PositiveInt, checked
 
 
@@ -150,26 +144,13 @@ def run_stage(stage: str, argv: list[str], timings: dict, stop: bool, *, tag: st
     return all(d.rc == 0 for d in done)
 
 
-def up_to_date(stage: str, expected) -> dict[str, Path] | None:
-    """`expected()` (name -> folder) when every folder is built and matches its manifest: the stage would do
-    nothing, so it is not started; None (run it: it builds, or says in one line what is wrong) otherwise."""
-    try:
-        folders = expected()
-        intact = all(tracking.is_complete(f) and not tracking.verify(f, full=None) for f in folders.values())
-    except PipelineError:
-        return None
-    if not intact:
-        return None
-    print(f"\n[paper] === {stage}: up to date ({', '.join(f.name for f in folders.values())}); not started",
-          flush=True)
-    return folders
-
-
 def experiments_stamp(argv: list[str], lock: dict) -> str:
-    """What the experiments stage's outputs follow from: its command line (inputs pinned by id), the inputs'
-    ids, every module of the package and every config file."""
+    """What the experiments stage's outputs follow from: its command line (inputs pinned by id), the inputs' ids
+    (datasets, maps, error maps: the experiments read nothing else of the lock), every module of the package and
+    every config file."""
     conf = sorted(p for p in CONF_DIR.rglob("*.yaml"))
-    return tracking.content_id(argv, {k: {n: f.name for n, f in v.items()} for k, v in lock.items()},
+    read = ("datasets", "maps", "errormaps")
+    return tracking.content_id(argv, {k: {n: f.name for n, f in v.items()} for k, v in lock.items() if k in read},
                                tracking.code_version(*(p.name for p in Path(tracking.__file__).parent.iterdir()
                                                        if p.suffix == ".py" or (p / "__init__.py").is_file())),
                                [(str(p.relative_to(CONF_DIR)), p.read_text()) for p in conf])
@@ -239,16 +220,30 @@ def run(cfg) -> dict:
         if found is None:  # up to date: not started
             runner.stage(stage, jobs[stage]())
         lock[kind] = found or folders()
-    if cfg.get("certify"):
-        lock["certified"] = _certified(cfg, list(cfg.certify), paths, args, lock, runner)
-    if cfg.get("bracket"):
-        lock["bracket"] = _bracket(cfg, list(cfg.bracket), paths, args, lock, runner)
     map_refs = {n: f.name for n, f in lock["maps"].items()}
     em_refs = {n: f.name for n, f in lock["errormaps"].items()}
-    if cfg.experiments:
-        lock["experiments"] = _experiments(cfg, list(cfg.experiments), paths, args, map_refs, em_refs, lock, runner)
-    if cfg.get("learned"):
-        lock["learned"] = _learned(cfg, list(cfg.learned), paths, args, map_refs, runner)
+    after = {  # the stages after the maps (pipeline.paper_stages): none reads another's output but bracket <- certify
+        "certified": lambda: paper_stages.certified(cfg, list(cfg.certify), paths, args, lock, runner)
+        if cfg.get("certify") else {},
+        "imitate": lambda: paper_stages.imitations(cfg, list(cfg.learned), paths, args, map_refs, runner)
+        if cfg.get("learned") else {},
+        "experiments": lambda: _experiments(cfg, list(cfg.experiments), paths, args, map_refs, em_refs, lock, runner)
+        if cfg.experiments else {},
+        "bracket": lambda: paper_stages.bracket(cfg, list(cfg.bracket), paths, args, lock, runner)
+        if cfg.get("bracket") else {},
+        "learned": lambda: paper_stages.learned(cfg, list(cfg.learned), paths, args, map_refs, runner)
+        if cfg.get("learned") else {},
+    }
+    for batch in (("certified", "imitate", "experiments"), ("bracket", "learned")):
+        with runner.together():  # their jobs side by side in one pool (the 1-core jobs beside the experiments')
+            for key in batch:
+                if key in lock:
+                    lock[key] = after[key]()
+                else:
+                    after[key]()
+    runner.closed = True  # every job ran: the stages are called once more to read and publish what they made
+    for key in ("certified", "bracket", "experiments", "learned"):
+        lock[key] = after[key]()
     lock = {k: {n: f for n, f in v.items() if tracking.is_complete(f)} for k, v in lock.items()}
     lock_path = write_lock(Path(cfg.paths.paper_dir) / cfg.lock, lock, debug=cfg.get("debug") or "none")
     total = time.perf_counter() - t0
@@ -258,117 +253,6 @@ def run(cfg) -> dict:
     print(f"\n[paper] done in {total / 60:.1f} min ({line}); see {cfg.paths.paper_dir}/index.md; inputs pinned in "
           f"{lock_path}")
     return {"timings": timings, "total": total, "lock": lock_path, "maps": map_refs, "errormaps": em_refs}
-
-
-def _certified(cfg, names, paths, args, lock, runner) -> dict[str, Path]:
-    """The certify stage (docs/certify.md) on the maps `names` this run built (not started when what the current
-    certify config makes is there); their tables and heat maps copied into the paper folder (`tab_/fig_certified_*`)."""
-    argv = {n: [f"maps={lock['maps'][n].name}", *paths, *args["certify"]] for n in names}
-
-    def folders():
-        out = {}
-        for n, a in argv.items():
-            c = compose("certify", a)
-            s = tracking.to_plain({k: c[k] for k in c.keys() if k not in ("paths", "hydra")})
-            m = tracking.read_manifest(lock["maps"][n])
-            out[n] = Path(cfg.paths.certified_dir) / f"{m['name']}-{certify_id(s, m['id'], m['scene'], m['arena'])}"
-        return out
-
-    found = up_to_date("certify", folders)
-    if found is None:
-        runner.stage("certify", [Job("certify", argv[n], f"certify {n}") for n in names])
-    for n, folder in (found := found or folders()).items():  # Theorem 1's hypothesis for the map
-        publish(folder, Path(cfg.paths.paper_dir), {"table.md": f"tab_certified_{n}.md", "certified_error_map.png": f"fig_certified_{n}.png"})
-    return found
-
-
-def _bracket(cfg, tunings, paths, args, lock, runner) -> dict[str, Path]:
-    """The closed loop's bracket (docs/bracket.md) per tuning of `tunings` (conf/tuning/), with uniform ε and with the
-    certified error map of `bracket_map` (pinned by id), unless up to date; `tab_/fig_bracket_<tuning>` copied."""
-    paths = [p for p in paths if not p.startswith("debug=")]  # the bracket's small sizes are args.bracket
-    pin = [f"bracket.error_map={lock['certified'][cfg.bracket_map].name}"] if cfg.get("bracket_map") else []
-    argv = {t: [f"tuning={t}", *pin, *paths, *args["bracket"]] for t in tunings}
-
-    def folders() -> dict[str, Path]:
-        out = {}
-        for t, a in argv.items():
-            c = compose("bracket", a)
-            _, _, bs, _, _, emap, cam, _ = bracket_objects(c)
-            out[t] = Path(c.paths.bracket_dir) / f"bracket-{bracket_id(c, bs, emap, cam)[0]}"
-        return out
-
-    found = up_to_date("bracket", folders)
-    if found is None:
-        runner.stage("bracket", [Job("bracket", argv[t], f"bracket {t}") for t in tunings])
-        try:
-            found = folders()
-        except PipelineError:
-            return {}
-    for t, folder in found.items():
-        publish(folder, Path(cfg.paths.paper_dir), {"table.md": f"tab_bracket_{t}.md", "bracket.png": f"fig_bracket_{t}.png"})
-    return found
-
-
-def publish(folder: Path, paper_dir: Path, names: dict[str, str]) -> None:
-    """Copy the files `names` (source -> name in the paper folder) of a complete tracked output into the paper folder;
-    an unchanged file is not rewritten (its time says when it was made)."""
-    if not tracking.is_complete(folder):
-        return
-    paper_dir.mkdir(parents=True, exist_ok=True)
-    for src, dst in names.items():
-        same = (paper_dir / dst).is_file() and (paper_dir / dst).read_bytes() == (folder / src).read_bytes()
-        if (folder / src).is_file() and not same:
-            shutil.copyfile(folder / src, paper_dir / dst)
-
-
-def _learned(cfg, configs, paths, args, map_refs, runner) -> dict[str, Path]:
-    """`make learned`'s stages (docs/learned.md) after the experiments: the imitation of each config of `configs`
-    (conf/imitate*.yaml; its trunk pinned to the map this run built) and PPO (`ppo` among them; `args.ppo`), then
-    the comparison with every map and network pinned; each not started when what its current config makes is
-    there. The comparison's table and
-    figure are copied into the paper folder (`tab_learned.md`, `fig_learned_switching_set.png`)."""
-    paths = [p for p in paths if not p.startswith("debug=")]  # their tiny sizes are args (conf/debug/paper/)
-    ppo = "ppo" in configs
-    configs = [c for c in configs if c != "ppo"]
-    def trunk_pin(config: str) -> list[str]:
-        trunk = compose(config, [*paths, *args["imitate"]]).imitation.trunk_from
-        return [f"imitation.trunk_from={map_refs[trunk]}"] if trunk in map_refs else []
-
-    argv = {c: [*trunk_pin(c), *paths, *args["imitate"]] for c in configs}
-    composed = {c: compose(c, a) for c, a in argv.items()}
-    policies = {c: Path(k.paths.models_dir) / f"{k.name}-{imitation_id(k)}" for c, k in composed.items()}
-    jobs = [Job("imitate", ["--config-name", c, *a], f"imitate {c}", module="pipeline.learned.imitate")
-            for c, a in argv.items()]
-    if ppo:
-        k = compose("ppo", [*paths, *args["ppo"]])
-        policies["ppo"] = Path(k.paths.models_dir) / f"ppo-{ppo_identity(k)}"
-        jobs.append(Job("ppo", [*paths, *args["ppo"]], "ppo", module="pipeline.learned.ppo"))
-    if up_to_date("imitate", lambda: policies) is None:
-        runner.stage("imitate", jobs)
-    kinds = compose("learned", paths).maps
-    pins = [f"maps.{k}={map_refs[str(n)]}" for k, n in kinds.items() if str(n) in map_refs]
-    pins += [f"policies.imitation{'' if c == 'imitate' else '_clouds'}={policies[c]}" for c in configs
-             if c in ("imitate", "imitate_heavy")]
-    pins += [f"policies.ppo={policies['ppo']}"] if ppo else []
-    learned_argv = [*pins, *paths, *args["learned"]]
-
-    def comparison() -> dict[str, Path]:
-        k = compose("learned", learned_argv)
-        folders = learned_inputs(k, build(k.learned, "learned"))
-        return {"comparison": Path(k.paths.outputs_dir) / "learned" / f"learned-{learned_id(k, folders)}"}
-
-    found = up_to_date("learned", comparison)
-    if found is None:
-        runner.stage("learned", [Job("learned", learned_argv, "learned", module="pipeline.learned.evaluate")])
-        try:
-            found = comparison()
-        except PipelineError:
-            found = {}
-    out = {**{f"policy {c}": f for c, f in policies.items()}, **found}
-    if found.get("comparison") is not None:
-        publish(found["comparison"], Path(cfg.paths.paper_dir),
-                {"tab_learned.md": "tab_learned.md", "fig_switching_set.png": "fig_learned_switching_set.png"})
-    return out
 
 
 def _experiments(cfg, experiments, paths, args, map_refs, em_refs, lock, runner) -> dict[str, Path]:
@@ -383,8 +267,8 @@ def _experiments(cfg, experiments, paths, args, map_refs, em_refs, lock, runner)
     if not experiments_up_to_date(stamp, argv, experiments, lock):
         stamp.unlink(missing_ok=True)
         one = experiment_jobs(experiments, pins, paths, ["publish=true", *args["experiments"]])
-        if runner.stage("experiments", one):
-            stamp.write_text(json.dumps({"stamp": experiments_stamp(argv, lock)}) + "\n")
+        runner.stage("experiments", one,  # the stamp once every job succeeded (after the pool, when held)
+                     then=lambda: stamp.write_text(json.dumps({"stamp": experiments_stamp(argv, lock)}) + "\n"))
     out = {}
     for exp in experiments:
         entry = paper_dir / "index" / f"{exp}.json"

@@ -9,6 +9,7 @@ to start the longest jobs first) in the paper's folder.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import time
@@ -36,6 +37,8 @@ class Runner:
         self.log_dir = _log_dir(self.paper_dir)
         self.phases_file = self.log_dir / "phases.jsonl"
         self.done: list[tuple[str, Done]] = []
+        self._held: list | None = None  # the stages held for one pool (together)
+        self.closed = False  # every stage ran: a stage called again only reads and publishes
 
     def _order(self) -> dict[str, float]:
         try:
@@ -43,15 +46,44 @@ class Runner:
         except (OSError, ValueError, KeyError):
             return {}
 
-    def stage(self, stage: str, jobs: list[Job]) -> bool:
-        """Run `jobs` (`self.workers` at a time); the stage's elapsed wall goes to `timings[stage]`."""
-        self.log_dir.mkdir(parents=True, exist_ok=True)
+    def stage(self, stage: str, jobs: list[Job], then=None) -> bool:
+        """Run `jobs` (`self.workers` at a time); the stage's elapsed wall goes to `timings[stage]`; `then()` after,
+        if every job succeeded. Inside :meth:`together` the jobs are held for its pool (False: not run yet); once
+        `closed`, nothing runs (False)."""
+        if self.closed:
+            return False
+        if self._held is not None:
+            self._held.append((stage, jobs, then))
+            return False
+        return self._run([(stage, jobs, then)])
+
+    @contextlib.contextmanager
+    def together(self):
+        """The stages started inside the block run as one pool when it ends (their jobs side by side, the longest
+        first): stages none of which reads another's output. Their wall goes to `timings["a + b"]`."""
+        self._held = []
+        try:
+            yield
+            held = self._held
+        finally:
+            self._held = None
+        if held:
+            self._run(held)
+
+    def _run(self, stages) -> bool:
         t0 = time.perf_counter()
+        jobs = [j for _, js, _ in stages for j in js]
+        of = {j.label: stage for stage, js, _ in stages for j in js}
         done = run_jobs(jobs, workers=self.workers, tag=self.tag, stop=self.stop, log_dir=self.log_dir,
                         profile=self.phases_file, order=self._order())
-        self.timings[stage] = self.timings.get(stage, 0.0) + time.perf_counter() - t0
-        self.done += [(stage, d) for d in done]
-        return all(d.rc == 0 for d in done)
+        key = " + ".join(dict.fromkeys(stage for stage, _, _ in stages))
+        self.timings[key] = self.timings.get(key, 0.0) + time.perf_counter() - t0
+        self.done += [(of[d.job.label], d) for d in done]
+        ok = {stage: all(d.rc == 0 for d in done if of[d.job.label] == stage) for stage, _, _ in stages}
+        for stage, _, then in stages:
+            if then is not None and ok[stage]:
+                then()
+        return all(ok.values())
 
     def table(self) -> pd.DataFrame:
         phases = read_phases(self.phases_file)
