@@ -71,6 +71,7 @@ class Runner:
             self._run(held)
 
     def _run(self, stages) -> bool:
+        self.log_dir.mkdir(parents=True, exist_ok=True)  # the jobs append their phases there, alone or side by side
         t0 = time.perf_counter()
         jobs = [j for _, js, _ in stages for j in js]
         of = {j.label: stage for stage, js, _ in stages for j in js}

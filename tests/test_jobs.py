@@ -111,3 +111,28 @@ def test_the_profile_joins_walls_and_the_phases_each_job_recorded(child, tmp_pat
 def test_threads_per_job_never_drops_below_one(monkeypatch):
     monkeypatch.setattr(jobs_mod.os, "cpu_count", lambda: 2)
     assert [threads_per_job(w) for w in (1, 2, 3, 8)] == [2, 1, 1, 1]
+
+
+def test_stages_held_together_run_in_one_pool_and_then_follow_their_own_jobs(child, tmp_path, monkeypatch):
+    """Two stages held by `together` run side by side (each job waits for the other's marker: run one stage after
+    the other, neither finishes); the wall goes to `"a + b"`, the profile keeps each job's own stage, each stage's
+    `then` runs after the pool and only if its own jobs succeeded; once closed, a stage starts nothing."""
+    job, out = child
+    monkeypatch.setattr("pipeline.paper_profile._log_dir", lambda paper_dir: tmp_path / "logs")
+    cfg = SimpleNamespace(paths=SimpleNamespace(paper_dir=str(tmp_path / "paper")), lock="paper.lock.yaml",
+                          get=lambda key, default=None: {"workers": 2}.get(key, default))
+    timings: dict[str, float] = {}
+    runner = Runner(cfg, timings, stop=False)
+    after = []
+    with runner.together():
+        assert not runner.stage("certify", [job("a", "b")], then=lambda: after.append("certify"))
+        assert not runner.stage("experiments", [job("b", "a")], then=lambda: after.append("experiments"))
+        assert after == [] and not (out / "order.txt").exists()  # held until the block ends
+    assert after == ["certify", "experiments"] and set(timings) == {"certify + experiments"}
+    assert {s: d.job.label for s, d in runner.done} == {"certify": "job a", "experiments": "job b"}
+    with runner.together():
+        runner.stage("bracket", [job("bad", rc=3)], then=lambda: after.append("bracket"))
+        runner.stage("learned", [job("c")], then=lambda: after.append("learned"))
+    assert after[2:] == ["learned"]  # the failed stage's `then` does not run
+    runner.closed = True
+    assert not runner.stage("again", [job("d")]) and not (out / "d.threads").exists()
