@@ -223,6 +223,7 @@ def run(cfg) -> dict:
     map_refs = {n: f.name for n, f in lock["maps"].items()}
     em_refs = {n: f.name for n, f in lock["errormaps"].items()}
     after = {  # the stages after the maps (pipeline.paper_stages): none reads another's output but bracket <- certify
+        # (with bracket_map) and learned <- imitate: two pools
         "certified": lambda: paper_stages.certified(cfg, list(cfg.certify), paths, args, lock, runner)
         if cfg.get("certify") else {},
         "imitate": lambda: paper_stages.imitations(cfg, list(cfg.learned), paths, args, map_refs, runner)
@@ -234,7 +235,8 @@ def run(cfg) -> dict:
         "learned": lambda: paper_stages.learned(cfg, list(cfg.learned), paths, args, map_refs, runner)
         if cfg.get("learned") else {},
     }
-    for batch in (("certified", "imitate", "experiments"), ("bracket", "learned")):
+    first = ("certified", "imitate", "experiments") + (() if cfg.get("bracket_map") else ("bracket",))
+    for batch in (first, ("bracket", "learned") if cfg.get("bracket_map") else ("learned",)):
         with runner.together():  # their jobs side by side in one pool (the 1-core jobs beside the experiments')
             for key in batch:
                 if key in lock:

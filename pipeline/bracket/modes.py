@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.bracket.enclosures import affine_range, barrier_range, dist_range
+from pipeline.bracket.enclosures import DIRS, affine_range, barrier_range, dist_range
 from pipeline.bracket.inputs import law_kind, support
 
 
@@ -127,7 +127,7 @@ class Modes:
             if len(rows) == len(self.M):
                 out.append(support(self.law, self.M, k % 2 + 1, period, n_split, obstacle=self.obstacle(k)))
                 continue
-            U = np.zeros((len(self.M), support(self.law, self.M[:1], 1, period, 1).shape[1]))
+            U = np.zeros((len(self.M), len(DIRS)))
             if len(rows):
                 U[rows] = support(self.law, self.M[rows], k % 2 + 1, period, n_split, obstacle=self.obstacle(k))
             out.append(U)
