@@ -156,7 +156,8 @@ def experiments_stamp(argv: list[str], lock: dict) -> str:
                                [(str(p.relative_to(CONF_DIR)), p.read_text()) for p in conf])
 
 
-def experiments_up_to_date(stamp: Path, argv: list[str], experiments: list[str], lock: dict) -> bool:
+def experiments_up_to_date(stamp: Path, argv: list[str], experiments: list[str], lock: dict,
+                           said: set | None = None) -> bool:
     """The experiments stage started with the same stamp before and every figure, table and cached result it
     indexed is still there (results checked against their manifests): nothing to compute or draw."""
     try:
@@ -170,8 +171,11 @@ def experiments_up_to_date(stamp: Path, argv: list[str], experiments: list[str],
                 return False
     except (OSError, ValueError, KeyError, PipelineError):
         return False
-    print(f"\n[paper] === experiments: up to date ({len(experiments)} results, figures and tables in {paper_dir}); "
-          "not started", flush=True)
+    if said is None or "experiments" not in said:
+        print(f"\n[paper] === experiments: up to date ({len(experiments)} results, figures and tables in {paper_dir}); "
+              "not started", flush=True)
+    if said is not None:
+        said.add("experiments")
     return True
 
 
@@ -266,7 +270,7 @@ def _experiments(cfg, experiments, paths, args, map_refs, em_refs, lock, runner)
     argv = ["-m", f"experiment={','.join(experiments)}", *pins, *paths, "publish=true", *args["experiments"]]
     paper_dir = Path(cfg.paths.paper_dir)
     stamp = paper_dir / f".{Path(cfg.lock).stem}.experiments.json"  # what the last run was started with
-    if not experiments_up_to_date(stamp, argv, experiments, lock):
+    if not experiments_up_to_date(stamp, argv, experiments, lock, runner.said):
         stamp.unlink(missing_ok=True)
         one = experiment_jobs(experiments, pins, paths, ["publish=true", *args["experiments"]])
         runner.stage("experiments", one,  # the stamp once every job succeeded (after the pool, when held)

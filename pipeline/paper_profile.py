@@ -39,6 +39,7 @@ class Runner:
         self.done: list[tuple[str, Done]] = []
         self._held: list | None = None  # the stages held for one pool (together)
         self.closed = False  # every stage ran: a stage called again only reads and publishes
+        self.said: set[str] = set()  # the stages reported up to date (said once per run)
 
     def _order(self) -> dict[str, float]:
         try:
@@ -77,6 +78,7 @@ class Runner:
         of = {j.label: stage for stage, js, _ in stages for j in js}
         done = run_jobs(jobs, workers=self.workers, tag=self.tag, stop=self.stop, log_dir=self.log_dir,
                         profile=self.phases_file, order=self._order())
+        self.said.update(stage for stage, _, _ in stages)  # ran: not "up to date, not started" when called again
         key = " + ".join(dict.fromkeys(stage for stage, _, _ in stages))
         self.timings[key] = self.timings.get(key, 0.0) + time.perf_counter() - t0
         self.done += [(of[d.job.label], d) for d in done]

@@ -22,9 +22,10 @@ from pipeline.learned.imitate import identity as imitation_id
 from pipeline.lineage import ppo_identity
 
 
-def up_to_date(stage: str, expected) -> dict[str, Path] | None:
+def up_to_date(stage: str, expected, said: set | None = None) -> dict[str, Path] | None:
     """`expected()` (name -> folder) when every folder is built and matches its manifest: the stage would do
-    nothing, so it is not started; None (run it: it builds, or says in one line what is wrong) otherwise."""
+    nothing, so it is not started; None (run it: it builds, or says in one line what is wrong) otherwise. `said`:
+    the stages this run already reported (a stage called again after its pool says it once)."""
     try:
         folders = expected()
         intact = all(tracking.is_complete(f) and not tracking.verify(f, full=None) for f in folders.values())
@@ -32,8 +33,11 @@ def up_to_date(stage: str, expected) -> dict[str, Path] | None:
         return None
     if not intact:
         return None
-    print(f"\n[paper] === {stage}: up to date ({', '.join(f.name for f in folders.values())}); not started",
-          flush=True)
+    if said is None or stage not in said:
+        print(f"\n[paper] === {stage}: up to date ({', '.join(f.name for f in folders.values())}); not started",
+              flush=True)
+    if said is not None:
+        said.add(stage)
     return folders
 
 
@@ -51,7 +55,7 @@ def certified(cfg, names, paths, args, lock, runner) -> dict[str, Path]:
             out[n] = Path(cfg.paths.certified_dir) / f"{m['name']}-{certify_id(s, m['id'], m['scene'], m['arena'])}"
         return out
 
-    found = up_to_date("certify", folders)
+    found = up_to_date("certify", folders, runner.said)
     if found is None:
         runner.stage("certify", [Job("certify", argv[n], f"certify {n}") for n in names])
     for n, folder in (found := found or folders()).items():  # Theorem 1's hypothesis for the map
@@ -74,7 +78,7 @@ def bracket(cfg, tunings, paths, args, lock, runner) -> dict[str, Path]:
             out[t] = Path(c.paths.bracket_dir) / f"bracket-{bracket_id(c, bs, emap, cam)[0]}"
         return out
 
-    found = up_to_date("bracket", folders)
+    found = up_to_date("bracket", folders, runner.said)
     if found is None:
         runner.stage("bracket", [Job("bracket", argv[t], f"bracket {t}") for t in tunings])
         try:
@@ -119,7 +123,7 @@ def imitations(cfg, configs, paths, args, map_refs, runner) -> dict[str, Path]:
         k = compose("ppo", [*paths, *args["ppo"]])
         policies["ppo"] = Path(k.paths.models_dir) / f"ppo-{ppo_identity(k)}"
         jobs.append(Job("ppo", [*paths, *args["ppo"]], "ppo", module="pipeline.learned.ppo"))
-    if up_to_date("imitate", lambda: policies) is None:
+    if up_to_date("imitate", lambda: policies, runner.said) is None:
         runner.stage("imitate", jobs)
     return policies
 
@@ -142,7 +146,7 @@ def learned(cfg, configs, paths, args, map_refs, runner) -> dict[str, Path]:
         folders = learned_inputs(k, build(k.learned, "learned"))
         return {"comparison": Path(k.paths.outputs_dir) / "learned" / f"learned-{learned_id(k, folders)}"}
 
-    found = up_to_date("learned", comparison)
+    found = up_to_date("learned", comparison, runner.said)
     if found is None:
         runner.stage("learned", [Job("learned", learned_argv, "learned", module="pipeline.learned.evaluate")])
         try:

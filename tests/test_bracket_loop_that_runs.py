@@ -222,7 +222,8 @@ def test_the_default_bracket_certificate_holds_in_the_simulator():
     """`make bracket`'s own settings (conf/bracket.yaml: 1-unit cells at 45°, edges over 4 frames, the 30 s horizon),
     the hybrid law at its largest default ε: 3 random accepted points of each of 30 certified start cells, run by
     `pipeline.sim.simulate` under this file's error signals, reach the goal disc by their certified bound."""
-    from pipeline.bracket.stage import objects, start_cells
+    from pipeline.bracket.stage import objects
+    from pipeline.bracket.starts import start_cells
     from pipeline.config import compose
 
     scene, laws, bs, sim_cfg, camera, _, _, lost = objects(compose("bracket", []))

@@ -199,7 +199,8 @@ def test_the_camera_falsifier_is_refused_on_several_obstacles():
 def test_the_stage_brackets_a_field_end_to_end(tmp_path):
     """`python -m pipeline.bracket tuning=field` on tiny sizes: a row per law and start cell, the soundness columns
     0, starts behind several obstacles counted, and every falsifier start one the simulator accepts."""
-    from pipeline.bracket.stage import falsifier_starts, run, start_cells
+    from pipeline.bracket.stage import run
+    from pipeline.bracket.starts import falsifier_starts, start_cells
     from pipeline.config import compose
     from pipeline.sim.composed import loop_parts
 

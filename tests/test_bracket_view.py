@@ -75,7 +75,8 @@ def test_a_cell_meets_the_view_iff_some_of_its_interior_is_inside(angle, x, y, h
 @pytest.fixture(scope="module")
 def paper():
     """`python -m pipeline.bracket`'s objects at its defaults (the paper's tuning)."""
-    from pipeline.bracket.stage import objects, start_cells
+    from pipeline.bracket.stage import objects
+    from pipeline.bracket.starts import start_cells
     from pipeline.config import compose
 
     scene, laws, bs, sim_cfg, camera, _, _, lost = objects(compose("bracket", []))

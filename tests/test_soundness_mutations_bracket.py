@@ -88,7 +88,7 @@ def _closed_loop(setup, name: str, cert, eps: float, horizon: float, seed: int =
     `test_bracket_loop_that_runs` (fresh random directions, a constant bias, §3.5's direction, a sign flip every 7
     frames) and by the falsifier's fixed and mode-aware adversaries at `eps`. A failure: no arrival within the
     horizon, a collision, an arrival later than the certified bound, or (falsifier) leaving the view, a stall."""
-    from pipeline.bracket.stage import falsifier_starts, start_cells
+    from pipeline.bracket.starts import falsifier_starts, start_cells
 
     scene, bs, period = setup["scene"], setup["bs"], setup["period"]
     law = setup["laws"][name]

@@ -30,10 +30,10 @@ from pipeline import lineage, tracking
 from pipeline.bracket.bounds import CellTable, Finest, Uniform
 from pipeline.bracket.certify_loop import certified_starts, certify
 from pipeline.bracket.falsifier import Search, falsify
-from pipeline.bracket.loop import OUTCOMES, REACHED, RUNNING, FrameLoop, clearance, obstacles
+from pipeline.bracket.loop import OUTCOMES, REACHED, RUNNING, FrameLoop
 from pipeline.bracket.lost import LostFrames
+from pipeline.bracket.starts import behind_obstacles, falsifier_starts, start_cells
 from pipeline.config import build
-from pipeline.control import in_diamond
 from pipeline.errors import ConfigError, DatasetError
 from pipeline.experiments.report import markdown_table
 from pipeline.sim.composed import loop_parts
@@ -143,47 +143,6 @@ def camera_map_folder(cfg: DictConfig, bs, scene) -> Path | None:
 
 def check(cfg: DictConfig) -> None:
     objects(cfg)
-
-
-def start_cells(scene, side: float) -> np.ndarray:
-    """Square start cells of side `side` with edges at `p_0 ± side/2 + k side` (`p_0` the first obstacle's centre: a
-    row of centres on `K`, the axis behind it), clipped to the arena."""
-    (x0, x1), (y0, y1) = scene.bounds
-    edges = []
-    p_0 = scene.covering(0).p_0
-    for lo, hi, c in ((x0, x1, p_0[0]), (y0, y1, p_0[1])):
-        k0 = int(np.floor((lo - c - side / 2) / side))
-        e = c - side / 2 + side * np.arange(k0, k0 + int((hi - lo) / side) + 3)
-        e = np.unique(np.clip(e, lo, hi))
-        edges.append(e)
-    (ex, ey) = edges
-    X0, Y0 = np.meshgrid(ex[:-1], ey[:-1], indexing="ij")
-    X1, Y1 = np.meshgrid(ex[1:], ey[1:], indexing="ij")
-    return np.stack([X0.ravel(), X1.ravel(), Y0.ravel(), Y1.ravel()], 1)
-
-
-def falsifier_starts(scene, starts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per start cell the falsifier's start: the centre, or where the simulator refuses it (inside a closed
-    diamond, SPEC §3.6) the cell's corner farthest out of the diamond (several obstacles: the point of a 5 x 5 grid
-    over the cell farthest out of every diamond); and whether that start is one the simulator accepts (outside every
-    diamond and obstacle disc)."""
-    C = np.stack([starts[:, [0, 2]], starts[:, [1, 2]], starts[:, [1, 3]], starts[:, [0, 3]]], axis=1)
-    centres = C.mean(axis=1)
-    if scene.n_obstacles == 1:
-        a, b = scene.to_frame(C.reshape(-1, 2))
-        far = C[np.arange(len(C)), np.argmax((np.abs(a) + np.abs(b)).reshape(-1, 4), axis=1)]
-    else:
-        t = np.linspace(0.0, 1.0, 5)
-        tx, ty = (g.ravel() for g in np.meshgrid(t, t, indexing="ij"))
-        P = np.stack([starts[:, :1] + tx * (starts[:, 1:2] - starts[:, :1]),
-                      starts[:, 2:3] + ty * (starts[:, 3:4] - starts[:, 2:3])], axis=-1)  # (N, 25, 2)
-        out = np.min([np.abs(a) + np.abs(b) - cov.c for cov in scene.coverings
-                      for a, b in [cov.to_frame(P.reshape(-1, 2))]], axis=0).reshape(len(P), -1)
-        far = P[np.arange(len(P)), np.argmax(out, axis=1)]
-    p0 = np.where(in_diamond(scene, centres)[:, None], far, centres)
-    centres_, radii = obstacles(scene)
-    ok = ~in_diamond(scene, p0) & (clearance(p0, centres_, radii) >= 0)
-    return p0, ok
 
 
 def nominal_arrival(loop: FrameLoop, p0: np.ndarray) -> np.ndarray:
@@ -315,22 +274,6 @@ def table(df: pd.DataFrame, scene, eps_list, with_map: bool = False) -> pd.DataF
             row["soundness: map-certified, κ_hi = 0"] = int((g.certified_map & (g.kappa_hi == 0)).sum())
         out.append(row)
     return pd.DataFrame(out)
-
-
-def behind_obstacles(df: pd.DataFrame, scene) -> tuple[np.ndarray, np.ndarray]:
-    """Start cells behind an obstacle (its frame's `a < -c`, `|b| < 15`) and on `K` (also crossed by its axis
-    `b = 0`), over the obstacles."""
-    cells = df[["x0", "x1", "y0", "y1"]].to_numpy(float)
-    centre = np.stack([(cells[:, 0] + cells[:, 1]) / 2, (cells[:, 2] + cells[:, 3]) / 2], 1)
-    C = np.stack([cells[:, [0, 2]], cells[:, [1, 2]], cells[:, [1, 3]], cells[:, [0, 3]]], axis=1).reshape(-1, 2)
-    behind, on_K = np.zeros(len(df), bool), np.zeros(len(df), bool)
-    for cov in scene.coverings:
-        a, b = cov.to_frame(centre)
-        back = (a < -cov.c) & (np.abs(b) < 15)
-        bc = cov.to_frame(C)[1].reshape(-1, 4)
-        behind |= back
-        on_K |= back & (bc.min(axis=1) <= 0) & (bc.max(axis=1) > 0)
-    return behind, on_K
 
 
 CODE = ("bracket", "control", "sim", "plants.py")  # the code the bracket's numbers depend on (its id)
