@@ -14,6 +14,7 @@ from pipeline.bracket.certify_loop import certified_starts, certify
 from pipeline.bracket.enclosures import DIRS
 from pipeline.bracket.inputs import support
 from pipeline.bracket.loop import FrameLoop
+from pipeline.bracket.lost import LostFrames
 from pipeline.bracket.modes import Modes
 from pipeline.control import CBFController, HybridController, Scene, SmoothController, in_diamond
 from pipeline.sim import CameraSettings, SimSettings, simulate
@@ -124,11 +125,12 @@ def test_every_frame_decision_is_an_edge_of_the_abstraction():
     assert logic.initial[cells, k0].all()
 
 
-def _errors(n: int, eps: float, scene, seed: int):
+def _errors(n: int, eps: float, scene, seed: int, max_lost: int = 0):
     """A camera measurement within `eps` for `pipeline.sim.simulate`, per agent one strategy: fresh random
     directions, a constant bias, towards the other side of the nearest obstacle's axis, a bias flipping every 5
-    frames."""
+    frames; with `max_lost`, frames lost at random (NaN rows), never more than `max_lost` in a row."""
     rng = np.random.default_rng(seed)
+    streak = np.zeros(n, np.int64)
     kind = np.arange(n) % 4
     bias = rng.normal(size=(n, 2))
     bias *= eps / np.linalg.norm(bias, axis=1, keepdims=True)
@@ -144,20 +146,29 @@ def _errors(n: int, eps: float, scene, seed: int):
         b = np.einsum("ij,ij->i", p - arr["center"][near], arr["e_b"][near])
         e[k == 2] = (-eps * np.sign(b + 1e-12)[:, None] * arr["e_b"][near])[k == 2]
         e[k == 3] = (np.where((frame // 5) % 2 == 0, 1.0, -1.0) * bias[idx])[k == 3]
-        return p + e
+        out = p + e
+        if frame > 0 and max_lost > 0:
+            lose = (rng.random(len(idx)) < 0.5) & (streak[idx] < max_lost)
+            streak[idx] = np.where(lose, streak[idx] + 1, 0)
+            out[lose] = np.nan
+        return out
 
     return measure
 
 
-@pytest.mark.parametrize("law_cls", [HybridController, SmoothController, CBFController])
-def test_certified_starts_hold_in_the_simulator_among_two_obstacles(law_cls):
-    """A coarse certificate on two discs in a row at ε = 0.25 within a 12 s horizon; random points of its certified
-    start cells, run by `pipeline.sim.simulate` with errors within ε: every run reaches the goal disc within its
-    certified arrival bound, with no collision with either disc."""
+@pytest.mark.parametrize("law_cls, max_lost", [(HybridController, 0), (SmoothController, 0), (CBFController, 0),
+                                               (HybridController, 2)])
+def test_certified_starts_hold_in_the_simulator_among_two_obstacles(law_cls, max_lost):
+    """A coarse certificate on two discs in a row at ε = 0.25 within a 12 s horizon (and with up to 2 frames lost in
+    a row, held); random points of its certified start cells, run by `pipeline.sim.simulate` with errors within ε
+    (and frames lost at random, never more in a row): every run reaches the goal disc within its certified arrival
+    bound, with no collision with either disc."""
     law = law_cls(ROW)
     eps, horizon = 0.25, 12.0
     n_frames = int(round(horizon / PERIOD))
-    cert = certify(law, Uniform(eps), h=2.0, angle=45.0, period=PERIOD, goal_radius=5.0, window=12, horizon=n_frames)
+    lost = LostFrames(max_lost, False, PERIOD, max(law.u_max, law.push_speed))
+    cert = certify(law, Uniform(eps), h=2.0, angle=45.0, period=PERIOD, goal_radius=5.0, window=12, horizon=n_frames,
+                   lost=lost)
     starts = np.array([[x, x + 4, y, y + 4] for x in range(-48, 44, 4) for y in range(-28, 28, 4)], float)
     ok, bound, _ = certified_starts(cert, starts)
     assert ok.sum() >= 8, ok.sum()
@@ -167,7 +178,7 @@ def test_certified_starts_hold_in_the_simulator_among_two_obstacles(law_cls):
     keep = ~in_diamond(ROW, p0)
     p0, cells = p0[keep], cells[keep]
     res = simulate(ROW, law, p0, sim=SimSettings(horizon=horizon, delta=5.0, record_every=1000),
-                   camera=CameraSettings(period=PERIOD), measure=_errors(len(p0), eps, ROW, 5), record=False)
+                   camera=CameraSettings(period=PERIOD), measure=_errors(len(p0), eps, ROW, 5, max_lost), record=False)
     m = res.metrics
     assert m["success"].all() and not m["collision"].any(), p0[~m["success"]]
     late = m["time_to_target"] > np.maximum(bound[cells], 1) * PERIOD + 1e-9

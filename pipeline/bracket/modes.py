@@ -12,8 +12,8 @@ the hybrid law has `k = 2 i + (q - 1)`: `i` the active obstacle (SPEC §3.6's lo
   smaller `V_j^q` there (ties below `b = 0`: 1).
 
 Each test is an interval bound over the box, so the edges are a superset of what the law can do (sound). Nodes
-`(P, i, ·)` where `i` can be neither kept nor jumped to are unreachable: no input is computed for them and they are
-unsafe.
+`(P, i, ·)` where `i` can be neither kept nor jumped to (nor kept by a lost frame) are unreachable: no input is
+computed for them and they are unsafe.
 """
 
 from __future__ import annotations
@@ -114,7 +114,7 @@ class Modes:
             self.first = np.concatenate([first_modes(law, M, i) for i in range(self.n_obs)], axis=1)
             self.initial = np.concatenate([initial_modes(law, M, i) & self.nearest[:, [i]]
                                            for i in range(self.n_obs)], axis=1)
-        self.relevant = np.repeat(~self.must | self.nearest, 2, axis=1)
+        self.relevant = np.repeat(~self.must | self.nearest | self.keep_mode, 2, axis=1)  # a lost frame keeps i
 
     def obstacle(self, k: int) -> int:
         return k // 2 if self.hybrid else 0
