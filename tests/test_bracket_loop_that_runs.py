@@ -55,12 +55,13 @@ def test_the_arrival_bound_covers_the_slowest_run_through_a_transient_component(
     assert frames[1:].max() <= k + 2
 
 
-def _lossy_errors(n: int, eps: float, max_lost: int, seed: int):
+def _lossy_errors(n: int, eps: float, max_lost: int, seed: int, scene=SCENE):
     """A camera measurement for `pipeline.sim.simulate`: per agent an error strategy within `eps` (fresh random
-    directions, a constant bias, §3.5's direction towards the other side of the axis, a sign flip every 7 frames)
-    and frames lost (NaN rows), never more than `max_lost` in a row: at random for half the agents, in bursts of
-    `max_lost` between single delivered frames for the others."""
+    directions, a constant bias, §3.5's direction towards the other side of the nearest obstacle's axis, a sign
+    flip every 7 frames) and frames lost (NaN rows), never more than `max_lost` in a row: at random for half the
+    agents, in bursts of `max_lost` between single delivered frames for the others."""
     rng = np.random.default_rng(seed)
+    arr = scene.arrays
     kind = np.arange(n) % 4
     bias = rng.normal(size=(n, 2))
     bias *= eps / np.linalg.norm(bias, axis=1, keepdims=True)
@@ -72,8 +73,9 @@ def _lossy_errors(n: int, eps: float, max_lost: int, seed: int):
         e = eps * np.sqrt(rng.uniform(0, 1, len(idx)))[:, None] * np.stack([np.cos(ang), np.sin(ang)], 1)
         k = kind[idx]
         e[k == 1] = bias[idx][k == 1]
-        side = -np.sign(p[:, 1] - SCENE.p_0[1] + 1e-12)
-        e[k == 2] = eps * np.stack([np.zeros(len(idx)), side], 1)[k == 2]
+        near = ((p[:, None] - arr["center"][None]) ** 2).sum(-1).argmin(1)
+        b = np.einsum("ij,ij->i", p - arr["center"][near], arr["e_b"][near])
+        e[k == 2] = (-eps * np.sign(b + 1e-12)[:, None] * arr["e_b"][near])[k == 2]
         flip = np.where((frame // 7) % 2 == 0, 1.0, -1.0)
         e[k == 3] = flip * bias[idx][k == 3]
         out = p + e

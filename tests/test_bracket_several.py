@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from test_bracket_loop_that_runs import _lossy_errors  # the error signals written for the simulator test
 
 from pipeline.bracket.abstraction import dilate
 from pipeline.bracket.bounds import Uniform
@@ -125,37 +126,6 @@ def test_every_frame_decision_is_an_edge_of_the_abstraction():
     assert logic.initial[cells, k0].all()
 
 
-def _errors(n: int, eps: float, scene, seed: int, max_lost: int = 0):
-    """A camera measurement within `eps` for `pipeline.sim.simulate`, per agent one strategy: fresh random
-    directions, a constant bias, towards the other side of the nearest obstacle's axis, a bias flipping every 5
-    frames; with `max_lost`, frames lost at random (NaN rows), never more than `max_lost` in a row."""
-    rng = np.random.default_rng(seed)
-    streak = np.zeros(n, np.int64)
-    kind = np.arange(n) % 4
-    bias = rng.normal(size=(n, 2))
-    bias *= eps / np.linalg.norm(bias, axis=1, keepdims=True)
-    arr = scene.arrays
-
-    def measure(c, idx, frame, _rng):
-        p = c[:, :2]
-        ang = rng.uniform(0, 2 * np.pi, len(idx))
-        e = eps * np.sqrt(rng.uniform(0, 1, len(idx)))[:, None] * np.stack([np.cos(ang), np.sin(ang)], 1)
-        k = kind[idx]
-        e[k == 1] = bias[idx][k == 1]
-        near = ((p[:, None] - arr["center"][None]) ** 2).sum(-1).argmin(1)
-        b = np.einsum("ij,ij->i", p - arr["center"][near], arr["e_b"][near])
-        e[k == 2] = (-eps * np.sign(b + 1e-12)[:, None] * arr["e_b"][near])[k == 2]
-        e[k == 3] = (np.where((frame // 5) % 2 == 0, 1.0, -1.0) * bias[idx])[k == 3]
-        out = p + e
-        if frame > 0 and max_lost > 0:
-            lose = (rng.random(len(idx)) < 0.5) & (streak[idx] < max_lost)
-            streak[idx] = np.where(lose, streak[idx] + 1, 0)
-            out[lose] = np.nan
-        return out
-
-    return measure
-
-
 @pytest.mark.parametrize("law_cls, max_lost", [(HybridController, 0), (SmoothController, 0), (CBFController, 0),
                                                (HybridController, 2)])
 def test_certified_starts_hold_in_the_simulator_among_two_obstacles(law_cls, max_lost):
@@ -178,7 +148,7 @@ def test_certified_starts_hold_in_the_simulator_among_two_obstacles(law_cls, max
     keep = ~in_diamond(ROW, p0)
     p0, cells = p0[keep], cells[keep]
     res = simulate(ROW, law, p0, sim=SimSettings(horizon=horizon, delta=5.0, record_every=1000),
-                   camera=CameraSettings(period=PERIOD), measure=_errors(len(p0), eps, ROW, 5, max_lost), record=False)
+                   camera=CameraSettings(period=PERIOD), measure=_lossy_errors(len(p0), eps, max_lost, 5, ROW), record=False)
     m = res.metrics
     assert m["success"].all() and not m["collision"].any(), p0[~m["success"]]
     late = m["time_to_target"] > np.maximum(bound[cells], 1) * PERIOD + 1e-9

@@ -87,13 +87,18 @@ def test_without_stop_a_failure_is_returned_and_the_others_finish(child, tmp_pat
     assert {d.job.label: d.rc for d in done} == {"job bad": 3, "job good": 0}
 
 
-def test_the_profile_joins_walls_and_the_phases_each_job_recorded(child, tmp_path, monkeypatch):
-    job, _ = child
+def _runner(tmp_path, monkeypatch, timings: dict, stop: bool) -> Runner:
+    """A runner of two workers writing its logs and profile under `tmp_path`."""
     monkeypatch.setattr("pipeline.paper_profile._log_dir", lambda paper_dir: tmp_path / "logs")
     cfg = SimpleNamespace(paths=SimpleNamespace(paper_dir=str(tmp_path / "paper")), lock="paper.lock.yaml",
                           get=lambda key, default=None: {"workers": 2}.get(key, default))
+    return Runner(cfg, timings, stop=stop)
+
+
+def test_the_profile_joins_walls_and_the_phases_each_job_recorded(child, tmp_path, monkeypatch):
+    job, _ = child
     timings: dict[str, float] = {}
-    runner = Runner(cfg, timings, stop=True)
+    runner = _runner(tmp_path, monkeypatch, timings, stop=True)
     assert runner.stage("experiments", [job("a", "b"), job("b", "a")])
     phases = read_phases(runner.phases_file)
     assert set(phases) == {"job a", "job b"} and "compute" in phases["job a"]["phases"]
@@ -118,11 +123,8 @@ def test_stages_held_together_run_in_one_pool_and_then_follow_their_own_jobs(chi
     the other, neither finishes); the wall goes to `"a + b"`, the profile keeps each job's own stage, each stage's
     `then` runs after the pool and only if its own jobs succeeded; once closed, a stage starts nothing."""
     job, out = child
-    monkeypatch.setattr("pipeline.paper_profile._log_dir", lambda paper_dir: tmp_path / "logs")
-    cfg = SimpleNamespace(paths=SimpleNamespace(paper_dir=str(tmp_path / "paper")), lock="paper.lock.yaml",
-                          get=lambda key, default=None: {"workers": 2}.get(key, default))
     timings: dict[str, float] = {}
-    runner = Runner(cfg, timings, stop=False)
+    runner = _runner(tmp_path, monkeypatch, timings, stop=False)
     after = []
     with runner.together():
         assert not runner.stage("certify", [job("a", "b")], then=lambda: after.append("certify"))
