@@ -43,14 +43,18 @@ def direction_bounds(U: np.ndarray) -> np.ndarray:
     return np.where(np.isnan(out), np.inf, out)
 
 
-def rates(ab: Abstraction, period: float, p_T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def rates(ab: Abstraction, period: float, p_T: np.ndarray,
+          active: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Per node: `dir_ok` `(nodes, RATE_DIRS)` (`w_k·u < 0` for every input, `w_k` at `k · 360°/RATE_DIRS`: `w_k·p`
     decreases every frame; between two support directions bounded by :func:`support_at`, so a direction a
     polytope's support function does not itself list counts only where that upper bound is negative) and
     `lyap_dec` `(nodes,)`, the least decrease of `|p - p_T|²` over a frame from any point of the cell
-    (`-T_s (2 (p - p_T)·u + T_s |u|²)`; positive where it decreases, the distance rule)."""
+    (`-T_s (2 (p - p_T)·u + T_s |u|²)`; positive where it decreases, the distance rule). `active`: the nodes a
+    component can hold (others get `dir_ok` False: never read)."""
     U = ab.U.reshape(-1, J)
-    dir_ok = direction_bounds(U) < 0
+    rows = np.arange(len(U)) if active is None else np.flatnonzero(active)
+    dir_ok = np.zeros((len(U), RATE_DIRS), bool)
+    dir_ok[rows] = direction_bounds(U[rows]) < 0
     boxes = np.repeat(ab.grid.boxes(), ab.modes, axis=0)
     r = np.maximum(U, 0).max(axis=1) / np.cos(np.pi / J)  # |u| <= r
     worst = np.full(len(U), -np.inf)
@@ -145,7 +149,7 @@ def win(ab: Abstraction, period: float, p_T: np.ndarray) -> tuple[np.ndarray, di
     frames = np.where(goal, 0.0, np.inf)
     f = np.where(ab.multi, ab.frames, 1) if ab.multi is not None else np.ones(n, np.int64)
     active = ab.safe & ~goal
-    dir_ok, lyap_dec = rates(ab, period, p_T)
+    dir_ok, lyap_dec = rates(ab, period, p_T, active)
     comps = tarjan(n, ab.indptr, ab.succ, active)
     stats = {"components": len(comps), "transient_direction": 0, "transient_distance": 0, "won_components": 0}
     member = np.full(n, -1, np.int64)
