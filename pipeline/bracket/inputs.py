@@ -261,15 +261,19 @@ def _smooth_several(law, sub: np.ndarray, covs) -> np.ndarray:
     r_lo, r_hi, centre, half = (np.stack([t[key] for t in terms], -1) for key in ("r_lo", "r_hi", "centre", "half"))
     active = r_hi > 0
     order = np.argsort(~active, axis=-1, kind="stable")[..., :2]  # the first two acting obstacles
-    X, rays = terms[0]["A"], np.zeros(sub.shape[:-1], bool)
+    sectors, rays = [], np.zeros(sub.shape[:-1], bool)
     for k in range(2):
         idx = order[..., k:k + 1]
         on = np.take_along_axis(active, idx, -1)[..., 0]
         lo, hi = (np.where(on, np.take_along_axis(a, idx, -1)[..., 0], 0.0) for a in (r_lo, r_hi))
         c, w = (np.take_along_axis(a, idx, -1)[..., 0] for a in (centre, half))
-        X = minkowski(X, sector_points(lo, np.minimum(hi, BIG), c, w))
+        sectors.append(sector_points(lo, np.minimum(hi, BIG), c, w))
         rays |= hi >= BIG
+    X = minkowski(terms[0]["A"], sectors[0])
     h = saturated_support(X, law.u_max, rays)
+    two = active.sum(-1) == 2  # a second sector to add (elsewhere it is the point 0)
+    if two.any():
+        h[two] = saturated_support(minkowski(X[two], sectors[1][two]), law.u_max, rays[two])
     h = np.where(np.logical_and.reduce([t["flow"] for t in terms])[..., None], h, -np.inf)
     h = np.where((active.sum(-1) > 2)[..., None], _ball(law, sub.shape[:-1]), h)
     near = _nearest_candidates(terms)
