@@ -243,10 +243,9 @@ def run(cfg) -> dict:
     for batch in (first, ("bracket", "learned") if cfg.get("bracket_map") else ("learned",)):
         with runner.together():  # their jobs side by side in one pool (the 1-core jobs beside the experiments')
             for key in batch:
+                made = after[key]()  # the folders it will make (bracket's pin reads lock["certified"])
                 if key in lock:
-                    lock[key] = after[key]()
-                else:
-                    after[key]()
+                    lock[key] = made
     runner.closed = True  # every job ran: the stages are called once more to read and publish what they made
     for key in ("certified", "bracket", "experiments", "learned"):
         lock[key] = after[key]()

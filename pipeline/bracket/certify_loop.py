@@ -83,7 +83,6 @@ def certified_starts(cert: Certificate, starts: np.ndarray) -> tuple[np.ndarray,
     no_start = ~over & (np.bincount(rows, minlength=len(starts)) == 0)
     world = C.reshape(-1, 2)  # a start cell wholly in one closed diamond holds no start either
     for cov in cert.scene.coverings:  # (grid cells straddling a diamond not aligned with the grid meet it outside)
-        a, b = cov.to_frame(world)
-        no_start |= (np.abs(a) + np.abs(b) <= cov.c).reshape(-1, 4).all(axis=1)
+        no_start |= in_diamond(cov, world).reshape(-1, 4).all(axis=1)
     arrival[over | no_start] = np.inf
     return ok & ~no_start, arrival, no_start

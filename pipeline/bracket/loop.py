@@ -1,10 +1,11 @@
 """The sampled closed loop of SPEC §3.3 frame by frame, with the error signal chosen per frame (the falsifier's plant).
 
-Single integrator, one obstacle or several (SPEC §3.6's fields). The loop is the simulator's own (:class:`pipeline.sim.SampledLoop` stepped by
-the one frame engine :class:`pipeline.hybrid.sampled.FrameRun`), with the falsifier's error signal as its
-disturbance (:class:`pipeline.sim.disturbances.Played`: `m_k = p_k + e_k`) and one step of `dt = T_s` per frame,
-which is exact for the held velocity: the vehicle moves along the straight segment `p_k -> p_k + T_s u_k`.
-The monitor (:class:`Segments`) checks that segment exactly (the obstacle disc, the success disc, the arena)
+Single integrator, one obstacle or several (SPEC §3.6). The loop is the simulator's own
+(:class:`pipeline.sim.SampledLoop` stepped by the one frame engine :class:`pipeline.hybrid.sampled.FrameRun`), with
+the falsifier's error signal as its disturbance (:class:`pipeline.sim.disturbances.Played`: `m_k = p_k + e_k`) and
+one step of `dt = T_s` per frame, which is exact for the held velocity: the vehicle moves along the straight segment
+`p_k -> p_k + T_s u_k`. The monitor (:class:`Segments`) checks that segment exactly (the obstacle discs, the success
+disc, the arena)
 instead of on a grid of `dt`. `start` takes the first frame (`m_0 = p_0 + e_0`: the law's initial state); every
 `step` then samples a frame with its own error (the falsifier may choose frame 0's input error apart from the
 initial state's, a stronger adversary than one measurement, covered by the certificate all the same).
@@ -42,15 +43,10 @@ def segment_distance(p0: np.ndarray, p1: np.ndarray, c: np.ndarray) -> np.ndarra
     return np.hypot(x[:, 0] - c[0], x[:, 1] - c[1])
 
 
-def obstacles(scene) -> tuple[np.ndarray, np.ndarray]:
-    """The obstacles' centres `(M, 2)` and radii `(M,)`."""
-    return (np.array([cov.p_0 for cov in scene.coverings], float),
-            np.array([cov.obstacle_radius for cov in scene.coverings], float))
-
-
-def clearance(p: np.ndarray, centres: np.ndarray, radii: np.ndarray) -> np.ndarray:
+def clearance(p: np.ndarray, scene) -> np.ndarray:
     """Distances of the points `p` `(N, 2)` to the nearest obstacle's edge (negative inside a disc)."""
-    return np.min([np.hypot(*(p - c).T) - r for c, r in zip(centres, radii)], axis=0)
+    arr = scene.arrays
+    return np.min([np.hypot(*(p - c).T) - r for c, r in zip(arr["center"], arr["radius"])], axis=0)
 
 
 class Segments(Monitor):
@@ -62,7 +58,7 @@ class Segments(Monitor):
     stops = (True, True, True)
 
     def __init__(self, scene, delta: float):
-        self.centres, self.radii = obstacles(scene)
+        self.centres, self.radii = scene.arrays["center"], scene.arrays["radius"]
         self.pT, self.delta = scene.p_T, float(delta)
         (self.x0, self.x1), (self.y0, self.y1) = scene.bounds
         self.prev = self.clear = None
@@ -73,7 +69,8 @@ class Segments(Monitor):
 
     def step(self, k, t, c, active):
         p, p1 = self.prev, c
-        self.clear = np.min([segment_distance(p, p1, c) - r for c, r in zip(self.centres, self.radii)], axis=0)
+        self.clear = np.min([segment_distance(p, p1, centre) - r for centre, r in zip(self.centres, self.radii)],
+                            axis=0)
         arrived = segment_distance(p, p1, self.pT) <= self.delta
         left = (p1[:, 0] < self.x0) | (p1[:, 0] > self.x1) | (p1[:, 1] < self.y0) | (p1[:, 1] > self.y1)
         codes = np.zeros(len(c), dtype=np.int8)
@@ -99,7 +96,6 @@ class FrameLoop:
         self.n_frames = int(round(horizon / period))
         self.stall_frames = max(1, int(round(stall_time / period)))
         self.stall_dist = stall_speed * stall_time
-        self.centres, self.radii = obstacles(scene)
         self.error = Played()
         self.system = SampledLoop(scene, controller, SingleIntegrator(), self.error, dt=self.period, every=1)
         self.monitor = Segments(scene, delta)
@@ -127,7 +123,7 @@ class FrameLoop:
         hist = np.repeat(p0[None], self.stall_frames + 1, axis=0)
         st = {"p": p0, "m": x.m, "xd": {k: x.d[k] for k in self.controller.logic}, "frame": 0,
               "outcome": np.zeros(n, np.int8), "t_end": np.full(n, np.nan),
-              "clearance": clearance(p0, self.centres, self.radii), "hist": hist, "jumps": np.zeros(n, np.int64)}
+              "clearance": clearance(p0, self.scene), "hist": hist, "jumps": np.zeros(n, np.int64)}
         st["outcome"][st["clearance"] < 0] = COLLIDED
         return st
 

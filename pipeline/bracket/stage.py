@@ -233,9 +233,9 @@ def camera_rows(loop: FrameLoop, pmap, bs, centres: np.ndarray, inside: np.ndarr
 def table(df: pd.DataFrame, scene, eps_list, with_map: bool = False) -> pd.DataFrame:
     """Per controller, over the start cells holding a start the simulator accepts (`start`; the others, inside the
     diamond, are counted apart): certified share at each ε (within the horizon), falsified shares, the share still
-    undecided at the largest ε (neither certified at it nor falsified up to it), behind an
-    obstacle (its frame coordinate `a < -c`, `|b| < 15`), the median `ε_hi` on `K` (the cells the axis behind an
-    obstacle passes through); the certified arrival bound beside the nominal run's arrival (seconds, medians over certified cells)
+    undecided at the largest ε (neither certified at it nor falsified up to it), behind an obstacle (its frame
+    coordinate `a < -c`, `|b| < 15`), the median `ε_hi` on `K` (the cells the axis behind an obstacle passes
+    through); the certified arrival bound beside the nominal run's arrival (seconds, medians over certified cells)
     and the certified cells whose nominal run arrives later than the bound (a soundness bug); with a `kappa_hi`
     column, the share falsified through the camera and the median `κ_hi` on `K`; with both, the map-certified cells
     whose clean camera loop failed (a soundness bug of the chain: map bound, certificate)."""

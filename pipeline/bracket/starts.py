@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from pipeline.bracket.loop import clearance, obstacles
+from pipeline.bracket.loop import clearance
 from pipeline.control import in_diamond
 
 
@@ -46,8 +46,7 @@ def falsifier_starts(scene, starts: np.ndarray) -> tuple[np.ndarray, np.ndarray]
                       for a, b in [cov.to_frame(P.reshape(-1, 2))]], axis=0).reshape(len(P), -1)
         far = P[np.arange(len(P)), np.argmax(out, axis=1)]
     p0 = np.where(in_diamond(scene, centres)[:, None], far, centres)
-    centres_, radii = obstacles(scene)
-    ok = ~in_diamond(scene, p0) & (clearance(p0, centres_, radii) >= 0)
+    ok = ~in_diamond(scene, p0) & (clearance(p0, scene) >= 0)
     return p0, ok
 
 
