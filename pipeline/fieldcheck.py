@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
@@ -26,9 +27,10 @@ from omegaconf import DictConfig, OmegaConf
 from pipeline import tracking
 from pipeline.cli import stage_main
 from pipeline.config import build
-from pipeline.control.fields import SQRT2, FieldAnalysis, analyse_field
+from pipeline.control.fields import FieldAnalysis, admitted_covering, analyse_field, no_covering
 from pipeline.control.validity import field_violations
 from pipeline.errors import ConfigError
+from pipeline.plants import steering_warnings
 from pipeline.sim import starts
 
 
@@ -95,46 +97,44 @@ def run(cfg: DictConfig) -> dict:
         h_max = float(np.min(np.hypot(*(g["centers"][ii] - g["centers"][jj]).T) - R[ii] - R[jj] - step))
         print(f"Largest cell hysteresis h with this covering (V2, V3): {h_max:.4g}"
               + ("" if h_max > 0 else " (none: shrink the covering first)"))
-    out = {"violations": found, "analysis": ana}
+    out = {"violations": found, "analysis": ana, "steering": steering(cfg)}
     if cfg.get("write"):
         out["written"] = write_covering(cfg, g, ana, P, h=h, u_max=u_max, T_s=T_s)
     return out
 
 
-def impossible(g: dict, ana: FieldAnalysis, P) -> ConfigError:
-    """The one line of a field no covering admits: what binds (a pair of discs, a disc and the target, a start)
-    and by how much (world units)."""
-    rr = g["radii"]
-    if ana.start_apex_max <= SQRT2 and ana.start_apex.size:
-        k, i = np.unravel_index(int(np.argmin(ana.start_apex)), ana.start_apex.shape)
-        short = (SQRT2 - ana.start_apex_max) * rr[i]
-        return ConfigError(f"init.points[{k}]", f"start {np.round(P[k], 3).tolist()} lies within the smallest diamond "
-                                                f"of scene.obstacles[{i}] (apex sqrt(2) (r + d)): every covering "
-                                                f"contains it; move it {short:.3g} further out")
-    field, cond = ana.kappa_binding
-    if cond == "V1":
-        i = int(np.argmin(ana.target_kappa))
-        short = (SQRT2 - ana.kappa_max) * rr[i]
-        return ConfigError(field, f"the target is {np.hypot(*(g['target'] - g['centers'][i])):.3g} from this disc "
-                                  f"(r + d = {rr[i]:.3g}): every covering holds it (V1 needs more than sqrt(2) (r + d));"
-                                  f" short by {short:.3g}")
-    i, j = (int(x) for x in ana.pairs[0])
-    need = ana.pair_distance[0] + (SQRT2 - ana.pair_kappa[0]) * (rr[i] + rr[j])
-    return ConfigError(field, f"discs {i} and {j} are {ana.pair_distance[0]:.4g} apart; every covering needs more "
-                              f"than {need:.4g} ({cond}: h + 2 u_max T_s + sqrt(2) (r_i + r_j + 2 d)): short by "
-                              f"{need - ana.pair_distance[0]:.3g}")
+def steering(cfg: DictConfig) -> list[str]:
+    """The unicycle's steering conditions (docs/dense.md, "The unicycle in clutter"), printed: how fast the
+    look-ahead point can move sideways, the heading lag at full speed under `turn_lookahead`, and the warnings of
+    :func:`pipeline.plants.steering_warnings` (a turn rate past `omega_max`, the push-out's period-2 orbit)."""
+    if cfg.get("vehicle") is None or cfg.vehicle.get("lookahead") is None:
+        return []
+    plant = build(cfg.vehicle, "vehicle")
+    if plant.omega_max is None:
+        return []
+    ctl = cfg.controller
+    u_max = ctl.get("u_max")
+    law = SimpleNamespace(u_max=u_max, push_speed=ctl.get("push_speed") or u_max,
+                          hybrid="Hybrid" in str(ctl.get("_target_", "")))
+    d, w, rho = plant.lookahead, plant.omega_max, plant.turn_lookahead
+    lines = [f"z moves sideways at most omega_max d = {w * d:.3g} per second; commands averaged over "
+             f"{plant.smoothing} frame(s)"]
+    if rho is not None and u_max is not None:
+        lag = math.degrees(math.asin(min(1.0, w * rho / float(u_max))))
+        lines.append(f"turn_lookahead {rho:g}: full speed only with the heading within {lag:.3g} deg of the command "
+                     f"(slower beyond)")
+    lines += [f"warning: {x}" for x in steering_warnings(plant, law)]
+    print("Unicycle steering (docs/dense.md, the unicycle in clutter):")
+    for line in lines:
+        print(f"  {line}")
+    return lines
 
 
 def write_covering(cfg: DictConfig, g: dict, ana: FieldAnalysis, P, *, h, u_max, T_s) -> str:
     """The scene with the largest uniform covering the field admits, written to `cfg.write` (module docstring)."""
-    margin = float(cfg.get("write_margin", 0.1))
-    if not 0.0 < margin < 1.0:
-        raise ConfigError("write_margin", f"the share of the headroom kept back must be in (0, 1), got {margin!r}")
+    f, reach_f, kappa = admitted_covering(ana, float(cfg.get("write_margin", 0.1)))  # the margin checked first
     if not ana.feasible:
-        raise impossible(g, ana, P)
-    kappa = SQRT2 + (1.0 - margin) * (ana.kappa_max - SQRT2)
-    f = min(SQRT2 + 0.5 * (kappa - SQRT2), SQRT2 + (1.0 - margin) * (ana.start_apex_max - SQRT2))
-    reach_f = (kappa - f) / SQRT2
+        raise no_covering(g["centers"], g["radii"], g["target"], ana, P)
     rr, d = g["radii"], g["inflation"]
     bad = field_violations(g["centers"], rr, g["target"], apex=f * rr, reach=reach_f * rr, h=h, u_max=u_max, T_s=T_s,
                            arena=g["arena"], starts=P)

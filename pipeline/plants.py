@@ -20,7 +20,7 @@ from typing import Literal
 import numpy as np
 
 from pipeline.errors import ConfigError
-from pipeline.schema import NonNegativeInt, Positive, checked
+from pipeline.schema import NonNegativeInt, Positive, PositiveInt, checked
 
 
 class Plant:
@@ -30,6 +30,7 @@ class Plant:
     dim = 2          # state dimension n
     inputs = 2       # input dimension
     heading = False  # whether the state holds a heading (column 2)
+    smoothing = 1    # commanded velocities averaged by the sampled loop (the unicycle's option)
 
     def position(self, c: np.ndarray) -> np.ndarray:
         """The vehicle's position `p` `(N, 2)` (success and collision are judged here)."""
@@ -97,6 +98,16 @@ class Unicycle(Plant):
     the turn-rate limit (rad/s, null: none). Its speed `|v| <= |u| <= u_max` follows from the controller's
     saturation. `heading0`: the initial heading of every start: `random` (uniform over the circle, from
     `heading_seed`, the same for the same starts), `target` (facing the target) or a number (radians).
+
+    Two options for a turn-rate limit far below `u_max / d` (docs/dense.md, "The unicycle in clutter"; both off by
+    default): `smoothing` (`k >= 1`): the sampled loop realises the mean of the last `k` commanded velocities of
+    `z` (this frame's and the `k - 1` before; fewer at a run's start). Under a perception error that flips from
+    frame to frame the law's command near a face alternates between the flow and the push-out; the clipped turn
+    keeps the first's part along the heading and drops most of the second's, the mean keeps both.
+    `turn_lookahead` (`ρ`, null: off): a speed that slows in a turn, `v <- v min(1, omega_max ρ / |u·n|)` (`n` the
+    heading's normal): the forward speed at which a look-ahead of `ρ` would turn onto the command within
+    `omega_max`, so that at full speed the heading lags the command by at most `asin(omega_max ρ / |u|)`
+    (`ρ >= d`: nothing changes where `ω` is not clipped).
     """
 
     name = "unicycle"
@@ -104,22 +115,32 @@ class Unicycle(Plant):
     heading = True
 
     def __init__(self, lookahead: Positive = 0.5, omega_max: Positive | None = 4.0 * math.pi,
-                 heading0: Literal["random", "target"] | float = "random", heading_seed: NonNegativeInt = 0):
+                 heading0: Literal["random", "target"] | float = "random", heading_seed: NonNegativeInt = 0,
+                 smoothing: PositiveInt = 1, turn_lookahead: Positive | None = None):
         if isinstance(heading0, float) and not math.isfinite(heading0):
             raise ConfigError("vehicle.heading0", f"must be random, target or a finite number (radians), got {heading0!r}")
         self.lookahead = float(lookahead)
         self.omega_max = None if omega_max is None else float(omega_max)
         self.heading0, self.heading_seed = heading0, heading_seed
+        self.smoothing = int(smoothing)
+        if turn_lookahead is not None and omega_max is None:
+            raise ConfigError("vehicle.turn_lookahead", "slows the vehicle where its turn rate would pass "
+                                                        "omega_max: needs vehicle.omega_max (null here)")
+        self.turn_lookahead = None if turn_lookahead is None else float(turn_lookahead)
 
     def point(self, c):
         d = self.lookahead
         return np.stack([c[:, 0] + d * np.cos(c[:, 2]), c[:, 1] + d * np.sin(c[:, 2])], axis=1)
 
     def actuate(self, c_hat, u):
-        """`v = u·(cos θ, sin θ)`, `ω = u·(-sin θ, cos θ) / d`, `|ω|` clipped at `omega_max` (SPEC §3.7)."""
+        """`v = u·(cos θ, sin θ)`, `ω = u·(-sin θ, cos θ) / d`, `|ω|` clipped at `omega_max` (SPEC §3.7); with
+        `turn_lookahead` `ρ` the speed `v` scaled by `min(1, omega_max ρ / |u·(-sin θ, cos θ)|)` first."""
         ct, st = np.cos(c_hat[:, 2]), np.sin(c_hat[:, 2])
         v = u[:, 0] * ct + u[:, 1] * st
-        omega = (-u[:, 0] * st + u[:, 1] * ct) / self.lookahead
+        lateral = -u[:, 0] * st + u[:, 1] * ct
+        omega = lateral / self.lookahead
+        if self.turn_lookahead is not None:
+            v = v * np.minimum(1.0, self.omega_max * self.turn_lookahead / np.maximum(np.abs(lateral), 1e-300))
         if self.omega_max is not None:
             omega = np.clip(omega, -self.omega_max, self.omega_max)
         return np.stack([v, omega], axis=1)
@@ -184,17 +205,21 @@ def explain_steering(plant: Plant, err: ConfigError) -> ConfigError:
 
 def steering_warnings(plant: Plant, controller) -> list[str]:
     """Lines warning that the unicycle cannot follow its look-ahead steering (SPEC §3.7; docs/multi.md): the law's
-    speed limit turns it at up to `u_max / d`, past `omega_max`; a push-out at `push_speed >= omega_max d / 2` can
-    hold it in a period-2 orbit at a face. Empty for a plant without a look-ahead."""
+    speed limit turns it at up to `u_max / d`, past `omega_max` (unless it slows in a turn, `turn_lookahead`); a
+    push-out at `push_speed >= omega_max d / 2` can hold it in a period-2 orbit at a face (unless the loop realises
+    the mean of two commands, `smoothing >= 2`: docs/dense.md). Empty for a plant without a look-ahead."""
     d, w = getattr(plant, "lookahead", None), getattr(plant, "omega_max", None)
     if d is None or w is None:
         return []
     out = []
     u_max, push = getattr(controller, "u_max", None), getattr(controller, "push_speed", None)
-    if u_max is not None and u_max / d > w:
+    if u_max is not None and u_max / d > w and getattr(plant, "turn_lookahead", None) is None:
         out.append(f"vehicle.lookahead: the steering asks |ω| up to controller.u_max / d = {u_max / d:.3g} rad/s, past "
-                   f"vehicle.omega_max = {w:.3g}: the unicycle cannot follow it at full speed (saturated frames)")
-    if push is not None and getattr(controller, "hybrid", False) and push >= w * d / 2:
+                   f"vehicle.omega_max = {w:.3g}: the unicycle cannot follow it at full speed (saturated frames; "
+                   f"vehicle.turn_lookahead slows it in a turn)")
+    if (push is not None and getattr(controller, "hybrid", False) and push >= w * d / 2
+            and getattr(plant, "smoothing", 1) < 2):
         out.append(f"controller.push_speed: {push:g} >= omega_max d / 2 = {w * d / 2:.3g}: a push-out can hold the "
-                   f"unicycle at a face in a period-2 orbit (docs/multi.md, push-out speed)")
+                   f"unicycle at a face in a period-2 orbit (docs/multi.md, push-out speed; vehicle.smoothing=2 "
+                   f"realises the mean of two frames' commands)")
     return out

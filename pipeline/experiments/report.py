@@ -44,6 +44,9 @@ FIGURES = {
     "fig22_dense_fields": ("dense_fields", "not in the paper: the hybrid-RL benchmark's dense clutter"),
     "fig23_dense_unicycle": ("dense_unicycle", "not in the paper: the unicycle in dense clutter"),
     "fig24_dense_camera": ("dense_camera", "not in the paper: the camera in the loop in dense clutter"),
+    "fig25_dense_sweep": ("dense_sweep", "not in the paper: 30 benchmark-like fields, each its own covering"),
+    "fig26_dense_sweep_unicycle": ("dense_sweep_unicycle",
+                                   "not in the paper: the unicycle on 30 benchmark-like fields (issue 45)"),
 }
 
 

@@ -152,17 +152,27 @@ class SampledLoop(_Loop):
         controller.check_loop(self.period)
         self._guarded = (None, None)
         self._held = None  # the input held over the last frame (dead reckoning predicts the estimate with it)
+        self._commanded: list[np.ndarray] = []  # the last commands, newest first (`plant.smoothing`)
 
     def input(self, x):
         point, xd, target, ev = self._law(x)
         u = self.controller.flow_map(point, xd, target, ev=ev)
         u, guarded = self.controller.hold(u, point, xd, ev, self.period)
         self._guarded = (x, guarded)
-        w = self.plant.actuate(self.measured(x), u)
+        w = self.plant.actuate(self.measured(x), self._smoothed(u))
         if self.reckoning is not None:
             w = np.where((x.drift > self.reckoning.max_drift)[:, None], 0.0, w)  # the fallback: stop
             self._held = w
         return w
+
+    def _smoothed(self, u: np.ndarray) -> np.ndarray:
+        """The mean of this frame's command and the `plant.smoothing - 1` before it (fewer at a run's start): one
+        call per frame (:func:`pipeline.hybrid.sampled.frame_update`), the history reset by :meth:`initial`."""
+        k = self.plant.smoothing
+        if k == 1:
+            return u
+        self._commanded = [np.array(u, dtype=float)] + self._commanded[: k - 1]
+        return sum(self._commanded) / len(self._commanded)
 
     def frame_counts(self, x, w) -> dict[str, np.ndarray]:
         """Per frame: the guard acted (SPEC §3.3), the vehicle's input was clipped (the unicycle's |ω|); with dead
@@ -183,6 +193,7 @@ class SampledLoop(_Loop):
     def initial(self, c0, rng):
         """The first frame (always delivered: a vehicle starts with an estimate) and the law's initial state."""
         c0 = np.array(c0, dtype=float)
+        self._commanded = []  # a new run: no commands before its first frame
         all_idx = np.arange(len(c0))
         m = self._perceive(c0, all_idx, 0, rng)
         target = None

@@ -82,7 +82,11 @@ def frame_steps(dt: float, period: float | None) -> int:
 
 
 def check_vehicle(plant, sim: SimSettings) -> None:
-    """A look-ahead point must settle inside the success radius: `vehicle.lookahead < sim.delta` (SPEC §3.7)."""
+    """A look-ahead point must settle inside the success radius: `vehicle.lookahead < sim.delta` (SPEC §3.7); the
+    mean of several frames' commands (`vehicle.smoothing`) exists only in the sampled loop."""
+    if getattr(plant, "smoothing", 1) > 1 and sim.model != "sampled":
+        raise ConfigError("vehicle.smoothing", f"averages the commands of camera frames: the sampled loop only, got "
+                                               f"sim.model={sim.model} (sim.model=sampled, or vehicle.smoothing=1)")
     d = getattr(plant, "lookahead", None)
     if d is not None and d >= sim.delta:
         raise ConfigError("vehicle.lookahead", f"must be < sim.delta = {sim.delta:g} (the axle settles `lookahead` "

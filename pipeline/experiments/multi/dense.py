@@ -3,7 +3,8 @@ baselines on the hybrid-RL benchmark's clutter, under its noise (`s (m, -m)`, wo
 the alternating noise of norm `eps` in the nearest obstacle's frame and SPEC §3.5's adversary near every disc.
 
 The scenes: the bundle's `presets` (scene nodes composed by its defaults list: `case6`, `case6_variant`) and
-`n_scenes` redraws of the composed `scene` (a `pipeline.control.dense.dense_scene` node, `scene=dense`) with
+`n_scenes` redraws of the composed `scene` (a `pipeline.control.dense.dense_scene` node, `scene=dense`, or the
+benchmark's statistics with each field's own covering, `scene=benchmark`: the sweep of issue 45) with
 seeds `scene_seed + j`; the starts: `n_agents` on the circle of `start_radius` about the goal (the benchmark's).
 The vehicle is the composed one (`vehicle=unicycle` in the unicycle bundle); every controller on its steering
 scene (SPEC §3.7).
@@ -26,19 +27,28 @@ from pipeline.schema import NonNegative, NonNegativeInt, Positive, PositiveInt
 from pipeline.sim import starts
 
 DENSE_SCENE = "pipeline.control.dense.dense_scene"
+BENCHMARK_SCENE = "pipeline.control.dense.benchmark_scene"  # the benchmark's statistics, each field's own covering
 
 
-def dense_scenes(ctx: Context, presets: dict, n_scenes: int, seed: int) -> list[tuple[str, Scene]]:
-    """The preset scenes (`experiment.presets.<name>`), then `n_scenes` redraws of the composed dense scene."""
+def dense_scenes(ctx: Context, presets: dict, n_scenes: int, seed: int) -> tuple[list[tuple[str, Scene]], list[str]]:
+    """The preset scenes (`experiment.presets.<name>`), then `n_scenes` redraws of the composed dense scene (seeds
+    `seed + j`); and the lines of the redraws no covering admits (`scene=benchmark`: each field gets its own, or is
+    rejected with the pair of discs and the shortfall, and the others run)."""
     out = [(name, build(node, f"experiment.presets.{name}")) for name, node in presets.items()]
     node = tracking.to_plain(ctx.cfg.scene)
-    if n_scenes and node.get("_target_") != DENSE_SCENE:
-        raise ConfigError("scene", f"this experiment redraws dense fields: needs scene=dense (a {DENSE_SCENE} node), "
-                                   f"got {node.get('_target_')}")
+    if n_scenes and node.get("_target_") not in (DENSE_SCENE, BENCHMARK_SCENE):
+        raise ConfigError("scene", f"this experiment redraws dense fields: needs scene=dense or scene=benchmark (a "
+                                   f"{DENSE_SCENE} or {BENCHMARK_SCENE} node), got {node.get('_target_')}")
+    rejected = []
     for j in range(n_scenes):
         name = f"{node.get('name', 'dense')}{j:02d}"
-        out.append((name, build({**node, "seed": int(seed) + j, "name": name}, "scene")))
-    return out
+        try:
+            out.append((name, build({**node, "seed": int(seed) + j, "name": name}, "scene")))
+        except ConfigError as err:
+            if node.get("_target_") != BENCHMARK_SCENE:
+                raise
+            rejected.append(f"{name} (seed {int(seed) + j}): {err}")
+    return out, rejected
 
 
 @dataclass(kw_only=True)
@@ -79,7 +89,11 @@ class DenseFields(Scenario):
 
     def compute(self, ctx: Context) -> Results:
         n_scenes = ctx.n(self.n_scenes, minimum=0 if self.presets else 1) if self.n_scenes else 0
-        scenes = dense_scenes(ctx, self.presets, n_scenes, self.scene_seed)
+        scenes, rejected = dense_scenes(ctx, self.presets, n_scenes, self.scene_seed)
+        for line in rejected:
+            print(f"[experiments] {self.id}: no covering: {line}", flush=True)
+        if not scenes:
+            raise ConfigError("experiment.n_scenes", f"every field was rejected (no covering): {rejected[0]}")
         conds = self.conditions(ctx)
         ctx.expect(len(scenes) * len(conds) * len(self.controllers))
         n, frames, arrays = ctx.n(self.n_agents, minimum=4), [], {}
@@ -94,7 +108,7 @@ class DenseFields(Scenario):
                         arrays[f"p_{ctrl}"] = res.p[:, : self.n_drawn]
                     frames.append(agent_rows(res, scene=label, condition=cond, obstacles=scene.n_obstacles))
             print(f"[experiments] {self.id}: {label} done ({j + 1}/{len(scenes)})", flush=True)
-        return field_results(frames, arrays, scenes, ctx.seed, vehicle=ctx.vehicle.name)
+        return field_results(frames, arrays, scenes, ctx.seed, vehicle=ctx.vehicle.name, rejected=rejected)
 
 
 __all__ = ["DenseFields", "dense_scenes"]
