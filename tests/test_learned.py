@@ -224,7 +224,7 @@ def test_imitation_stage_writes_a_tracked_policy_that_reloads(tmp_path):
 
 @pytest.mark.parametrize("module, arg, field", [("pipeline.learned.imitate", "imitation.agents=0", "imitation.agents"),
                                                 ("pipeline.learned.imitate", "imitation.foo=1", "imitation.foo"),
-                                                ("pipeline.learned.evaluate", "learned.kappa=-1", "learned.kappa"),
+                                                ("pipeline.learned.evaluate", "learned.kappas=[-1]", "learned.kappas"),
                                                 ("pipeline.learned.evaluate", "learned.agents_list=[dqn]",
                                                  "learned.agents_list"),
                                                 ("pipeline.learned.evaluate", "learned.candidates=0", "learned.candidates"),
@@ -435,7 +435,7 @@ def test_make_learned_end_to_end_on_tiny_maps_with_clouds_and_the_worst_cloud(ti
     assert clean["id"] != heavy["id"] and heavy["path"].name.startswith("imitation_heavy-")
     args = [f"maps.clean={ids['clean']}", f"maps.occluded={ids['occluded']}", f"policies.imitation={clean['path']}",
             f"policies.imitation_clouds={heavy['path']}", "learned.agents=2", "learned.near_k=2",
-            "learned.agents_list=[hybrid,imitated]", "learned.attack_list=[imitated]",
+            "learned.agents_list=[hybrid,imitated]", "learned.attack_list=[imitated]", "learned.kappas=[1,3]",
             "learned.clouds_list=[hybrid,learned_hybrid]", "learned.cloud_attack_list=[imitated,hybrid]",
             "learned.candidates=2", "learned.attack_steps=1", "sim.horizon=1", "learned.grid=[5,4]",
             f"paths.models_dir={root / 'models'}", f"paths.outputs_dir={tmp_path / 'out'}",
@@ -445,7 +445,7 @@ def test_make_learned_end_to_end_on_tiny_maps_with_clouds_and_the_worst_cloud(ti
     got = set(zip(df.agent, df.condition))
     assert got == {("hybrid", "random, clean"), ("hybrid", "near K, clean"), ("imitated", "random, clean"),
                    ("imitated", "near K, clean"), ("imitated", "near K, pixel attack κ=1"),
-                   ("hybrid", "random, heavy clouds"), ("hybrid", "near K, heavy clouds"),
+                   ("imitated", "near K, pixel attack κ=3"), ("hybrid", "random, heavy clouds"), ("hybrid", "near K, heavy clouds"),
                    ("learned_hybrid", "random, heavy clouds"), ("learned_hybrid", "near K, heavy clouds"),
                    ("imitated", "near K, worst of 2 heavy clouds"), ("hybrid", "near K, worst of 2 heavy clouds")}
     worst = df[df.condition.str.startswith("near K, worst")]
@@ -467,3 +467,23 @@ def test_make_learned_end_to_end_on_tiny_maps_with_clouds_and_the_worst_cloud(ti
     for pin, same in ((heavy["path"], True), (other["path"], False)):
         cfg = compose("learned", [*args, f"policies.imitation_clouds={pin}"])
         assert (out["path"].name == f"learned-{learned_id(cfg, inputs(cfg, build(cfg.learned, 'learned')))}") == same
+
+
+def test_the_table_says_what_its_attack_rows_show():
+    """The line under `tab_learned.md` (issue 46): each attacked agent's curve, and where none loses a run, that the
+    budgets are below what separates the agents (make run's small version)."""
+    import pandas as pd
+
+    from pipeline.learned.report import attack_note
+
+    def table(smooth_at_2):
+        rows = [("hybrid", "near K, clean", 1.0, np.nan), ("hybrid", "near K, pixel attack κ=1", 1.0, 0.14),
+                ("hybrid", "near K, pixel attack κ=2", 1.0, 0.25), ("smooth", "near K, clean", 0.6, np.nan),
+                ("smooth", "near K, pixel attack κ=1", 0.6, 0.14), ("smooth", "near K, pixel attack κ=2", smooth_at_2, 0.26)]
+        return pd.DataFrame(rows, columns=["agent", "condition", "reached", "induced_norm"])
+
+    held = attack_note(table(0.6))
+    assert "κ = 1/2" in held and "hybrid 100/100%" in held and "smooth 60/60%" in held and "No agent loses" in held
+    lost = attack_note(table(0.2))
+    assert "smooth 60/20%" in lost and "No agent loses" not in lost
+    assert attack_note(table(0.6)[lambda d: ~d.condition.str.contains("attack")]) == ""

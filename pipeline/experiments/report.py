@@ -158,7 +158,8 @@ OTHER_FILES = [
     ("*.profile.json", "that run's walls per job, as JSON (the next run starts the longest jobs first)"),
     ("tab_learned.md", "learned end-to-end policies against the paper's architecture: success, collision and stall "
                        "rates (make learned's comparison; copied from `outputs/learned/learned-<id>/`, "
-                       "the lock's `learned.comparison`; docs/learned.md)"),
+                       "the lock's `learned.comparison`; the line under it says what its pixel-attack rows show, "
+                       "and why make run's budget separates no agent: docs/learned.md, \"The κ curve\")"),
     ("fig_learned_switching_set.png", "the imitated policy's switching set over the arena (e_b · π(h(p)); black: "
                                       "its own set K), from make learned's comparison (docs/learned.md)"),
     ("tab_certified_*.md", "the certified error map of one perception map (make paper: the occluded map on the band "

@@ -106,8 +106,8 @@ def run(cfg: DictConfig) -> dict:
     for name, policy in _policies(obj, ready.laws, pm, model, s.agents_list, got["ppo"]).items():
         conditions = [("random, clean", obj, random, None), ("near K, clean", obj, near, None)]
         if name in s.attack_list:
-            conditions.append((f"near K, pixel attack κ={s.kappa:g}", obj, near, PolicyAttack(
-                _attack_net(name, pm, model, got["ppo"]), direction, s.kappa, s.attack_steps)))
+            conditions += [(f"near K, pixel attack κ={kappa:g}", obj, near, PolicyAttack(
+                _attack_net(name, pm, model, got["ppo"]), direction, kappa, s.attack_steps)) for kappa in s.kappas]
         table += _measure(name, policy, conditions, s.seed)
     table += _clouded(ready, got, random, near, direction)
     df = pd.DataFrame(table)

@@ -44,7 +44,7 @@ class LearnedSettings:
     near_k: PositiveInt = 100
     band: Positive = 0.5
     a_range: Interval = (-45.0, -15.0)
-    kappa: Kappa = 1.0
+    kappas: list[Kappa] = field(default_factory=lambda: [1.0])  # the pixel attack's budgets near K (a κ curve)
     attack_steps: NonNegativeInt = 2
     seed: NonNegativeInt = 7
     agents_list: list[Agent] = field(default_factory=lambda: list(AGENTS))

@@ -21,7 +21,32 @@ def write_tables(df: pd.DataFrame, folder: Path) -> None:
         show[c] = (100 * show[c]).map(lambda v: f"{v:.0f}%")
     for c in ("median_time_s", "induced_along", "induced_norm"):
         show[c] = show[c].map(lambda v: "" if not np.isfinite(v) else f"{v:.3g}")
-    (folder / "tab_learned.md").write_text(markdown(show))
+    (folder / "tab_learned.md").write_text(markdown(show) + attack_note(df))
+
+
+def attack_note(df: pd.DataFrame) -> str:
+    """The line under the table that says what the pixel-attack rows show: per attacked agent its success near `K`
+    clean and at each budget, the estimate's (or decision's) displacement, and, where no agent loses runs at the
+    largest budget, that these budgets are below what separates the agents on this map (issue 46)."""
+    attacked = df[df["condition"].str.startswith("near K, pixel attack")]
+    if attacked.empty:
+        return ""
+    kappas = sorted({float(c.split("κ=")[1]) for c in attacked["condition"]})
+    parts, lost = [], []
+    for agent, rows in attacked.groupby("agent", sort=False):
+        clean = df[(df["agent"] == agent) & (df["condition"] == "near K, clean")]["reached"]
+        base = float(clean.iloc[0]) if len(clean) else np.nan
+        curve = "/".join(f"{100 * r:.0f}" for r in rows["reached"])
+        moved = rows["induced_norm"].iloc[-1]
+        parts.append(f"{agent} {curve}%" + (f" (moved {moved:.2g} at the largest)" if np.isfinite(moved) else ""))
+        if rows["reached"].iloc[-1] < base:
+            lost.append(agent)
+    line = (f"\nNear K under the pixel attack at κ = {'/'.join(f'{k:g}' for k in kappas)} (reached; the map's estimate "
+            f"or the policy's decision moved, in units): {'; '.join(parts)}.")
+    if not lost:
+        line += (" No agent loses a run at these budgets: they are below what separates the agents on this map; a "
+                 "larger `learned.kappas` shows the κ curve (docs/learned.md, \"The κ curve\").")
+    return line + "\n"
 
 
 def switching_values(obj, model, grid) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
