@@ -27,7 +27,8 @@ from omegaconf import DictConfig, OmegaConf
 from pipeline import tracking
 from pipeline.cli import stage_main
 from pipeline.config import build
-from pipeline.control.fields import FieldAnalysis, admitted_covering, analyse_field, no_covering
+from pipeline.control.admitted import admitted_covering, no_covering
+from pipeline.control.fields import FieldAnalysis, analyse_field
 from pipeline.control.validity import field_violations
 from pipeline.errors import ConfigError
 from pipeline.plants import steering_warnings

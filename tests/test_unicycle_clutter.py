@@ -59,7 +59,7 @@ def test_smoothing_is_the_mean_of_the_last_commands_and_restarts_with_a_run(k):
     loop = SampledLoop(parts.scene, parts.law(compose("simulate", []).controller, "controller"), parts.plant)
     rng = np.random.default_rng(0)
     us = [rng.normal(size=(5, 2)) for _ in range(5)]
-    for run in range(2):  # a second run starts without the first one's commands
+    for _ in range(2):  # a second run starts without the first one's commands
         loop.initial(parts.plant.lift(np.tile([-40.0, 5.0], (5, 1)), np.zeros(5)), rng)
         for j, u in enumerate(us):
             window = us[max(0, j - k + 1): j + 1]

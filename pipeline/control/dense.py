@@ -12,8 +12,9 @@ import math
 
 import numpy as np
 
+from pipeline.control.admitted import admitted_covering, no_covering
+from pipeline.control.fields import analyse_field
 from pipeline.control.scene import Arena, Barrier, Obstacle, Scene
-from pipeline.control.fields import admitted_covering, analyse_field, no_covering
 from pipeline.control.validity import field_violations
 from pipeline.errors import ConfigError
 from pipeline.schema import NonNegative, Positive, PositiveInt
