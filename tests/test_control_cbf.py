@@ -296,3 +296,24 @@ def test_no_constraints():
     u_nom = np.array([[1.0, -2.0]])
     sol = cbf_qp(u_nom, np.zeros((1, 0, 2)), np.zeros((1, 0)))
     assert np.array_equal(sol.u, u_nom) and sol.feasible.all() and sol.active.shape == (1, 0)
+
+
+@pytest.mark.parametrize("cls", ["CBFController", "SmoothController"])
+def test_a_sampled_frame_solves_the_law_once(cls, monkeypatch):
+    """The loop's frame reads the flow set and the flow map at one evaluation: a CBF's QP is solved once per frame,
+    not twice (it was: `flow_set` and `flow_map` each called `_flow`), and the runs are the same."""
+    from pipeline import control
+    from pipeline.control.dense import benchmark_scene
+    from pipeline.sim import SimSettings, WorldAlternating, simulate
+
+    scene = benchmark_scene(seed=0)
+    law = getattr(control, cls)(scene, u_max=1.0)
+    calls = []
+    real = type(law)._flow
+    monkeypatch.setattr(type(law), "_flow", lambda self, m, target: calls.append(len(m)) or real(self, m, target))
+    x0 = np.array([[7.0, 0.0], [0.0, 7.0]])
+    r = simulate(scene, law, x0, sim=SimSettings(horizon=1.0, stop_on_success=False), disturbance=WorldAlternating(m=0.2),
+                 record=False)
+    frames = int(round(1.0 / 0.05))
+    assert len(calls) == frames, f"{len(calls)} evaluations for {frames} frames"
+    assert r.metrics["outcome"].tolist() == ["timed_out", "timed_out"]

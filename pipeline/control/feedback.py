@@ -54,7 +54,11 @@ class Feedback:
         return {"q": np.ones(len(m0), dtype=np.int8)}
 
     def evaluate(self, m: np.ndarray, xd: dict, target=None):
-        return None
+        """The law at `m` once: `(u, fallback rows)` of `_flow`, which `flow_set` and `flow_map` read (a sampled
+        loop's frame solves a CBF's QP once, not twice); None for a law that writes its four maps itself."""
+        if type(self)._flow is Feedback._flow:
+            return None
+        return self._flow(np.asarray(m, dtype=float), target)
 
     def covers(self, ev, xd_from: dict, xd: dict) -> bool:
         return True
@@ -67,10 +71,10 @@ class Feedback:
 
     def flow_set(self, m, xd, target=None, ev=None) -> np.ndarray:
         """Where the flow map is the law itself (not its fallback): where it is finite."""
-        return ~self._flow(np.asarray(m, dtype=float), target)[1]
+        return ~(self.evaluate(m, xd, target) if ev is None else ev)[1]
 
     def flow_map(self, m, xd, target=None, ev=None) -> np.ndarray:
-        return self._flow(np.asarray(m, dtype=float), target)[0]
+        return (self.evaluate(m, xd, target) if ev is None else ev)[0].copy()  # a copy: `ev` may serve again
 
     def hold(self, u: np.ndarray, m, xd, ev, period: float) -> tuple[np.ndarray, np.ndarray]:
         """The velocity a sampled loop holds between frames (the law's own: no guard), and the guarded rows."""
