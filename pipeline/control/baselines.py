@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.control.cbf import cbf_qp, disc_constraints
-from pipeline.control.feedback import Feedback, radial
+from pipeline.control.feedback import Feedback
 from pipeline.control.potentials import smooth_potential_grad
 from pipeline.control.scene import Scene
 from pipeline.schema import Positive, checked
@@ -28,7 +28,7 @@ class SmoothController(Feedback):
     def _flow(self, m, target):
         u = -self.k * smooth_potential_grad(self.scene, m, target)
         inside = ~np.isfinite(u).all(axis=1)
-        return self._finalise(u, inside, radial(self.scene, m))
+        return self._finalise(u, inside, m)
 
 
 @checked("controller")
@@ -49,4 +49,4 @@ class CBFController(Feedback):
         G, b, _ = disc_constraints(m, arr["center"], 2.0 * arr["radius"], self.alpha)
         sol = cbf_qp(u_nom, G, b)
         u = np.array(sol.u, dtype=float)
-        return self._finalise(u, sol.degenerate, radial(self.scene, m))
+        return self._finalise(u, sol.degenerate, m)

@@ -87,11 +87,12 @@ class Feedback:
         """`(u, fallback rows)`."""
         raise NotImplementedError
 
-    def _finalise(self, u: np.ndarray, bad: np.ndarray, fallback: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Replace rows that cannot be evaluated by `fallback * push_speed`, saturate; `(u, replaced rows)`."""
+    def _finalise(self, u: np.ndarray, bad: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Replace rows that cannot be evaluated by the push-out `radial(m) * push_speed` (computed on those rows
+        only), saturate; `(u, replaced rows)`."""
         bad = bad | ~np.isfinite(u).all(axis=1)
         if bad.any():
-            u[bad] = fallback[bad] * self.push_speed
+            u[bad] = radial(self.scene, m[bad]) * self.push_speed
         return saturate(u, self.u_max), bad
 
 
