@@ -27,10 +27,9 @@ from omegaconf import DictConfig, OmegaConf
 from pipeline import tracking
 from pipeline.cli import stage_main
 from pipeline.config import build
-from pipeline.control.admitted import admitted_covering, no_covering
+from pipeline.control.admitted import checked_covering
 from pipeline.control.fields import FieldAnalysis, analyse_field
 from pipeline.control.validity import field_violations
-from pipeline.errors import ConfigError
 from pipeline.plants import steering_warnings
 from pipeline.sim import starts
 
@@ -133,15 +132,10 @@ def steering(cfg: DictConfig) -> list[str]:
 
 def write_covering(cfg: DictConfig, g: dict, ana: FieldAnalysis, P, *, h, u_max, T_s) -> str:
     """The scene with the largest uniform covering the field admits, written to `cfg.write` (module docstring)."""
-    f, reach_f, kappa = admitted_covering(ana, float(cfg.get("write_margin", 0.1)))  # the margin checked first
-    if not ana.feasible:
-        raise no_covering(g["centers"], g["radii"], g["target"], ana, P)
+    f, reach_f, kappa = checked_covering(ana, g["centers"], g["radii"], g["target"],
+                                         margin=float(cfg.get("write_margin", 0.1)), starts=P, h=h, u_max=u_max,
+                                         T_s=T_s, arena=g["arena"])
     rr, d = g["radii"], g["inflation"]
-    bad = field_violations(g["centers"], rr, g["target"], apex=f * rr, reach=reach_f * rr, h=h, u_max=u_max, T_s=T_s,
-                           arena=g["arena"], starts=P)
-    if bad:  # the analysis and the rules disagree: nothing is written
-        raise ConfigError(bad[0].field, f"the covering apex {f:.4g} (r + d), reach {reach_f:.4g} (r + d) still "
-                                        f"violates: {bad[0].message}")
     node = tracking.to_plain(cfg.scene)
     rho = float((node.get("barrier") or {}).get("rho", 0.5))
     r0 = rr - d  # written for the scene's own radii: the unicycle's steering grows apex and reach by (r + d) / r

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.control.fields import FieldAnalysis
-from pipeline.control.validity import OBSTACLES_FIELD, SQRT2
+from pipeline.control.validity import OBSTACLES_FIELD, SQRT2, field_violations
 from pipeline.errors import ConfigError
 
 
@@ -48,4 +48,20 @@ def no_covering(centers, cover_radii, target, ana: FieldAnalysis, starts=None) -
                                f"{need - ana.pair_distance[0]:.3g}")
 
 
-__all__ = ["admitted_covering", "no_covering"]
+def checked_covering(ana: FieldAnalysis, centers, cover_radii, target, *, margin: float = 0.1, starts=None,
+                     **rules) -> tuple[float, float, float]:
+    """:func:`admitted_covering`, refused in one line where the field admits none (:func:`no_covering`) or where
+    SPEC §3.6's rules (`field_violations` with `rules`: `h`, `u_max`, `T_s`, `arena`) still find a violation of it
+    (the analysis and the rules disagree: nothing is built or written)."""
+    f, g, kappa = admitted_covering(ana, margin)  # the margin checked first
+    if not ana.feasible:
+        raise no_covering(centers, cover_radii, target, ana, starts)
+    rr = np.asarray(cover_radii, float)
+    bad = field_violations(centers, rr, target, apex=f * rr, reach=g * rr, starts=starts, **rules)
+    if bad:
+        raise ConfigError(bad[0].field, f"the covering apex {f:.4g} (r + d), reach {g:.4g} (r + d) still violates: "
+                                        f"{bad[0].message}")
+    return f, g, kappa
+
+
+__all__ = ["admitted_covering", "checked_covering", "no_covering"]

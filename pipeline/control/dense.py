@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from pipeline.control.admitted import admitted_covering, no_covering
+from pipeline.control.admitted import checked_covering
 from pipeline.control.fields import analyse_field
 from pipeline.control.scene import Arena, Barrier, Obstacle, Scene
 from pipeline.control.validity import field_violations
@@ -96,7 +96,7 @@ def benchmark_scene(n_obstacles: tuple[int, int] = (8, 12), seed: int = 0, radiu
     the goal `target` and at least `goal_clearance` from it; arena the square of `half_width` about the goal;
     `n_starts` starts on the circle of `start_radius`. The covering is the largest uniform one V1-V3 and the start
     rule admit for the loop it will run in (`h`, `u_max`, `T_s`, the discs grown by `inflation`: the unicycle's
-    look-ahead), `write_margin` of the headroom kept back (:func:`pipeline.control.fields.admitted_covering`,
+    look-ahead), `write_margin` of the headroom kept back (:func:`pipeline.control.admitted.checked_covering`,
     the covering `fieldcheck write=FILE` writes); a field that admits none: ConfigError naming the pair of discs
     and the shortfall. Only the draw of the centres is retried (`max_tries`: a disc that finds no place)."""
     lo, hi = (int(x) for x in n_obstacles)
@@ -118,13 +118,8 @@ def benchmark_scene(n_obstacles: tuple[int, int] = (8, 12), seed: int = 0, radiu
     arena = ((p_T[0] - half_width, p_T[0] + half_width), (p_T[1] - half_width, p_T[1] + half_width))
     rr = np.full(n, radius + inflation)
     ana = analyse_field(cs, rr, p_T, starts=starts, arena=arena, h=h, u_max=u_max, T_s=T_s)
-    f, g, _ = admitted_covering(ana, write_margin)
-    if not ana.feasible:
-        raise no_covering(cs, rr, p_T, ana, starts)
-    bad = field_violations(cs, rr, p_T, apex=f * rr, reach=g * rr, h=h, u_max=u_max, T_s=T_s, arena=arena, starts=starts)
-    if bad:  # the analysis and the rules disagree: no scene
-        raise ConfigError(bad[0].field, f"the covering apex {f:.4g} (r + d), reach {g:.4g} (r + d) still violates: "
-                                        f"{bad[0].message}")
+    f, g, _ = checked_covering(ana, cs, rr, p_T, margin=write_margin, starts=starts, h=h, u_max=u_max, T_s=T_s,
+                               arena=arena)
     # written for the discs' own radius: the unicycle's steering grows apex and reach by (r + d) / r (Scene.inflated)
     obstacles = [Obstacle(center=[float(x), float(y)], radius=float(radius), apex=float(f * radius),
                           barrier_scale=float(g * radius / math.sqrt(0.5))) for x, y in cs]
