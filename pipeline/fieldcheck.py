@@ -22,6 +22,7 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
+from hydra.utils import get_class
 from omegaconf import DictConfig, OmegaConf
 
 from pipeline import tracking
@@ -114,8 +115,10 @@ def steering(cfg: DictConfig) -> list[str]:
         return []
     ctl = cfg.controller
     u_max = ctl.get("u_max")
+    # the law's settings without building it (its scene may be the invalid one reported above); the push-out speed
+    # defaults to u_max as in Feedback, and whether it is hybrid is the class's own attribute
     law = SimpleNamespace(u_max=u_max, push_speed=ctl.get("push_speed") or u_max,
-                          hybrid="Hybrid" in str(ctl.get("_target_", "")))
+                          hybrid=bool(getattr(get_class(ctl._target_), "hybrid", False)))
     d, w, rho = plant.lookahead, plant.omega_max, plant.turn_lookahead
     lines = [f"z moves sideways at most omega_max d = {w * d:.3g} per second; commands averaged over "
              f"{plant.smoothing} frame(s)"]

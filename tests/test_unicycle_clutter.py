@@ -148,4 +148,6 @@ def test_fieldcheck_states_the_unicycle_steering_conditions(capsys):
     assert sum(line.startswith("warning") for line in bare) == 2
     done = run(compose("fieldcheck", [*base, "vehicle.smoothing=2", "vehicle.turn_lookahead=0.5"]))["steering"]
     assert not any(line.startswith("warning") for line in done) and any("within 30 deg" in line for line in done)
+    smooth = run(compose("fieldcheck", [*base[:2], "controller=smooth", "controller.u_max=1", *base[3:]]))["steering"]
+    assert [line for line in smooth if line.startswith("warning")] == [bare[1]]  # no push-out: not a hybrid law
     assert "Unicycle steering" in capsys.readouterr().out
