@@ -28,6 +28,8 @@ class Certificate:
     arrival: np.ndarray    # (grid cells,) frames to the goal from the cell, every initial node (inf: not in Win)
     no_start: np.ndarray   # (grid cells,) inside the closed diamond or outside the arena: no start lies there
     scene: object = None   # the world scene (its obstacles' diamonds)
+    node_frames: np.ndarray | None = None  # (nodes,) frames to the goal from a node of Win (inf elsewhere)
+    eps_cells: np.ndarray | None = None    # (grid cells,) the error bound the abstraction took on each cell
 
 
 def certify(law, eps_world, *, h: float, angle: float, period: float, goal_radius: float, n_split: int = 4,
@@ -61,7 +63,7 @@ def certify(law, eps_world, *, h: float, angle: float, period: float, goal_radiu
     stats = {**stats, "nodes": int(len(ab.safe)), "edges": int(len(ab.succ)), "cells": int(grid.n),
              "horizon_frames": float(horizon), "beyond_horizon": int((certified_cells(ab, W) & view & ~cert).sum()),
              "lost_frames": lost.describe()}
-    return Certificate(frame, grid, ab, W, cert, stats, arrival, no_start, law.scene)
+    return Certificate(frame, grid, ab, W, cert, stats, arrival, no_start, law.scene, to_goal, eps)
 
 
 def certified_starts(cert: Certificate, starts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

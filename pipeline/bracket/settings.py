@@ -33,7 +33,9 @@ class BracketSettings:
     bisected on the integer levels `[0, kappa_max]`, `pgd_steps` PGD steps per frame towards the directions of
     `camera_adversaries`, on `camera_device` (:mod:`pipeline.bracket.camera_falsifier`). `lost_frames`: the most
     consecutive camera frames the proof lets be lost (`camera.p_fail`, `camera.gate`; held or, with
-    `camera.predict`, dead-reckoned: :mod:`pipeline.bracket.lost`); 0: every frame arrives (the loop must lose none)."""
+    `camera.predict`, dead-reckoned: :mod:`pipeline.bracket.lost`); 0: every frame arrives (the loop must lose none).
+    `funnel_split`: sub-squares per side of a start cell the abstraction does not certify, each followed by a funnel
+    through free space (:mod:`pipeline.bracket.funnel`); 0: the abstraction alone."""
 
     controllers: Annotated[list[Law], NonEmpty()] = field(default_factory=lambda: ["hybrid", "smooth", "cbf"])
     eps: Annotated[list[NonNegative], NonEmpty()] = field(default_factory=lambda: [0.1, 0.25, 0.5])
@@ -61,6 +63,7 @@ class BracketSettings:
         default_factory=lambda: ["fixed", "mode_aware"])
     camera_device: Device = "cpu"
     lost_frames: NonNegativeInt = 0
+    funnel_split: NonNegativeInt = 10
 
     def __post_init__(self):
         if self.commit > self.lookahead:

@@ -2,7 +2,7 @@
 
 Writes to the Hydra run dir: `bracket.csv` (one row per controller and start cell: `x0, x1, y0, y1`, `start` (the
 cell holds starts the simulator accepts: not wholly in the diamond), `eps_lo` (the largest uniform ε certified
-within `sim.horizon`; NaN: none), `arrival_bound` (seconds: the certified arrival bound at that ε),
+within `sim.horizon`; NaN: none), `funnel` (certified there through funnels, :mod:`pipeline.bracket.funnel`), `arrival_bound` (seconds: the certified arrival bound at that ε),
 `arrival_nominal` (seconds: the falsifier's start without error), `certified_map` (certified with the error map's
 ε̄, when given), `eps_hi` (inf: no failure found up to `eps_max`; NaN: no start), the adversary and outcome of the
 counterexample; with
@@ -28,8 +28,9 @@ from omegaconf import DictConfig
 
 from pipeline import lineage, tracking
 from pipeline.bracket.bounds import CellTable, Finest, Uniform
-from pipeline.bracket.certify_loop import certified_starts, certify
+from pipeline.bracket.certify_loop import certify
 from pipeline.bracket.falsifier import Search, falsify
+from pipeline.bracket.funnel import funnel_starts
 from pipeline.bracket.loop import OUTCOMES, REACHED, RUNNING, FrameLoop
 from pipeline.bracket.lost import LostFrames
 from pipeline.bracket.starts import behind_obstacles, falsifier_starts, start_cells
@@ -165,17 +166,21 @@ def bracket_rows(name, law, scene, bs, sim, camera, emap, starts, pmap=None, los
     eps_lo = np.full(len(starts), np.nan)
     arrival = np.full(len(starts), np.nan)
     stats = {}
+    funnel = np.full(len(starts), False)
+    fw = dict(split=bs.funnel_split, period=camera.period, horizon=loop.n_frames, lost=lost)
     for eps in bs.eps:
         t0 = time.perf_counter()
         cert = certify(law, Uniform(eps), **kw)
-        ok, frames, no_start = certified_starts(cert, starts)
+        ok, frames, no_start, by_funnel = funnel_starts(cert, law, starts, **fw)
         eps_lo[ok], arrival[ok] = eps, np.maximum(frames[ok], 1) * camera.period  # arrival is told at a frame's end
-        stats[f"eps={eps:g}"] = {**cert.stats, "certified_starts": int(ok.sum()), "seconds": time.perf_counter() - t0}
+        funnel[ok] = by_funnel[ok]
+        stats[f"eps={eps:g}"] = {**cert.stats, "certified_starts": int(ok.sum()), "by_funnel": int(by_funnel.sum()),
+                                 "seconds": time.perf_counter() - t0}
     by_map = np.full(len(starts), False)
     if emap is not None:
         cert = certify(law, emap, **kw)
-        by_map = certified_starts(cert, starts)[0]
-        stats["error_map"] = {**cert.stats, "certified_starts": int(by_map.sum())}
+        by_map, _, _, by_funnel = funnel_starts(cert, law, starts, **fw)
+        stats["error_map"] = {**cert.stats, "certified_starts": int(by_map.sum()), "by_funnel": int(by_funnel.sum())}
     if lost is not None and lost.max_lost > 0:
         stats["lost_frames"] = {"model": lost.describe(), "p_fail": camera.p_fail,
                                 "p_more_per_run": lost.p_more(camera.p_fail, loop.n_frames)}
@@ -193,7 +198,8 @@ def bracket_rows(name, law, scene, bs, sim, camera, emap, starts, pmap=None, los
     eps_hi[inside], adv[inside] = br.eps_hi, br.adversary
     out[inside] = [OUTCOMES[o] if np.isfinite(e) else "" for o, e in zip(br.outcome, br.eps_hi)]
     rows = pd.DataFrame({"controller": name, "x0": starts[:, 0], "x1": starts[:, 1], "y0": starts[:, 2],
-                         "y1": starts[:, 3], "start": ~no_start, "eps_lo": eps_lo, "arrival_bound": arrival,
+                         "y1": starts[:, 3], "start": ~no_start, "eps_lo": eps_lo, "funnel": funnel,
+                         "arrival_bound": arrival,
                          "arrival_nominal": t_sim, "certified_map": by_map, "eps_hi": eps_hi, "adversary": adv,
                          "outcome": out})
     paths = np.full((br.path.shape[0], len(starts), 2), np.nan)

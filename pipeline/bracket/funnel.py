@@ -1,0 +1,178 @@
+"""Funnels in free space (SPEC §5.4, docs/bracket.md "Funnels"): the runs from a start ball followed frame by frame
+while the law is the saturated attraction alone, and handed to the abstraction where they enter winning cells.
+
+The abstraction's cells lose where a run is: over a long flight to the obstacle, abstract paths drift sideways by
+about a cell per edge, so from far behind the obstacle they reach the back vertex, where nothing is certified,
+though the runs themselves pass it by many units. A funnel keeps the set of positions as a ball `B(c_k, ρ_k)`:
+
+- **The free region.** Where every perceived point `m` of `B(c_k, ρ_k + ε)` gives the law's input
+  `u = u_max (p_T - m)/|p_T - m|` (the attraction, saturated; the hybrid law: `m` at least the barrier's reach and
+  the guard's range from the mode's wedge `W_q`, so `V_q = |m - p_T|^2 <= V_{3-q}`: no jump, no barrier, no guard;
+  the smooth law: from every margin disc; the CBF filter: every constraint inactive at `u_nom`, a quadratic bounded
+  below over the ball), and each held segment stays off every obstacle disc and inside the arena.
+- **One frame.** `p' = p - s (p + e - p_T)/|p + e - p_T|` (`s = u_max T_s`, `|e| <= ε`): the map
+  `F(p) = p - s (p - p_T)/|p - p_T|` is 1-Lipschitz where `|p - p_T| >= s` (its Jacobian `I - (s/r)(I - e_r e_r^T)`
+  has eigenvalues 1 and `1 - s/r`), and the error turns the direction by at most `asin(ε/r)`, so
+  `c' = F(c)`, `ρ' = ρ + s asin(ε/r_lo)` (`r_lo = |c - p_T| - ρ`).
+- **The hand-off.** At a frame `k` where the ball's grid cells (every cell meeting its bounding square in the
+  abstraction's frame) are all in `Win` in the funnel's mode, every run is in a winning node at that frame instant
+  (the frame's decision keeps the mode: the perceived ball is free): it arrives within `k + max frames(node)`
+  frames. The funnel takes the smallest such bound over its frames.
+
+A start cell is certified when each of its sub-squares (`bracket.funnel_split` per side, their circumscribed balls)
+is certified by its funnel, in every mode the run may start in, or by the abstraction itself. `ε` over a ball: the
+largest per-cell bound of the certificate over the cells meeting it (with lost frames: the stale bound, as the
+abstraction's; a stop of the predicting gate is not modelled here and turns funnels off). One obstacle: on a field
+of several no law gets funnels (the hybrid law's locally active obstacle is not followed, and the laws are compared
+by one method).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.bracket.certify_loop import Certificate, certified_starts
+from pipeline.bracket.lost import LostFrames
+from pipeline.bracket.modes import initial_modes
+from pipeline.control import CBFController, HybridController, SmoothController
+from pipeline.control.covering import wedge_coords
+
+TOL = 1e-9  # world units: margins of the free-region tests (no directed rounding, as the abstraction)
+
+
+def _wedge_dist(cov, q: int, c: np.ndarray) -> np.ndarray:
+    """Distance from each point to the wedge `W_q` (1-Lipschitz: over a ball at least this less its radius)."""
+    u, v = wedge_coords(cov, q, c)
+    return np.hypot(np.minimum(u, 0.0), np.minimum(v, 0.0))
+
+
+def free(law, q: int, c: np.ndarray, rad: np.ndarray, period: float) -> np.ndarray:
+    """Whether every perceived point of `B(c, rad)` gets the attraction alone from `law` in mode `q` (before the
+    saturation, which the caller asks for), with frames every `period` (the hybrid law's guard)."""
+    arr = law.scene.arrays
+    if isinstance(law, HybridController):
+        cov = law.scene.covering(0)
+        guard = law.u_max * period / (1.0 - law.gamma) if law.guard else 0.0
+        return _wedge_dist(cov, q, c) - rad > max(cov.barrier_reach, guard) + TOL
+    ok = np.ones(len(c), bool)
+    for centre, r, reach in zip(arr["center"], arr["radius"], arr["reach"]):
+        d = np.hypot(*(c - centre).T)
+        if isinstance(law, SmoothController):
+            ok &= d - rad - 2.0 * r > reach + TOL
+        else:  # CBF: f(m) = -2k (m - c)·(m - p_T) + α (|m - c|² - 4 r²) >= 0 leaves u_nom feasible, hence optimal
+            k, a = law.k, law.alpha
+            x, t = c - centre, c - law.scene.p_T
+            f = -2 * k * np.einsum("ij,ij->i", x, t) + a * (np.einsum("ij,ij->i", x, x) - 4 * r * r)
+            grad = -2 * k * (x + t) + 2 * a * x
+            ok &= f - np.hypot(*grad.T) * rad + min(0.0, a - 2 * k) * rad**2 > TOL * (1 + np.abs(f))
+    return ok
+
+
+def gain(law) -> float:
+    """`g` of the attraction `-g (m - p_T)` before saturation."""
+    return law.k if isinstance(law, CBFController) else 2.0 * law.k * law.scene.covering(0).phi_weight
+
+
+def _cells_of_ball(cert: Certificate, g: np.ndarray, rad: np.ndarray, width: int):
+    """Grid cells meeting the bounding squares of balls (grid frame): `(N, width²)` indices, -1 where none; and
+    rows whose square overflows the grid or `width` cells."""
+    grid = cert.grid
+    lo_x = np.floor((g[:, 0] - rad - grid.x0) / grid.h).astype(np.int64)
+    hi_x = np.floor((g[:, 0] + rad - grid.x0) / grid.h).astype(np.int64)
+    lo_y = np.floor((g[:, 1] - rad - grid.y0) / grid.h).astype(np.int64)
+    hi_y = np.floor((g[:, 1] + rad - grid.y0) / grid.h).astype(np.int64)
+    over = (lo_x < 0) | (lo_y < 0) | (hi_x >= grid.nx) | (hi_y >= grid.ny) | (hi_x - lo_x >= width) | \
+        (hi_y - lo_y >= width)
+    ox, oy = np.meshgrid(np.arange(width), np.arange(width), indexing="ij")
+    ix, iy = lo_x[:, None] + ox.ravel(), lo_y[:, None] + oy.ravel()
+    inside = (ix <= hi_x[:, None]) & (iy <= hi_y[:, None]) & ~over[:, None]
+    return np.where(inside, ix * grid.ny + iy, -1), over
+
+
+def step_ball(c: np.ndarray, rad: np.ndarray, eps: np.ndarray, p_T: np.ndarray, s: float):
+    """One frame of the saturated attraction from `B(c, rad)` with errors within `eps` (module docstring; valid where
+    `|c - p_T| - rad > max(eps, s)`): the ball `B(c', rad')` holding every `p - s (p + e - p_T)/|p + e - p_T|`."""
+    r = np.hypot(*(c - p_T).T)
+    r_lo = r - rad
+    nxt = c - s * (c - p_T) / r[:, None]
+    return nxt, rad + s * np.arcsin(np.minimum(1.0, eps / np.maximum(r_lo, TOL))) + TOL
+
+
+def run_funnels(cert: Certificate, law, centres: np.ndarray, rad0: float, q: int, period: float,
+                horizon: float) -> np.ndarray:
+    """Per ball `B(centres_i, rad0)` (world) in mode `q`: the arrival bound in frames through its funnel (inf: none
+    hands off within the horizon)."""
+    p_T, s = law.scene.p_T, law.u_max * period
+    (ax0, ax1), (ay0, ay1) = law.scene.bounds
+    arr = law.scene.arrays
+    c, rad = np.array(centres, float), np.full(len(centres), float(rad0))
+    best = np.full(len(c), np.inf)
+    alive = np.ones(len(c), bool)
+    modes = cert.abstraction.modes
+    node_frames = np.where(cert.won, cert.node_frames, np.inf).reshape(-1, modes)[:, q - 1]
+    for k in range(int(min(horizon, 10**6)) + 1):
+        rows = np.flatnonzero(alive)
+        if rows.size == 0:
+            break
+        cr, rr = c[rows], rad[rows]
+        width = int(np.ceil(2 * rr.max() / cert.grid.h)) + 2
+        cells, over = _cells_of_ball(cert, cert.frame.to_grid(cr), rr, width)
+        eps = np.where(cells >= 0, cert.eps_cells[np.maximum(cells, 0)], -np.inf).max(axis=1)
+        handed = np.where(cells >= 0, node_frames[np.maximum(cells, 0)], -np.inf).max(axis=1)
+        r_lo = np.hypot(*(cr - p_T).T) - rr
+        ok = ~over & np.isfinite(eps) & free(law, q, cr, rr + eps, period) & (r_lo - eps > law.u_max / gain(law) + TOL)
+        ok &= r_lo - eps > s + TOL
+        best[rows] = np.where(ok, np.minimum(best[rows], k + handed), best[rows])  # the frame's decision keeps q
+        nxt, rn = step_ball(cr, rr, eps, p_T, s)
+        seg = rn + s  # the held segment lies in B(c_k, s + ρ_{k+1})
+        clear = np.min([np.hypot(*(cr - ctr).T) - seg - r for ctr, r in zip(arr["center"], arr["radius"])], axis=0)
+        ok &= (clear > TOL) & (nxt[:, 0] - rn > ax0) & (nxt[:, 0] + rn < ax1) & (nxt[:, 1] - rn > ay0) & \
+            (nxt[:, 1] + rn < ay1) & (k < horizon)
+        c[rows], rad[rows] = nxt, rn
+        alive[rows[~ok]] = False
+    return np.where(best <= horizon, best, np.inf)
+
+
+def funnel_starts(cert: Certificate, law, starts: np.ndarray, split: int, period: float, horizon: float,
+                  lost: LostFrames | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """World start cells `(N, 4)`: `(certified, arrival frames, no_start, by_funnel)`: by the abstraction
+    (:func:`certified_starts`, its verdict and bound kept) or, where it does not certify, sub-square by sub-square
+    by funnels or the abstraction (module docstring; `by_funnel` marks those). `split = 0`: the abstraction alone."""
+    ok, arrival, no_start = certified_starts(cert, starts)
+    by_funnel = np.zeros(len(starts), bool)
+    hybrid = isinstance(law, HybridController)
+    todo = np.flatnonzero(~ok & ~no_start)
+    if split == 0 or todo.size == 0 or (lost is not None and lost.may_stop) or law.u_max is None or \
+            law.scene.n_obstacles > 1:
+        return ok, arrival, no_start, by_funnel
+    t = (np.arange(split) + 0.5) / split
+    tx, ty = (g.ravel() for g in np.meshgrid(t, t, indexing="ij"))
+    cells = starts[todo]
+    w, h = (cells[:, 1] - cells[:, 0])[:, None], (cells[:, 3] - cells[:, 2])[:, None]
+    cx, cy = cells[:, :1] + tx * w, cells[:, 2:3] + ty * h
+    hw, hh = np.broadcast_to(w / split / 2, cx.shape), np.broadcast_to(h / split / 2, cy.shape)
+    subs = np.stack([cx - hw, cx + hw, cy - hh, cy + hh], axis=-1).reshape(-1, 4)
+    centres = np.stack([cx.ravel(), cy.ravel()], axis=1)
+    rad0 = float(np.hypot(hw, hh).max())
+    sub_ok, sub_arr, sub_none = certified_starts(cert, subs)
+    eps0 = _ball_eps(cert, centres, rad0)
+    reach = np.where(np.isfinite(eps0), rad0 + eps0, 1e9)  # the perceived box of frame 0
+    boxes = np.stack([centres[:, 0] - reach, centres[:, 0] + reach, centres[:, 1] - reach, centres[:, 1] + reach], 1)
+    modes = initial_modes(law, boxes) if hybrid else np.ones((len(centres), 1), bool)
+    funnel = np.where(modes.any(axis=1), -np.inf, np.inf)
+    for q in range(1, modes.shape[1] + 1):
+        rows = np.flatnonzero(modes[:, q - 1] & ~sub_none & ~sub_ok)
+        funnel[rows] = np.maximum(funnel[rows], run_funnels(cert, law, centres[rows], rad0, q, period, horizon))
+    per_sub = np.where(sub_none, -np.inf, np.where(sub_ok, sub_arr, funnel)).reshape(len(todo), -1)
+    bound = per_sub.max(axis=1)
+    won = np.isfinite(bound)
+    ok[todo[won]], arrival[todo[won]], by_funnel[todo[won]] = True, bound[won], True
+    return ok, arrival, no_start, by_funnel
+
+
+def _ball_eps(cert: Certificate, centres: np.ndarray, rad: float) -> np.ndarray:
+    """The largest per-cell bound over the grid cells meeting each ball (inf: outside the grid)."""
+    cells, over = _cells_of_ball(cert, cert.frame.to_grid(centres), np.full(len(centres), rad),
+                                 int(np.ceil(2 * rad / cert.grid.h)) + 2)
+    eps = np.where(cells >= 0, cert.eps_cells[np.maximum(cells, 0)], -np.inf).max(axis=1)
+    return np.where(over, np.inf, eps)

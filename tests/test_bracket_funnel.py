@@ -1,0 +1,139 @@
+"""Funnels through free space (pipeline/bracket/funnel.py, docs/bracket.md "Funnels"): the one-frame ball map and the
+free region checked against the law itself (sampling), and the start cells certified through funnels run by the
+ordinary simulator (`pipeline.sim.simulate`) with this suite's own error signals."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from budget import examples  # tests/budget.py: more examples under make test-explore
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from test_bracket_loop_that_runs import _lossy_errors
+
+from pipeline.bracket.bounds import Uniform
+from pipeline.bracket.certify_loop import certified_starts, certify
+from pipeline.bracket.funnel import free, funnel_starts, gain, step_ball
+from pipeline.control import CBFController, HybridController, Scene, SmoothController, in_diamond
+from pipeline.sim import CameraSettings, SimSettings, simulate
+
+SCENE = Scene(target=[40.0, 0.0], obstacles=[{"center": [0.0, 0.0], "radius": 4.0}])
+P_T = SCENE.p_T
+
+
+def _disc(rng, n, radius):
+    ang = rng.uniform(0, 2 * np.pi, n)
+    return radius * np.sqrt(rng.uniform(0, 1, n))[:, None] * np.stack([np.cos(ang), np.sin(ang)], 1)
+
+
+@settings(max_examples=examples(60), deadline=None)
+@given(x=st.floats(-50, 30), y=st.floats(-30, 30), rad=st.floats(0.0, 3.0), eps=st.floats(0.0, 2.0),
+       s=st.floats(0.05, 2.0), seed=st.integers(0, 2**16))
+def test_one_frame_keeps_every_run_in_the_next_ball(x, y, rad, eps, s, seed):
+    """Every `p` of `B(c, rad)` and error `|e| <= eps` lands in `step_ball`'s ball (where the map is defined:
+    `|c - p_T| - rad > max(eps, s)`). Without the error's term `s asin(ε/r)` the points pushed sideways leave it."""
+    c = np.array([[x, y]])
+    r_lo = np.hypot(*(c[0] - P_T)) - rad
+    if r_lo <= max(eps, s) + 1e-6:
+        return
+    nxt, rn = step_ball(c, np.array([rad]), np.array([eps]), P_T, s)
+    rng = np.random.default_rng(seed)
+    n = 400
+    p = c + _disc(rng, n, rad)
+    e = _disc(rng, n, eps)
+    e[: n // 4] *= eps / np.maximum(np.hypot(*e[: n // 4].T), 1e-300)[:, None]  # on the error's edge
+    v = p + e - P_T
+    p1 = p - s * v / np.hypot(*v.T)[:, None]
+    assert (np.hypot(*(p1 - nxt[0]).T) <= rn[0] + 1e-9).all()
+
+
+def test_the_error_term_is_needed():
+    """A start point on the axis, the error across it: the run leaves `B(F(c), rad)` sideways (the mutation
+    `rad' = rad`; a ball of radius 0, since the attraction itself draws the ball's sides together)."""
+    c, rad, eps, s = np.array([[-40.0, 0.0]]), 0.0, 1.0, 0.5
+    nxt, rn = step_ball(c, np.array([rad]), np.array([eps]), P_T, s)
+    p = c.copy()
+    v = p + np.array([0.0, eps]) - P_T
+    p1 = p - s * v / np.hypot(*v.T)[:, None]
+    assert np.hypot(*(p1[0] - nxt[0])) > rad
+    assert np.hypot(*(p1[0] - nxt[0])) <= rn[0]
+
+
+@pytest.mark.parametrize("law", [HybridController(SCENE), SmoothController(SCENE), CBFController(SCENE)],
+                         ids=["hybrid", "smooth", "cbf"])
+def test_the_free_region_is_the_saturated_attraction(law):
+    """Where `free` holds over a ball, every sampled perceived point of it gets `u_max (p_T - m)/|p_T - m|` from the
+    law (the flow map through the guard) and no jump; balls are drawn everywhere, near the wedges and discs too."""
+    rng = np.random.default_rng(3)
+    period = 0.05
+    c = np.stack([rng.uniform(-50, 35, 4000), rng.uniform(-30, 30, 4000)], 1)
+    rad = rng.uniform(0, 3, 4000)
+    modes = (1, 2) if law.hybrid else (1,)
+    checked = 0
+    for q in modes:
+        ok = free(law, q, c, rad, period) & (np.hypot(*(c - P_T).T) - rad > law.u_max / gain(law))
+        rows = np.repeat(np.flatnonzero(ok), 8)
+        m = c[rows] + _disc(rng, len(rows), 1.0) * rad[rows, None]
+        xd = {"q": np.full(len(m), q, np.int8)} if not law.hybrid else \
+            {"i": np.zeros(len(m), np.int64), "q": np.full(len(m), q, np.int8)}
+        ev = law.evaluate(m, xd)
+        u = law.flow_map(m, xd, ev=ev)
+        if law.hybrid:
+            assert not law.jump_set(m, xd, ev=ev).any()
+            u, acted = law.hold(u, m, xd, ev, period)
+            assert not acted.any()
+        want = law.u_max * (P_T - m) / np.hypot(*(P_T - m).T)[:, None]
+        assert np.abs(u - want).max() < 1e-9
+        checked += len(m)
+    assert checked > 1000
+
+
+def _funnel_cells(law, eps):
+    from pipeline.bracket.stage import objects
+    from pipeline.bracket.starts import start_cells
+    from pipeline.config import compose
+
+    scene, laws, bs, sim_cfg, camera, _, _, lost = objects(compose("bracket", []))
+    law = laws[law]
+    n_frames = int(round(sim_cfg.horizon / camera.period))
+    cert = certify(law, Uniform(eps), h=bs.cell, angle=bs.angle, period=camera.period, goal_radius=bs.goal_radius,
+                   n_split=bs.n_split, window=bs.window, frames=bs.frames, horizon=n_frames, lost=lost[law.name])
+    starts = start_cells(scene, bs.start_cell)
+    return scene, law, bs, sim_cfg, camera, cert, starts, n_frames
+
+
+@pytest.mark.parametrize("name", ["hybrid", "smooth"])
+def test_start_cells_certified_through_funnels_hold_in_the_simulator(name):
+    """`make bracket`'s settings at ε = 0.5: the funnels certify start cells the abstraction alone does not (behind
+    the obstacle for the hybrid law), and 6 random accepted points of each, run by `pipeline.sim.simulate` under
+    this suite's error signals (random directions, a constant bias, §3.5's direction, a flipping bias), reach the
+    goal disc by their certified bound without a collision."""
+    eps = 0.5
+    scene, law, bs, sim_cfg, camera, cert, starts, n_frames = _funnel_cells(name, eps)
+    before = certified_starts(cert, starts)[0]
+    ok, bound, _, by_funnel = funnel_starts(cert, law, starts, bs.funnel_split, camera.period, n_frames)
+    assert (ok[before]).all() and (by_funnel == (ok & ~before)).all()
+    assert by_funnel.sum() >= 10, by_funnel.sum()
+    assert (bound[ok] <= n_frames).all()
+    rng = np.random.default_rng(21)
+    cells = np.repeat(np.flatnonzero(by_funnel), 6)
+    lo, hi = starts[cells][:, [0, 2]], starts[cells][:, [1, 3]]
+    p0 = lo + rng.uniform(0, 1, (len(cells), 2)) * (hi - lo)
+    keep = ~in_diamond(scene, p0)
+    p0, cells = p0[keep], cells[keep]
+    sim = SimSettings(horizon=sim_cfg.horizon, delta=bs.goal_radius, record_every=1000)
+    res = simulate(scene, law, p0, sim=sim, camera=CameraSettings(period=camera.period),
+                   measure=_lossy_errors(len(p0), eps, 0, 9, scene=scene), record=False)
+    m = res.metrics
+    assert m["success"].all() and not m["collision"].any(), p0[~m["success"]]
+    assert (m["time_to_target"] <= np.maximum(bound[cells], 1) * camera.period + 1e-9).all()
+
+
+def test_a_funnel_hands_off_only_to_winning_nodes():
+    """With `Win` emptied outside the goal, no funnel hands off (they end before the goal disc: the attraction
+    saturates only beyond it), so nothing more is certified; with the real `Win` it certifies cells."""
+    _, law, bs, _, camera, cert, starts, n_frames = _funnel_cells("hybrid", 0.5)
+    goal = np.repeat(cert.abstraction.goal, cert.abstraction.modes)
+    cert.won = cert.won & goal
+    ok, _, _, by_funnel = funnel_starts(cert, law, starts, bs.funnel_split, camera.period, n_frames)
+    assert not by_funnel.any()
