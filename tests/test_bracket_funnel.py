@@ -12,8 +12,8 @@ from hypothesis import strategies as st
 from test_bracket_loop_that_runs import _lossy_errors
 
 from pipeline.bracket.bounds import Uniform
-from pipeline.bracket.certify_loop import certified_starts, certify
-from pipeline.bracket.funnel import free, funnel_starts, gain, step_ball
+from pipeline.bracket.certify_loop import certified_starts, certify, funnel_starts
+from pipeline.bracket.funnel import free, gain, step_ball
 from pipeline.control import CBFController, HybridController, Scene, SmoothController, in_diamond
 from pipeline.sim import CameraSettings, SimSettings, simulate
 
@@ -88,7 +88,7 @@ def test_the_free_region_is_the_saturated_attraction(law):
     assert checked > 1000
 
 
-def _funnel_cells(law, eps):
+def _funnel_cells(law, eps, funnels=True):
     from pipeline.bracket.stage import objects
     from pipeline.bracket.starts import start_cells
     from pipeline.config import compose
@@ -97,26 +97,30 @@ def _funnel_cells(law, eps):
     law = laws[law]
     n_frames = int(round(sim_cfg.horizon / camera.period))
     cert = certify(law, Uniform(eps), h=bs.cell, angle=bs.angle, period=camera.period, goal_radius=bs.goal_radius,
-                   n_split=bs.n_split, window=bs.window, frames=bs.frames, horizon=n_frames, lost=lost[law.name])
+                   n_split=bs.n_split, window=bs.window, frames=bs.frames, horizon=n_frames, lost=lost[law.name],
+                   funnels=funnels)
     starts = start_cells(scene, bs.start_cell)
     return scene, law, bs, sim_cfg, camera, cert, starts, n_frames
 
 
 @pytest.mark.parametrize("name", ["hybrid", "smooth"])
 def test_start_cells_certified_through_funnels_hold_in_the_simulator(name):
-    """`make bracket`'s settings at ε = 0.5: the funnels certify start cells the abstraction alone does not (behind
-    the obstacle for the hybrid law), and 6 random accepted points of each, run by `pipeline.sim.simulate` under
-    this suite's error signals (random directions, a constant bias, §3.5's direction, a flipping bias), reach the
-    goal disc by their certified bound without a collision."""
+    """`make bracket`'s settings at ε = 0.5: the funnels (of the abstraction's nodes, then of start cells' sub-squares)
+    certify start cells the abstraction alone does not (behind the obstacle for the hybrid law), and 6 random accepted
+    points of each, run by `pipeline.sim.simulate` under this suite's error signals (random directions, a constant
+    bias, §3.5's direction, a flipping bias), reach the goal disc by their certified bound without a collision."""
     eps = 0.5
+    alone = _funnel_cells(name, eps, funnels=False)
     scene, law, bs, sim_cfg, camera, cert, starts, n_frames = _funnel_cells(name, eps)
-    before = certified_starts(cert, starts)[0]
+    before = certified_starts(alone[5], starts)[0]
+    by_nodes = certified_starts(cert, starts)[0]
     ok, bound, _, by_funnel = funnel_starts(cert, law, starts, bs.funnel_split, camera.period, n_frames)
-    assert (ok[before]).all() and (by_funnel == (ok & ~before)).all()
-    assert by_funnel.sum() >= 10, by_funnel.sum()
+    assert by_nodes[before].all() and ok[by_nodes].all() and (by_funnel == (ok & ~by_nodes)).all()
+    new = ok & ~before
+    assert new.sum() >= 10, new.sum()
     assert (bound[ok] <= n_frames).all()
     rng = np.random.default_rng(21)
-    cells = np.repeat(np.flatnonzero(by_funnel), 6)
+    cells = np.repeat(np.flatnonzero(new), 6)
     lo, hi = starts[cells][:, [0, 2]], starts[cells][:, [1, 3]]
     p0 = lo + rng.uniform(0, 1, (len(cells), 2)) * (hi - lo)
     keep = ~in_diamond(scene, p0)
@@ -127,6 +131,25 @@ def test_start_cells_certified_through_funnels_hold_in_the_simulator(name):
     m = res.metrics
     assert m["success"].all() and not m["collision"].any(), p0[~m["success"]]
     assert (m["time_to_target"] <= np.maximum(bound[cells], 1) * camera.period + 1e-9).all()
+
+
+def test_seeded_nodes_are_winning_sinks():
+    """`win` with seeds: a seeded node is in `Win` with its bound and its own edges are not followed (a node whose
+    only successor is a seeded node of a cycle wins with one frame more)."""
+    from pipeline.bracket.abstraction import Abstraction, Grid
+    from pipeline.bracket.enclosures import DIRS
+    from pipeline.bracket.winning import win
+
+    grid = Grid(0.0, 0.0, 1.0, 4, 1)  # cell 0 the goal; 1 <-> 2 a cycle; 3 -> 2
+    U = np.zeros((4, 1, len(DIRS)))
+    succ = [np.array([2]), np.array([1]), np.array([2])]
+    indptr = np.concatenate([[0, 0], np.cumsum([len(x) for x in succ])])
+    ab = Abstraction(grid, 1, U, np.ones(4, bool), np.arange(4) == 0, indptr, np.concatenate(succ),
+                     np.ones((4, 1), bool))
+    W, _, frames = win(ab, 0.05, np.array([0.5, 0.5]))
+    assert not W[1:].any()
+    W, _, frames = win(ab, 0.05, np.array([0.5, 0.5]), seeds=np.array([np.inf, np.inf, 7.0, np.inf]))
+    assert W.tolist() == [True, True, True, True] and frames.tolist() == [0.0, 8.0, 7.0, 8.0]
 
 
 def test_a_funnel_hands_off_only_to_winning_nodes():

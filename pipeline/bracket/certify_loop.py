@@ -12,9 +12,11 @@ import numpy as np
 from pipeline.bracket.abstraction import Abstraction, Grid, build, cell_hits
 from pipeline.bracket.enclosures import DIRS
 from pipeline.bracket.frame import Frame
+from pipeline.bracket.funnel import ball_eps, node_funnels, run_funnels
 from pipeline.bracket.lost import LostFrames
+from pipeline.bracket.modes import initial_modes
 from pipeline.bracket.winning import arrival_frames, certified_cells, win
-from pipeline.control import in_diamond
+from pipeline.control import HybridController, in_diamond
 
 
 @dataclass
@@ -33,12 +35,14 @@ class Certificate:
 
 
 def certify(law, eps_world, *, h: float, angle: float, period: float, goal_radius: float, n_split: int = 4,
-            window: int = 8, frames: int = 1, horizon: float = np.inf, lost: LostFrames | None = None) -> Certificate:
+            window: int = 8, frames: int = 1, horizon: float = np.inf, lost: LostFrames | None = None,
+            funnels: bool = False) -> Certificate:
     """`law`'s certificate on cells of side `h` in the frame rotated by `angle`; `eps_world(points (N, 2)) ->
     (N,)` the error bound at world points of a cell (`max` over its corners and centre is taken, so `eps_world`
     must be the largest bound over any cell it is asked about: see :mod:`pipeline.bracket.bounds`). `horizon`: the
     frames a run has (a start is certified when its arrival bound fits); `lost`: frames that may be lost
-    (:mod:`pipeline.bracket.lost`; None: every frame delivered)."""
+    (:mod:`pipeline.bracket.lost`; None: every frame delivered). `funnels`: nodes whose cell's funnel hands off to
+    `Win` join it with the funnel's bound, and `Win` is solved again (:func:`funnels_apply`)."""
     frame = Frame(angle)
     rlaw = frame.law(law)
     scene = rlaw.scene
@@ -55,6 +59,11 @@ def certify(law, eps_world, *, h: float, angle: float, period: float, goal_radiu
     ab = build(rlaw, grid, eps, period, goal_radius, n_split=n_split, window=window, in_view=view, frames=frames,
                keep_mode=lost.keep_mode, may_stop=lost.may_stop, view=bounds)
     W, stats, to_goal = win(ab, period, scene.p_T)
+    if funnels and funnels_apply(law, lost):
+        pre = Certificate(frame, grid, ab, W, None, stats, None, None, law.scene, to_goal, eps)
+        seeds = np.minimum(node_funnels(pre, law, period, horizon), to_goal)
+        W, stats, to_goal = win(ab, period, scene.p_T, seeds=seeds)
+        stats["funnel_nodes"] = int((np.isfinite(seeds) & ~pre.won).sum())
     arrival = np.where(view, arrival_frames(ab, to_goal), np.inf)
     cert = certified_cells(ab, W, to_goal, horizon) & view
     corners = np.stack([boxes[:, [0, 2]], boxes[:, [1, 2]], boxes[:, [1, 3]], boxes[:, [0, 3]]], axis=1)
@@ -64,6 +73,12 @@ def certify(law, eps_world, *, h: float, angle: float, period: float, goal_radiu
              "horizon_frames": float(horizon), "beyond_horizon": int((certified_cells(ab, W) & view & ~cert).sum()),
              "lost_frames": lost.describe()}
     return Certificate(frame, grid, ab, W, cert, stats, arrival, no_start, law.scene, to_goal, eps)
+
+
+def funnels_apply(law, lost: LostFrames | None) -> bool:
+    """Where funnels are modelled (:mod:`pipeline.bracket.funnel`): one obstacle, a speed limit, no stop of the
+    predicting gate."""
+    return law.scene.n_obstacles == 1 and law.u_max is not None and not (lost is not None and lost.may_stop)
 
 
 def certified_starts(cert: Certificate, starts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -88,3 +103,39 @@ def certified_starts(cert: Certificate, starts: np.ndarray) -> tuple[np.ndarray,
         no_start |= in_diamond(cov, world).reshape(-1, 4).all(axis=1)
     arrival[over | no_start] = np.inf
     return ok & ~no_start, arrival, no_start
+
+
+def funnel_starts(cert: Certificate, law, starts: np.ndarray, split: int, period: float, horizon: float,
+                  lost: LostFrames | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """World start cells `(N, 4)`: `(certified, arrival frames, no_start, by_funnel)`: by the abstraction
+    (:func:`certified_starts`, its verdict and bound kept) or, where it does not certify, sub-square by sub-square
+    by funnels or the abstraction (module docstring; `by_funnel` marks those). `split = 0`: the abstraction alone."""
+    ok, arrival, no_start = certified_starts(cert, starts)
+    by_funnel = np.zeros(len(starts), bool)
+    hybrid = isinstance(law, HybridController)
+    todo = np.flatnonzero(~ok & ~no_start)
+    if split == 0 or todo.size == 0 or not funnels_apply(law, lost):
+        return ok, arrival, no_start, by_funnel
+    t = (np.arange(split) + 0.5) / split
+    tx, ty = (g.ravel() for g in np.meshgrid(t, t, indexing="ij"))
+    cells = starts[todo]
+    w, h = (cells[:, 1] - cells[:, 0])[:, None], (cells[:, 3] - cells[:, 2])[:, None]
+    cx, cy = cells[:, :1] + tx * w, cells[:, 2:3] + ty * h
+    hw, hh = np.broadcast_to(w / split / 2, cx.shape), np.broadcast_to(h / split / 2, cy.shape)
+    subs = np.stack([cx - hw, cx + hw, cy - hh, cy + hh], axis=-1).reshape(-1, 4)
+    centres = np.stack([cx.ravel(), cy.ravel()], axis=1)
+    rad0 = float(np.hypot(hw, hh).max())
+    sub_ok, sub_arr, sub_none = certified_starts(cert, subs)
+    eps0 = ball_eps(cert, centres, rad0)
+    reach = np.where(np.isfinite(eps0), rad0 + eps0, 1e9)  # the perceived box of frame 0
+    boxes = np.stack([centres[:, 0] - reach, centres[:, 0] + reach, centres[:, 1] - reach, centres[:, 1] + reach], 1)
+    modes = initial_modes(law, boxes) if hybrid else np.ones((len(centres), 1), bool)
+    funnel = np.where(modes.any(axis=1), -np.inf, np.inf)
+    for q in range(1, modes.shape[1] + 1):
+        rows = np.flatnonzero(modes[:, q - 1] & ~sub_none & ~sub_ok)
+        funnel[rows] = np.maximum(funnel[rows], run_funnels(cert, law, centres[rows], rad0, q, period, horizon))
+    per_sub = np.where(sub_none, -np.inf, np.where(sub_ok, sub_arr, funnel)).reshape(len(todo), -1)
+    bound = per_sub.max(axis=1)
+    won = np.isfinite(bound)
+    ok[todo[won]], arrival[todo[won]], by_funnel[todo[won]] = True, bound[won], True
+    return ok, arrival, no_start, by_funnel

@@ -31,9 +31,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.bracket.certify_loop import Certificate, certified_starts
-from pipeline.bracket.lost import LostFrames
-from pipeline.bracket.modes import initial_modes
 from pipeline.control import CBFController, HybridController, SmoothController
 from pipeline.control.covering import wedge_coords
 
@@ -73,7 +70,7 @@ def gain(law) -> float:
     return law.k if isinstance(law, CBFController) else 2.0 * law.k * law.scene.covering(0).phi_weight
 
 
-def _cells_of_ball(cert: Certificate, g: np.ndarray, rad: np.ndarray, width: int):
+def _cells_of_ball(cert, g: np.ndarray, rad: np.ndarray, width: int):
     """Grid cells meeting the bounding squares of balls (grid frame): `(N, width²)` indices, -1 where none; and
     rows whose square overflows the grid or `width` cells."""
     grid = cert.grid
@@ -98,7 +95,7 @@ def step_ball(c: np.ndarray, rad: np.ndarray, eps: np.ndarray, p_T: np.ndarray, 
     return nxt, rad + s * np.arcsin(np.minimum(1.0, eps / np.maximum(r_lo, TOL))) + TOL
 
 
-def run_funnels(cert: Certificate, law, centres: np.ndarray, rad0: float, q: int, period: float,
+def run_funnels(cert, law, centres: np.ndarray, rad0: float, q: int, period: float,
                 horizon: float) -> np.ndarray:
     """Per ball `B(centres_i, rad0)` (world) in mode `q`: the arrival bound in frames through its funnel (inf: none
     hands off within the horizon)."""
@@ -133,46 +130,23 @@ def run_funnels(cert: Certificate, law, centres: np.ndarray, rad0: float, q: int
     return np.where(best <= horizon, best, np.inf)
 
 
-def funnel_starts(cert: Certificate, law, starts: np.ndarray, split: int, period: float, horizon: float,
-                  lost: LostFrames | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """World start cells `(N, 4)`: `(certified, arrival frames, no_start, by_funnel)`: by the abstraction
-    (:func:`certified_starts`, its verdict and bound kept) or, where it does not certify, sub-square by sub-square
-    by funnels or the abstraction (module docstring; `by_funnel` marks those). `split = 0`: the abstraction alone."""
-    ok, arrival, no_start = certified_starts(cert, starts)
-    by_funnel = np.zeros(len(starts), bool)
-    hybrid = isinstance(law, HybridController)
-    todo = np.flatnonzero(~ok & ~no_start)
-    if split == 0 or todo.size == 0 or (lost is not None and lost.may_stop) or law.u_max is None or \
-            law.scene.n_obstacles > 1:
-        return ok, arrival, no_start, by_funnel
-    t = (np.arange(split) + 0.5) / split
-    tx, ty = (g.ravel() for g in np.meshgrid(t, t, indexing="ij"))
-    cells = starts[todo]
-    w, h = (cells[:, 1] - cells[:, 0])[:, None], (cells[:, 3] - cells[:, 2])[:, None]
-    cx, cy = cells[:, :1] + tx * w, cells[:, 2:3] + ty * h
-    hw, hh = np.broadcast_to(w / split / 2, cx.shape), np.broadcast_to(h / split / 2, cy.shape)
-    subs = np.stack([cx - hw, cx + hw, cy - hh, cy + hh], axis=-1).reshape(-1, 4)
-    centres = np.stack([cx.ravel(), cy.ravel()], axis=1)
-    rad0 = float(np.hypot(hw, hh).max())
-    sub_ok, sub_arr, sub_none = certified_starts(cert, subs)
-    eps0 = _ball_eps(cert, centres, rad0)
-    reach = np.where(np.isfinite(eps0), rad0 + eps0, 1e9)  # the perceived box of frame 0
-    boxes = np.stack([centres[:, 0] - reach, centres[:, 0] + reach, centres[:, 1] - reach, centres[:, 1] + reach], 1)
-    modes = initial_modes(law, boxes) if hybrid else np.ones((len(centres), 1), bool)
-    funnel = np.where(modes.any(axis=1), -np.inf, np.inf)
-    for q in range(1, modes.shape[1] + 1):
-        rows = np.flatnonzero(modes[:, q - 1] & ~sub_none & ~sub_ok)
-        funnel[rows] = np.maximum(funnel[rows], run_funnels(cert, law, centres[rows], rad0, q, period, horizon))
-    per_sub = np.where(sub_none, -np.inf, np.where(sub_ok, sub_arr, funnel)).reshape(len(todo), -1)
-    bound = per_sub.max(axis=1)
-    won = np.isfinite(bound)
-    ok[todo[won]], arrival[todo[won]], by_funnel[todo[won]] = True, bound[won], True
-    return ok, arrival, no_start, by_funnel
-
-
-def _ball_eps(cert: Certificate, centres: np.ndarray, rad: float) -> np.ndarray:
+def ball_eps(cert, centres: np.ndarray, rad: float) -> np.ndarray:
     """The largest per-cell bound over the grid cells meeting each ball (inf: outside the grid)."""
     cells, over = _cells_of_ball(cert, cert.frame.to_grid(centres), np.full(len(centres), rad),
                                  int(np.ceil(2 * rad / cert.grid.h)) + 2)
     eps = np.where(cells >= 0, cert.eps_cells[np.maximum(cells, 0)], -np.inf).max(axis=1)
     return np.where(over, np.inf, eps)
+
+
+def node_funnels(cert, law, period: float, horizon: float) -> np.ndarray:
+    """Per node `(cell, q)` of the abstraction, the arrival bound in frames through the funnel of its cell's
+    circumscribed ball in mode `q` (inf: none; nodes outside the view or in the goal: inf)."""
+    ab = cert.abstraction
+    centres = cert.frame.to_world(cert.grid.centres())
+    out = np.full((cert.grid.n, ab.modes), np.inf)
+    cells = np.flatnonzero(~ab.goal & (np.hypot(*(centres - law.scene.p_T).T) > law.u_max / gain(law)))
+    for q in range(1, ab.modes + 1):
+        safe = ab.safe.reshape(-1, ab.modes)[cells, q - 1]
+        rows = cells[safe]
+        out[rows, q - 1] = run_funnels(cert, law, centres[rows], cert.grid.h * np.sqrt(0.5), q, period, horizon)
+    return out.ravel()

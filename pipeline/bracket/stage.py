@@ -28,9 +28,8 @@ from omegaconf import DictConfig
 
 from pipeline import lineage, tracking
 from pipeline.bracket.bounds import CellTable, Finest, Uniform
-from pipeline.bracket.certify_loop import certify
+from pipeline.bracket.certify_loop import certify, funnel_starts
 from pipeline.bracket.falsifier import Search, falsify
-from pipeline.bracket.funnel import funnel_starts
 from pipeline.bracket.loop import OUTCOMES, REACHED, RUNNING, FrameLoop
 from pipeline.bracket.lost import LostFrames
 from pipeline.bracket.starts import behind_obstacles, falsifier_starts, start_cells
@@ -162,7 +161,7 @@ def bracket_rows(name, law, scene, bs, sim, camera, emap, starts, pmap=None, los
     loop = FrameLoop(scene, law, period=camera.period, horizon=sim.horizon, delta=bs.goal_radius,
                      stall_speed=stall_threshold(sim, law), stall_time=sim.stall_time)
     kw = dict(h=bs.cell, angle=bs.angle, period=camera.period, goal_radius=bs.goal_radius, n_split=bs.n_split,
-              window=bs.window, frames=bs.frames, horizon=loop.n_frames, lost=lost)
+              window=bs.window, frames=bs.frames, horizon=loop.n_frames, lost=lost, funnels=bs.funnel_split > 0)
     eps_lo = np.full(len(starts), np.nan)
     arrival = np.full(len(starts), np.nan)
     stats = {}

@@ -140,15 +140,22 @@ def _inner_frames(ab: Abstraction, comp: np.ndarray, leaves: np.ndarray, period:
     return best, rule
 
 
-def win(ab: Abstraction, period: float, p_T: np.ndarray) -> tuple[np.ndarray, dict, np.ndarray]:
+def win(ab: Abstraction, period: float, p_T: np.ndarray,
+        seeds: np.ndarray | None = None) -> tuple[np.ndarray, dict, np.ndarray]:
     """`Win` `(nodes,)`, counts (components, transient ones and by which rule) and the arrival bound `frames`
-    `(nodes,)` (inf outside `Win`; module docstring)."""
+    `(nodes,)` (inf outside `Win`; module docstring). `seeds` `(nodes,)`: nodes shown winning by another argument
+    with their arrival bound (finite; the funnels of :mod:`pipeline.bracket.funnel`): in `Win` like goal nodes, with
+    that bound, their own edges not followed."""
     n = len(ab.safe)
     goal = np.repeat(ab.goal, ab.modes)
     W = goal.copy()
     frames = np.where(goal, 0.0, np.inf)
+    if seeds is not None:
+        seeded = ~goal & np.isfinite(seeds)
+        W |= seeded
+        frames = np.where(seeded, seeds, frames)
     f = np.where(ab.multi, ab.frames, 1) if ab.multi is not None else np.ones(n, np.int64)
-    active = ab.safe & ~goal
+    active = ab.safe & ~W
     dir_ok, lyap_dec = rates(ab, period, p_T, active)
     comps = tarjan(n, ab.indptr, ab.succ, active)
     stats = {"components": len(comps), "transient_direction": 0, "transient_distance": 0, "won_components": 0}
