@@ -9,13 +9,12 @@ import pytest
 from budget import examples  # tests/budget.py: more examples under make test-explore
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from test_bracket_loop_that_runs import _lossy_errors
+from test_bracket_loop_that_runs import run_certified_points
 
 from pipeline.bracket.bounds import Uniform
 from pipeline.bracket.certify_loop import certified_starts, certify, funnel_starts
 from pipeline.bracket.funnel import free, gain, step_ball
-from pipeline.control import CBFController, HybridController, Scene, SmoothController, in_diamond
-from pipeline.sim import CameraSettings, SimSettings, simulate
+from pipeline.control import CBFController, HybridController, Scene, SmoothController
 
 SCENE = Scene(target=[40.0, 0.0], obstacles=[{"center": [0.0, 0.0], "radius": 4.0}])
 P_T = SCENE.p_T
@@ -119,18 +118,9 @@ def test_start_cells_certified_through_funnels_hold_in_the_simulator(name):
     new = ok & ~before
     assert new.sum() >= 10, new.sum()
     assert (bound[ok] <= n_frames).all()
-    rng = np.random.default_rng(21)
     cells = np.repeat(np.flatnonzero(new), 6)
-    lo, hi = starts[cells][:, [0, 2]], starts[cells][:, [1, 3]]
-    p0 = lo + rng.uniform(0, 1, (len(cells), 2)) * (hi - lo)
-    keep = ~in_diamond(scene, p0)
-    p0, cells = p0[keep], cells[keep]
-    sim = SimSettings(horizon=sim_cfg.horizon, delta=bs.goal_radius, record_every=1000)
-    res = simulate(scene, law, p0, sim=sim, camera=CameraSettings(period=camera.period),
-                   measure=_lossy_errors(len(p0), eps, 0, 9, scene=scene), record=False)
-    m = res.metrics
-    assert m["success"].all() and not m["collision"].any(), p0[~m["success"]]
-    assert (m["time_to_target"] <= np.maximum(bound[cells], 1) * camera.period + 1e-9).all()
+    run_certified_points(scene, law, starts, cells, bound, horizon=sim_cfg.horizon, delta=bs.goal_radius,
+                         period=camera.period, eps=eps, rng=np.random.default_rng(21), seed=9)
 
 
 def test_seeded_nodes_are_winning_sinks():

@@ -238,14 +238,22 @@ def test_the_default_bracket_certificate_holds_in_the_simulator():
     assert ok.mean() > 0.3 and (bound[ok] <= n_frames).all()
     rng = np.random.default_rng(12)
     cells = np.repeat(rng.choice(np.flatnonzero(ok), 30, replace=False), 3)
+    run_certified_points(scene, law, starts, cells, bound, horizon=sim_cfg.horizon, delta=bs.goal_radius,
+                         period=camera.period, eps=eps, rng=rng, seed=5)
+
+
+def run_certified_points(scene, law, starts, cells, bound, *, horizon, delta, period, eps, rng, seed):
+    """A random accepted point of each start cell of `cells` (repeats: several), run by `pipeline.sim.simulate`
+    under this file's error signals within `eps` (every frame delivered): each reaches the goal disc without a
+    collision, by its cell's certified bound (frames)."""
     lo, hi = starts[cells][:, [0, 2]], starts[cells][:, [1, 3]]
     p0 = lo + rng.uniform(0, 1, (len(cells), 2)) * (hi - lo)
     keep = ~in_diamond(scene, p0)
     p0, cells = p0[keep], cells[keep]
-    sim = SimSettings(horizon=sim_cfg.horizon, delta=bs.goal_radius, record_every=1000)
-    res = simulate(scene, law, p0, sim=sim, camera=CameraSettings(period=camera.period),
-                   measure=_lossy_errors(len(p0), eps, 0, 5), record=False)
+    sim = SimSettings(horizon=horizon, delta=delta, record_every=1000)
+    res = simulate(scene, law, p0, sim=sim, camera=CameraSettings(period=period),
+                   measure=_lossy_errors(len(p0), eps, 0, seed, scene=scene), record=False)
     m = res.metrics
     assert m["success"].all() and not m["collision"].any(), p0[~m["success"]]
     # a start already in the goal disc has the bound 0 frames; the loop reports its arrival at its first step
-    assert (m["time_to_target"] <= np.maximum(bound[cells], 1) * camera.period + 1e-9).all()
+    assert (m["time_to_target"] <= np.maximum(bound[cells], 1) * period + 1e-9).all()
