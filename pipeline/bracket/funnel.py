@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from pipeline.bracket.enclosures import barrier_value, bp_barrier_g
 from pipeline.control import CBFController, HybridController, SmoothController
 from pipeline.control.covering import wedge_coords
 
@@ -43,26 +44,41 @@ def _wedge_dist(cov, q: int, c: np.ndarray) -> np.ndarray:
     return np.hypot(np.minimum(u, 0.0), np.minimum(v, 0.0))
 
 
-def free(law, q: int, c: np.ndarray, rad: np.ndarray, period: float) -> np.ndarray:
-    """Whether every perceived point of `B(c, rad)` gets the attraction alone from `law` in mode `q` (before the
-    saturation, which the caller asks for), with frames every `period` (the hybrid law's guard)."""
+def free(law, q: int, c: np.ndarray, rad: np.ndarray, period: float) -> tuple[np.ndarray, np.ndarray]:
+    """`(ok, turn)`: whether every perceived point `m` of `B(c, rad)` gets from `law` in mode `q` (frames every
+    `period`) a velocity of norm `u_max` within the angle `turn` of the attraction's direction `(p_T - m)/|p_T - m|`,
+    without a jump, a push-out or the guard. The barrier's term `k ∇B` (norm `g(D) d <= g(d_lo²) reach`, `g` of
+    :func:`pipeline.bracket.enclosures.bp_barrier_g` decreasing) turns the attraction `-2 k w (m - p_T)` by at most
+    `asin(G / (2 k w r))`; the hybrid law keeps its mode where `B_q <= B(d_lo²) < (χ - λ - 1) w r²` (then
+    `V_q < (χ - λ) V_{3-q}`) and stays off the guard's range; the CBF filter is free where every constraint is
+    inactive at `u_nom` (a quadratic bounded below over the ball)."""
     arr = law.scene.arrays
-    if isinstance(law, HybridController):
-        cov = law.scene.covering(0)
-        guard = law.u_max * period / (1.0 - law.gamma) if law.guard else 0.0
-        return _wedge_dist(cov, q, c) - rad > max(cov.barrier_reach, guard) + TOL
+    cov = law.scene.covering(0)
+    r = np.hypot(*(c - law.scene.p_T).T) - rad  # |m - p_T| >= r
+    a = gain(law) * r  # |attraction| >= a
+    G = np.zeros(len(c))
     ok = np.ones(len(c), bool)
-    for centre, r, reach in zip(arr["center"], arr["radius"], arr["reach"]):
-        d = np.hypot(*(c - centre).T)
-        if isinstance(law, SmoothController):
-            ok &= d - rad - 2.0 * r > reach + TOL
-        else:  # CBF: f(m) = -2k (m - c)·(m - p_T) + α (|m - c|² - 4 r²) >= 0 leaves u_nom feasible, hence optimal
-            k, a = law.k, law.alpha
-            x, t = c - centre, c - law.scene.p_T
-            f = -2 * k * np.einsum("ij,ij->i", x, t) + a * (np.einsum("ij,ij->i", x, x) - 4 * r * r)
-            grad = -2 * k * (x + t) + 2 * a * x
-            ok &= f - np.hypot(*grad.T) * rad + min(0.0, a - 2 * k) * rad**2 > TOL * (1 + np.abs(f))
-    return ok
+    bar = (law.k, cov.barrier_gain, cov.barrier_rho, cov.ell)
+    if isinstance(law, HybridController):
+        d = _wedge_dist(cov, q, c) - rad
+        ok &= d > (law.u_max * period / (1.0 - law.gamma) if law.guard else 0.0) + TOL
+        D = np.maximum(d, TOL) ** 2
+        G = np.where(d < cov.barrier_reach, bp_barrier_g(D, *bar) * cov.barrier_reach, 0.0)
+        ok &= barrier_value(D, *bar[1:]) < (law.chi - law.lam - 1.0) * cov.phi_weight * np.maximum(r, 0.0) ** 2
+    else:
+        for centre, rr, reach in zip(arr["center"], arr["radius"], arr["reach"]):
+            if isinstance(law, SmoothController):
+                d = np.hypot(*(c - centre).T) - rad - 2.0 * rr
+                ok &= d > TOL
+                G = G + np.where(d < reach, bp_barrier_g(np.maximum(d, TOL) ** 2, *bar) * reach, 0.0)
+            else:  # CBF: f(m) = -2k (m - c)·(m - p_T) + α (|m - c|² - 4 r²) >= 0 leaves u_nom feasible, hence optimal
+                k, al = law.k, law.alpha
+                x, t = c - centre, c - law.scene.p_T
+                f = -2 * k * np.einsum("ij,ij->i", x, t) + al * (np.einsum("ij,ij->i", x, x) - 4 * rr * rr)
+                grad = -2 * k * (x + t) + 2 * al * x
+                ok &= f - np.hypot(*grad.T) * rad + min(0.0, al - 2 * k) * rad**2 > TOL * (1 + np.abs(f))
+    ok &= np.isfinite(G) & (a - G > law.u_max + TOL)  # saturated, and the turn below is < 90°
+    return ok, np.where(ok, np.arcsin(np.clip(G / np.maximum(a, TOL), 0.0, 1.0)), np.pi)
 
 
 def gain(law) -> float:
@@ -86,13 +102,14 @@ def _cells_of_ball(cert, g: np.ndarray, rad: np.ndarray, width: int):
     return np.where(inside, ix * grid.ny + iy, -1), over
 
 
-def step_ball(c: np.ndarray, rad: np.ndarray, eps: np.ndarray, p_T: np.ndarray, s: float):
-    """One frame of the saturated attraction from `B(c, rad)` with errors within `eps` (module docstring; valid where
-    `|c - p_T| - rad > max(eps, s)`): the ball `B(c', rad')` holding every `p - s (p + e - p_T)/|p + e - p_T|`."""
+def step_ball(c: np.ndarray, rad: np.ndarray, eps: np.ndarray, p_T: np.ndarray, s: float, turn=0.0):
+    """One frame from `B(c, rad)` (module docstring; valid where `|c - p_T| - rad > max(eps, s)`): the ball
+    `B(c', rad')` holding every `p + s v`, `v` a unit vector within the angle `turn` of `(p_T - m)/|p_T - m|` for a
+    perceived `m` within `eps` of `p` (the attraction saturated, turned by the barrier at most by `turn`)."""
     r = np.hypot(*(c - p_T).T)
     r_lo = r - rad
     nxt = c - s * (c - p_T) / r[:, None]
-    return nxt, rad + s * np.arcsin(np.minimum(1.0, eps / np.maximum(r_lo, TOL))) + TOL
+    return nxt, rad + s * (np.arcsin(np.minimum(1.0, eps / np.maximum(r_lo, TOL))) + turn) + TOL
 
 
 def run_funnels(cert, law, centres: np.ndarray, rad0: float, q: int, period: float,
@@ -117,10 +134,10 @@ def run_funnels(cert, law, centres: np.ndarray, rad0: float, q: int, period: flo
         eps = np.where(cells >= 0, cert.eps_cells[np.maximum(cells, 0)], -np.inf).max(axis=1)
         handed = np.where(cells >= 0, node_frames[np.maximum(cells, 0)], -np.inf).max(axis=1)
         r_lo = np.hypot(*(cr - p_T).T) - rr
-        ok = ~over & np.isfinite(eps) & free(law, q, cr, rr + eps, period) & (r_lo - eps > law.u_max / gain(law) + TOL)
-        ok &= r_lo - eps > s + TOL
+        fine, turn = free(law, q, cr, rr + eps, period)
+        ok = ~over & np.isfinite(eps) & fine & (r_lo - eps > s + TOL)
         best[rows] = np.where(ok, np.minimum(best[rows], k + handed), best[rows])  # the frame's decision keeps q
-        nxt, rn = step_ball(cr, rr, eps, p_T, s)
+        nxt, rn = step_ball(cr, rr, eps, p_T, s, turn)
         seg = rn + s  # the held segment lies in B(c_k, s + ρ_{k+1})
         clear = np.min([np.hypot(*(cr - ctr).T) - seg - r for ctr, r in zip(arr["center"], arr["radius"])], axis=0)
         ok &= (clear > TOL) & (nxt[:, 0] - rn > ax0) & (nxt[:, 0] + rn < ax1) & (nxt[:, 1] - rn > ay0) & \
