@@ -2,7 +2,8 @@
 
 Writes to the Hydra run dir: `bracket.csv` (one row per controller and start cell: `x0, x1, y0, y1`, `start` (the
 cell holds starts the simulator accepts: not wholly in the diamond), `eps_lo` (the largest uniform ε certified
-within `sim.horizon`; NaN: none), `funnel` (certified there through funnels, :mod:`pipeline.bracket.funnel`), `arrival_bound` (seconds: the certified arrival bound at that ε),
+within `sim.horizon`; NaN: none), `funnel` (certified there through its sub-squares' funnels,
+:mod:`pipeline.bracket.funnel`), `arrival_bound` (seconds: the certified arrival bound at that ε),
 `arrival_nominal` (seconds: the falsifier's start without error), `certified_map` (certified with the error map's
 ε̄, when given), `eps_hi` (inf: no failure found up to `eps_max`; NaN: no start), the adversary and outcome of the
 counterexample; with
