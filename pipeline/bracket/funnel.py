@@ -1,30 +1,30 @@
-"""Funnels in free space (SPEC §5.4, docs/bracket.md "Funnels"): the runs from a start ball followed frame by frame
-while the law is the saturated attraction alone, and handed to the abstraction where they enter winning cells.
+"""Funnels in free space (SPEC §5.4, docs/bracket.md "Funnels"): runs followed frame by frame as a ball while the law
+is nearly the saturated attraction, and handed to the abstraction where they enter winning nodes.
 
 The abstraction's cells lose where a run is: over a long flight to the obstacle, abstract paths drift sideways by
 about a cell per edge, so from far behind the obstacle they reach the back vertex, where nothing is certified,
 though the runs themselves pass it by many units. A funnel keeps the set of positions as a ball `B(c_k, ρ_k)`:
 
-- **The free region.** Where every perceived point `m` of `B(c_k, ρ_k + ε)` gives the law's input
-  `u = u_max (p_T - m)/|p_T - m|` (the attraction, saturated; the hybrid law: `m` at least the barrier's reach and
-  the guard's range from the mode's wedge `W_q`, so `V_q = |m - p_T|^2 <= V_{3-q}`: no jump, no barrier, no guard;
-  the smooth law: from every margin disc; the CBF filter: every constraint inactive at `u_nom`, a quadratic bounded
-  below over the ball), and each held segment stays off every obstacle disc and inside the arena.
-- **One frame.** `p' = p - s (p + e - p_T)/|p + e - p_T|` (`s = u_max T_s`, `|e| <= ε`): the map
-  `F(p) = p - s (p - p_T)/|p - p_T|` is 1-Lipschitz where `|p - p_T| >= s` (its Jacobian `I - (s/r)(I - e_r e_r^T)`
-  has eigenvalues 1 and `1 - s/r`), and the error turns the direction by at most `asin(ε/r)`, so
-  `c' = F(c)`, `ρ' = ρ + s asin(ε/r_lo)` (`r_lo = |c - p_T| - ρ`).
+- **The free region** (:func:`free`). Every perceived point `m` of `B(c_k, ρ_k + ε)` gets the velocity `u_max v`, `v`
+  a unit vector within the angle `turn` of `(p_T - m)/|p_T - m|`: the hybrid law off the guard's range from the
+  mode's wedge `W_q` (no guard, no push-out), its barrier's term `k ∇B` bounded as a turn of the attraction and the
+  mode kept (`B_q < (χ - λ - 1) φ`: no jump); the smooth law outside its margin discs, the same turn; the CBF filter
+  where every constraint is inactive at `u_nom` (a quadratic bounded below over the ball; no turn). Each held segment
+  stays off every obstacle disc and inside the arena.
+- **One frame** (:func:`step_ball`). The map `F(p) = p - s (p - p_T)/|p - p_T|` (`s = u_max T_s`) is 1-Lipschitz where
+  `|p - p_T| >= s` (its Jacobian `I - (s/r)(I - e_r e_r^T)` has eigenvalues 1 and `1 - s/r`); the error turns the
+  direction by at most `asin(ε/r)` and the barrier by at most `turn`, so `c' = F(c)`,
+  `ρ' = ρ + s (asin(ε/r_lo) + turn)` (`r_lo = |c - p_T| - ρ`).
 - **The hand-off.** At a frame `k` where the ball's grid cells (every cell meeting its bounding square in the
   abstraction's frame) are all in `Win` in the funnel's mode, every run is in a winning node at that frame instant
   (the frame's decision keeps the mode: the perceived ball is free): it arrives within `k + max frames(node)`
   frames. The funnel takes the smallest such bound over its frames.
 
-A start cell is certified when each of its sub-squares (`bracket.funnel_split` per side, their circumscribed balls)
-is certified by its funnel, in every mode the run may start in, or by the abstraction itself. `ε` over a ball: the
-largest per-cell bound of the certificate over the cells meeting it (with lost frames: the stale bound, as the
-abstraction's; a stop of the predicting gate is not modelled here and turns funnels off). One obstacle: on a field
-of several no law gets funnels (the hybrid law's locally active obstacle is not followed, and the laws are compared
-by one method).
+Used for the abstraction's nodes (:func:`node_funnels`: a node whose cell's funnel hands off joins `Win`) and for
+the start cells' sub-squares (:func:`pipeline.bracket.certify_loop.funnel_starts`). `ε` over a ball: the largest
+per-cell bound of the certificate over the cells meeting it (with lost frames: the stale bound, as the abstraction's;
+a stop of the predicting gate is not modelled here and turns funnels off). One obstacle: on a field of several no
+law gets funnels (the hybrid law's locally active obstacle is not followed, and the laws are compared by one method).
 """
 
 from __future__ import annotations
