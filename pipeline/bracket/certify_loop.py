@@ -12,7 +12,7 @@ import numpy as np
 from pipeline.bracket.abstraction import Abstraction, Grid, build, cell_hits
 from pipeline.bracket.enclosures import DIRS
 from pipeline.bracket.frame import Frame
-from pipeline.bracket.funnel import ball_eps, node_funnels, run_funnels
+from pipeline.bracket.funnel import ball_max, node_funnels, run_funnels
 from pipeline.bracket.lost import LostFrames
 from pipeline.bracket.modes import initial_modes
 from pipeline.bracket.winning import arrival_frames, certified_cells, win
@@ -126,7 +126,7 @@ def funnel_starts(cert: Certificate, law, starts: np.ndarray, split: int, period
     centres = np.stack([cx.ravel(), cy.ravel()], axis=1)
     rad0 = float(np.hypot(hw, hh).max())
     sub_ok, sub_arr, sub_none = certified_starts(cert, subs)
-    eps0 = ball_eps(cert, centres, rad0)
+    eps0 = ball_max(cert, centres, rad0, cert.eps_cells)[0]
     reach = np.where(np.isfinite(eps0), rad0 + eps0, 1e9)  # the perceived box of frame 0
     boxes = np.stack([centres[:, 0] - reach, centres[:, 0] + reach, centres[:, 1] - reach, centres[:, 1] + reach], 1)
     modes = initial_modes(law, boxes) if hybrid else np.ones((len(centres), 1), bool)

@@ -129,13 +129,10 @@ def run_funnels(cert, law, centres: np.ndarray, rad0: float, q: int, period: flo
         if rows.size == 0:
             break
         cr, rr = c[rows], rad[rows]
-        width = int(np.ceil(2 * rr.max() / cert.grid.h)) + 2
-        cells, over = _cells_of_ball(cert, cert.frame.to_grid(cr), rr, width)
-        eps = np.where(cells >= 0, cert.eps_cells[np.maximum(cells, 0)], -np.inf).max(axis=1)
-        handed = np.where(cells >= 0, node_frames[np.maximum(cells, 0)], -np.inf).max(axis=1)
+        eps, handed = ball_max(cert, cr, rr, cert.eps_cells, node_frames)
         r_lo = np.hypot(*(cr - p_T).T) - rr
         fine, turn = free(law, q, cr, rr + eps, period)
-        ok = ~over & np.isfinite(eps) & fine & (r_lo - eps > s + TOL)
+        ok = np.isfinite(eps) & fine & (r_lo - eps > s + TOL)
         best[rows] = np.where(ok, np.minimum(best[rows], k + handed), best[rows])  # the frame's decision keeps q
         nxt, rn = step_ball(cr, rr, eps, p_T, s, turn)
         seg = rn + s  # the held segment lies in B(c_k, s + ρ_{k+1})
@@ -147,12 +144,14 @@ def run_funnels(cert, law, centres: np.ndarray, rad0: float, q: int, period: flo
     return np.where(best <= horizon, best, np.inf)
 
 
-def ball_eps(cert, centres: np.ndarray, rad: float) -> np.ndarray:
-    """The largest per-cell bound over the grid cells meeting each ball (inf: outside the grid)."""
-    cells, over = _cells_of_ball(cert, cert.frame.to_grid(centres), np.full(len(centres), rad),
-                                 int(np.ceil(2 * rad / cert.grid.h)) + 2)
-    eps = np.where(cells >= 0, cert.eps_cells[np.maximum(cells, 0)], -np.inf).max(axis=1)
-    return np.where(over, np.inf, eps)
+def ball_max(cert, c: np.ndarray, rad: np.ndarray, *per_cell: np.ndarray) -> list[np.ndarray]:
+    """For balls `B(c, rad)` (world), the largest value of each per-grid-cell array over the cells meeting the ball
+    (inf where the ball leaves the grid)."""
+    rad = np.broadcast_to(np.asarray(rad, float), (len(c),))
+    width = int(np.ceil(2 * rad.max() / cert.grid.h)) + 2 if len(c) else 1
+    cells, over = _cells_of_ball(cert, cert.frame.to_grid(c), rad, width)
+    idx = np.maximum(cells, 0)
+    return [np.where(over, np.inf, np.where(cells >= 0, v[idx], -np.inf).max(axis=1)) for v in per_cell]
 
 
 def node_funnels(cert, law, period: float, horizon: float) -> np.ndarray:
