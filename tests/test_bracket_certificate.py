@@ -39,13 +39,15 @@ def test_enclosure_contains_every_sampled_held_input(law_cls):
     law = law_cls(SCENE)
     loop = FrameLoop(SCENE, law)
     boxes = _boxes(rng, 1200)
-    for q in _modes(law):
-        h = support(law, boxes, q, loop.period)
+    h = {q: support(law, boxes, q, loop.period) for q in _modes(law)}
+    for before in _modes(law):  # a node's mode is the one after the frame's decision, from either mode before
         for _ in range(8):
             m = boxes[:, [0, 2]] + rng.uniform(0, 1, (len(boxes), 2)) * (boxes[:, [1, 3]] - boxes[:, [0, 2]])
-            xd = {"q": np.full(len(m), q, np.int8), "i": np.zeros(len(m), np.int64)}
-            u = loop.held(m, {k: xd[k] for k in law.logic})
-            assert (u @ DIRS.T <= h + 1e-9).all()
+            xd = {"q": np.full(len(m), before, np.int8), "i": np.zeros(len(m), np.int64)}
+            after, u = loop.decided(m, {k: xd[k] for k in law.logic})
+            q = after.get("q", np.ones(len(m), np.int8))
+            for mode in _modes(law):
+                assert (u[q == mode] @ DIRS.T <= h[mode][q == mode] + 1e-9).all()
 
 
 def test_enclosure_is_not_the_whole_ball_far_from_the_obstacle():

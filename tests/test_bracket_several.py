@@ -69,25 +69,26 @@ def test_the_baselines_enclosures_contain_every_sampled_held_input(law, scene):
 
 
 def test_the_hybrid_enclosure_holds_in_every_state_of_the_active_obstacle():
-    """In each state `(i, q)`, at perceived points where `i` stays active (no cell jump due), the held input lies in
-    the polytope of obstacle `i`'s mode `q`; obstacle 0's polytope does not hold obstacle 1's inputs."""
+    """In each state `(i, q)` after a frame's decision (from every state before it, at perceived points where `i`
+    stays active), the held input lies in the polytope of obstacle `i`'s mode `q`; obstacle 0's polytope does not
+    hold obstacle 1's inputs."""
     rng = np.random.default_rng(3)
     law = HybridController(ROW)
     loop = FrameLoop(ROW, law)
     boxes = _boxes(rng, 1500, ROW)
     missed_by_first = 0
+    h = {(i, q): support(law, boxes, q, PERIOD, obstacle=i) for i in range(2) for q in (1, 2)}
+    h0 = {q: support(law, boxes, q, PERIOD, obstacle=0) for q in (1, 2)}
     for i in range(2):
-        for q in (1, 2):
-            h = support(law, boxes, q, PERIOD, obstacle=i)
-            h0 = support(law, boxes, q, PERIOD, obstacle=0)
+        for before in (1, 2):  # the state a node carries is the one after the frame's decision
             for _ in range(6):
                 m = _points(rng, boxes)
-                dist = law.cell_distance(m)
-                keep = dist[:, i] < dist.min(axis=1) + law.h
-                xd = {"i": np.full(len(m), i, np.int64), "q": np.full(len(m), q, np.int8)}
-                u = loop.held(m, xd)
-                assert (u[keep] @ DIRS.T <= h[keep] + 1e-9).all()
-                missed_by_first += int(((u[keep] @ DIRS.T) > h0[keep] + 1e-9).any(axis=1).sum())
+                xd = {"i": np.full(len(m), i, np.int64), "q": np.full(len(m), before, np.int8)}
+                after, u = loop.decided(m, xd)
+                for q in (1, 2):
+                    keep = (after["i"] == i) & (after["q"] == q)
+                    assert (u[keep] @ DIRS.T <= h[i, q][keep] + 1e-9).all()
+                    missed_by_first += int(((u[keep] @ DIRS.T) > h0[q][keep] + 1e-9).any(axis=1).sum())
     assert missed_by_first > 0
 
 

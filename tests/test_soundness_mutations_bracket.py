@@ -171,21 +171,25 @@ def test_horizon_rule_cuts_the_starts_that_cannot_arrive_in_time(setup, monkeypa
 def _held_outside(law, seed: int = 1) -> tuple[int, float, list]:
     """`test_bracket_certificate`'s check of `U(M, q)`: 1,200 perceived boxes over the arena and around the diamond
     (both modes), 8 perceived points each, the loop's own held input (`FrameLoop.held`, the simulator's input)
-    against the support at the default `n_split`. Returns the inputs outside, the largest excess and one of them."""
+    against the support at the default `n_split`, in the mode after the frame's decision (`FrameLoop.decided`). Returns the inputs outside, the largest excess and one of them."""
     rng = np.random.default_rng(seed)
     loop = FrameLoop(BOX_SCENE, law)
     boxes = _boxes(rng, 1200)
     count, worst, example = 0, -np.inf, []
-    for q in _modes(law):
-        h = inputs.support(law, boxes, q, loop.period)
+    h_all = {q: inputs.support(law, boxes, q, loop.period) for q in _modes(law)}
+    for before in _modes(law):  # the mode a node carries: after the frame's decision
         for _ in range(8):
             m = boxes[:, [0, 2]] + rng.uniform(0, 1, (len(boxes), 2)) * (boxes[:, [1, 3]] - boxes[:, [0, 2]])
-            u = loop.held(m, {"q": np.full(len(m), q, np.int8), "i": np.zeros(len(m), np.int64)})
+            xd = {"q": np.full(len(m), before, np.int8), "i": np.zeros(len(m), np.int64)}
+            after, u = loop.decided(m, {k: xd[k] for k in law.logic})
+            q_after = after.get("q", np.ones(len(m), np.int8))
+            h = np.stack([h_all[q] for q in _modes(law)])[np.searchsorted(_modes(law), q_after), np.arange(len(m))]
+            q = q_after
             excess = (u @ DIRS.T - h).max(axis=1)
             count += int((excess > 1e-9).sum())
             k = int(np.argmax(excess))
             if excess[k] > worst:
-                worst, example = float(excess[k]), [boxes[k].round(3).tolist(), m[k].round(3).tolist(), q,
+                worst, example = float(excess[k]), [boxes[k].round(3).tolist(), m[k].round(3).tolist(), int(q[k]),
                                                     u[k].round(3).tolist()]
     return count, worst, example
 

@@ -150,6 +150,19 @@ def _frames(grid: Grid, hP, Uq, period, frames, window, bad_cell, stop, view=Non
     return np.where(one[:, None], E1, R), unsafe, np.where(one[:, None], Uq, used), multi
 
 
+def unsafe_cells(scene, boxes: np.ndarray, known: np.ndarray, goal_radius: float,
+                 in_view: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """`(bad, goal)` `(cells,)`: cells a run must not be in (meeting an obstacle's disc, out of the view, or without
+    an error bound and not in the goal) and the goal cells (inside `B(p_T, goal_radius)`)."""
+    bad_cell = np.zeros(len(boxes), bool)
+    for cov in scene.coverings:  # a cell meeting an obstacle's disc
+        bad_cell |= dist_range(boxes, cov.p_0)[0] <= cov.obstacle_radius
+    if in_view is not None:
+        bad_cell |= ~in_view
+    goal = (dist_range(boxes, scene.p_T)[1] <= goal_radius) & ~bad_cell
+    return bad_cell | (~known & ~goal), goal
+
+
 def build(law, grid: Grid, eps_cells: np.ndarray, period: float, goal_radius: float, n_split: int = 4,
           window: int = 8, in_view: np.ndarray | None = None, frames: int = 1, keep_mode: bool = False,
           may_stop: bool = False, view: np.ndarray | None = None) -> Abstraction:
@@ -176,13 +189,7 @@ def build(law, grid: Grid, eps_cells: np.ndarray, period: float, goal_radius: fl
     hP = cen @ DIRS.T + 0.5 * grid.h * (np.abs(DIRS[:, 0]) + np.abs(DIRS[:, 1]))
     if view is not None:  # a cell's part inside the arena (cells out of view keep theirs: they are unsafe)
         hP = np.where(np.ones(grid.n, bool)[:, None] if in_view is None else in_view[:, None], np.minimum(hP, view), hP)
-    bad_cell = np.zeros(grid.n, bool)
-    for cov in scene.coverings:  # a cell meeting an obstacle's disc
-        bad_cell |= dist_range(boxes, cov.p_0)[0] <= cov.obstacle_radius
-    if in_view is not None:
-        bad_cell |= ~in_view
-    goal = (dist_range(boxes, scene.p_T)[1] <= goal_radius) & ~bad_cell
-    bad_cell |= ~known & ~goal
+    bad_cell, goal = unsafe_cells(scene, boxes, known, goal_radius, in_view)
     n_nodes = grid.n * modes
     safe = np.ones(n_nodes, bool)
     rows_all, cols_all = [], []

@@ -9,12 +9,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.bracket.abstraction import Abstraction, Grid, build, cell_hits
+from pipeline.bracket.abstraction import Abstraction, Grid, build, cell_hits, unsafe_cells
 from pipeline.bracket.enclosures import DIRS
 from pipeline.bracket.frame import Frame
 from pipeline.bracket.funnel import ball_max, node_funnels, run_funnels
 from pipeline.bracket.lost import LostFrames
 from pipeline.bracket.modes import initial_modes
+from pipeline.bracket.refine import Refinement, refine
 from pipeline.bracket.winning import arrival_frames, certified_cells, win
 from pipeline.control import HybridController, in_diamond
 
@@ -36,13 +37,15 @@ class Certificate:
 
 def certify(law, eps_world, *, h: float, angle: float, period: float, goal_radius: float, n_split: int = 4,
             window: int = 8, frames: int = 1, horizon: float = np.inf, lost: LostFrames | None = None,
-            funnels: bool = False) -> Certificate:
+            funnels: bool = False, refine_half: float = 0.0, refine_factor: int = 16) -> Certificate:
     """`law`'s certificate on cells of side `h` in the frame rotated by `angle`; `eps_world(points (N, 2)) ->
     (N,)` the error bound at world points of a cell (`max` over its corners and centre is taken, so `eps_world`
     must be the largest bound over any cell it is asked about: see :mod:`pipeline.bracket.bounds`). `horizon`: the
     frames a run has (a start is certified when its arrival bound fits); `lost`: frames that may be lost
     (:mod:`pipeline.bracket.lost`; None: every frame delivered). `funnels`: nodes whose cell's funnel hands off to
-    `Win` join it with the funnel's bound, and `Win` is solved again (:func:`funnels_apply`)."""
+    `Win` join it with the funnel's bound, and `Win` is solved again (:func:`funnels_apply`). `refine_half > 0`: a
+    window of that half-width around the back vertex on cells `refine_factor` times finer, coupled to these cells
+    (:mod:`pipeline.bracket.refine`; one obstacle)."""
     frame = Frame(angle)
     rlaw = frame.law(law)
     scene = rlaw.scene
@@ -64,6 +67,16 @@ def certify(law, eps_world, *, h: float, angle: float, period: float, goal_radiu
         seeds = np.minimum(node_funnels(pre, law, period, horizon), to_goal)
         W, stats, to_goal = win(ab, period, scene.p_T, seeds=seeds)
         stats["funnel_nodes"] = int((np.isfinite(seeds) & ~pre.won).sum())
+    else:
+        seeds = None
+    if refine_half > 0 and scene.n_obstacles == 1:
+        bad, _ = unsafe_cells(scene, boxes, np.isfinite(eps), goal_radius, view)
+        fine = Refinement(rlaw, grid, lost.eps(eps_world), frame, half=refine_half, factor=refine_factor,
+                          period=period, goal_radius=goal_radius, n_split=n_split, keep_mode=lost.keep_mode,
+                          may_stop=lost.may_stop, coarse_bad=bad, coarse_eps=eps, view=bounds,
+                          arena=law.scene.bounds)
+        if fine.ok:
+            W, stats, to_goal = refine(ab, W, stats, to_goal, fine, period, scene.p_T, seeds)
     arrival = np.where(view, arrival_frames(ab, to_goal), np.inf)
     cert = certified_cells(ab, W, to_goal, horizon) & view
     corners = np.stack([boxes[:, [0, 2]], boxes[:, [1, 2]], boxes[:, [1, 3]], boxes[:, [0, 3]]], axis=1)

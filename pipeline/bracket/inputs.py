@@ -26,6 +26,7 @@ from pipeline.bracket.enclosures import (
     wedge_ranges,
     wrap,
 )
+from pipeline.bracket.pieces import MONOTONE_RHO, guard_floor, one_face, projected
 from pipeline.control import CBFController, HybridController, SmoothController
 
 
@@ -36,13 +37,10 @@ def law_kind(law) -> str:
     raise ValueError(f"no enclosure for {type(law).__name__}")
 
 
-def saturated_support(X: np.ndarray, u_max: float | None, rays: np.ndarray | None = None) -> np.ndarray:
-    """Support values `(..., J)` of a polytope containing `sat(hull X)` (`X` `(..., P, 2)`): the hull's own part
-    inside the ball and the arc of the ball the hull's cone spans (`rays`: rows with an unbounded direction)."""
-    hX = X @ DIRS.T  # (..., P, J)
-    hX = hX.max(axis=-2)
-    if u_max is None:
-        return hX
+def raw_gap(X: np.ndarray, angles: bool = False):
+    """`(pointed, gap)` of the hulls of point sets `X` `(..., P, 2)`: whether the points lie within an open half-plane
+    through the origin, and then a lower bound `gap` of the hull's distance to the origin (the least projection on
+    the bisector of their directions); with `angles`, also the mean direction and the points' angular range about it."""
     norm = np.hypot(X[..., 0], X[..., 1])
     mean = X.mean(axis=-2)
     mdir = np.arctan2(mean[..., 1], mean[..., 0])
@@ -52,6 +50,18 @@ def saturated_support(X: np.ndarray, u_max: float | None, rays: np.ndarray | Non
     bis = mdir + 0.5 * (lo + hi)
     w = np.stack([np.cos(bis), np.sin(bis)], -1)
     gap = np.einsum("...pk,...k->...p", X, w).min(-1)  # a lower bound of dist(0, hull X) when pointed
+    return (pointed, gap, mdir, lo, hi) if angles else (pointed, gap)
+
+
+def saturated_support(X: np.ndarray, u_max: float | None, rays: np.ndarray | None = None) -> np.ndarray:
+    """Support values `(..., J)` of a polytope containing `sat(hull X)` (`X` `(..., P, 2)`): the hull's own part
+    inside the ball and the arc of the ball the hull's cone spans (`rays`: rows with an unbounded direction)."""
+    hX = X @ DIRS.T  # (..., P, J)
+    hX = hX.max(axis=-2)
+    if u_max is None:
+        return hX
+    norm = np.hypot(X[..., 0], X[..., 1])
+    pointed, gap, mdir, lo, hi = raw_gap(X, angles=True)
     meets_ball = ~pointed | (gap <= u_max)
     leaves_ball = norm.max(-1) > u_max
     theta_d = np.arctan2(DIRS[:, 1], DIRS[:, 0])
@@ -76,9 +86,17 @@ def _arc_support(centre, half, radius) -> np.ndarray:
     return radius * best
 
 
-def hybrid_support(law: HybridController, sub: np.ndarray, q: int, period: float, obstacle: int = 0) -> np.ndarray:
+def hybrid_support(law: HybridController, sub: np.ndarray, q: int, period: float, obstacle: int = 0,
+                   apart: bool = False) -> np.ndarray:
     """`(N, S, J)` support of the hybrid law's held input in mode `q` of the active obstacle `obstacle` per sub-box
-    (module docstring; with several obstacles the flow map is the active obstacle's own, SPEC §3.6)."""
+    (module docstring; with several obstacles the flow map is the active obstacle's own, SPEC §3.6).
+
+    `apart` (the refined window's, :mod:`pipeline.bracket.refine`): the flow's and the push-out's supports as two
+    pieces `(N, 2S, J)` (`-inf` where a piece is absent), not their hull, each with a least norm of its inputs
+    `(N, 2S)`, and tighter (all sound): no push-out where the sub-box misses the diamond (in `W_q ∩ O_{3-q}` the
+    frame's decision jumps, so a node in mode `q` holds no input there: the nodes' mode is the one after the
+    decision), the barrier's exact range on one face (:func:`one_face`), and the guard's bounds toward the face
+    (:func:`_guarded` with `tight`). The coarse cells keep the looser hull (their table does not move)."""
     cov = law.scene.covering(obstacle)
     k, u_max = law.k, law.u_max
     (u, v, du, dv) = wedge_ranges(sub, cov, q)
@@ -91,6 +109,9 @@ def hybrid_support(law: HybridController, sub: np.ndarray, q: int, period: float
         c2 = (np.where(nu[0] < 0, np.maximum(-BIG, g_hi * nu[0]), 0.0), np.where(nu[1] < 0, g_lo * nu[1], 0.0))
     c1 = tuple(np.nan_to_num(c, nan=0.0) for c in c1)
     c2 = tuple(np.nan_to_num(c, nan=0.0) for c in c2)
+    if apart and MONOTONE_RHO[0] <= cov.barrier_rho <= MONOTONE_RHO[1]:  # one face: the product's exact range
+        c1 = one_face(c1, mu, nu[0] >= 0, k, cov)
+        c2 = one_face(c2, nu, mu[0] >= 0, k, cov)
     rays = (c1[0] <= -BIG) | (c2[0] <= -BIG)
     Bpts = np.stack([a[..., None] * du + b[..., None] * dv for a, b in ((c1[0], c2[0]), (c1[1], c2[0]),
                                                                          (c1[1], c2[1]), (c1[0], c2[1]))], axis=-2)
@@ -104,27 +125,44 @@ def hybrid_support(law: HybridController, sub: np.ndarray, q: int, period: float
             extra.append(np.where((a | b)[..., None], ray, X[..., 0, :]))  # rows without this ray: a repeat
         X = np.concatenate([X, np.stack(extra, axis=-2)], axis=-2)
     h = saturated_support(X, u_max, rays)
+    floor = np.zeros(h.shape[:-1])
+    if apart and u_max is not None:  # every raw point beyond u_max: the held input has norm u_max (less the guard's)
+        pointed, gap = raw_gap(X)
+        floor = np.where(pointed & (gap >= u_max), u_max, 0.0)
     if law.guard and u_max is not None:
-        h = _guarded(h, law, D_lo, D_hi, mu, nu, du, dv, period)
+        if apart:
+            floor = guard_floor(floor, h, D_lo, D_hi, mu, nu, du, dv, u_max, (1.0 - law.gamma) / period)
+        h = _guarded(h, law, D_lo, D_hi, mu, nu, du, dv, period, tight=apart)
     h = np.where(flow[..., None], h, -np.inf)
     # push-out (SPEC §3.3): perceived point in W_q: -d_u (crossing the u = 0 face) or -d_v, at push_speed
     inside = (u[1] >= 0) & (v[1] >= 0)
+    if apart:  # in W_q off the diamond `W_1 ∩ W_2` the frame's decision jumps: mode q is not held there
+        u_o, v_o, _, _ = wedge_ranges(sub, cov, 3 - q)
+        inside &= (u_o[1] >= 0) & (v_o[1] >= 0)
+    push = np.full_like(h, -np.inf)
     if inside.any():
         speed = law.push_speed if u_max is None else min(law.push_speed, u_max)
         a_lo, a_hi = _a_range(sub, cov)
         pu = np.where(inside & (a_lo <= 0), 1.0, 0.0)[..., None] * (speed * (DIRS @ -du))
         pv = np.where(inside & (a_hi >= 0), 1.0, 0.0)[..., None] * (speed * (DIRS @ -dv))
-        h = np.maximum(h, np.where((inside & (a_lo <= 0))[..., None], pu, -np.inf))
-        h = np.maximum(h, np.where((inside & (a_hi >= 0))[..., None], pv, -np.inf))
-    return h
+        push = np.maximum(push, np.where((inside & (a_lo <= 0))[..., None], pu, -np.inf))
+        push = np.maximum(push, np.where((inside & (a_hi >= 0))[..., None], pv, -np.inf))
+    if not apart:
+        return np.maximum(h, push)
+    speed = law.push_speed if u_max is None else min(law.push_speed, u_max)
+    return np.concatenate([h, push], axis=-2), np.concatenate([floor, np.full(floor.shape, speed)], axis=-1)
 
 
-def _guarded(h, law, D_lo, D_hi, mu, nu, du, dv, period):
+
+def _guarded(h, law, D_lo, D_hi, mu, nu, du, dv, period, tight: bool = False):
     """The guard (SPEC §3.3) on the support `h`: `u' = u + max(0, -c s - n·u) n`, `c = (1 - γ)/T_s`.
 
     For one normal `n` (a face: `ν = 0` gives `n = -d_u`, `μ = 0` gives `n = -d_v`) the tangential part is kept
-    and `n·u' = max(n·u, -c s)`: `d·u' <= d·u` where `d·n < 0`, else `<= max(h(d), |d_t| h(±t) - (d·n) c s)`.
+    and `n·u' = max(n·u, -c s)`: `d·u' <= d·u` where `d·n < 0` (with `tight`, also `<= |d_t| h(±t) - (d·n) c s_hi`:
+    the approach to the face is at most `c s`), else `<= max(h(d), |d_t| h(±t) - (d·n) c s_lo)`.
     Near the apex (`n` in the quarter arc between `-d_u` and `-d_v`) the looser `u + β n`, `0 <= β <= u_max - c s`.
+    `tight`: toward the face, also `min` with `|d_t| h(±t) - (d·n) c s_hi` and the projection bound of
+    :func:`projected`.
     """
     u_max, c = law.u_max, (1.0 - law.gamma) / period
     s_lo, s_hi = np.sqrt(D_lo), np.sqrt(D_hi)
@@ -137,8 +175,12 @@ def _guarded(h, law, D_lo, D_hi, mu, nu, du, dv, period):
         dn, dt = DIRS @ n, DIRS @ t
         h_t = np.where(dt >= 0, support_at(h, t)[..., None], support_at(h, -t)[..., None])  # h(sign(d_t) t)
         alt = np.abs(dt) * h_t - dn * c * s_lo[..., None]
-        new = np.where(dn > 0, np.maximum(h, alt), h)
+        cap = np.abs(dt) * h_t - dn * c * s_hi[..., None]  # toward the face: n·u' >= -c s >= -c s_hi
+        new = np.where(dn > 0, np.maximum(h, alt), np.where((dn < 0) & tight, np.minimum(h, cap), h))
         out = np.where(rows[..., None], new, out)
+        if tight:
+            idx = np.nonzero(rows)
+            out[idx] = np.minimum(out[idx], projected(h[idx], n, c * s_lo[idx], c * s_hi[idx]))
     apex = acts & ~((nu[0] >= 0) | (mu[0] >= 0))
     if apex.any():
         out[apex] = _apex_guard(h[apex], mu[0][apex], mu[1][apex], nu[0][apex], nu[1][apex], du, dv, u_max,
@@ -331,14 +373,21 @@ def _mul_hi(a, b):
 
 
 def support(law, boxes: np.ndarray, q: int, period: float, n_split: int = 4, chunk: int = 4096,
-            obstacle: int = 0) -> np.ndarray:
+            obstacle: int = 0, parts: bool = False) -> np.ndarray:
     """`(N, J)` support values of `U(M, q)` for perceived boxes `M` `(N, 4)` (`x0, x1, y0, y1`): the hull over
-    `n_split x n_split` sub-boxes (the hybrid law: in mode `q` of the active obstacle `obstacle`). `-inf` rows: no
-    velocity (mode `q` cannot flow there: never for these laws)."""
+    `n_split x n_split` sub-boxes (the hybrid law: in mode `q` of the active obstacle `obstacle`); with `parts`, each
+    sub-box's own `(N, S, J)`, `S = n_split²` (the sub-boxes of :func:`split`; the hybrid law: `2 S`, the flow's
+    pieces then the push-out's, sub-box by sub-box), and a least norm of each piece's inputs `(N, S)` (0: none
+    claimed). `-inf`: no velocity (mode `q` is not held at any perceived point there)."""
     kind = law_kind(law)
-    out = np.empty((len(boxes), len(DIRS)))
+    k = n_split * n_split * (2 if kind == "hybrid" else 1)
+    out = np.empty((len(boxes), k, len(DIRS)) if parts else (len(boxes), len(DIRS)))
+    floors = np.zeros((len(boxes), k))
     for s in range(0, len(boxes), chunk):
         sub = split(boxes[s:s + chunk], n_split)
+        if kind == "hybrid" and parts:
+            out[s:s + chunk], floors[s:s + chunk] = hybrid_support(law, sub, q, period, obstacle, True)
+            continue
         h = hybrid_support(law, sub, q, period, obstacle) if kind == "hybrid" else radial_support(law, sub)
-        out[s:s + chunk] = h.max(axis=1)
-    return out
+        out[s:s + chunk] = h if parts else h.max(axis=1)
+    return (out, floors) if parts else out

@@ -113,6 +113,16 @@ class FrameLoop:
         """The velocity held for a frame in the logic state `xd` (no jump decided): the loop's input at `m`."""
         return self.system.input(State(np.asarray(m, float), m=np.asarray(m, float), **xd))
 
+    def decided(self, m: np.ndarray, xd: dict) -> tuple[dict, np.ndarray]:
+        """A frame perceiving `m` in the logic state `xd`: its jump decision, then the velocity held (the logic
+        state after the decision, which the abstraction's nodes carry, and the input)."""
+        m = np.asarray(m, float)
+        x = State(m, m=m, **xd)
+        jumped = self.system.jump_set(x)
+        if jumped.any():
+            x = x.where(jumped, self.system.jump_map(x))
+        return {k: x.d[k] for k in xd}, self.system.input(x)
+
     # ---- a batch of runs ------------------------------------------------------------------------------------
     def start(self, p0: np.ndarray, e0: np.ndarray) -> dict:
         """Runs from `p0` `(N, 2)` whose first frame perceives `p0 + e0` (the law's initial state there)."""

@@ -35,7 +35,9 @@ class BracketSettings:
     consecutive camera frames the proof lets be lost (`camera.p_fail`, `camera.gate`; held or, with
     `camera.predict`, dead-reckoned: :mod:`pipeline.bracket.lost`); 0: every frame arrives (the loop must lose none).
     `funnel_split`: sub-squares per side of a start cell the abstraction does not certify, each followed by a funnel
-    through free space (:mod:`pipeline.bracket.funnel`); 0: the abstraction alone."""
+    through free space (:mod:`pipeline.bracket.funnel`); 0: the abstraction alone. `refine`: the half-width of a window
+    around the back vertex where the abstraction runs on cells `refine_factor` times finer, edges over one frame
+    (:mod:`pipeline.bracket.refine`); 0: off."""
 
     controllers: Annotated[list[Law], NonEmpty()] = field(default_factory=lambda: ["hybrid", "smooth", "cbf"])
     eps: Annotated[list[NonNegative], NonEmpty()] = field(default_factory=lambda: [0.1, 0.25, 0.5])
@@ -64,6 +66,8 @@ class BracketSettings:
     camera_device: Device = "cpu"
     lost_frames: NonNegativeInt = 0
     funnel_split: NonNegativeInt = 10
+    refine: NonNegative = 10.0
+    refine_factor: Annotated[int, Range(ge=2, le=64)] = 8
 
     def __post_init__(self):
         if self.commit > self.lookahead:
