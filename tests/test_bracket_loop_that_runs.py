@@ -88,23 +88,26 @@ def _lossy_errors(n: int, eps: float, max_lost: int, seed: int, scene=SCENE):
     return measure
 
 
-@pytest.mark.parametrize("law_cls, max_lost, predict, horizon", [
-    (HybridController, 0, False, 6.0),
-    (HybridController, 2, False, 30.0),
-    (HybridController, 6, True, 30.0),
-    (SmoothController, 2, False, 8.0),
+@pytest.mark.parametrize("law_cls, max_lost, predict, horizon, refine", [
+    (HybridController, 0, False, 6.0, 0.0),
+    (HybridController, 2, False, 30.0, 0.0),
+    (HybridController, 6, True, 30.0, 0.0),
+    (SmoothController, 2, False, 8.0, 0.0),
+    (HybridController, 2, False, 30.0, 10.0),  # the back vertex refined, with held lost frames
 ])
-def test_certified_starts_hold_in_the_simulator(law_cls, max_lost, predict, horizon):
+def test_certified_starts_hold_in_the_simulator(law_cls, max_lost, predict, horizon, refine):
     """A coarse certificate at ε = 0.25 with the horizon and up to `max_lost` lost frames in a row (held, or
-    predicted by dead reckoning); random points of its certified start cells that the simulator accepts, run by
-    `pipeline.sim.simulate` with errors within ε and frames lost at random (never more in a row): every run reaches
-    the goal disc within the certified arrival bound, which fits the horizon, without a collision."""
+    predicted by dead reckoning), with or without the back vertex refined; random points of its certified start
+    cells that the simulator accepts, run by `pipeline.sim.simulate` with errors within ε and frames lost at random
+    (never more in a row): every run reaches the goal disc within the certified arrival bound, which fits the
+    horizon, without a collision."""
     law = law_cls(SCENE)
     eps = 0.25
     lost = LostFrames(max_lost, predict, PERIOD, max(law.u_max, law.push_speed))
     n_frames = int(round(horizon / PERIOD))
     cert = certify(law, Uniform(eps), h=2.0, angle=45.0, period=PERIOD, goal_radius=5.0, window=12, frames=1,
-                   horizon=n_frames, lost=lost)
+                   horizon=n_frames, lost=lost, refine_half=refine, refine_factor=8)
+    assert not refine or cert.stats["refined_nodes"] > 0
     starts = np.array([[x, x + 4, y, y + 4] for x in range(-48, 44, 4) for y in range(-28, 28, 4)], float)
     ok, bound, _ = certified_starts(cert, starts)
     assert ok.sum() >= 8, ok.sum()
