@@ -59,21 +59,21 @@ def _per_kappa(prep, pmap, camera, cells, s, margin_cr, progress: bool):
     """Bounds, depth, sampled errors and the numbers of one `kappa` over `cells` (a pose map's: each with every
     heading interval, reported per position cell as the worst over them)."""
     t0 = time.perf_counter()
-    k = int(s["headings"]) if prep.net.heading is not None else 1
+    k = int(s.headings) if prep.net.heading is not None else 1
     bounded = pose_cells(cells, k) if prep.net.heading is not None else cells
-    lower, upper, depth, leaves, heading = certify_cells(prep, bounded, s["mode"], s["tolerance"], s["max_depth"],
-                                                         s["batch"], progress, desc=f"certify kappa={prep.kappa:g}")
+    lower, upper, depth, leaves, heading = certify_cells(prep, bounded, s.mode, s.tolerance, s.max_depth,
+                                                         s.batch, progress, desc=f"certify kappa={prep.kappa:g}")
     seconds = time.perf_counter() - t0
     t1 = time.perf_counter()
     emp, violations, worst, head_emp = sampled_errors(
-        pmap.predict, camera, bounded, lower, upper, s["samples"], s["seed"], progress=progress,
+        pmap.predict, camera, bounded, lower, upper, s.samples, s.seed, progress=progress,
         heading=heading) if prep.kappa == 0 else (None, None, None, None)
     sampled_seconds = time.perf_counter() - t1
     pgd = None
-    if s["pgd_cells"] > 0:  # an attacker on the bound: PGD over the position and the admissible images
+    if s.pgd_cells > 0:  # an attacker on the bound: PGD over the position and the admissible images
         t2 = time.perf_counter()
-        pgd = pgd_check(pmap.model, camera, bounded, lower, upper, prep.kappa, s["pgd_cells"], s["pgd_steps"],
-                        s["seed"], progress=progress)
+        pgd = pgd_check(pmap.model, camera, bounded, lower, upper, prep.kappa, s.pgd_cells, s.pgd_steps,
+                        s.seed, progress=progress)
         pgd["seconds"] = time.perf_counter() - t2
     per_cell = lambda v, f: None if v is None else f(v.reshape(len(cells), k, *v.shape[1:]), 1)  # noqa: E731
     lower, upper, heading, emp, head_emp = (per_cell(v, f) for v, f in ((lower, np.min), (upper, np.max),
@@ -82,7 +82,7 @@ def _per_kappa(prep, pmap, camera, cells, s, margin_cr, progress: bool):
     depth, leaves = per_cell(depth, np.max), per_cell(leaves, np.sum)
     eps = eps_of(lower, upper)
     out = {"kappa": prep.kappa, "eps_bar": _stats(eps), "seconds": seconds, "cells_per_s": len(bounded) / seconds,
-           "depth": {str(d): int((depth == d).sum()) for d in range(int(s["max_depth"]) + 1)},
+           "depth": {str(d): int((depth == d).sum()) for d in range(int(s.max_depth) + 1)},
            "leaves": int(leaves.sum()), "eps_cover": float(eps.max()),
            "theorem1": {"max_eps_bar": float(eps.max()), "margin_c_minus_r": margin_cr,
                         "holds": bool(eps.max() < margin_cr), "covered_fraction": float((eps < margin_cr).mean())}}
@@ -93,7 +93,7 @@ def _per_kappa(prep, pmap, camera, cells, s, margin_cr, progress: bool):
     if emp is not None:
         tight = eps / np.maximum(emp, 1e-12)
         out.update(eps_emp=_stats(emp), tightness=_stats(tight), sampled_seconds=sampled_seconds,
-                   soundness={"samples": int(len(bounded) * s["samples"]), "violations": violations,
+                   soundness={"samples": int(len(bounded) * s.samples), "violations": violations,
                               "worst_excess": worst[0], "counterexample": worst[1] if worst[0] > 0 else None})
         arrays.update(emp=emp)
         if head_emp is not None:
@@ -115,8 +115,8 @@ def _load(cfg: DictConfig, ref):
 def run(cfg: DictConfig, *, perception_map=None, camera=None) -> dict:
     """The certified error map of `cfg.maps`; returns `{"path", "summary", "skipped"}`. `perception_map` and
     `camera` may be injected (`.model` a `PerceptionMap`, `.predict`, `.id`, `.name`, `.manifest`, `.camera()`)."""
-    s = tracking.to_plain({k: cfg[k] for k in cfg.keys() if k not in ("paths", "hydra")})
-    settings_(cfg, CertifySettings)
+    plain = tracking.to_plain({k: cfg[k] for k in cfg.keys() if k not in ("paths", "hydra")})  # what the id hashes
+    s = settings_(cfg, CertifySettings)
     pmap = perception_map if perception_map is not None else _load(cfg, cfg.maps)
     camera = camera if camera is not None else pmap.camera()
     manifest = getattr(pmap, "manifest", None) or {}
@@ -124,39 +124,39 @@ def run(cfg: DictConfig, *, perception_map=None, camera=None) -> dict:
         raise ModelError(f"perception map {pmap.name}: its manifest records no scene")
     scene = build(manifest["scene"], "scene")
     arena = tuple((float(lo), float(hi)) for lo, hi in camera.arena)
-    id_ = identity.certify_id(s, str(pmap.id), manifest["scene"], arena)
+    id_ = identity.certify_id(plain, str(pmap.id), manifest["scene"], arena)
     root = Path(cfg.paths.certified_dir)
     final = root / f"{pmap.name}-{id_}"
-    if tracking.is_complete(final) and not s["force"]:
+    if tracking.is_complete(final) and not s.force:
         print(f"certify: {final} is complete (force=true to recompute)")
         return {"path": final, "summary": json.loads((final / "summary.json").read_text()), "skipped": True}
-    margin = operational_margin(s["operational_margin"], camera)
-    cells, shape, xs, ys, op = cells_of(arena, float(s["cell"]), s["region"], scene, margin)
+    margin = operational_margin(s.operational_margin, camera)
+    cells, shape, xs, ys, op = cells_of(arena, float(s.cell), s.region, scene, margin)
     cov = scene.covering(0)
     margin_cr = float(cov.c - cov.obstacle_radius)
-    torch.set_num_threads(int(s["threads"]))
-    dtype = torch.float64 if s["dtype"] == "float64" else torch.float32
+    torch.set_num_threads(int(s.threads))
+    dtype = torch.float64 if s.dtype == "float64" else torch.float32
     levels, tables, fields = {}, {}, {"x": xs, "y": ys, "operational": op.reshape(shape)}
-    for kappa in s["kappas"]:
+    for kappa in s.kappas:
         prep = prepare(pmap.model, camera, float(kappa), dtype)
-        r, arrays = _per_kappa(prep, pmap, camera, cells[op], s, margin_cr, bool(s["progress"]))
+        r, arrays = _per_kappa(prep, pmap, camera, cells[op], s, margin_cr, bool(s.progress))
         levels[f"{float(kappa):g}"] = r
         tables[f"{float(kappa):g}"] = np.column_stack([cells[op], arrays["eps"]])
         for k, v in arrays.items():
             full = np.full((len(cells), *v.shape[1:]), np.nan)
             full[op] = v
             fields[f"{k}_{float(kappa):g}"] = full.reshape(*shape, *v.shape[1:])
-        _say(pmap.name, r, s["region"])
+        _say(pmap.name, r, s.region)
     head = "keypoint" if getattr(pmap.model, "keypoint", False) else "flat"
     pose = bool(getattr(pmap.model, "pose", False))
     summary = {"id": id_, "name": pmap.name, "model": {"ref": str(cfg.maps), "id": str(pmap.id), "name": pmap.name,
                                                        "position_head": head, "outputs": "pose" if pose else "position"},
-               **({"headings": int(s["headings"])} if pose else {}),
-               "cell": float(s["cell"]), "n_cells": int(op.sum()), "region": tracking.to_plain(s["region"]),
+               **({"headings": int(s.headings)} if pose else {}),
+               "cell": float(s.cell), "n_cells": int(op.sum()), "region": tracking.to_plain(s.region),
                "operational_margin": margin,
-               "mode": s["mode"], "tolerance": s["tolerance"], "max_depth": s["max_depth"], "samples": s["samples"],
-               "margin_c_minus_r": margin_cr, "torch_threads": int(s["threads"]), "kappas": levels}
-    meta = {"recipe": tracking.strip_keys(s, identity.CERTIFY_VOLATILE), "inputs": {"model": str(pmap.id)},
+               "mode": s.mode, "tolerance": s.tolerance, "max_depth": s.max_depth, "samples": s.samples,
+               "margin_c_minus_r": margin_cr, "torch_threads": int(s.threads), "kappas": levels}
+    meta = {"recipe": tracking.strip_keys(plain, identity.CERTIFY_VOLATILE), "inputs": {"model": str(pmap.id)},
             "model_name": pmap.name, "code_version": tracking.code_version(*identity.CERTIFY_CODE)}
     with tracking.tracked_output(root, pmap.name, id_, meta) as tmp:
         (tmp / "summary.json").write_text(json.dumps(summary, indent=2))
@@ -165,7 +165,7 @@ def run(cfg: DictConfig, *, perception_map=None, camera=None) -> dict:
         for k, t in tables.items():  # the cell table `python -m pipeline.bracket bracket.error_map=<this folder>` reads
             np.savetxt(tmp / f"error_map_kappa{k}.csv", t, delimiter=",", header="x0,x1,y0,y1,eps_bar", comments="",
                        fmt="%.17g")
-        write_figures(tmp, fields, summary, arena, s["formats"])
+        write_figures(tmp, fields, summary, arena, s.formats)
     print(f"certify: wrote {final}")
     return {"path": final, "summary": summary, "skipped": False}
 
