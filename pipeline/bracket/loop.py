@@ -114,14 +114,12 @@ class FrameLoop:
         return self.system.input(State(np.asarray(m, float), m=np.asarray(m, float), **xd))
 
     def decided(self, m: np.ndarray, xd: dict) -> tuple[dict, np.ndarray]:
-        """A frame perceiving `m` in the logic state `xd`: its jump decision, then the velocity held (the logic
-        state after the decision, which the abstraction's nodes carry, and the input)."""
+        """A frame perceiving `m` in the logic state `xd` (the one frame engine's step, :func:`frame_update`): its jump
+        decision, then the velocity held (the logic state after the decision, which the abstraction's nodes carry,
+        and the input)."""
         m = np.asarray(m, float)
-        x = State(m, m=m, **xd)
-        jumped = self.system.jump_set(x)
-        if jumped.any():
-            x = x.where(jumped, self.system.jump_map(x))
-        return {k: x.d[k] for k in xd}, self.system.input(x)
+        x, w, *_ = frame_update(self.system, State(m, m=m, **xd), 0, None, np.ones(len(m), bool))
+        return {k: x.d[k] for k in xd}, w
 
     # ---- a batch of runs ------------------------------------------------------------------------------------
     def start(self, p0: np.ndarray, e0: np.ndarray) -> dict:
