@@ -87,7 +87,7 @@ def _arc_support(centre, half, radius) -> np.ndarray:
 
 
 def hybrid_support(law: HybridController, sub: np.ndarray, q: int, period: float, obstacle: int = 0,
-                   apart: bool = False) -> np.ndarray:
+                   apart: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """`(N, S, J)` support of the hybrid law's held input in mode `q` of the active obstacle `obstacle` per sub-box
     (module docstring; with several obstacles the flow map is the active obstacle's own, SPEC §3.6).
 

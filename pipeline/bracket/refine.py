@@ -6,8 +6,10 @@ mode 1 to 2, below it mode 2 to 1) and both push-outs, so abstract paths circle,
 transience rule decreases along the attraction and both push-outs at once. Every node whose abstract paths drift
 into it is lost with it: behind the obstacle, nothing within 7.5 units of the axis was certified. The runs
 themselves leave the vertex in a frame or two (a push-out or the flow moves them half a unit along a face, away
-from the other mode's jump region), which cells of 1/16 unit see: on a window of ±3 units around the vertex their
-one-frame graph has no cycle at `ε <= 0.5` (measured).
+from the other mode's jump region), which finer cells see once a node's inputs are kept apart per sub-box (the
+push-out and the slide, not their hull), each piece with its least speed (:mod:`pipeline.bracket.pieces`): on a
+window of ±3 units at cells of 1/8 or 1/16 the one-frame graph has no cycle at `ε = 0.1` (measured; at 0.5 a band
+within about 2 units of the vertex stays out of `Win`).
 
 :func:`refine` builds that graph (cells of `h / factor` on the coarse cells within `half` of the vertex, edges over
 one frame, the same law, error bound and lost-frame rules) and couples it to the coarse abstraction both ways:
@@ -24,6 +26,7 @@ one frame, the same law, error bound and lost-frame rules) and couples it to the
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -124,7 +127,6 @@ class Refinement:
         pos = np.stack([np.maximum(P[..., 0], subs[..., 0]), np.minimum(P[..., 1], subs[..., 1]),
                         np.maximum(P[..., 2], subs[..., 2]), np.minimum(P[..., 3], subs[..., 3])], -1)
         hB = box_support(pos)
-        cell_boxes = g.boxes()
         hull = np.empty((n, modes, len(DIRS)))
         safe = np.ones(n * modes, bool)
         rows, cols, ex_rows, ex_cols, exits, ex_bad = [], [], [], [], [], []
@@ -146,7 +148,7 @@ class Refinement:
             safe[np.arange(n) * modes + k] = ~bad & ~bad_f & logic.relevant[:, k]
             inner = ~out[node]
             r, c, _ = _hits(g, E[inner], width)
-            far = _max_dist(pos_k[node, part][inner][r], cell_boxes[c]) >= period * floor[node, part][inner][r] - 1e-9
+            far = _max_dist(pos_k[node, part][inner][r], boxes[c]) >= period * floor[node, part][inner][r] - 1e-9
             r, c = r[far], c[far]  # a piece's inputs of norm >= floor move a run at least T_s floor
             for mask, k1 in logic.successors(k, c):
                 rows.append(node[inner][r[mask]] * modes + k)
@@ -182,7 +184,7 @@ class Refinement:
         ab = self.ab
         safe = ab.safe.copy()
         safe[self.exits] = False  # an exit is winning through its seed or not at all
-        fine = type(ab)(ab.grid, ab.modes, ab.U, safe, ab.goal, ab.indptr, ab.succ, ab.initial, ab.multi, ab.frames)
+        fine = dataclasses.replace(ab, safe=safe)
         W, stats, fr = win(fine, self.period, self.p_T, seeds=np.where(np.isfinite(seeds), seeds, np.inf))
         f = self.factor
         g = self.fine
