@@ -117,7 +117,7 @@ def errormap_id(settings: Mapping, occlusions: Mapping, map_id: str, scene: Mapp
 
 
 # --------------------------------------------------------------------------------------- certified maps
-CERTIFY_VOLATILE = ("force", "progress", "paths", "hydra", "maps", "debug", "threads")
+CERTIFY_VOLATILE = ("force", "progress", "paths", "hydra", "maps", "debug", "threads", "shards", "shard")
 CERTIFY_CODE = ("certify", "render", "perception/network", "perception/spec", "perception/maps", "errormap/analysis",
                 "errormap/estimates", "control")
 

@@ -31,8 +31,13 @@ class CertifySettings:
     formats: Annotated[list[Literal["png", "pdf", "svg"]], NonEmpty()] = field(default_factory=lambda: ["png"])
     force: bool = False
     progress: bool = True
+    shards: PositiveInt = 1
+    shard: NonNegativeInt | None = None
 
     def __post_init__(self):
+        if self.shard is not None and self.shard >= self.shards:
+            raise ConfigError("shard", f"must be below shards ({self.shards}): shards are 0 .. {self.shards - 1}, "
+                                       f"got {self.shard}")
         if self.region is not None:
             ok = len(self.region) == 2 and all(len(r) == 2 and r[0] < r[1] for r in self.region)
             if not ok:

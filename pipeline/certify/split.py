@@ -8,6 +8,8 @@ cell, and the check that each of them lies inside its cell's bound.
 
 from __future__ import annotations
 
+import contextlib
+
 import numpy as np
 import torch
 
@@ -53,15 +55,17 @@ def eps_of(lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
 
 
 def certify_cells(prep: Prepared, cells: np.ndarray, mode: str = "crown", tolerance: float = np.inf,
-                  max_depth: int = 0, batch: int = 1024, progress: bool = True, desc: str = "certify"):
+                  max_depth: int = 0, batch: int = 1024, progress: bool = True, desc: str = "certify", bar=None):
     """Per cell: `(lower (N, 2), upper (N, 2), depth (N,), leaves (N,), heading (N,))`: the per-coordinate bounds
     over its leaves (a cell split into sub-cells holds the worst of theirs), the depth and number of leaves it took,
-    and a pose cell's heading bound (radians; NaN for a position map's cells)."""
+    and a pose cell's heading bound (radians; NaN for a position map's cells). `bar`: a progress bar to advance
+    (one of the caller's, over several calls); none: its own."""
     n = len(cells)
     lower, upper, heading = np.full((n, 2), np.inf), np.full((n, 2), -np.inf), np.full(n, -np.inf)
     depth, leaves = np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int64)
     current, owner = np.asarray(cells, dtype=np.float64), np.arange(n)
-    with progress_bar(total=n, desc=desc, unit="cell", enabled=progress) as bar:
+    own = progress_bar(total=n, desc=desc, unit="cell", enabled=progress) if bar is None else contextlib.nullcontext(bar)
+    with own as bar:
         for d in range(max_depth + 1):
             lo, hi, head = _bound_all(prep, current, mode, batch, bar)
             split = (eps_of(lo, hi) > tolerance) if d < max_depth else np.zeros(len(current), dtype=bool)
@@ -80,17 +84,22 @@ def certify_cells(prep: Prepared, cells: np.ndarray, mode: str = "crown", tolera
 
 
 def sampled_errors(predict, camera, cells: np.ndarray, lower: np.ndarray, upper: np.ndarray, n: int, seed: int,
-                   batch: int = 4096, progress: bool = True, heading: np.ndarray | None = None):
+                   batch: int = 4096, progress: bool = True, heading: np.ndarray | None = None, stream: int = 0,
+                   bar=None):
     """`eps_emp (N,)`: the largest error among `n` uniform positions per cell (a pose cell: poses, drawn with the
     marker at a heading of its interval); `violations`: how many sampled errors leave their cell's per-coordinate
     bound (or a pose cell's heading bound `heading (N,)`); `worst`: the largest excess and where (a counterexample);
-    `head_emp (N,)`: a pose cell's largest sampled heading error (radians; None for position cells)."""
-    rng = np.random.default_rng([int(seed), 104729])
+    `head_emp (N,)`: a pose cell's largest sampled heading error (radians; None for position cells). The positions
+    are the random stream `(seed, stream)`'s (the stage draws one per chunk of cells); `bar`: as in
+    :func:`certify_cells`."""
+    rng = np.random.default_rng([int(seed), 104729, int(stream)])
     pose = cells.shape[1] == 6
     emp, head_emp = np.zeros(len(cells)), (np.zeros(len(cells)) if pose else None)
     violations, worst = 0, (-np.inf, None)
     per = max(1, batch // n)
-    with progress_bar(total=len(cells), desc="sampled positions", unit="cell", enabled=progress) as bar:
+    own = (progress_bar(total=len(cells), desc="sampled positions", unit="cell", enabled=progress) if bar is None
+           else contextlib.nullcontext(bar))
+    with own as bar:
         for s in range(0, len(cells), per):
             c = cells[s:s + per]
             t = rng.uniform(size=(len(c), n, 3 if pose else 2))

@@ -12,6 +12,7 @@ against its cell's bound (soundness). Output: a tracked folder `<paths.certified
 from __future__ import annotations
 
 import json
+import shutil
 import time
 from pathlib import Path
 
@@ -20,11 +21,12 @@ import torch
 from omegaconf import DictConfig
 
 from pipeline import identity, tracking
+from pipeline.certify import shards
 from pipeline.certify.attack import pgd_check
 from pipeline.certify.bounds import prepare
 from pipeline.certify.figures import scope, write_figures, write_table
 from pipeline.certify.settings import CertifySettings
-from pipeline.certify.split import certify_cells, eps_of, pose_cells, sampled_errors
+from pipeline.certify.split import eps_of, pose_cells
 from pipeline.config import build
 from pipeline.config import settings as settings_
 from pipeline.errormap import estimates as core
@@ -55,25 +57,24 @@ def _stats(values: np.ndarray) -> dict:
     return {k: v for k, v in core.error_stats(values).items() if k != "rms"}
 
 
-def _per_kappa(prep, pmap, camera, cells, s, margin_cr, progress: bool):
+def _per_kappa(prep, pmap, camera, cells, s, margin_cr, shards_dir: Path):
     """Bounds, depth, sampled errors and the numbers of one `kappa` over `cells` (a pose map's: each with every
-    heading interval, reported per position cell as the worst over them)."""
-    t0 = time.perf_counter()
+    heading interval, reported per position cell as the worst over them), computed in chunks (:mod:`.shards`);
+    `None` for a run of one shard (`s.shard`), which only saves its part."""
     k = int(s.headings) if prep.net.heading is not None else 1
     bounded = pose_cells(cells, k) if prep.net.heading is not None else cells
-    lower, upper, depth, leaves, heading = certify_cells(prep, bounded, s.mode, s.tolerance, s.max_depth,
-                                                         s.batch, progress, desc=f"certify kappa={prep.kappa:g}")
-    seconds = time.perf_counter() - t0
-    t1 = time.perf_counter()
-    emp, violations, worst, head_emp = sampled_errors(
-        pmap.predict, camera, bounded, lower, upper, s.samples, s.seed, progress=progress,
-        heading=heading) if prep.kappa == 0 else (None, None, None, None)
-    sampled_seconds = time.perf_counter() - t1
+    part = shards.run_kappa(prep, pmap.predict, camera, bounded, s, shards_dir, prep.kappa == 0,
+                            f"certify kappa={prep.kappa:g}")
+    if part is None:
+        return None, None
+    lower, upper, depth, leaves, heading = part.lower, part.upper, part.depth, part.leaves, part.heading
+    emp, head_emp, seconds, sampled_seconds = part.emp, part.head_emp, part.seconds, part.sampled_seconds
+    violations, worst = part.violations, part.worst
     pgd = None
     if s.pgd_cells > 0:  # an attacker on the bound: PGD over the position and the admissible images
         t2 = time.perf_counter()
         pgd = pgd_check(pmap.model, camera, bounded, lower, upper, prep.kappa, s.pgd_cells, s.pgd_steps,
-                        s.seed, progress=progress)
+                        s.seed, progress=bool(s.progress))
         pgd["seconds"] = time.perf_counter() - t2
     per_cell = lambda v, f: None if v is None else f(v.reshape(len(cells), k, *v.shape[1:]), 1)  # noqa: E731
     lower, upper, heading, emp, head_emp = (per_cell(v, f) for v, f in ((lower, np.min), (upper, np.max),
@@ -81,7 +82,7 @@ def _per_kappa(prep, pmap, camera, cells, s, margin_cr, progress: bool):
                                                                           (head_emp, np.max)))
     depth, leaves = per_cell(depth, np.max), per_cell(leaves, np.sum)
     eps = eps_of(lower, upper)
-    out = {"kappa": prep.kappa, "eps_bar": _stats(eps), "seconds": seconds, "cells_per_s": len(bounded) / seconds,
+    out = {"kappa": prep.kappa, "eps_bar": _stats(eps), "seconds": seconds, "cells_per_s": len(bounded) / max(seconds, 1e-9),
            "depth": {str(d): int((depth == d).sum()) for d in range(int(s.max_depth) + 1)},
            "leaves": int(leaves.sum()), "eps_cover": float(eps.max()),
            "theorem1": {"max_eps_bar": float(eps.max()), "margin_c_minus_r": margin_cr,
@@ -137,9 +138,12 @@ def run(cfg: DictConfig, *, perception_map=None, camera=None) -> dict:
     torch.set_num_threads(int(s.threads))
     dtype = torch.float64 if s.dtype == "float64" else torch.float32
     levels, tables, fields = {}, {}, {"x": xs, "y": ys, "operational": op.reshape(shape)}
+    shards_dir = root / shards.SHARDS_DIR / final.name
     for kappa in s.kappas:
         prep = prepare(pmap.model, camera, float(kappa), dtype)
-        r, arrays = _per_kappa(prep, pmap, camera, cells[op], s, margin_cr, bool(s.progress))
+        r, arrays = _per_kappa(prep, pmap, camera, cells[op], s, margin_cr, shards_dir)
+        if r is None:
+            continue
         levels[f"{float(kappa):g}"] = r
         tables[f"{float(kappa):g}"] = np.column_stack([cells[op], arrays["eps"]])
         for k, v in arrays.items():
@@ -147,6 +151,10 @@ def run(cfg: DictConfig, *, perception_map=None, camera=None) -> dict:
             full[op] = v
             fields[f"{k}_{float(kappa):g}"] = full.reshape(*shape, *v.shape[1:])
         _say(pmap.name, r, s.region)
+    if s.shard is not None:
+        print(f"certify: shard {s.shard} of {s.shards} of {final.name} -> {shards_dir} (merge: the same command "
+              f"without shard=)")
+        return {"path": shards_dir, "summary": None, "skipped": False, "shard": int(s.shard)}
     head = "keypoint" if getattr(pmap.model, "keypoint", False) else "flat"
     pose = bool(getattr(pmap.model, "pose", False))
     summary = {"id": id_, "name": pmap.name, "model": {"ref": str(cfg.maps), "id": str(pmap.id), "name": pmap.name,
@@ -166,6 +174,7 @@ def run(cfg: DictConfig, *, perception_map=None, camera=None) -> dict:
             np.savetxt(tmp / f"error_map_kappa{k}.csv", t, delimiter=",", header="x0,x1,y0,y1,eps_bar", comments="",
                        fmt="%.17g")
         write_figures(tmp, fields, summary, arena, s.formats)
+    shutil.rmtree(shards_dir, ignore_errors=True)  # merged: the shards are in the map now
     print(f"certify: wrote {final}")
     return {"path": final, "summary": summary, "skipped": False}
 

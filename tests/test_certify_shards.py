@@ -1,0 +1,95 @@
+"""The certify stage in shards (pipeline.certify.shards): shards computed apart and merged give the map computed in one
+process, array for array, under the same id; a saved shard is read, not recomputed; bad shard settings are one line."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from pipeline.certify import shards
+from pipeline.cli import REPO_ROOT, compose
+from pipeline.errors import PipelineError
+from pipeline.preflight import preflight
+
+
+def _cfg(tiny_maps, certified, *extra):
+    root, ids = tiny_maps
+    return compose("certify", ["debug=tiny", f"maps={ids['clean']}", f"paths.models_dir={root / 'models'}",
+                               f"paths.certified_dir={certified}", "progress=false", "batch=8", *extra])
+
+
+@given(n=st.integers(0, 200), batch=st.integers(1, 50), k=st.integers(1, 12))
+def test_shards_cut_the_chunks_into_contiguous_runs_that_cover_each_once(n, batch, k):
+    ranges = shards.chunk_ranges(n, batch)
+    assert [a for a, _ in ranges] == list(range(0, n, batch)) and (not ranges or ranges[-1][1] == n)
+    runs = [list(shards.shard_chunks(len(ranges), k, i)) for i in range(k)]
+    assert sum(runs, []) == list(range(len(ranges)))  # in order, each chunk once
+    assert max(map(len, runs)) - min(map(len, runs)) <= 1
+
+
+def _arrays(folder):
+    with np.load(folder / "cells.npz") as z:
+        return {k: z[k] for k in z.files}
+
+
+def test_shards_merge_to_the_map_computed_in_one_process(tiny_maps, tmp_path):
+    from pipeline.certify.stage import run
+
+    whole = run(_cfg(tiny_maps, tmp_path / "one"))
+    for i in (2, 0):  # out of order; shard 1 is left to the merge
+        out = run(_cfg(tiny_maps, tmp_path / "sharded", "shards=3", f"shard={i}"))
+        assert out["summary"] is None and out["shard"] == i
+        assert shards.shard_path(out["path"], 0.0, i, 3).is_file()
+    merged = run(_cfg(tiny_maps, tmp_path / "sharded", "shards=3"))
+    assert merged["path"].name == whole["path"].name  # one id: shards and shard are not in it
+    a, b = _arrays(whole["path"]), _arrays(merged["path"])
+    assert a.keys() == b.keys()
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+    for k in whole["summary"]["kappas"]:
+        assert (whole["path"] / f"error_map_kappa{k}.csv").read_bytes() == \
+               (merged["path"] / f"error_map_kappa{k}.csv").read_bytes()
+        s, t = whole["summary"]["kappas"][k], merged["summary"]["kappas"][k]
+        assert s["eps_bar"] == t["eps_bar"] and s.get("soundness") == t.get("soundness") and s["pgd"]["share_max"] == \
+            pytest.approx(t["pgd"]["share_max"])
+    assert not (tmp_path / "sharded" / shards.SHARDS_DIR / merged["path"].name).exists()  # merged: removed
+
+
+def test_a_saved_shard_is_read_not_recomputed(tiny_maps, tmp_path):
+    from pipeline.certify.stage import run
+
+    out = run(_cfg(tiny_maps, tmp_path, "shards=2", "shard=0", "kappas=[0.0]", "pgd_cells=0"))
+    path = shards.shard_path(out["path"], 0.0, 0, 2)
+    part = shards.load(path)
+    part.upper = part.upper + 1e4  # a marked shard: the merge must carry the mark
+    shards.save(path, part)
+    merged = run(_cfg(tiny_maps, tmp_path, "shards=2", "kappas=[0.0]", "pgd_cells=0"))
+    eps = _arrays(merged["path"])["eps_0"][_arrays(merged["path"])["operational"]]
+    assert np.all(eps[:len(part.upper)] > 1e4) and np.all(eps[len(part.upper):] < 1e4)
+
+
+@pytest.mark.parametrize("override, field", [("shard=2", "shard"), ("shards=0", "shards"), ("shard=-1", "shard")])
+def test_bad_shard_settings_are_one_line(override, field, tmp_path):
+    from pipeline.certify.checks import check
+
+    with pytest.raises(PipelineError) as err:
+        preflight("certify", ["shards=2", override, f"paths.outputs_dir={tmp_path}"], check)
+    assert err.value.field == field and "\n" not in str(err.value), str(err.value)
+
+
+def test_a_multirun_over_shards_then_the_merge_from_the_command_line(tiny_maps, tmp_path):
+    root, ids = tiny_maps
+    common = ["debug=tiny", f"maps={ids['clean']}", f"paths.models_dir={root / 'models'}",
+              f"paths.certified_dir={tmp_path / 'certified'}", "progress=false", "batch=8", "kappas=[0.0]",
+              "shards=2", f"hydra.sweep.dir={tmp_path / 'multi'}", f"hydra.run.dir={tmp_path / 'run'}"]
+    sweep = subprocess.run([sys.executable, "-m", "pipeline.certify", "-m", *common, "shard=0,1"], cwd=REPO_ROOT,
+                           capture_output=True, text=True, timeout=300)
+    assert sweep.returncode == 0, sweep.stderr[-2000:]
+    assert sweep.stdout.count("certify: shard ") == 2, sweep.stdout
+    merge = subprocess.run([sys.executable, "-m", "pipeline.certify", *common], cwd=REPO_ROOT, capture_output=True,
+                           text=True, timeout=300)
+    assert merge.returncode == 0 and "certify: wrote" in merge.stdout, merge.stderr[-2000:]
+    assert "certify kappa=0" not in merge.stderr  # nothing left to bound: both shards were read
