@@ -30,6 +30,22 @@ def test_shards_cut_the_chunks_into_contiguous_runs_that_cover_each_once(n, batc
     assert max(map(len, runs)) - min(map(len, runs)) <= 1
 
 
+@given(sizes=st.lists(st.integers(0, 6), min_size=1, max_size=5), seed=st.integers(0, 99))
+def test_merging_parts_concatenates_rows_and_reduces_scalars(sizes, seed):
+    rng = np.random.default_rng(seed)
+    parts = [({"x": rng.normal(size=(k, 2))} if k else {},
+              {"n": k, "worst": [float(rng.normal()), {"at": i}]} if k else {}) for i, k in enumerate(sizes)]
+    arrays, scalars = shards.merge(parts, {"n": "sum", "worst": "max"})
+    rows = [a["x"] for a, _ in parts if a]
+    if rows:
+        np.testing.assert_array_equal(arrays["x"], np.concatenate(rows))
+        assert scalars["worst"] == max((s["worst"] for _, s in parts if s), key=lambda w: w[0])
+    assert scalars["n"] == sum(sizes)
+    nested = shards.merge([shards.merge(parts[:1], {"n": "sum", "worst": "max"}),
+                           shards.merge(parts[1:], {"n": "sum", "worst": "max"})], {"n": "sum", "worst": "max"})
+    assert nested[1] == scalars and nested[0].keys() == arrays.keys()  # shards of chunks merge as the chunks do
+
+
 def _arrays(folder):
     with np.load(folder / "cells.npz") as z:
         return {k: z[k] for k in z.files}
@@ -42,7 +58,7 @@ def test_shards_merge_to_the_map_computed_in_one_process(tiny_maps, tmp_path):
     for i in (2, 0):  # out of order; shard 1 is left to the merge
         out = run(_cfg(tiny_maps, tmp_path / "sharded", "shards=3", f"shard={i}"))
         assert out["summary"] is None and out["shard"] == i
-        assert shards.shard_path(out["path"], 0.0, i, 3).is_file()
+        assert shards.shard_path(out["path"], "kappa0", i, 3).is_file()
     merged = run(_cfg(tiny_maps, tmp_path / "sharded", "shards=3"))
     assert merged["path"].name == whole["path"].name  # one id: shards and shard are not in it
     a, b = _arrays(whole["path"]), _arrays(merged["path"])
@@ -62,13 +78,14 @@ def test_a_saved_shard_is_read_not_recomputed(tiny_maps, tmp_path):
     from pipeline.certify.stage import run
 
     out = run(_cfg(tiny_maps, tmp_path, "shards=2", "shard=0", "kappas=[0.0]", "pgd_cells=0"))
-    path = shards.shard_path(out["path"], 0.0, 0, 2)
-    part = shards.load(path)
-    part.upper = part.upper + 1e4  # a marked shard: the merge must carry the mark
-    shards.save(path, part)
+    path = shards.shard_path(out["path"], "kappa0", 0, 2)
+    arrays, scalars = shards.load(path)
+    arrays["upper"] = arrays["upper"] + 1e4  # a marked shard: the merge must carry the mark
+    shards.save(path, (arrays, scalars))
     merged = run(_cfg(tiny_maps, tmp_path, "shards=2", "kappas=[0.0]", "pgd_cells=0"))
     eps = _arrays(merged["path"])["eps_0"][_arrays(merged["path"])["operational"]]
-    assert np.all(eps[:len(part.upper)] > 1e4) and np.all(eps[len(part.upper):] < 1e4)
+    n = len(arrays["upper"])
+    assert 0 < n < len(eps) and np.all(eps[:n] > 1e4) and np.all(eps[n:] < 1e4)
 
 
 @pytest.mark.parametrize("override, field", [("shard=2", "shard"), ("shards=0", "shards"), ("shard=-1", "shard")])

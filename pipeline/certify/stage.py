@@ -26,7 +26,7 @@ from pipeline.certify.attack import pgd_check
 from pipeline.certify.bounds import prepare
 from pipeline.certify.figures import scope, write_figures, write_table
 from pipeline.certify.settings import CertifySettings
-from pipeline.certify.split import eps_of, pose_cells
+from pipeline.certify.split import certify_cells, eps_of, pose_cells, sampled_errors
 from pipeline.config import build
 from pipeline.config import settings as settings_
 from pipeline.errormap import estimates as core
@@ -53,6 +53,9 @@ def cells_of(arena, cell: float, region, scene, margin: float):
     return cells, shape, xs, ys, op
 
 
+REDUCE = {"violations": "sum", "worst": "max", "seconds": "sum", "sampled_seconds": "sum"}  # a chunk's scalars
+
+
 def _stats(values: np.ndarray) -> dict:
     return {k: v for k, v in core.error_stats(values).items() if k != "rms"}
 
@@ -63,13 +66,29 @@ def _per_kappa(prep, pmap, camera, cells, s, margin_cr, shards_dir: Path):
     `None` for a run of one shard (`s.shard`), which only saves its part."""
     k = int(s.headings) if prep.net.heading is not None else 1
     bounded = pose_cells(cells, k) if prep.net.heading is not None else cells
-    part = shards.run_kappa(prep, pmap.predict, camera, bounded, s, shards_dir, prep.kappa == 0,
-                            f"certify kappa={prep.kappa:g}")
+    sample = prep.kappa == 0
+
+    def chunk(a, b, c, bar):
+        t0 = time.perf_counter()
+        lower, upper, depth, leaves, heading = certify_cells(prep, bounded[a:b], s.mode, s.tolerance, s.max_depth,
+                                                             s.batch, bar=bar)
+        t1 = time.perf_counter()
+        emp, violations, worst, head_emp = sampled_errors(
+            pmap.predict, camera, bounded[a:b], lower, upper, s.samples, s.seed, heading=heading, stream=c,
+            progress=False) if sample else (None, 0, (-np.inf, None), None)
+        return ({"lower": lower, "upper": upper, "depth": depth, "leaves": leaves, "heading": heading, "emp": emp,
+                 "head_emp": head_emp},
+                {"violations": violations, "worst": list(worst), "seconds": t1 - t0,
+                 "sampled_seconds": time.perf_counter() - t1})
+
+    part = shards.run_sharded(len(bounded), s.batch, s, shards_dir, f"kappa{prep.kappa:g}", chunk, REDUCE,
+                              f"certify kappa={prep.kappa:g}")
     if part is None:
         return None, None
-    lower, upper, depth, leaves, heading = part.lower, part.upper, part.depth, part.leaves, part.heading
-    emp, head_emp, seconds, sampled_seconds = part.emp, part.head_emp, part.seconds, part.sampled_seconds
-    violations, worst = part.violations, part.worst
+    a, sc = part
+    lower, upper, depth, leaves, heading = (a[k] for k in ("lower", "upper", "depth", "leaves", "heading"))
+    emp, head_emp, seconds, sampled_seconds = a.get("emp"), a.get("head_emp"), sc["seconds"], sc["sampled_seconds"]
+    violations, worst = sc["violations"], sc["worst"]
     pgd = None
     if s.pgd_cells > 0:  # an attacker on the bound: PGD over the position and the admissible images
         t2 = time.perf_counter()
