@@ -268,7 +268,8 @@ def test_the_clouds_app_checks_its_settings_and_runs_tiny(tiny_maps, tmp_path):
     from pipeline.cli import compose
 
     root, ids = tiny_maps
-    base = [f"paths.models_dir={root / 'models'}", f"clouds.maps={ids['occluded']}"]
+    base = [f"paths.models_dir={root / 'models'}", f"clouds.maps={ids['occluded']}",
+            f"paths.certified_dir={tmp_path / 'certified'}", "clouds.progress=false"]
     for bad, field in (("clouds.delta=1.5", "clouds.delta"), ("clouds.layouts=0", "clouds.layouts"),
                        ("clouds.occlusion=foggy", "clouds.occlusion"), ("clouds.mode=exact", "clouds.mode")):
         with pytest.raises(ConfigError, match=rf"^{field}"):
@@ -281,5 +282,5 @@ def test_the_clouds_app_checks_its_settings_and_runs_tiny(tiny_maps, tmp_path):
         cfg.paths.output_dir = str(tmp_path)
     summary = run(cfg)
     assert summary["cells"] == 2 and summary["layouts"] == 3 and summary["sampled"]["violations"] == 0
-    table = np.loadtxt(tmp_path / "table.csv", delimiter=",", skiprows=1)
+    table = np.loadtxt(summary["path"] / "table.csv", delimiter=",", skiprows=1)
     assert table.shape == (2, 9) and (table[:, 4] > 0).all()

@@ -159,7 +159,8 @@ def test_the_clouds_app_with_and_without_a_gate(tiny_maps, tmp_path):
     from pipeline.cli import compose
 
     root, ids = tiny_maps
-    base = [f"paths.models_dir={root / 'models'}", f"clouds.maps={ids['occluded']}"]
+    base = [f"paths.models_dir={root / 'models'}", f"clouds.maps={ids['occluded']}",
+            f"paths.certified_dir={tmp_path / 'certified'}", "clouds.progress=false"]
     for bad in ("clouds.gate=-1", "clouds.gate=0", "clouds.gate=abc", "clouds.gate=true", "clouds.gate=[1]"):
         with pytest.raises(ConfigError, match=r"^clouds\.gate") as err:
             check(compose("certify_clouds", [*base, bad]))
@@ -172,7 +173,7 @@ def test_the_clouds_app_with_and_without_a_gate(tiny_maps, tmp_path):
         with open_dict(cfg):
             cfg.paths.output_dir = str(out)
         summaries.append(run(cfg))
-        tables.append(np.loadtxt(out / "table.csv", delimiter=",", skiprows=1))
+        tables.append(np.loadtxt(summaries[-1]["path"] / "table.csv", delimiter=",", skiprows=1))
     plain, gated = summaries
     assert tables[0].shape == (2, 9) and tables[1].shape == (2, 12)
     assert np.array_equal(tables[0], tables[1][:, :9], equal_nan=True)  # the gate changes nothing it did not add

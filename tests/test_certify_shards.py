@@ -110,3 +110,34 @@ def test_a_multirun_over_shards_then_the_merge_from_the_command_line(tiny_maps, 
                            text=True, timeout=300)
     assert merge.returncode == 0 and "certify: wrote" in merge.stdout, merge.stderr[-2000:]
     assert "certify kappa=0" not in merge.stderr  # nothing left to bound: both shards were read
+
+
+def test_the_clouds_app_in_shards_gives_the_table_of_one_process(tiny_maps, tmp_path):
+    from omegaconf import open_dict
+
+    from pipeline.certify.clouds_run import run
+
+    root, ids = tiny_maps
+
+    def clouds(certified, *extra):
+        cfg = compose("certify_clouds", [f"paths.models_dir={root / 'models'}", f"clouds.maps={ids['occluded']}",
+                                         f"paths.certified_dir={certified}", "clouds.progress=false",
+                                         "clouds.limit=6", "clouds.layouts=3", "clouds.samples=1", "clouds.fresh=4",
+                                         "clouds.chunk=2", "clouds.gate=0.5", *extra])
+        with open_dict(cfg):
+            cfg.paths.output_dir = str(tmp_path / "run")
+        return run(cfg)
+
+    whole = clouds(tmp_path / "one")
+    for i in (2, 0):
+        assert clouds(tmp_path / "sharded", "clouds.shards=3", f"clouds.shard={i}")["shard"] == i
+    merged = clouds(tmp_path / "sharded", "clouds.shards=3")
+    assert merged["path"].name == whole["path"].name and not merged["skipped"]
+    assert (whole["path"] / "table.csv").read_bytes() == (merged["path"] / "table.csv").read_bytes()
+    for key in ("sampled", "fresh", "eps_bar_delta", "cells_eps_delta_below_c_minus_r"):
+        assert whole[key] == merged[key], key
+    assert {k: v for k, v in whole["gated"].items() if k != "seconds"} == \
+           {k: v for k, v in merged["gated"].items() if k != "seconds"}
+    assert whole["sampled"]["frames"] == 6 * 3 * 1 and whole["fresh"]["frames"] == 6 * 4  # every chunk counted
+    again = clouds(tmp_path / "one")
+    assert again["skipped"] and again["path"] == whole["path"]

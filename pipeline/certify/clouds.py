@@ -215,10 +215,11 @@ def cell_points(rng: np.random.Generator, cells: np.ndarray, k: int) -> np.ndarr
 
 
 def sampled_check(predict, camera, occ: Occlusion, cells: np.ndarray, lower, upper, layouts: Layouts,
-                  samples: int, seed: int = 0):
+                  samples: int, seed: int = 0, stream: int = 0):
     """Positions drawn in each cell, rendered by the camera with each layout (`Camera.render(occlusion, clouds)`,
-    the loop's path): how many errors leave the layout's per-coordinate bound, and the largest excess."""
-    rng = np.random.default_rng([seed, 44])
+    the loop's path): how many errors leave the layout's per-coordinate bound, and the largest excess. The
+    positions: the random stream `(seed, stream)` (the app draws one per chunk of cells)."""
+    rng = np.random.default_rng([seed, 44, stream])
     bad, worst = 0, -np.inf
     for j in range(len(layouts)):
         p = cell_points(rng, cells, samples)

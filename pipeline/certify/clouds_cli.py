@@ -7,14 +7,16 @@ layout rendered with that layout through the real camera (none may pass its layo
 cell under fresh layouts (the share above `eps_bar_delta` should sit under `delta`). With `clouds.gate` (a number,
 `camera.gate`'s units; null: no gate) the map's predicted error is bounded too (:mod:`pipeline.certify.gate`): the
 table adds `eps_bar_delta_gated`, `flagged_share`, `undecided_share` (a flagged frame is dropped, no error). Writes
-`table.csv` (one row per cell) and `clouds.json` (the summary; the run dir's `summary.json` is Hydra's job
-record) to the run dir and prints one summary line (two with a gate). Not yet a tracked stage (no id, no
-sharding): its outputs are a run's, like `python -m pipeline.simulate`'s. Bad settings: one line, exit 2.
+`table.csv` (one row per cell) and `clouds.json` (the summary) into a tracked folder,
+`<paths.certified_dir>/clouds/<map>_<level>-<id>/` (the id: the settings that determine its bytes, the map's id, its
+scene and the code), and prints one summary line (two with a gate). In shards like the certify stage
+(:mod:`.shards`: `clouds.shards`, `clouds.shard`, chunks of `clouds.chunk` cells). Bad settings: one line, exit 2.
 """
 
 from __future__ import annotations
 
-import numpy as np
+from dataclasses import asdict, dataclass
+
 from omegaconf import DictConfig
 
 from pipeline import tracking
@@ -22,37 +24,62 @@ from pipeline.cli import stage_main
 from pipeline.errors import ConfigError
 from pipeline.lineage import resolve_map
 from pipeline.render.occlusion import load_occlusion
+from pipeline.schema import NonNegativeInt, OpenShare, Positive, PositiveInt, checked
 
 F = "clouds"
 
 
+@checked(F)
+@dataclass(frozen=True)
+class CloudsSettings:
+    """The keys under `clouds.` (conf/certify_clouds.yaml describes each)."""
+
+    maps: str = "occluded_keypoint"
+    occlusion: str = "heavy"
+    layouts: PositiveInt = 299
+    delta: OpenShare = 0.01
+    confidence: OpenShare = 0.95
+    seed: NonNegativeInt = 0
+    cell: Positive = 0.25
+    region: list[list[float]] = ((-30.0, -11.5), (-2.0, 2.0))
+    limit: PositiveInt | None = None
+    mode: str = "crown"
+    tolerance: Positive = 1.0
+    max_depth: NonNegativeInt = 0
+    samples: NonNegativeInt = 2
+    fresh: NonNegativeInt = 200
+    threads: PositiveInt = 1
+    gate: Positive | None = None
+    chunk: PositiveInt = 64
+    shards: PositiveInt = 1
+    shard: NonNegativeInt | None = None
+    force: bool = False
+    progress: bool = True
+
+    def __post_init__(self):
+        if self.mode not in ("crown", "forward", "ibp"):
+            raise ConfigError(f"{F}.mode", f"must be crown, forward or ibp, got {self.mode!r}")
+        ok = len(self.region) == 2 and all(len(r) == 2 and r[0] < r[1] for r in self.region)
+        if not ok:
+            raise ConfigError(f"{F}.region", f"must be [[x0, x1], [y0, y1]] with x0 < x1 and y0 < y1, got "
+                                             f"{self.region!r}")
+        if self.shard is not None and self.shard >= self.shards:
+            raise ConfigError(f"{F}.shard", f"must be below {F}.shards ({self.shards}): shards are 0 .. "
+                                            f"{self.shards - 1}, got {self.shard}")
+
+    def recipe(self) -> dict:
+        """What determines the output's bytes (the map apart: it enters the id by its own id)."""
+        return {k: v for k, v in asdict(self).items() if k not in VOLATILE}
+
+
+VOLATILE = ("maps", "threads", "shards", "shard", "force", "progress")
+
+
 def check(cfg: DictConfig) -> dict:
     """Preflight (no torch): every setting, the map's folder and the cloud level, or one line naming the field."""
-    s = tracking.to_plain(cfg.clouds)
-    for key, lo, hi in (("delta", 0.0, 1.0), ("confidence", 0.0, 1.0)):
-        v = s[key]
-        if not isinstance(v, (int, float)) or not lo < v < hi:
-            raise ConfigError(f"{F}.{key}", f"must be a number in ({lo:g}, {hi:g}), got {v!r}")
-    for key in ("layouts", "threads"):
-        if not isinstance(s[key], int) or isinstance(s[key], bool) or s[key] < 1:
-            raise ConfigError(f"{F}.{key}", f"must be a positive integer, got {s[key]!r}")
-    for key in ("samples", "fresh", "max_depth", "seed"):
-        if not isinstance(s[key], int) or isinstance(s[key], bool) or s[key] < 0:
-            raise ConfigError(f"{F}.{key}", f"must be a non-negative integer, got {s[key]!r}")
-    if s["limit"] is not None and (not isinstance(s["limit"], int) or s["limit"] < 1):
-        raise ConfigError(f"{F}.limit", f"must be null or a positive integer, got {s['limit']!r}")
-    if not isinstance(s["cell"], (int, float)) or s["cell"] <= 0:
-        raise ConfigError(f"{F}.cell", f"must be a positive number, got {s['cell']!r}")
-    gate = s.get("gate")
-    if gate is not None and (isinstance(gate, bool) or not isinstance(gate, (int, float)) or not 0 < gate < np.inf):
-        raise ConfigError(f"{F}.gate", f"must be null or a positive number (camera.gate's world units), got {gate!r}")
-    if s["mode"] not in ("crown", "forward", "ibp"):
-        raise ConfigError(f"{F}.mode", f"must be crown, forward or ibp, got {s['mode']!r}")
-    reg = np.asarray(s["region"], dtype=object)
-    if reg.shape != (2, 2):
-        raise ConfigError(f"{F}.region", f"must be [[x0, x1], [y0, y1]], got {s['region']!r}")
-    occ = load_occlusion(s["occlusion"], field=f"{F}.occlusion")
-    folder = resolve_map(s["maps"], cfg.paths.models_dir, field=f"{F}.maps")
+    s = CloudsSettings(**tracking.to_plain(cfg.clouds))
+    occ = load_occlusion(s.occlusion, field=f"{F}.occlusion")
+    folder = resolve_map(s.maps, cfg.paths.models_dir, field=f"{F}.maps")
     return {"settings": s, "occlusion": occ, "folder": folder}
 
 

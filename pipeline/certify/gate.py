@@ -178,11 +178,11 @@ def shares(eps: np.ndarray, gate_lower: np.ndarray, at: float, gate: float) -> d
 
 
 def gate_sampled_check(predicted_error_fn, camera, occ, cells: np.ndarray, lower, upper, layouts, samples: int,
-                       seed: int = 0):
+                       seed: int = 0, stream: int = 0):
     """Positions drawn in each cell, rendered with each layout through the camera: how many predicted errors
     (`predicted_error_fn(images) -> (est, err)`, the loop's) leave the layout's gate bounds, and the largest
     relative excess."""
-    rng = np.random.default_rng([seed, 4405])
+    rng = np.random.default_rng([seed, 4405, stream])
     bad, worst = 0, -np.inf
     for j in range(len(layouts)):
         p = cell_points(rng, cells, samples)
@@ -194,11 +194,11 @@ def gate_sampled_check(predicted_error_fn, camera, occ, cells: np.ndarray, lower
 
 
 def gate_fresh_check(predicted_error_fn, camera, occ, cells: np.ndarray, eps_gated: np.ndarray, gate: float,
-                     frames: int, seed: int) -> dict:
+                     frames: int, seed: int, stream: int = 0) -> dict:
     """Frames at uniform positions of each cell under fresh layouts (the loop's draw, as
     :func:`.clouds.fresh_check`): the share whose error exceeds `eps_bar_delta_gated` and that the gate keeps
     (to sit under `delta`, up to sampling), and the share dropped."""
-    rng = np.random.default_rng([seed, 4406])
+    rng = np.random.default_rng([seed, 4406, stream])
     p = cell_points(rng, cells, frames)
     est, err = predicted_error_fn(camera.render(p, occlusion=occ, rng=rng))
     e = np.linalg.norm(np.asarray(est, np.float64)[:, :2] - p, axis=-1).reshape(len(cells), frames)
