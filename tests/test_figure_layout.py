@@ -233,7 +233,9 @@ def test_the_coverage_title_names_the_line_styles_it_draws(eps_cover):
     fields = {"eps_min_none": np.full((n, n), 1.0), "operational": np.ones((n, n), bool)}
     results = {"none": {"coverage": {"eps": [0.5, 1.0, 2.0], "fraction": [0.2, 0.6, 1.0]}, "L": 1.0,
                         "eps_cover": eps_cover}}
-    settings = {"coverage": {"eps_marks": [1.0, 2.0], "r_cov": 1.0}}
+    from pipeline.errormap.settings import Coverage, ErrorMapSettings
+
+    settings = ErrorMapSettings(coverage=Coverage(eps_marks=[1.0, 2.0], r_cov=1.0))
     fig = _coverage_figure(fields, results, settings, scene=SCENE, arena=SCENE.bounds,
                            extent=(-50, 50, -30, 30), levels=["none"])
     ax = fig.axes[0]

@@ -13,6 +13,7 @@ import numpy as np
 
 from pipeline.control import Scene, in_diamond
 from pipeline.errormap import estimates as core
+from pipeline.errormap.settings import ErrorMapSettings
 
 
 def operational_margin(margin, camera) -> float:
@@ -42,7 +43,7 @@ def dean_center(center, scene: Scene) -> np.ndarray:
 
 def analyse_level(E: np.ndarray, points: np.ndarray, shape: tuple[int, int], operational: np.ndarray,
                   samples: np.ndarray, sample_err: np.ndarray, near: np.ndarray, scene: Scene,
-                  settings: Mapping) -> dict:
+                  settings: ErrorMapSettings) -> dict:
     """All numbers of one occlusion level from its error field `E (K, N, 2)` (K draws per point).
 
     Statistics pool the K draws; the worst draw per point, `e(p) = max_k |E_k(p)|`, is what Assumption 1
@@ -54,26 +55,26 @@ def analyse_level(E: np.ndarray, points: np.ndarray, shape: tuple[int, int], ope
     op_stats = core.error_stats(mag[:, operational])
     arena_stats = core.error_stats(mag)
     # where the closed loop spends its time: within r_T of the target (operational points only)
-    r_t = float(settings.get("near_target_radius", 5.0))
+    r_t = float(settings.near_target_radius)
     near_t = operational & (np.hypot(*(points - scene.p_T).T) <= r_t)
     near_stats = core.error_stats(mag[:, near_t]) if near_t.any() else {}
-    step = float(settings["grid"]["step"])
+    step = float(settings.grid.step)
     grid_f = E.reshape(k, *shape, 2)
     lip_op = core.lipschitz_estimate(grid_f, step, operational.reshape(shape))
     lip_all = core.lipschitz_estimate(grid_f, step)
-    L = lip_op["max"] if settings["coverage"]["lipschitz"] == "max" else lip_op["p99"]
-    r_cov = settings["coverage"]["r_cov"]
+    L = lip_op["max"] if settings.coverage.lipschitz == "max" else lip_op["p99"]
+    r_cov = settings.coverage.r_cov
     eps_min = core.coverage_eps_min(points, samples, sample_err, L, r_cov)
     eps_op = eps_min[operational]
     reachable = near[operational] <= (np.inf if r_cov is None else r_cov)
-    eps_values = settings["coverage"].get("eps")
+    eps_values = settings.coverage.eps
     eps_values = core.eps_sweep(eps_op) if eps_values is None else np.asarray(eps_values, dtype=float)
-    eps_values = np.unique(np.concatenate([eps_values, np.asarray(settings["coverage"].get("eps_marks") or [])]))
-    center = dean_center(settings["dean"].get("center", "origin"), scene)
+    eps_values = np.unique(np.concatenate([eps_values, np.asarray(settings.coverage.eps_marks or [])]))
+    center = dean_center(settings.dean.center, scene)
     op_idx = np.flatnonzero(operational)
     dean = core.dean_fit(E[:, op_idx].reshape(-1, 2), np.tile(points[op_idx], (k, 1)), center,
-                         settings["dean"]["eps_C"])
-    edges = _distance_edges(near[operational], int(settings["distance_bins"]))
+                         settings.dean.eps_C)
+    edges = _distance_edges(near[operational], int(settings.distance_bins))
     binned = core.binned_stats(near[operational], worst[operational], edges)
     # Lemma 1 on the grid: where a sample lies within r_cov, does |E(p)| <= eps_min(p) hold?
     has_bound = np.isfinite(eps_op)
@@ -108,12 +109,12 @@ def _heading_stats(deg: np.ndarray) -> dict:
 
 
 def analyse_heading(H: np.ndarray, points: np.ndarray, operational: np.ndarray, scene: Scene,
-                    settings: Mapping) -> dict:
+                    settings: ErrorMapSettings) -> dict:
     """A pose map's heading error beside the position error (SPEC §2): `H (K, N)` the wrapped errors (radians) of
     the K fields (draws x headings); `|Δθ|` in degrees pooled over them, over the operational set (the headline),
     the arena, and within `near_target_radius` of the target; `worst_*`: of the worst heading per point."""
     deg = np.degrees(np.abs(np.asarray(H, dtype=float)))  # (K, N)
-    r_t = float(settings.get("near_target_radius", 5.0))
+    r_t = float(settings.near_target_radius)
     near_t = operational & (np.hypot(*(points - scene.p_T).T) <= r_t)
     worst = deg.max(axis=0)[operational]
     return {**_heading_stats(deg[:, operational]), "fields": int(len(deg)),
@@ -132,10 +133,10 @@ def _distance_edges(dist: np.ndarray, bins: int) -> np.ndarray:
     return edges if len(edges) > 1 else np.array([edges[0], edges[0] + 1.0])
 
 
-def eps_marks(settings: Mapping, eps_min_op: list[np.ndarray]) -> list[float]:
+def eps_marks(settings: ErrorMapSettings, eps_min_op: list[np.ndarray]) -> list[float]:
     """The ε values whose covered sets are drawn: `coverage.eps_marks`, else each level's 50 % and 95 %
     coverage thresholds, rounded to 2 significant digits (so that every panel shows a few bands)."""
-    marks = settings["coverage"].get("eps_marks")
+    marks = settings.coverage.eps_marks
     if marks:
         return sorted(float(m) for m in marks)
     out = set()

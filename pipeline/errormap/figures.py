@@ -30,7 +30,7 @@ def _shared_norm(arrays: list[np.ndarray]):
 
 
 def figures(folder: Path, fields: dict, results: dict, scene: Scene, arena, settings, levels) -> list[str]:
-    fmts = tuple(settings.get("formats", ["png"]))
+    fmts = tuple(settings.formats)
     (x0, x1), (y0, y1) = arena
     view = dict(scene=scene, arena=arena, extent=(x0, x1, y0, y1), levels=levels)
     worst = {lv: np.linalg.norm(fields[f"E_{lv}"], axis=-1).max(axis=0) for lv in levels}  # worst |E| per point
@@ -101,7 +101,7 @@ def _slope_figure(fields: dict, results: dict, *, scene, arena, extent, levels):
 def _coverage_figure(fields: dict, results: dict, settings, *, scene, arena, extent, levels):
     """Assumption 1: the coverage curve per level, then its eps_min map with the covered sets of the marks."""
     n = len(levels)
-    marks = sorted(settings["coverage"].get("eps_marks") or [])
+    marks = sorted(settings.coverage.eps_marks or [])
     fig, axes = plt.subplots(n + 1, 1, figsize=(7.5, 3.5 * (n + 1)), squeeze=False, layout="constrained")
     axes = axes[:, 0]
     covered = []
@@ -120,7 +120,7 @@ def _coverage_figure(fields: dict, results: dict, settings, *, scene, arena, ext
     axes[0].legend(fontsize=8)
     lines = [*(["dotted: the smallest ε whose coverage set holds the operational set"] if covered else []),
              *(["thin grey: the marked ε of the maps below"] if marks else [])]
-    axes[0].set_title(f"Assumption 1: p ∈ S(L, ε), r_cov = {settings['coverage']['r_cov']}"
+    axes[0].set_title(f"Assumption 1: p ∈ S(L, ε), r_cov = {settings.coverage.r_cov}"
                       + (f"\n({'; '.join(lines)})" if lines else ""), fontsize=9)
     # nested covered sets: the colour of p is the smallest marked ε whose coverage set contains it
     bounds = [0.0, *marks, np.inf]

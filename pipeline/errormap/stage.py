@@ -15,7 +15,7 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -164,33 +164,32 @@ def run_one(cfg: DictConfig, *, perception_map=None, camera=None, occlusions: Ma
     (`{level: occlusion object}`), `dataset` (`.positions("train")`, `.images("train")`).
     """
     plan = _plan(cfg, perception_map, camera, occlusions)
-    pmap, settings, final = plan.pmap, plan.settings, plan.final
-    if tracking.exists(final, "error map") and not settings.get("force", False):
+    pmap, s, final = plan.pmap, plan.s, plan.final
+    if tracking.exists(final, "error map") and not s.force:
         tracking.check_intact(final, "error map",
                               f"{rerun_command('errormap', [f'maps=[{final.name}]'], cfg)} force=true")
         print(f"errormap: {final} is complete (force=true to recompute)")
         return {"path": final, "summary": json.loads((final / "summary.json").read_text()), "skipped": True,
                 "fields": None}
     ds = dataset if dataset is not None else _dataset(pmap, plan.manifest, cfg)
-    progress = bool(settings.get("progress", True))  # a bar on a terminal, one line every few seconds in a log
+    progress = s.progress  # a bar on a terminal, one line every few seconds in a log
 
     t0 = time.perf_counter()
     with phase("train samples"):
-        samples, sample_pred = _train_samples(ds, pmap.predict, settings.get("train_samples"), int(settings["batch"]),
-                                              settings["seed"], progress)
+        samples, sample_pred = _train_samples(ds, pmap.predict, s.train_samples, s.batch, s.seed, progress)
     t_train = time.perf_counter() - t0
     sample_err_vec = sample_pred - samples
-    margin = operational_margin(settings.get("operational_margin", "auto"), plan.camera)
+    margin = operational_margin(s.operational_margin, plan.camera)
     with phase("error fields"):
         results, fields, operational = _compute_levels(plan, samples, sample_err_vec, margin, progress)
-    settings = _coverage_marks(settings, plan.levels, results, fields, operational)
-    summary = _summary(cfg, plan, settings, results, samples, sample_err_vec, t_train, margin, operational)
+    s = _coverage_marks(s, plan.levels, results, fields, operational)
+    summary = _summary(cfg, plan, s, results, samples, sample_err_vec, t_train, margin, operational)
 
     meta = {"recipe": plan.recipe, "inputs": {"model": str(pmap.id), "dataset": getattr(ds, "id", None)},
             "model_name": pmap.name, "code_version": tracking.code_version(*identity.ERRORMAP_CODE),
             "occlusions": {lv: o.config() for lv, o in plan.occ.items() if hasattr(o, "config")}}
     with tracking.tracked_output(plan.root, pmap.name, plan.id, meta) as tmp:
-        write_outputs(tmp, summary, fields, results, plan.scene, plan.arena, settings, samples, sample_err_vec)
+        write_outputs(tmp, summary, fields, results, plan.scene, plan.arena, s, samples, sample_err_vec)
     print(f"errormap: wrote {final}")
     record(f"errormap {pmap.name}")
     return {"path": final, "summary": summary, "skipped": False, "fields": fields}
@@ -198,10 +197,11 @@ def run_one(cfg: DictConfig, *, perception_map=None, camera=None, occlusions: Ma
 
 @dataclass(frozen=True, eq=False)
 class _Plan:
-    """What one error map is computed from: its settings (plain), the perception map, camera and cloud levels, the
-    scene and arena of the map's images, the grid `(points, shape, xs, ys)`, and where it goes (id, folder)."""
+    """What one error map is computed from: its settings (`s`, typed; the id hashes the plain `recipe`), the
+    perception map, camera and cloud levels, the scene and arena of the map's images, the grid `(points, shape, xs,
+    ys)`, and where it goes (id, folder)."""
 
-    settings: dict
+    s: ErrorMapSettings
     levels: list
     pmap: Any
     camera: Any
@@ -220,9 +220,9 @@ class _Plan:
 
 def _plan(cfg: DictConfig, perception_map, camera, occlusions) -> _Plan:
     """Check the settings, load (or take) the objects, lay the grid and name the output: no work yet."""
-    settings_(cfg, ErrorMapSettings)
-    settings = errormap_settings(cfg)
-    levels = settings["occlusion_levels"]
+    s = settings_(cfg, ErrorMapSettings)
+    settings = errormap_settings(cfg)  # plain: what the id hashes
+    levels = s.occlusion_levels
     pmap = perception_map if perception_map is not None else _load_map(cfg, cfg.maps)
     camera = camera if camera is not None else pmap.camera()
     occ = dict(occlusions) if occlusions is not None else _occlusions(cfg, levels)
@@ -232,19 +232,19 @@ def _plan(cfg: DictConfig, perception_map, camera, occlusions) -> _Plan:
     scene, arena, scene_cfg = _scene_and_arena(pmap, camera)
     manifest = getattr(pmap, "manifest", None) or {}
     try:
-        grid = core.arena_grid(arena, settings["grid"]["step"])
+        grid = core.arena_grid(arena, s.grid.step)
     except ValueError as err:
         raise ConfigError("grid.step", str(err)) from None
 
     pose = bool(getattr(pmap, "pose", False))  # a pose map: each point at `headings` headings, heading errors too
-    headings = heading_grid(int(settings["headings"])) if pose else [None]
+    headings = heading_grid(s.headings) if pose else [None]
     if not pose:
         settings = {k: v for k, v in settings.items() if k != "headings"}
     recipe = tracking.strip_keys(settings, identity.ERRORMAP_VOLATILE)
     id_ = identity.errormap_id(settings, {lv: _occlusion_config(o) for lv, o in occ.items()}, str(pmap.id),
                                scene_cfg, arena, pose)
     root = Path(cfg.paths.errormaps_dir)
-    return _Plan(settings, levels, pmap, camera, occ, scene, arena, manifest, grid, recipe, id_, root,
+    return _Plan(s, levels, pmap, camera, occ, scene, arena, manifest, grid, recipe, id_, root,
                  root / f"{pmap.name}-{id_}", pose, headings)
 
 
@@ -265,7 +265,7 @@ def _dataset(pmap, manifest: dict, cfg: DictConfig):
 
 def _compute_levels(plan: _Plan, samples, sample_err_vec, margin, progress: bool):
     """E over the grid for each occlusion level and its analysis: `(results, fields, operational)`."""
-    settings, (points, shape, xs, ys) = plan.settings, plan.grid
+    s, (points, shape, xs, ys) = plan.s, plan.grid
     operational = operational_set(points, plan.scene, plan.arena, margin)
     near = core.nearest_distance(points, samples)
     sample_err = np.linalg.norm(sample_err_vec, axis=1)
@@ -275,12 +275,12 @@ def _compute_levels(plan: _Plan, samples, sample_err_vec, margin, progress: bool
         E = _error_draws(plan, li, level, progress)  # (K, N, 2), a pose map's (K * headings, N, 3)
         seconds = time.perf_counter() - t1
         r = results[level] = analyse_level(E[..., :2], points, shape, operational, samples, sample_err, near,
-                                           plan.scene, settings)
+                                           plan.scene, s)
         r.update(draws=len(E) // len(plan.headings), seconds=seconds,
                  points_per_s=len(E) * len(points) / max(seconds, 1e-12))
         fields[f"E_{level}"] = E[..., :2].reshape(len(E), *shape, 2).astype(np.float32)
         if plan.pose:
-            r["heading"] = analyse_heading(E[..., 2], points, operational, plan.scene, settings)
+            r["heading"] = analyse_heading(E[..., 2], points, operational, plan.scene, s)
             fields[f"H_{level}"] = np.degrees(E[..., 2]).reshape(len(E), *shape).astype(np.float32)
         fields[f"eps_min_{level}"] = r.pop("_eps_min").reshape(shape)
         fields[f"slope_{level}"] = r.pop("_slope")
@@ -296,52 +296,53 @@ def _error_draws(plan: _Plan, li: int, level: str, progress: bool) -> np.ndarray
     """The K rendered draws of E over the grid at one level (one for a deterministic level), `(K, N, 2)` (a pose
     map's `(K * headings, N, 3)`, the heading error last); draw d
     uses the stream `(seed, li, d)`, and with `clouds: shared` one cloud sample shown at every point."""
-    settings, occ, camera = plan.settings, plan.occ[level], plan.camera
+    s, occ, camera = plan.s, plan.occ[level], plan.camera
     random = not _is_deterministic(level, occ)
-    k = int(settings["draws"]) if random else 1
-    shared_clouds = settings.get("clouds", "independent") == "shared"
+    k = s.draws if random else 1
+    shared_clouds = s.clouds == "shared"
     draws = []
     for d in range(k):
-        rng = np.random.default_rng([int(settings["seed"]), li, d])
+        rng = np.random.default_rng([s.seed, li, d])
         shared = occ.sample(1, rng, tuple(camera.shape)) if random and shared_clouds else None
         for th in plan.headings:  # a pose map: one field per heading (a draw each); else one field
             draws.append(core.error_field(plan.pmap.predict, _render_fn(camera, occ, shared, th), plan.grid[0],
-                                          batch=int(settings["batch"]), rng=rng, progress=progress, heading=th,
+                                          batch=s.batch, rng=rng, progress=progress, heading=th,
                                           desc=f"error map [{level}{f' {d + 1}/{k}' if k > 1 else ''}]"))
     return np.stack(draws)
 
 
-def _coverage_marks(settings: dict, levels, results: dict, fields: dict, operational) -> dict:
+def _coverage_marks(s: ErrorMapSettings, levels, results: dict, fields: dict, operational) -> ErrorMapSettings:
     """The ε marks whose covered sets are drawn (given, or per level's thresholds), each level's covered fraction
     at them (`coverage_at`, into `results`); returns the settings with the marks."""
-    marks = eps_marks(settings, [fields[f"eps_min_{lv}"].ravel()[operational] for lv in levels])
+    marks = eps_marks(s, [fields[f"eps_min_{lv}"].ravel()[operational] for lv in levels])
     for lv in levels:
         em = fields[f"eps_min_{lv}"].ravel()[operational]
         results[lv]["coverage_at"] = {f"{m:g}": float(core.coverage_curve(em, [m])[0]) for m in marks}
-    return {**settings, "coverage": {**settings["coverage"], "eps_marks": marks}}
+    return replace(s, coverage=replace(s.coverage, eps_marks=marks))
 
 
-def _summary(cfg, plan: _Plan, settings, results, samples, sample_err_vec, t_train, margin, operational) -> dict:
+def _summary(cfg, plan: _Plan, s: ErrorMapSettings, results, samples, sample_err_vec, t_train, margin,
+             operational) -> dict:
     """summary.json: the model, the grid, the coverage settings, the train samples' errors and Dean et al.'s fit,
     and every level's numbers."""
     points, shape = plan.grid[0], plan.grid[1]
-    pmap, manifest, marks = plan.pmap, plan.manifest, settings["coverage"]["eps_marks"]
-    center = dean_center(settings["dean"].get("center", "origin"), plan.scene)
+    pmap, manifest, marks = plan.pmap, plan.manifest, s.coverage.eps_marks
+    center = dean_center(s.dean.center, plan.scene)
     sample_err = np.linalg.norm(sample_err_vec, axis=1)
     train_summary = {**core.error_stats(sample_err), "seconds": t_train,
-                     "dean": jsonable(core.dean_fit(sample_err_vec, samples, center, settings["dean"]["eps_C"]))}
+                     "dean": jsonable(core.dean_fit(sample_err_vec, samples, center, s.dean.eps_C))}
     return {
         "id": plan.id,
         "name": pmap.name,
         "model": {"ref": str(cfg.maps), "id": str(pmap.id), "name": pmap.name,
                   "dataset_id": manifest.get("dataset_id"), "dataset_name": manifest.get("dataset_name")},
-        "grid": {"step": float(settings["grid"]["step"]), "nx": int(shape[1]), "ny": int(shape[0]),
+        "grid": {"step": float(s.grid.step), "nx": int(shape[1]), "ny": int(shape[0]),
                  "n_points": int(len(points)), "n_operational": int(operational.sum()),
                  "operational_margin": margin,
                  "arena": [list(a) for a in plan.arena]},
-        "r_cov": settings["coverage"]["r_cov"],
+        "r_cov": s.coverage.r_cov,
         "eps_marks": marks,
-        "lipschitz_used": settings["coverage"]["lipschitz"],
+        "lipschitz_used": s.coverage.lipschitz,
         **({"headings_deg": np.degrees(plan.headings).tolist()} if plan.pose else {}),
         "dean_center": [float(c) for c in center],
         "train_samples": train_summary,

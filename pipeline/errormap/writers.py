@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import json
-from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
@@ -13,10 +12,11 @@ import pandas as pd
 from pipeline.control import Scene
 from pipeline.errormap.analysis import jsonable
 from pipeline.errormap.figures import figures
+from pipeline.errormap.settings import ErrorMapSettings
 
 
 def write_outputs(folder: Path, summary: dict, fields: dict, results: dict, scene: Scene, arena,
-                  settings: Mapping, samples: np.ndarray, sample_err_vec: np.ndarray) -> None:
+                  settings: ErrorMapSettings, samples: np.ndarray, sample_err_vec: np.ndarray) -> None:
     """CSV tables, summary.json, fields.npz and the figures (docs/errormap.md)."""
     levels = list(results)
     rows = []
