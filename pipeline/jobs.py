@@ -6,7 +6,11 @@ the closed loops are mostly Python, so a second thread adds little to one job (`
 side" of the sections train and infer; docs/speed.md).
 With one worker a job's output streams to the terminal as before; with several, each job writes
 `<log_dir>/<label>.log` and the orchestrator prints one line when a job starts and one when it ends (and the
-log's last lines when it fails). Jobs start longest first, by the walls the previous run's profile recorded.
+log's last lines when it fails). A job may wait for others of its pool (`after`: their labels; the bracket waits
+for its certified error map, the learned comparison for its policies). Jobs start by their critical path: a job's
+own wall (the previous run's profile) plus the longest chain of jobs waiting for it, so a short job that a long
+one waits for goes first, and otherwise the longest first (without a profile: the jobs others wait for, then the
+jobs that waited, then the order given).
 """
 
 from __future__ import annotations
@@ -29,12 +33,14 @@ TAIL_LINES = 25  # lines of a failed job's log printed with its failure
 @dataclass(frozen=True)
 class Job:
     """`python -m pipeline.<stage> <argv>` (or `python -m <module> <argv>`), called `label` in the logs and the
-    profile."""
+    profile; started once the jobs of its pool labelled in `after` have succeeded (labels not in the pool: done
+    before it)."""
 
     stage: str
     argv: list[str]
     label: str
     module: str | None = None
+    after: tuple[str, ...] = ()
 
     @property
     def command(self) -> list[str]:
@@ -83,13 +89,47 @@ def _reap(procs: dict) -> tuple[int, int, float] | None:
     return None
 
 
+def critical_paths(jobs: list[Job], order: dict[str, float]) -> dict[str, float]:
+    """Per label: its expected seconds (`order`; unknown: 0) plus the longest chain of jobs waiting for it."""
+    waiting = {j.label: [k for k in jobs if j.label in k.after] for j in jobs}
+    memo: dict[str, float] = {}
+
+    def path(label: str, seen: frozenset) -> float:
+        if label in seen:
+            raise ValueError(f"jobs wait for each other in a circle: {' -> '.join([*seen, label])}")
+        if label not in memo:
+            memo[label] = order.get(label, 0.0) + max((path(k.label, seen | {label}) for k in waiting[label]),
+                                                       default=0.0)
+        return memo[label]
+
+    return {j.label: path(j.label, frozenset()) for j in jobs}
+
+
+def _ready(queue: deque, finished: dict[str, int], labels: set[str]) -> Job | None:
+    """The first queued job whose pool dependencies have all finished (removed from the queue), or None."""
+    for job in queue:
+        if all(finished.get(a) == 0 for a in job.after if a in labels):
+            queue.remove(job)
+            return job
+    return None
+
+
 def run_jobs(jobs: list[Job], *, workers: int, tag: str, stop: bool, log_dir: Path | None = None,
              profile: Path | None = None, order: dict[str, float] | None = None) -> list[Done]:
-    """Run `jobs`, `workers` at a time (longest first by `order`: label -> expected seconds). A failure prints
-    its log's tail and raises `PipelineError` (`stop`: the other running jobs are ended first) or is returned.
-    Ctrl-C reaches every job (each says so in one line) and ends the run with exit code 130."""
+    """Run `jobs`, `workers` at a time, each once its `after` jobs have succeeded, by critical path
+    (:func:`critical_paths` over `order`: label -> expected seconds). A failure prints its log's tail and raises
+    `PipelineError` (`stop`: the other running jobs are ended first) or is returned, and the jobs waiting for it
+    are skipped (said in one line each, exit code -1). Ctrl-C reaches every job (each says so in one line) and
+    ends the run with exit code 130."""
     order = order or {}
-    queue = deque(sorted(jobs, key=lambda j: -order.get(j.label, 0.0)))
+    if len({j.label for j in jobs}) < len(jobs):
+        raise ValueError(f"jobs of one pool share a label: {sorted(j.label for j in jobs)}")
+    priority = critical_paths(jobs, order)
+    waited_for = {a for j in jobs for a in j.after}
+    # by critical path; on a tie (a fresh clone has no profile: every path 0) the jobs others wait for first, then
+    # those that waited, then the given order
+    queue = deque(sorted(jobs, key=lambda j: (-priority[j.label], j.label not in waited_for, not j.after)))
+    labels, finished = {j.label for j in jobs}, {}  # label -> exit code
     parallel = workers > 1 and len(jobs) > 1
     if parallel and log_dir is None:
         raise ValueError("jobs side by side write logs: log_dir is needed")
@@ -103,8 +143,19 @@ def run_jobs(jobs: list[Job], *, workers: int, tag: str, stop: bool, log_dir: Pa
     done: list[Done] = []
     try:
         while queue or running:
+            while failed := [j for j in queue if any(finished.get(a, 0) != 0 for a in j.after if a in labels)]:
+                for job in failed:  # a job it waits for failed (or was skipped)
+                    queue.remove(job)
+                    finished[job.label] = -1
+                    done.append(Done(job, -1, 0.0, 0.0))
+                    print(f"[{tag}] SKIPPED {job.label}: "
+                          f"{', '.join(a for a in job.after if finished.get(a, 0) != 0)} failed", flush=True)
             while queue and len(running) < (workers if parallel else 1):
-                job = queue.popleft()
+                job = _ready(queue, finished, labels)
+                if job is None:  # every queued job waits for a running one
+                    if not running:
+                        raise PipelineError(f"jobs {[j.label for j in queue]} wait for jobs that never start")
+                    break
                 cmd = job.command
                 log = log_dir / f"{job.label.replace(' ', '_')}.log" if parallel else None
                 if parallel:
@@ -125,6 +176,7 @@ def run_jobs(jobs: list[Job], *, workers: int, tag: str, stop: bool, log_dir: Pa
             proc.returncode = rc  # reaped here: Popen must not wait for it again
             d = Done(job, rc, time.perf_counter() - t0, cpu, log)
             done.append(d)
+            finished[job.label] = rc
             if parallel:
                 print(f"[{tag}] {'done' if rc == 0 else 'FAILED'} {job.label}: {d.wall:.0f} s wall, "
                       f"{d.cpu:.0f} s CPU ({len(done)}/{len(jobs)})", flush=True)

@@ -226,12 +226,10 @@ def run(cfg) -> dict:
         lock[kind] = found or folders()
     map_refs = {n: f.name for n, f in lock["maps"].items()}
     em_refs = {n: f.name for n, f in lock["errormaps"].items()}
-    after = {  # the stages after the maps (pipeline.paper_stages): none reads another's output but bracket <- certify
-        # (with bracket_map) and learned <- imitate: two pools
+    after = {  # the stages after the maps (pipeline.paper_stages), in one pool: none reads another's output but
+        # bracket <- certify (with bracket_map) and the comparison <- its policies, whose jobs wait for those (Job.after)
         "certified": lambda: paper_stages.certified(cfg, list(cfg.certify), paths, args, lock, runner)
         if cfg.get("certify") else {},
-        "imitate": lambda: paper_stages.imitations(cfg, list(cfg.learned), paths, args, map_refs, runner)
-        if cfg.get("learned") else {},
         "experiments": lambda: _experiments(cfg, list(cfg.experiments), paths, args, map_refs, em_refs, lock, runner)
         if cfg.experiments else {},
         "bracket": lambda: paper_stages.bracket(cfg, list(cfg.bracket), paths, args, lock, runner)
@@ -239,13 +237,11 @@ def run(cfg) -> dict:
         "learned": lambda: paper_stages.learned(cfg, list(cfg.learned), paths, args, map_refs, runner)
         if cfg.get("learned") else {},
     }
-    first = ("certified", "imitate", "experiments") + (() if cfg.get("bracket_map") else ("bracket",))
-    for batch in (first, ("bracket", "learned") if cfg.get("bracket_map") else ("learned",)):
-        with runner.together():  # their jobs side by side in one pool (the 1-core jobs beside the experiments')
-            for key in batch:
-                made = after[key]()  # the folders it will make (bracket's pin reads lock["certified"])
-                if key in lock:
-                    lock[key] = made
+    with runner.together():  # their jobs side by side in one pool (the 1-core jobs beside the experiments')
+        for key in ("certified", "experiments", "bracket", "learned"):  # learned holds its policies' jobs too
+            made = after[key]()  # the folders it will make (bracket's pin reads lock["certified"])
+            if key in lock:
+                lock[key] = made
     runner.closed = True  # every job ran: the stages are called once more to read and publish what they made
     for key in ("certified", "bracket", "experiments", "learned"):
         lock[key] = after[key]()

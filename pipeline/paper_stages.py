@@ -80,7 +80,8 @@ def bracket(cfg, tunings, paths, args, lock, runner) -> dict[str, Path]:
 
     found = up_to_date("bracket", folders, runner.said)
     if found is None:
-        runner.stage("bracket", [Job("bracket", argv[t], f"bracket {t}") for t in tunings])
+        after = (f"certify {cfg.bracket_map}",) if cfg.get("bracket_map") else ()  # its pin: in the same pool
+        runner.stage("bracket", [Job("bracket", argv[t], f"bracket {t}", after=after) for t in tunings])
         try:
             found = folders()
         except PipelineError:
@@ -148,7 +149,9 @@ def learned(cfg, configs, paths, args, map_refs, runner) -> dict[str, Path]:
 
     found = up_to_date("learned", comparison, runner.said)
     if found is None:
-        runner.stage("learned", [Job("learned", learned_argv, "learned", module="pipeline.learned.evaluate")])
+        after = tuple(f"imitate {c}" for c in configs if c != "ppo") + (("ppo",) if "ppo" in configs else ())
+        runner.stage("learned", [Job("learned", learned_argv, "learned", module="pipeline.learned.evaluate",
+                                     after=after)])  # beside its policies' jobs, once they are done
         try:
             found = comparison()
         except PipelineError:

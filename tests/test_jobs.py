@@ -50,8 +50,9 @@ def child(tmp_path, monkeypatch):
     out = tmp_path / "out"
     out.mkdir()
 
-    def job(me, other="-", rc=0):
-        return Job("fake", [str(out), me, other, str(rc)], f"job {me}", module="fake_stage")
+    def job(me, other="-", rc=0, after=()):
+        return Job("fake", [str(out), me, other, str(rc)], f"job {me}", module="fake_stage",
+                   after=tuple(f"job {a}" for a in after))
 
     return job, out
 
@@ -85,6 +86,34 @@ def test_without_stop_a_failure_is_returned_and_the_others_finish(child, tmp_pat
     job, _ = child
     done = run_jobs([job("bad", rc=3), job("good")], workers=2, tag="t", stop=False, log_dir=tmp_path / "logs")
     assert {d.job.label: d.rc for d in done} == {"job bad": 3, "job good": 0}
+
+
+def test_a_job_waits_for_the_jobs_it_reads_and_short_chains_to_long_jobs_go_first(child, tmp_path):
+    """The bracket waits for its certified map, the learned comparison for its policies: one pool, each started
+    once what it reads is done; by critical path, the short job a long one waits for starts first."""
+    job, out = child
+    order = {"job long": 100.0, "job certify": 10.0, "job bracket": 120.0, "job other": 50.0}
+    run_jobs([job("long"), job("bracket", after=["certify"]), job("certify"), job("other")], workers=1, tag="t",
+             stop=True, log_dir=tmp_path / "logs", order=order)
+    assert (out / "order.txt").read_text().split() == ["certify", "bracket", "long", "other"]
+    (out / "order.txt").unlink()
+    run_jobs([job("long"), job("bracket", after=["certify"]), job("certify"), job("other")], workers=1, tag="t",
+             stop=True, log_dir=tmp_path / "logs")  # no profile (a fresh clone): the chain first, then as given
+    assert (out / "order.txt").read_text().split() == ["certify", "bracket", "long", "other"]
+    paths = jobs_mod.critical_paths([job("a", after=["b"]), job("b", after=["c"]), job("c")],
+                                    {"job a": 1.0, "job b": 2.0, "job c": 4.0})
+    assert paths == {"job a": 1.0, "job b": 3.0, "job c": 7.0}
+    with pytest.raises(ValueError, match="circle"):
+        jobs_mod.critical_paths([job("a", after=["b"]), job("b", after=["a"])], {})
+
+
+def test_a_job_whose_input_failed_is_skipped_and_one_outside_the_pool_counts_as_done(child, tmp_path, capsys):
+    job, out = child
+    done = run_jobs([job("bad", rc=3), job("reader", after=["bad"]), job("next", after=["reader"]),
+                     job("free", after=["elsewhere"])], workers=2, tag="t", stop=False, log_dir=tmp_path / "logs")
+    assert {d.job.label: d.rc for d in done} == {"job bad": 3, "job reader": -1, "job next": -1, "job free": 0}
+    assert not (out / "reader.threads").exists()  # never started
+    assert "SKIPPED job reader: job bad failed" in capsys.readouterr().out
 
 
 def _runner(tmp_path, monkeypatch, timings: dict, stop: bool) -> Runner:
