@@ -141,3 +141,14 @@ def test_the_clouds_app_in_shards_gives_the_table_of_one_process(tiny_maps, tmp_
     assert whole["sampled"]["frames"] == 6 * 3 * 1 and whole["fresh"]["frames"] == 6 * 4  # every chunk counted
     again = clouds(tmp_path / "one")
     assert again["skipped"] and again["path"] == whole["path"]
+
+
+def test_the_clouds_settings_defaults_are_the_yaml():
+    from dataclasses import asdict
+
+    from omegaconf import OmegaConf
+
+    from pipeline.certify.clouds_cli import CloudsSettings
+
+    yaml = OmegaConf.to_container(OmegaConf.load(REPO_ROOT / "conf" / "certify_clouds.yaml").clouds)
+    assert asdict(CloudsSettings()) == yaml

@@ -15,7 +15,9 @@ scene and the code), and prints one summary line (two with a gate). In shards li
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import asdict, dataclass
+from typing import Literal
 
 from omegaconf import DictConfig
 
@@ -41,9 +43,9 @@ class CloudsSettings:
     confidence: OpenShare = 0.95
     seed: NonNegativeInt = 0
     cell: Positive = 0.25
-    region: list[list[float]] = ((-30.0, -11.5), (-2.0, 2.0))
+    region: list[list[float]] = dataclasses.field(default_factory=lambda: [[-30.0, -11.5], [-2.0, 2.0]])
     limit: PositiveInt | None = None
-    mode: str = "crown"
+    mode: Literal["crown", "forward", "ibp"] = "crown"
     tolerance: Positive = 1.0
     max_depth: NonNegativeInt = 0
     samples: NonNegativeInt = 2
@@ -57,8 +59,6 @@ class CloudsSettings:
     progress: bool = True
 
     def __post_init__(self):
-        if self.mode not in ("crown", "forward", "ibp"):
-            raise ConfigError(f"{F}.mode", f"must be crown, forward or ibp, got {self.mode!r}")
         ok = len(self.region) == 2 and all(len(r) == 2 and r[0] < r[1] for r in self.region)
         if not ok:
             raise ConfigError(f"{F}.region", f"must be [[x0, x1], [y0, y1]] with x0 < x1 and y0 < y1, got "
