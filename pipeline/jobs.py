@@ -114,6 +114,20 @@ def _ready(queue: deque, finished: dict[str, int], labels: set[str]) -> Job | No
     return None
 
 
+def _skip_failed(queue: deque, finished: dict[str, int], labels: set[str], tag: str) -> list[Done]:
+    """Take out of the queue every job one of whose pool dependencies failed (or was skipped), transitively; each
+    said in one line, returned as done with exit code -1."""
+    skipped = []
+    while failed := [j for j in queue if any(finished.get(a, 0) != 0 for a in j.after if a in labels)]:
+        for job in failed:
+            queue.remove(job)
+            finished[job.label] = -1
+            skipped.append(Done(job, -1, 0.0, 0.0))
+            print(f"[{tag}] SKIPPED {job.label}: {', '.join(a for a in job.after if finished.get(a, 0) != 0)} failed",
+                  flush=True)
+    return skipped
+
+
 def run_jobs(jobs: list[Job], *, workers: int, tag: str, stop: bool, log_dir: Path | None = None,
              profile: Path | None = None, order: dict[str, float] | None = None) -> list[Done]:
     """Run `jobs`, `workers` at a time, each once its `after` jobs have succeeded, by critical path
@@ -143,13 +157,7 @@ def run_jobs(jobs: list[Job], *, workers: int, tag: str, stop: bool, log_dir: Pa
     done: list[Done] = []
     try:
         while queue or running:
-            while failed := [j for j in queue if any(finished.get(a, 0) != 0 for a in j.after if a in labels)]:
-                for job in failed:  # a job it waits for failed (or was skipped)
-                    queue.remove(job)
-                    finished[job.label] = -1
-                    done.append(Done(job, -1, 0.0, 0.0))
-                    print(f"[{tag}] SKIPPED {job.label}: "
-                          f"{', '.join(a for a in job.after if finished.get(a, 0) != 0)} failed", flush=True)
+            done += _skip_failed(queue, finished, labels, tag)
             while queue and len(running) < (workers if parallel else 1):
                 job = _ready(queue, finished, labels)
                 if job is None:  # every queued job waits for a running one
