@@ -152,3 +152,17 @@ def test_the_clouds_settings_defaults_are_the_yaml():
 
     yaml = OmegaConf.to_container(OmegaConf.load(REPO_ROOT / "conf" / "certify_clouds.yaml").clouds)
     assert asdict(CloudsSettings()) == yaml
+
+
+def test_a_merge_that_finds_no_saved_shards_says_so_and_names_the_others(tiny_maps, tmp_path, capsys):
+    """Shards of another id (other settings, another code version) are not this map's: the merge computes them and
+    says so in one line, naming the others, instead of silently redoing hours of work."""
+    from pipeline.certify.stage import run
+
+    run(_cfg(tiny_maps, tmp_path, "shards=2", "shard=0", "kappas=[0.0]", "pgd_cells=0", "seed=1"))
+    capsys.readouterr()
+    merged = run(_cfg(tiny_maps, tmp_path, "shards=2", "kappas=[0.0]", "pgd_cells=0"))  # seed 0: another id
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("shards:")]
+    assert len(lines) == 1 and "2 of 2 shards" in lines[0] and merged["path"].name in lines[0], lines
+    others = [d.name for d in (tmp_path / shards.SHARDS_DIR).iterdir()]
+    assert len(others) == 1 and others[0] in lines[0] and others[0] != merged["path"].name

@@ -92,6 +92,16 @@ def load(path: Path) -> Part:
         return {k: z[k] for k in z.files if k != "_scalars"}, json.loads(str(z["_scalars"]))
 
 
+def say_missing(folder: Path, missing: int, shards: int) -> None:
+    """One line before a merge computes shards itself: how many, and the saved shards of other ids of the same
+    output (shards made with other settings or another code version: the id names both, so they are not these)."""
+    name = Path(folder).name.rsplit("-", 1)[0]
+    others = sorted(d.name for d in Path(folder).parent.glob(f"{name}-*") if d.is_dir() and d != Path(folder))
+    print(f"shards: {missing} of {shards} shards of {Path(folder).name} are not saved; computing them here"
+          + (f" (saved shards of other ids, from other settings or another code version, are not these: "
+             f"{', '.join(others)})" if others else ""), flush=True)
+
+
 def run_sharded(n_rows: int, chunk: int, s, folder: Path, tag: str, compute: Callable, reduce: dict[str, str],
                 desc: str) -> Part | None:
     """`n_rows` rows in chunks of `chunk`, `compute(start, stop, chunk_index, bar) -> Part` per chunk. With
@@ -104,6 +114,8 @@ def run_sharded(n_rows: int, chunk: int, s, folder: Path, tag: str, compute: Cal
     found = {i for i in wanted if n > 1 and not s.force and paths[i].is_file()}
     todo = sum(ranges[c][1] - ranges[c][0] for i in wanted if i not in found
                for c in shard_chunks(len(ranges), n, i))
+    if s.shard is None and n > 1 and len(found) < n:
+        say_missing(folder, n - len(found), n)
     parts = []
     with progress_bar(total=todo, desc=desc, unit="cell", enabled=bool(s.progress)) as bar:
         for i in wanted:
