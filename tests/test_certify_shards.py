@@ -166,3 +166,27 @@ def test_a_merge_that_finds_no_saved_shards_says_so_and_names_the_others(tiny_ma
     assert len(lines) == 1 and "2 of 2 shards" in lines[0] and merged["path"].name in lines[0], lines
     others = [d.name for d in (tmp_path / shards.SHARDS_DIR).iterdir()]
     assert len(others) == 1 and others[0] in lines[0] and others[0] != merged["path"].name
+
+
+def test_the_clouds_app_bounds_in_float64_on_request(tiny_maps, tmp_path):
+    """`clouds.dtype=float64`: the bound's arithmetic without float32 rounding (a new id); the same cells and
+    layouts, bounds within float32 rounding of the float32 ones, no sampled error past them."""
+    from omegaconf import open_dict
+
+    from pipeline.certify.clouds_run import run
+
+    root, ids = tiny_maps
+    out = {}
+    for dtype in ("float32", "float64"):
+        cfg = compose("certify_clouds", [f"paths.models_dir={root / 'models'}", f"clouds.maps={ids['occluded']}",
+                                         f"paths.certified_dir={tmp_path}", "clouds.progress=false", "clouds.limit=2",
+                                         "clouds.layouts=3", "clouds.samples=2", "clouds.fresh=4",
+                                         "clouds.delta=0.9", "clouds.confidence=0.5", f"clouds.dtype={dtype}"])
+        with open_dict(cfg):
+            cfg.paths.output_dir = str(tmp_path / "run")
+        out[dtype] = run(cfg)
+    assert out["float32"]["path"] != out["float64"]["path"] and out["float64"]["sampled"]["violations"] == 0
+    t32, t64 = (np.loadtxt(out[d]["path"] / "table.csv", delimiter=",", skiprows=1) for d in ("float32", "float64"))
+    assert np.isfinite(t32[:, 4]).all()  # delta 0.9 at confidence 0.5: a finite order statistic of 3 layouts
+    np.testing.assert_allclose(t64[:, 4], t32[:, 4], rtol=1e-4)
+    assert not np.array_equal(t64[:, 4], t32[:, 4])  # the float64 arithmetic reached the bound

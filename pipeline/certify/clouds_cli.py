@@ -52,6 +52,7 @@ class CloudsSettings:
     fresh: NonNegativeInt = 200
     threads: PositiveInt = 1
     gate: Positive | None = None
+    dtype: Literal["float32", "float64"] = "float32"
     chunk: PositiveInt = 64
     shards: PositiveInt = 1
     shard: NonNegativeInt | None = None
