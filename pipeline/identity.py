@@ -122,6 +122,13 @@ CERTIFY_CODE = ("certify", "render", "perception/network", "perception/spec", "p
                 "errormap/estimates", "control")
 
 
+def clouds_id(recipe: Mapping, map_id: str, scene: Mapping, arena) -> str:
+    """Id of the clouds app's certified table (`pipeline.certify.clouds_run`) of perception map `map_id` (its scene and
+    arena) under the settings `recipe` (`CloudsSettings.recipe()`: volatile keys already out)."""
+    return tracking.content_id(dict(recipe), str(map_id), dict(scene), [float(v) for pair in arena for v in pair],
+                               tracking.code_version(*CERTIFY_CODE))
+
+
 def certify_id(settings: Mapping, map_id: str, scene: Mapping, arena) -> str:
     """Id of the certified error map of perception map `map_id` (its scene and arena) under the certify settings
     (plain, minus volatile keys)."""

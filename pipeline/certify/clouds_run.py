@@ -24,7 +24,7 @@ from pipeline.certify.stage import cells_of
 from pipeline.config import build
 from pipeline.errormap.analysis import operational_margin
 from pipeline.errors import ConfigError
-from pipeline.identity import CERTIFY_CODE
+from pipeline.identity import CERTIFY_CODE, clouds_id
 from pipeline.perception.maps import load_perception_map
 
 COLUMNS = "x0,x1,y0,y1,eps_bar_delta,n_layouts,share_certified_at_c_minus_r,violation_cp,eps_clear"
@@ -128,9 +128,7 @@ def run(cfg) -> dict:
     cells = region_cells(s, camera, scene)
     cov = scene.covering(0)
     margin = float(cov.c - cov.obstacle_radius)
-    arena = [float(v) for pair in camera.arena for v in pair]
-    id_ = tracking.content_id(s.recipe(), str(pmap.id), dict(pmap.manifest["scene"]), arena,
-                              tracking.code_version(*CERTIFY_CODE))
+    id_ = clouds_id(s.recipe(), pmap.id, pmap.manifest["scene"], camera.arena)
     root = Path(cfg.paths.certified_dir) / "clouds"
     name = f"{pmap.name}_{occ.name}"
     final = root / f"{name}-{id_}"
