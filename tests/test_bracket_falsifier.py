@@ -1,12 +1,13 @@
 """The falsifier (SPEC §5.5): its frame loop is the simulator's sampled loop, and it breaks the smooth baselines on
-`K` for every ε tried (Proposition 1), with the trajectory."""
+`K` for every ε tried (Proposition 1), with the trajectory; its trap adversary holds the hybrid law at the back
+vertex at `ε = 0.5`, where the other adversaries needed `ε >= 3`."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from pipeline.bracket.falsifier import Search, falsify, fixed_error, run_adversary
+from pipeline.bracket.falsifier import Search, falsify, directions, fixed_error, run_adversary, trap_policy, vertex_aims
 from pipeline.bracket.loop import OUTCOMES, REACHED, STALLED, FrameLoop
 from pipeline.control import CBFController, HybridController, Scene, SmoothController
 from pipeline.sim import CameraSettings, SimSettings, simulate
@@ -71,3 +72,41 @@ def test_bisection_finds_the_smallest_failing_eps_within_its_resolution():
     assert 0 < br.eps_hi[0] <= 2.0
     st = run_adversary(loop, p0, br.eps_hi, str(br.adversary[0]), FAST)
     assert st["outcome"][0] != REACHED
+
+
+def test_the_trap_adversary_holds_the_hybrid_law_at_the_back_vertex():
+    """The paper's tuning: from `K` under `|e| <= 0.5`, §3.5's and the mode-aware adversaries let the hybrid law
+    arrive, the trap adversary holds it at the back vertex for the whole horizon (a chattering orbit: the mode jumps
+    every few frames, the run stays within a unit of the vertex, never collides); every error within the bound."""
+    law = HybridController(SCENE)
+    loop = FrameLoop(SCENE, law, horizon=30.0, delta=5.0)
+    p0 = np.array([[-20.0, 0.0], [-45.0, 0.0]])
+    eps = np.full(2, 0.5)
+    for kind in ("fixed", "mode_aware"):
+        assert (run_adversary(loop, p0, eps, kind, FAST, record=False)["outcome"] == REACHED).all(), kind
+    st = run_adversary(loop, p0, eps, "trap", Search())
+    assert (st["outcome"] == STALLED).all(), [OUTCOMES[o] for o in st["outcome"]]
+    assert (st["jumps"] > 100).all() and (st["clearance"] > 0).all()
+    vertex = vertex_aims(SCENE, 0.0)[0]
+    late = st["path"][-200:]
+    assert (np.hypot(*(late - vertex).reshape(-1, 2).T) < 1.0).all()
+    # its errors lie within the bound, near the vertex (the two-frame search) and far from it
+    policy = trap_policy(loop, directions(16), Search())
+    near = loop.start(vertex_aims(SCENE, 0.3) + [[0.0, 0.1]], np.zeros((1, 2)))
+    far = loop.start(np.array([[-30.0, 3.0], [-20.0, -2.0]]), np.zeros((2, 2)))
+    for batch, moved in ((near, True), (far, False)):
+        e = np.hypot(*policy(batch, np.full(len(batch["p"]), 0.5)).T)
+        assert (e <= 0.5 + 1e-12).all() and (not moved or (e > 0).all())
+
+
+def test_the_trap_adversary_aims_at_each_obstacles_back_vertex():
+    """`vertex_aims`: on the axis from the target through the obstacle's centre, `c + offset` from the centre on the
+    far side (here the target on the x axis: `(-c - offset, 0)`), one per obstacle."""
+    two = Scene(target=[40.0, 0.0], obstacles=[{"center": [0.0, 0.0], "radius": 4.0},
+                                                {"center": [20.0, 10.0], "radius": 2.0}])
+    aims = vertex_aims(two, 0.5)
+    c0 = two.covering(0).c
+    np.testing.assert_allclose(aims[0], [-c0 - 0.5, 0.0], atol=1e-12)
+    centre, target = np.array([20.0, 10.0]), np.array([40.0, 0.0])
+    away = (centre - target) / np.hypot(*(centre - target))
+    np.testing.assert_allclose(aims[1], centre + (two.covering(1).c + 0.5) * away, atol=1e-9)

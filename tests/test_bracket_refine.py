@@ -15,9 +15,10 @@ import pipeline.bracket.inputs as inputs
 from pipeline.bracket.bounds import Uniform
 from pipeline.bracket.certify_loop import certified_starts, certify
 from pipeline.bracket.enclosures import DIRS, bp_barrier_g, split
-from pipeline.bracket.loop import FrameLoop
+from pipeline.bracket.falsifier import Search, run_adversary
+from pipeline.bracket.loop import REACHED, FrameLoop
 from pipeline.bracket.starts import start_cells
-from pipeline.control import HybridController, Scene
+from pipeline.control import HybridController, Scene, in_diamond
 
 SCENE = Scene(target=[40.0, 0.0], obstacles=[{"center": [0.0, 0.0], "radius": 4.0}])
 PERIOD = 0.05
@@ -115,8 +116,8 @@ def test_the_barrier_term_on_one_face_decreases_with_the_distance(rho, d, ell):
 def test_the_window_certifies_the_vertex_and_its_starts_survive_the_simulator():
     """Without the window no start cell on the axis behind the obstacle is in `Win` (the vertex's component); with
     it (cells of 1/8 unit, ε = 0.1, no horizon) those within 7.5 units of the axis are, and 2 random accepted points
-    of each, run by `pipeline.sim.simulate` under this suite's error signals for 100 s, reach the goal disc by their
-    certified bound without a collision."""
+    of each, run by `pipeline.sim.simulate` under this suite's error signals for 100 s, and 2 more under the trap
+    adversary aimed at the vertex, reach the goal disc by their certified bound without a collision."""
     law = HybridController(SCENE)
     kw = dict(h=1.0, angle=45.0, period=PERIOD, goal_radius=5.0, window=12, frames=4, horizon=2000, funnels=False)
     starts = start_cells(SCENE, 5.0)
@@ -130,3 +131,11 @@ def test_the_window_certifies_the_vertex_and_its_starts_survive_the_simulator():
     cells = np.repeat(np.flatnonzero(ok & centre), 2)
     run_certified_points(SCENE, law, starts, cells, bound, horizon=100.0, delta=5.0, period=PERIOD, eps=0.1, rng=rng,
                          seed=9)
+    # the adversary aimed at the vertex (it holds runs from K there at ε = 0.5) lets them arrive by their bound
+    lo, hi = starts[cells][:, [0, 2]], starts[cells][:, [1, 3]]
+    p0 = lo + rng.uniform(0, 1, (len(cells), 2)) * (hi - lo)
+    keep = ~in_diamond(SCENE, p0)
+    loop = FrameLoop(SCENE, law, period=PERIOD, horizon=100.0, delta=5.0)
+    st = run_adversary(loop, p0[keep], np.full(int(keep.sum()), 0.1), "trap", Search(), record=False)
+    assert (st["outcome"] == REACHED).all(), p0[keep][st["outcome"] != REACHED]
+    assert (st["t_end"] <= np.maximum(bound[cells[keep]], 1) * PERIOD + 1e-9).all()

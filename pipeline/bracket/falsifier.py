@@ -11,7 +11,14 @@ fail (:mod:`pipeline.bracket.loop`: collision, leaving the camera's view, stall,
   fixed direction held, the two adversaries above, random directions per frame), all simulated at once; the
   worst (a failure, else the farthest from the target, the closest to the obstacle) is played for `commit` frames,
   and the search repeats from there. Each candidate is scored after `tail` more frames of the fixed adversary
-  (a rollout of the base policy), so that the search keeps what the fixed adversary achieves and improves on it.
+  (a rollout of the base policy), so that the search keeps what the fixed adversary achieves and improves on it;
+- ``trap``: aimed at the back vertex of the obstacle (the end of the set `K` behind it, where the abstraction's
+  last non-transient component sits): every frame the error whose run ends nearest the vertex (pushed out by
+  `trap_offset`), one frame ahead among `ε` times `n_dirs` directions (and 0) while the run is farther than
+  `trap_reach`, two frames ahead within it (the first among `trap_dirs` directions at 1, 0.7 and 0.4 of `ε`, the
+  second among `n_dirs` at `ε`). At the vertex it finds the chattering orbit the other three miss: the perceived
+  point crosses the axis every two frames, each crossing a jump, each mode sliding the run back along its face
+  (docs/bracket.md, "The falsifier aimed at the vertex").
 
 `ε_hi` is the smallest `ε` found failing by bisection on `[0, eps_max]` (`inf`: no failure up to `eps_max`).
 Failing is monotone in `ε` for the true worst case (a signal within `ε` is within every larger bound), so every
@@ -28,7 +35,8 @@ import numpy as np
 from pipeline.bracket.loop import COLLIDED, LEFT, REACHED, RUNNING, FrameLoop
 from pipeline.sim.disturbances import frame_b
 
-ADVERSARIES = ("fixed", "mode_aware", "receding")
+ADVERSARIES = ("fixed", "mode_aware", "receding", "trap")
+TRAP_RADII = (1.0, 0.7, 0.4)  # the trap search's first-frame candidates: these fractions of ε
 
 
 def directions(n: int) -> np.ndarray:
@@ -78,6 +86,9 @@ class Search:
     tail: int = 40
     n_random: int = 4
     seed: int = 0
+    trap_dirs: int = 64
+    trap_reach: float = 3.0
+    trap_offset: float = 0.2
 
 
 def _badness(loop: FrameLoop, st: dict) -> np.ndarray:
@@ -98,8 +109,8 @@ def run_adversary(loop: FrameLoop, p0: np.ndarray, eps: np.ndarray, kind: str, s
     rng = np.random.default_rng(search.seed)
     eps = np.asarray(eps, float)
     probe = {"p": np.asarray(p0, float), "xd": loop.controller.initial_state(np.asarray(p0, float))}
-    policy = _policy(loop, kind, dirs)
-    if kind == "receding":
+    policy = _policy(loop, kind, dirs, search)
+    if kind in ("receding", "trap"):  # the frame-0 error sets the initial mode: §3.5's
         e0 = fixed_error(loop, probe, eps)
     else:
         e0 = policy(probe, eps)
@@ -141,12 +152,70 @@ def _base_fails(loop: FrameLoop, st: dict, eps: np.ndarray) -> np.ndarray:
     return (sub["outcome"] != REACHED) & (st["outcome"] == RUNNING)
 
 
-def _policy(loop, kind, dirs):
+def _policy(loop, kind, dirs, search: Search):
     if kind == "fixed":
         return lambda st, eps: fixed_error(loop, st, eps)
     if kind in ("mode_aware", "receding"):
         return lambda st, eps: mode_aware_error(loop, st, eps, dirs)
+    if kind == "trap":
+        return trap_policy(loop, dirs, search)
     raise ValueError(f"unknown adversary {kind!r}: one of {ADVERSARIES}")
+
+
+def vertex_aims(scene, offset: float) -> np.ndarray:
+    """The back vertex of each obstacle's covering (`a = -c`, `b = 0` in its frame: the end of `K`), `offset` farther
+    from the obstacle along its axis `(M, 2)`."""
+    return np.concatenate([cov.from_frame(np.array([-cov.c - offset]), np.array([0.0])) for cov in scene.coverings])
+
+
+def _ring(dirs: np.ndarray, radii) -> np.ndarray:
+    """0 and `dirs` scaled by each of `radii` `(1 + len(radii) len(dirs), 2)`."""
+    return np.concatenate([np.zeros((1, 2))] + [r * dirs for r in radii])
+
+
+def _near_aim(st: dict, aim: np.ndarray) -> np.ndarray:
+    """Closeness of each run to its aim (higher: closer); a failure first, an arrival last."""
+    out = st["outcome"]
+    score = -np.hypot(*(st["p"] - aim).T)
+    score = np.where(out == REACHED, -1e6, score)
+    return np.where((out == COLLIDED) | (out == LEFT), 1e6, score)
+
+
+def _toward(loop: FrameLoop, st: dict, eps: np.ndarray, aim: np.ndarray, first: np.ndarray,
+            second: np.ndarray | None) -> np.ndarray:
+    """Per run the error among `eps` times the offsets `first` whose run ends nearest `aim` after this frame or,
+    with `second`, after the next one too (its error among `eps` times `second`; the better of the two frames)."""
+    n, k1 = len(st["p"]), len(first)
+    s1 = loop.step(FrameLoop.take(st, np.repeat(np.arange(n), k1)), (eps[:, None, None] * first[None]).reshape(-1, 2))
+    aim1 = np.repeat(aim, k1, axis=0)
+    score = _near_aim(s1, aim1)
+    if second is not None:
+        k2 = len(second)
+        s2 = loop.step(FrameLoop.take(s1, np.repeat(np.arange(n * k1), k2)),
+                       (np.repeat(eps, k1)[:, None, None] * second[None]).reshape(-1, 2))
+        later = _near_aim(s2, np.repeat(aim1, k2, axis=0)).reshape(n * k1, k2).max(axis=1)
+        score = np.maximum(score, np.where(s1["outcome"] == RUNNING, later, score))
+    return eps[:, None] * first[score.reshape(n, k1).argmax(axis=1)]
+
+
+def trap_policy(loop: FrameLoop, dirs: np.ndarray, search: Search):
+    """The ``trap`` adversary (module docstring) as a policy `(st, eps) -> e`."""
+    aims = vertex_aims(loop.scene, search.trap_offset)
+    far_set = second = _ring(dirs, (1.0,))
+    near_set = _ring(directions(search.trap_dirs), TRAP_RADII)
+
+    def policy(st: dict, eps: np.ndarray) -> np.ndarray:
+        d = np.hypot(*(st["p"][:, None, :] - aims[None]).transpose(2, 0, 1))
+        aim = aims[d.argmin(axis=1)]
+        run = st["outcome"] == RUNNING
+        near = d.min(axis=1) <= search.trap_reach
+        e = np.zeros_like(st["p"])
+        for rows, first, nxt in ((np.flatnonzero(run & ~near), far_set, None),
+                                 (np.flatnonzero(run & near), near_set, second)):
+            if rows.size:
+                e[rows] = _toward(loop, FrameLoop.take(st, rows), eps[rows], aim[rows], first, nxt)
+        return e
+    return policy
 
 
 def _plan(loop: FrameLoop, st: dict, eps: np.ndarray, dirs: np.ndarray, search: Search, rng) -> np.ndarray:

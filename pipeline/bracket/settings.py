@@ -28,7 +28,8 @@ class BracketSettings:
     error map's `ε̄` when `error_map` names its cell table, or several of one perception map: the smallest bound
     per cell) on cells of side `cell` in a frame rotated by
     `angle` with edges over `frames` camera frames, and the falsifier from the centre of every start cell of side `start_cell`, bisecting `ε_hi` on
-    `[0, eps_max]` in `n_bisect` steps; success is reaching `B(p_T, goal_radius)` within `sim.horizon` seconds.
+    `[0, eps_max]` in `n_bisect` steps (its adversaries: :mod:`pipeline.bracket.falsifier`; the ``trap`` one aimed at the
+    back vertex with `trap_dirs` directions within `trap_reach` of it, aiming `trap_offset` outside it); success is reaching `B(p_T, goal_radius)` within `sim.horizon` seconds.
     With `camera_map` (a perception map: path, name-id, id or name), the falsifier through the camera too: `κ_hi`
     bisected on the integer levels `[0, kappa_max]`, `pgd_steps` PGD steps per frame towards the directions of
     `camera_adversaries`, on `camera_device` (:mod:`pipeline.bracket.camera_falsifier`). `lost_frames`: the most
@@ -57,6 +58,9 @@ class BracketSettings:
     tail: NonNegativeInt = 40
     n_random: NonNegativeInt = 4
     seed: NonNegativeInt = 0
+    trap_dirs: PositiveInt = 64
+    trap_reach: Positive = 3.0
+    trap_offset: NonNegative = 0.2
     formats: Annotated[list[str], NonEmpty()] = field(default_factory=lambda: ["png"])
     camera_map: str | None = None
     kappa_max: Annotated[int, Range(ge=1, le=255)] = 16

@@ -186,7 +186,8 @@ def bracket_rows(name, law, scene, bs, sim, camera, emap, starts, pmap=None, los
         stats["lost_frames"] = {"model": lost.describe(), "p_fail": camera.p_fail,
                                 "p_more_per_run": lost.p_more(camera.p_fail, loop.n_frames)}
     search = Search(n_dirs=bs.n_dirs, lookahead=bs.lookahead, commit=bs.commit, tail=bs.tail,
-                    n_random=bs.n_random, seed=bs.seed)
+                    n_random=bs.n_random, seed=bs.seed, trap_dirs=bs.trap_dirs, trap_reach=bs.trap_reach,
+                    trap_offset=bs.trap_offset)
     centres, inside = falsifier_starts(scene, starts)
     inside &= ~no_start
     t0 = time.perf_counter()
