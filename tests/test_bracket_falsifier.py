@@ -110,3 +110,17 @@ def test_the_trap_adversary_aims_at_each_obstacles_back_vertex():
     centre, target = np.array([20.0, 10.0]), np.array([40.0, 0.0])
     away = (centre - target) / np.hypot(*(centre - target))
     np.testing.assert_allclose(aims[1], centre + (two.covering(1).c + 0.5) * away, atol=1e-9)
+
+
+@pytest.mark.parametrize("chi,lam", [(1.1, 0.09), (1.8, 0.4)])
+def test_the_vertex_trap_follows_the_frames_travel_not_the_hysteresis(chi, lam):
+    """At `T_s = 0.1` (a frame's travel `u_max T_s = 1`, twice the default's) the trap holds runs from `K` at
+    `ε = 1` and not at 0.7, for the paper's hysteresis and a wide one alike (docs/bracket.md: the margin on `K` is
+    of the order of one frame's travel; the jumps it plays are the perceived point entering a wedge)."""
+    law = HybridController(SCENE, chi=chi, lam=lam)
+    loop = FrameLoop(SCENE, law, period=0.1, horizon=30.0, delta=5.0)
+    p0 = np.array([[-20.0, 0.0], [-30.0, 0.0]])
+    held = run_adversary(loop, p0, np.full(2, 1.0), "trap", Search(), record=False)
+    assert (held["outcome"] == STALLED).all(), [OUTCOMES[o] for o in held["outcome"]]
+    free = run_adversary(loop, p0, np.full(2, 0.7), "trap", Search(), record=False)
+    assert (free["outcome"] == REACHED).all(), [OUTCOMES[o] for o in free["outcome"]]
