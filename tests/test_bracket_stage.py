@@ -185,7 +185,7 @@ def test_table_counts_map_certified_cells_the_clean_camera_loop_breaks():
     """With an error map and a camera map, a start cell certified with the map's ε̄ whose clean camera loop failed
     (κ_hi = 0) contradicts the chain (the map's bound, the certificate): the table counts it; the map column says how
     many of the certified cells lie behind the obstacle."""
-    from pipeline.bracket.stage import table
+    from pipeline.bracket.report import table
     from pipeline.config import build
 
     scene = build(compose("bracket").scene, "scene")
@@ -202,7 +202,7 @@ def test_table_counts_map_certified_cells_the_clean_camera_loop_breaks():
 def test_table_counts_the_start_cells_the_bracket_leaves_open():
     """`undecided at ε`: start cells neither certified at the largest ε nor falsified up to it (the bracket's open
     share, issue 48's measure); cells without a start (wholly in the diamond) are counted apart, not in any share."""
-    from pipeline.bracket.stage import table
+    from pipeline.bracket.report import table
     from pipeline.config import build
 
     scene = build(compose("bracket").scene, "scene")

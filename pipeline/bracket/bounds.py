@@ -7,6 +7,9 @@ folder (its `kappa = 0` table); `bracket.error_map` also takes the folder's `nam
 certified), so a map certified only on part of the arena certifies only runs that stay there. Several tables of one
 perception map (:class:`Finest`: the whole operational set, and a region certified again with finer splitting)
 each bound the error soundly where they cover it, so a grid cell takes the smallest of their bounds.
+
+The falsifier takes the map's bound at a point (`at`): the smallest `eps_bar` of the table cells whose closed box
+holds it (every one of them bounds the error there), `inf` where none does.
 """
 
 from __future__ import annotations
@@ -58,6 +61,7 @@ class CellTable:
             raise ConfigError("bracket.error_map", "eps_bar must be >= 0 (inf: not certified)")
         self.cells = arr
         self.name = "certified map"
+        self._index = None
 
     def __call__(self, points, boxes=None, frame=None) -> np.ndarray:
         """The largest `eps_bar` over table cells meeting each grid cell (its world bounding box: sound)."""
@@ -80,6 +84,13 @@ class CellTable:
         out[covered < area * (1 - 1e-9)] = np.inf  # part of the cell has no bound
         return out
 
+    def at(self, points: np.ndarray) -> np.ndarray:
+        """The bound at each point `(N, 2)`: the smallest `eps_bar` of the cells whose closed box holds it (`inf`:
+        none). The cells are bucketed on a grid of their median width, so a point meets only its bucket's cells."""
+        if self._index is None:
+            self._index = _BucketIndex(self.cells)
+        return self._index.smallest(np.asarray(points, float).reshape(-1, 2))
+
 
 class Finest:
     """`ε̄` from several cell tables of one perception map: per grid cell the smallest of their bounds (each table
@@ -96,3 +107,48 @@ class Finest:
 
     def __call__(self, points, boxes=None, frame=None) -> np.ndarray:
         return np.min([t(points, boxes, frame) for t in self.tables], axis=0)
+
+    def at(self, points: np.ndarray) -> np.ndarray:
+        """The smallest of the tables' bounds at each point (`inf`: no table covers it)."""
+        return np.min([t.at(points) for t in self.tables], axis=0)
+
+
+class _BucketIndex:
+    """Table cells bucketed on a uniform grid: `smallest(points)` is the least `eps_bar` over the cells whose closed
+    box holds each point, looked up among the cells of the point's bucket only (a cell is listed in every bucket
+    its closed box meets)."""
+
+    def __init__(self, cells: np.ndarray):
+        self.cells = cells
+        self.lo = cells[:, [0, 2]].min(axis=0)
+        self.h = float(max(np.median(np.minimum(cells[:, 1] - cells[:, 0], cells[:, 3] - cells[:, 2])), 1e-9))
+        self.shape = np.floor((cells[:, [1, 3]].max(axis=0) - self.lo) / self.h).astype(int) + 1
+        i0, i1 = self._bucket(cells[:, [0, 2]]), self._bucket(cells[:, [1, 3]])
+        nx, ny = i1[:, 0] - i0[:, 0] + 1, i1[:, 1] - i0[:, 1] + 1
+        owner = np.repeat(np.arange(len(cells)), nx * ny)
+        first = np.repeat(np.cumsum(nx * ny) - nx * ny, nx * ny)
+        k = np.arange(len(owner)) - first
+        bx, by = i0[owner, 0] + k % nx[owner], i0[owner, 1] + k // nx[owner]
+        key = bx * self.shape[1] + by
+        order = np.argsort(key, kind="stable")
+        key, owner = key[order], owner[order]
+        self.start = np.searchsorted(key, np.arange(self.shape[0] * self.shape[1] + 1))
+        self.owner = owner
+        width = int(np.diff(self.start).max()) if len(owner) else 0
+        slot = np.arange(len(key)) - self.start[key]
+        self.table = np.full((self.shape[0] * self.shape[1], max(width, 1)), -1)
+        self.table[key, slot] = owner
+
+    def _bucket(self, xy: np.ndarray) -> np.ndarray:
+        return np.clip(np.floor((xy - self.lo) / self.h).astype(int), 0, self.shape - 1)
+
+    def smallest(self, points: np.ndarray) -> np.ndarray:
+        out = np.full(len(points), np.inf)
+        inside = ((points >= self.lo) & (points <= self.lo + self.shape * self.h)).all(axis=1)
+        b = self._bucket(points[inside])
+        cand = self.table[b[:, 0] * self.shape[1] + b[:, 1]]  # (n, width), -1: empty slot
+        c = self.cells[np.maximum(cand, 0)]
+        x, y = points[inside, 0, None], points[inside, 1, None]
+        holds = (cand >= 0) & (c[..., 0] <= x) & (x <= c[..., 1]) & (c[..., 2] <= y) & (y <= c[..., 3])
+        out[inside] = np.where(holds, c[..., 4], np.inf).min(axis=1)
+        return out

@@ -20,6 +20,10 @@ fail (:mod:`pipeline.bracket.loop`: collision, leaving the camera's view, stall,
   point crosses the axis every two frames, each crossing a jump, each mode sliding the run back along its face
   (docs/bracket.md, "The falsifier aimed at the vertex").
 
+The bound may also depend on the position (:class:`MapBound`: a certified error map's `ε̄` at the true position of
+each frame; :func:`attack` with it): every adversary then chooses with the bound where the run is, and the error it
+plays is clipped to that bound, so a counterexample's signal lies within the map's certificate frame by frame.
+
 `ε_hi` is the smallest `ε` found failing by bisection on `[0, eps_max]` (`inf`: no failure up to `eps_max`).
 Failing is monotone in `ε` for the true worst case (a signal within `ε` is within every larger bound), so every
 `ε >= ε_hi` fails too; the search is a heuristic, so `ε_hi` is an upper bound of the robustness margin. Each
@@ -101,54 +105,95 @@ def _badness(loop: FrameLoop, st: dict) -> np.ndarray:
     return np.where(fail, 1e6, score)
 
 
-def run_adversary(loop: FrameLoop, p0: np.ndarray, eps: np.ndarray, kind: str, search: Search,
-                  record: bool = True) -> dict:
-    """Runs from `p0` `(N, 2)` under adversary `kind` with bounds `eps` `(N,)`; the final batch (and the positions
-    per frame `path` `(F + 1, N, 2)` with `record`)."""
+class MapBound:
+    """A bound that depends on the true position: a certified error map's `ε̄` there (`table.at`, the smallest bound
+    of the cells holding the point), and 0 where the map is certified nowhere: a counterexample is then within the
+    map's certificate where it has one and exact elsewhere."""
+
+    def __init__(self, table):
+        self.table = table
+
+    def __call__(self, p: np.ndarray) -> np.ndarray:
+        v = self.table.at(p)
+        return np.where(np.isfinite(v), v, 0.0)
+
+
+def _now(eps, p: np.ndarray) -> np.ndarray:
+    """The bounds of the runs at their positions `p`: a :class:`MapBound` evaluated there, an array `(N,)` as it is."""
+    return eps(p) if callable(eps) else eps
+
+
+def _rows(eps, rows):
+    """The bounds of the runs `rows`: a :class:`MapBound` as it is (it depends on the position only)."""
+    return eps if callable(eps) else eps[rows]
+
+
+def clip_to(e: np.ndarray, eps: np.ndarray) -> np.ndarray:
+    """The errors `e` `(N, 2)` scaled down where longer than `eps` `(N,)`."""
+    n = np.hypot(*np.asarray(e, float).T)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        s = np.where(n > eps, eps / n, 1.0)
+    return e * s[:, None]
+
+
+def run_adversary(loop: FrameLoop, p0: np.ndarray, eps, kind: str, search: Search, record: bool = True) -> dict:
+    """Runs from `p0` `(N, 2)` under adversary `kind` with bounds `eps` (`(N,)`, or a :class:`MapBound` of the
+    position); the final batch (and with `record` the positions per frame `path` `(F + 1, N, 2)` and the errors
+    played `errors` `(F, N, 2)`: frame `k` perceives `path[k] + errors[k]`)."""
     dirs = directions(search.n_dirs)
     rng = np.random.default_rng(search.seed)
-    eps = np.asarray(eps, float)
-    probe = {"p": np.asarray(p0, float), "xd": loop.controller.initial_state(np.asarray(p0, float))}
+    eps = eps if callable(eps) else np.asarray(eps, float)
+    play = (lambda e, b: clip_to(e, b)) if callable(eps) else (lambda e, b: e)  # arrays: every candidate within ε
+    p0 = np.asarray(p0, float)
+    probe = {"p": p0, "xd": loop.controller.initial_state(p0)}
     policy = _policy(loop, kind, dirs, search)
     if kind in ("receding", "trap"):  # the frame-0 error sets the initial mode: §3.5's
-        e0 = fixed_error(loop, probe, eps)
+        e0 = fixed_error(loop, probe, _now(eps, p0))
     else:
-        e0 = policy(probe, eps)
+        e0 = policy(probe, _now(eps, p0))
     st = loop.start(p0, e0)
     path = [st["p"].copy()] if record else None
+    played = [] if record else None
     if kind != "receding":
         first = True
         while st["frame"] < loop.n_frames and (st["outcome"] == RUNNING).any():
-            e = e0 if first else policy(st, eps)
+            now = _now(eps, st["p"])
+            e = e0 if first else play(policy(st, now), now)
             first = False
             st = loop.step(st, e)
             if record:
                 path.append(st["p"].copy())
+                played.append(np.array(e, float))
     else:
         locked = np.zeros(len(p0), bool)  # runs the fixed adversary alone already breaks from here
         while st["frame"] < loop.n_frames and (st["outcome"] == RUNNING).any():
             free = np.flatnonzero(~locked & (st["outcome"] == RUNNING))
-            locked[free] |= _base_fails(loop, FrameLoop.take(st, free), eps[free])
+            locked[free] |= _base_fails(loop, FrameLoop.take(st, free), _rows(eps, free))
             free = np.flatnonzero(~locked & (st["outcome"] == RUNNING))
             plan = np.zeros((len(p0), search.lookahead, 2))
             if free.size:
-                plan[free] = _plan(loop, FrameLoop.take(st, free), eps[free], dirs, search, rng)
+                plan[free] = _plan(loop, FrameLoop.take(st, free), _now(_rows(eps, free), st["p"][free]), dirs,
+                                   search, rng)
             for j in range(min(search.commit, loop.n_frames - st["frame"])):
-                e = plan[:, j]
-                e[locked] = fixed_error(loop, st, eps)[locked]
+                now = _now(eps, st["p"])
+                e = play(plan[:, j], now)  # a map's bound: planned where the plan began, played within this one
+                e[locked] = fixed_error(loop, st, now)[locked]
                 st = loop.step(st, e)
                 if record:
                     path.append(st["p"].copy())
+                    played.append(np.array(e, float))
     if record:
         st["path"] = np.stack(path)
+        st["errors"] = np.stack(played) if played else np.zeros((0, len(p0), 2))
     return st
 
 
-def _base_fails(loop: FrameLoop, st: dict, eps: np.ndarray) -> np.ndarray:
-    """Runs that the fixed adversary, played from `st` to the horizon, keeps from arriving."""
+def _base_fails(loop: FrameLoop, st: dict, eps) -> np.ndarray:
+    """Runs that the fixed adversary (bounds `eps`: `(N,)` or a :class:`MapBound`), played from `st` to the horizon,
+    keeps from arriving."""
     sub = FrameLoop.take(st, np.arange(len(st["p"])))
     while sub["frame"] < loop.n_frames and (sub["outcome"] == RUNNING).any():
-        sub = loop.step(sub, fixed_error(loop, sub, eps))
+        sub = loop.step(sub, fixed_error(loop, sub, _now(eps, sub["p"])))
     return (sub["outcome"] != REACHED) & (st["outcome"] == RUNNING)
 
 
@@ -257,11 +302,11 @@ class Bracket:
     tried: list = field(default_factory=list)
 
 
-def attack(loop: FrameLoop, p0: np.ndarray, eps: np.ndarray, search: Search,
+def attack(loop: FrameLoop, p0: np.ndarray, eps, search: Search,
            adversaries=ADVERSARIES, run=run_adversary) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Every adversary in turn on the runs not yet failed: `(failed, adversary index, outcome, path)`; `run` plays
-    one adversary (`run(loop, p0, bounds, kind, search)` -> the final batch with its `path`; the camera falsifier
-    passes its own)."""
+    """Every adversary in turn on the runs not yet failed: `(failed, adversary index, outcome, path)`; `eps` the
+    bounds `(N,)` or a :class:`MapBound`; `run` plays one adversary (`run(loop, p0, bounds, kind, search)` -> the
+    final batch with its `path`; the camera falsifier passes its own)."""
     n = len(p0)
     failed = np.zeros(n, bool)
     which = np.full(n, -1)
@@ -271,7 +316,7 @@ def attack(loop: FrameLoop, p0: np.ndarray, eps: np.ndarray, search: Search,
         rows = np.flatnonzero(~failed)
         if rows.size == 0:
             break
-        st = run(loop, p0[rows], eps[rows], kind, search)
+        st = run(loop, p0[rows], _rows(eps, rows), kind, search)
         bad = st["outcome"] != REACHED
         r = rows[bad]
         failed[r], which[r], outcome[r] = True, a, st["outcome"][bad]

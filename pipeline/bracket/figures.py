@@ -1,6 +1,6 @@
 """The bracket over the arena (docs/bracket.md): per controller, the start cells coloured by `ε_lo` (certified;
 hatched where the certificate holds with the error map's `ε̄`: Theorem 1 for the learned map) and by `ε_hi`
-(falsified), with the obstacle, the diamond, `K` and the counterexamples of smallest `ε_hi`."""
+(falsified; hatched where a run within the map's `ε̄` fails), with the obstacle, the diamond, `K` and the counterexamples of smallest `ε_hi`."""
 
 from __future__ import annotations
 
@@ -49,8 +49,13 @@ def bracket_figure(scene, df, paths, bs, stem, formats):
                       + (f"\nhatched: with the map's ε̄ ({int(g.certified_map.sum())} cells)" if with_map else ""))
         eh = g.eps_hi.to_numpy(float)
         _cells(bottom, g, np.where(np.isfinite(eh), eh, np.nan), bs.eps_max, "Reds_r")
+        fm = g.falsified_map.astype(bool) if "falsified_map" in g else np.zeros(len(g), bool)
+        for _, r in g[fm].iterrows():
+            bottom.add_patch(Rectangle((r.x0, r.y0), r.x1 - r.x0, r.y1 - r.y0, fill=False, ec="tab:purple", lw=0.4,
+                                       hatch="\\\\"))
         _scene(bottom, scene)
-        bottom.set_title(f"{name}: ε_hi (falsified; white: none ≤ {bs.eps_max:g})")
+        bottom.set_title(f"{name}: ε_hi (falsified; white: none ≤ {bs.eps_max:g})"
+                         + (f"\nhatched: within the map's ε̄ ({int(fm.sum())} cells)" if fm.any() else ""))
         order = np.argsort(np.where(np.isfinite(eh), eh, np.inf))[:4]
         for k in order:
             if np.isfinite(eh[k]):

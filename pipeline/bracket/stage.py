@@ -5,11 +5,13 @@ cell holds starts the simulator accepts: not wholly in the diamond), `eps_lo` (t
 within `sim.horizon`; NaN: none), `funnel` (certified there through its sub-squares' funnels,
 :mod:`pipeline.bracket.funnel`), `arrival_bound` (seconds: the certified arrival bound at that ε),
 `arrival_nominal` (seconds: the falsifier's start without error), `certified_map` (certified with the error map's
-ε̄, when given), `eps_hi` (inf: no failure found up to `eps_max`; NaN: no start), the adversary and outcome of the
+ε̄, when given; then also `falsified_map`, a run from the cell's centre failed under every adversary's error within
+the map's `ε̄` at each frame's position, and `map_adversary`), `eps_hi` (inf: no failure found up to `eps_max`; NaN: no start), the adversary and outcome of the
 counterexample; with
 `bracket.camera_map` also `kappa_hi` (the falsifier through the camera, pixel levels; inf: none up to `kappa_max`),
 `camera_adversary`, `camera_outcome`), `table.md` (the bracket table), `certificate.json` (the abstraction's sizes
-and counts per controller and ε), `counterexamples.npz` (the paths; `<controller>_camera`: through the camera) and
+and counts per controller and ε), `counterexamples.npz` (the paths; `<controller>_map`: within the
+map's ε̄; `<controller>_camera`: through the camera) and
 `bracket.png`.
 """
 
@@ -30,10 +32,11 @@ from omegaconf import DictConfig
 from pipeline import lineage, tracking
 from pipeline.bracket.bounds import CellTable, Finest, Uniform
 from pipeline.bracket.certify_loop import certify, funnel_starts
-from pipeline.bracket.falsifier import Search, falsify
+from pipeline.bracket.falsifier import ADVERSARIES, MapBound, Search, attack, falsify
 from pipeline.bracket.loop import OUTCOMES, REACHED, RUNNING, FrameLoop
 from pipeline.bracket.lost import LostFrames
-from pipeline.bracket.starts import behind_obstacles, falsifier_starts, start_cells
+from pipeline.bracket.report import table
+from pipeline.bracket.starts import falsifier_starts, start_cells
 from pipeline.config import build
 from pipeline.errors import ConfigError, DatasetError
 from pipeline.experiments.report import markdown_table
@@ -206,14 +209,35 @@ def bracket_rows(name, law, scene, bs, sim, camera, emap, starts, pmap=None, los
                          "outcome": out})
     paths = np.full((br.path.shape[0], len(starts), 2), np.nan)
     paths[:, inside] = br.path
-    cam_paths = None
+    more = {}
+    if emap is not None:
+        t0 = time.perf_counter()
+        cols, more["map"] = map_rows(loop, emap, search, centres, inside)
+        stats["map_falsifier_seconds"] = time.perf_counter() - t0
+        for k, v in cols.items():
+            rows[k] = v
     if pmap is not None:
         t0 = time.perf_counter()
-        cols, cam_paths = camera_rows(loop, pmap, bs, centres, inside)
+        cols, more["camera"] = camera_rows(loop, pmap, bs, centres, inside)
         stats["camera_falsifier_seconds"] = time.perf_counter() - t0
         for k, v in cols.items():
             rows[k] = v
-    return rows, stats, paths, cam_paths
+    return rows, stats, paths, more
+
+
+def map_rows(loop: FrameLoop, emap, search: Search, centres: np.ndarray, inside: np.ndarray) -> tuple[dict, np.ndarray]:
+    """Every adversary with the error map's own bound (:class:`MapBound`: its `ε̄` at the true position each frame, 0
+    where it is certified nowhere) from the start cells' centres: the columns `falsified_map` (a run failed: no
+    certificate from this map's bound can hold there) and `map_adversary`, and the paths `(frames + 1, cells, 2)`."""
+    failed, which, _, path = attack(loop, centres[inside], MapBound(emap), search)
+    n = len(centres)
+    fals = np.zeros(n, bool)
+    adv = np.full(n, "", dtype=object)
+    fals[inside] = failed
+    adv[inside] = [ADVERSARIES[a] if a >= 0 else "" for a in which]
+    paths = np.full((path.shape[0], n, 2), np.nan)
+    paths[:, inside] = path
+    return {"falsified_map": fals, "map_adversary": adv}, paths
 
 
 def camera_rows(loop: FrameLoop, pmap, bs, centres: np.ndarray, inside: np.ndarray) -> tuple[dict, np.ndarray]:
@@ -236,52 +260,6 @@ def camera_rows(loop: FrameLoop, pmap, bs, centres: np.ndarray, inside: np.ndarr
     paths = np.full((cb.path.shape[0], n, 2), np.nan)
     paths[:, inside] = cb.path
     return {"kappa_hi": kappa_hi, "camera_adversary": adv, "camera_outcome": out}, paths
-
-
-def table(df: pd.DataFrame, scene, eps_list, with_map: bool = False) -> pd.DataFrame:
-    """Per controller, over the start cells holding a start the simulator accepts (`start`; the others, inside the
-    diamond, are counted apart): certified share at each ε (within the horizon), falsified shares, the share still
-    undecided at the largest ε (neither certified at it nor falsified up to it), behind an obstacle (its frame
-    coordinate `a < -c`, `|b| < 15`), the median `ε_hi` on `K` (the cells the axis behind an obstacle passes
-    through); the certified arrival bound beside the nominal run's arrival (seconds, medians over certified cells)
-    and the certified cells whose nominal run arrives later than the bound (a soundness bug); with a `kappa_hi`
-    column, the share falsified through the camera and the median `κ_hi` on `K`; with both, the map-certified cells
-    whose clean camera loop failed (a soundness bug of the chain: map bound, certificate)."""
-    behind, on_K = behind_obstacles(df, scene)
-    start = df["start"].to_numpy(bool) if "start" in df else np.ones(len(df), bool)
-    out = []
-    for name, whole in df.groupby("controller", sort=False):
-        g = whole[start[whole.index]]
-        row = {"controller": name, "start cells": f"{len(g)}" + (f" (+{len(whole) - len(g)} in the diamond)"
-                                                                 if len(whole) > len(g) else "")}
-        for eps in eps_list:
-            row[f"certified ε={eps:g}"] = f"{(g.eps_lo >= eps).mean():.0%}"
-        for eps in eps_list:
-            row[f"falsified ε<={eps:g}"] = f"{(g.eps_hi <= eps).mean():.0%}"
-        top_eps = max(eps_list)  # the bracket still open there: neither certified at it nor falsified up to it
-        row[f"undecided at ε={top_eps:g}"] = f"{(~(g.eps_lo >= top_eps) & ~(g.eps_hi <= top_eps)).mean():.0%}"
-        bh = g[behind[g.index]]
-        top = f" (ε_lo up to {bh.eps_lo.max():g})" if bh.eps_lo.notna().any() else ""
-        row["behind: certified"] = f"{int(bh.eps_lo.notna().sum())}/{len(bh)}{top}"
-        k = g[on_K[g.index]]
-        row["on K: median ε_hi"] = f"{np.nanmedian(k.eps_hi):.3g}" if k.eps_hi.notna().any() else "-"
-        if "arrival_bound" in g:
-            c = g[g.eps_lo.notna()]
-            row["arrival (s): bound / nominal"] = (f"{c.arrival_bound.median():.3g} / {c.arrival_nominal.median():.3g}"
-                                                   if len(c) else "-")
-        if "kappa_hi" in g:
-            row["camera: falsified"] = f"{np.isfinite(g.kappa_hi).mean():.0%}"
-            row["on K: median κ_hi"] = f"{np.nanmedian(k.kappa_hi):.3g}" if k.kappa_hi.notna().any() else "-"
-        row["map ε̄: certified"] = (f"{g.certified_map.mean():.0%} ({int(bh.certified_map.sum())}/{len(bh)} behind)"
-                                    if with_map else "-")
-        row["soundness: ε_lo > ε_hi"] = int((g.eps_lo > g.eps_hi).sum())
-        if "arrival_bound" in g:  # the nominal run is one the certificate covers (no error): it arrives by the bound
-            row["soundness: arrival > bound"] = int((g.eps_lo.notna() & ~(g.arrival_nominal <= g.arrival_bound
-                                                                          + 1e-9)).sum())
-        if with_map and "kappa_hi" in g:  # the map's own error is within its certified ε̄: its clean loop must arrive
-            row["soundness: map-certified, κ_hi = 0"] = int((g.certified_map & (g.kappa_hi == 0)).sum())
-        out.append(row)
-    return pd.DataFrame(out)
 
 
 CODE = ("bracket", "control", "sim", "plants.py")  # the code the bracket's numbers depend on (its id)
@@ -344,14 +322,15 @@ def run(cfg: DictConfig) -> dict:
 
         pmap = load_perception_map(cam_folder, models_dir=cfg.paths.models_dir, device=bs.camera_device)
     frames, stats, paths, cam_paths = [], {}, {}, {}
-    for name, (rows, st, pth, cpth) in each_law(laws, scene, bs, sim, camera, emap, starts, pmap, lost):
+    for name, (rows, st, pth, more) in each_law(laws, scene, bs, sim, camera, emap, starts, pmap, lost):
         frames.append(rows)
         stats[name], paths[name] = st, pth
-        if cpth is not None:
-            cam_paths[f"{name}_camera"] = cpth
+        cam_paths.update({f"{name}_{kind}": p for kind, p in more.items()})
         print(f"bracket: {name}: certified at the largest ε {int(rows.eps_lo.notna().sum())}/{len(rows)} start "
               f"cells, falsified {int(np.isfinite(rows.eps_hi).sum())}/{len(rows)}"
-              + (f", through the camera {int(np.isfinite(rows.kappa_hi).sum())}/{len(rows)}" if cpth is not None
+              + (f", with the map's ε̄ certified {int(rows.certified_map.sum())}, falsified "
+                 f"{int(rows.falsified_map.sum())}" if "falsified_map" in rows else "")
+              + (f", through the camera {int(np.isfinite(rows.kappa_hi).sum())}/{len(rows)}" if "camera" in more
                  else ""), flush=True)
     df = pd.concat(frames, ignore_index=True)
     tab = table(df, scene, bs.eps, with_map=emap is not None)

@@ -1,0 +1,143 @@
+"""The falsifier with the certified error map's own bound (issue 48: the bracket decided with the map's `ε̄`): the
+bound at a point is the smallest of the table cells holding it, every played error lies within it frame by frame,
+a counterexample needs the map's bound where the run goes (0 where the map is certified nowhere), and the table
+counts what the map's bound leaves open."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from pipeline.bracket.bounds import CellTable, Finest
+from pipeline.bracket.falsifier import ADVERSARIES, MapBound, Search, attack, run_adversary, vertex_aims
+from pipeline.bracket.loop import REACHED, FrameLoop
+from pipeline.control import HybridController, Scene
+
+SCENE = Scene(target=[40.0, 0.0], obstacles=[{"center": [0.0, 0.0], "radius": 4.0}])
+
+
+def _table(rows) -> CellTable:
+    return CellTable(pd.DataFrame(rows, columns=["x0", "x1", "y0", "y1", "eps_bar"]))
+
+
+def _brute(cells: np.ndarray, p: np.ndarray) -> np.ndarray:
+    hold = ((cells[None, :, 0] <= p[:, None, 0]) & (p[:, None, 0] <= cells[None, :, 1])
+            & (cells[None, :, 2] <= p[:, None, 1]) & (p[:, None, 1] <= cells[None, :, 3]))
+    return np.where(hold, cells[None, :, 4], np.inf).min(axis=1)
+
+
+@st.composite
+def tables_and_points(draw):
+    """A grid of square cells (some split in four, some missing, as the certify stage writes them) and points
+    drawn anywhere, on the cells' edges and corners included."""
+    h = draw(st.sampled_from([0.25, 0.5, 1.0]))
+    nx, ny = draw(st.integers(1, 6)), draw(st.integers(1, 6))
+    x0, y0 = draw(st.floats(-20, 20)), draw(st.floats(-20, 20))
+    rows = []
+    for i in range(nx):
+        for j in range(ny):
+            kind = draw(st.sampled_from(["whole", "split", "missing"]))
+            a, b = x0 + i * h, y0 + j * h
+            if kind == "whole":
+                rows.append((a, a + h, b, b + h, draw(st.floats(0, 5))))
+            elif kind == "split":
+                rows += [(a + u, a + u + h / 2, b + v, b + v + h / 2, draw(st.floats(0, 5)))
+                         for u in (0, h / 2) for v in (0, h / 2)]
+    if not rows:
+        rows.append((x0, x0 + h, y0, y0 + h, 1.0))
+    k = draw(st.integers(1, 30))
+    gx = draw(st.lists(st.integers(-1, 2 * nx + 1), min_size=k, max_size=k))
+    gy = draw(st.lists(st.integers(-1, 2 * ny + 1), min_size=k, max_size=k))
+    on_grid = np.column_stack([x0 + np.array(gx) * h / 2, y0 + np.array(gy) * h / 2])
+    free = np.array(draw(st.lists(st.tuples(st.floats(-1, 1), st.floats(-1, 1)), min_size=1, max_size=20)))
+    anywhere = np.array([x0, y0]) + (free + 1) / 2 * np.array([nx * h + 1, ny * h + 1]) - 0.5
+    return np.array(rows), np.concatenate([on_grid, anywhere])
+
+
+@given(tables_and_points())
+@settings(max_examples=80, deadline=None)
+def test_the_bound_at_a_point_is_the_smallest_of_the_cells_holding_it(case):
+    cells, points = case
+    np.testing.assert_array_equal(_table(cells).at(points), _brute(cells, points))
+
+
+def test_several_tables_give_the_smallest_bound_at_a_point():
+    whole = _table([(x, x + 1.0, y, y + 1.0, 2.0) for x in range(-2, 2) for y in range(-2, 2)])
+    region = _table([(0.0, 1.0, 0.0, 1.0, 0.5)])
+    p = np.array([[0.5, 0.5], [1.0, 0.5], [-1.5, -1.5], [3.0, 3.0]])
+    np.testing.assert_array_equal(Finest([whole, region]).at(p), [0.5, 0.5, 2.0, np.inf])
+    np.testing.assert_array_equal(MapBound(Finest([whole, region]))(p), [0.5, 0.5, 2.0, 0.0])
+
+
+def test_the_map_bound_where_the_run_goes_decides_the_counterexample():
+    """The paper's hybrid law from `K`: with the map's `ε̄ = 0.5` around the back vertex (0 elsewhere) the trap
+    adversary holds the run there, as with a uniform 0.5; with 0.5 only far from the vertex the run arrives. Every
+    error played, by every adversary, lies within the map's bound at that frame's true position."""
+    near = MapBound(_table([(-16.0, -7.0, -4.0, 4.0, 0.5)]))
+    far = MapBound(_table([(-60.0, -20.0, -8.0, 8.0, 0.5)]))
+    p0 = np.array([[-20.0, 0.0]])
+    loop = FrameLoop(SCENE, HybridController(SCENE), horizon=30.0, delta=5.0)
+    held = run_adversary(loop, p0, near, "trap", Search(trap_dirs=32), record=True)
+    assert held["outcome"][0] != REACHED
+    vertex = vertex_aims(SCENE, 0.0)[0]
+    assert np.hypot(*(held["path"][-1, 0] - vertex)) < 1.0
+    fast = Search(n_dirs=8, lookahead=4, commit=4, tail=8, n_random=1, trap_dirs=16)
+    failed, _, _, _ = attack(loop, p0, far, fast)
+    assert not failed.any()
+    runs = [(near, held)] + [(b, run_adversary(loop, np.array([[-20.0, 0.3], [-14.0, 3.0]]), b, kind, fast))
+                             for b in (near, far) for kind in ADVERSARIES]
+    for bound, st_ in runs:
+        path, errors = st_["path"], st_["errors"]
+        assert len(errors) == len(path) - 1 > 0
+        for k in range(len(errors)):  # frame k perceives path[k] + errors[k]
+            assert (np.hypot(*errors[k].T) <= bound(path[k]) + 1e-12).all()
+        assert (np.hypot(*errors.reshape(-1, 2).T) > 0).any()
+
+
+def test_table_counts_what_the_maps_bound_decides():
+    """`map ε̄: falsified` and `undecided`: start cells falsified (a run within the map's bound failed) and neither
+    certified nor falsified with it; a cell both certified and falsified with the map is a soundness bug, counted."""
+    from pipeline.bracket.report import table
+    from pipeline.config import build, compose
+
+    scene = build(compose("bracket").scene, "scene")
+    rows = [(True, False), (False, True), (False, False), (False, False), (True, True)]
+    df = pd.DataFrame([{"controller": "hybrid", "x0": -30.0, "x1": -25.0, "y0": -2.5 + 5 * i, "y1": 2.5 + 5 * i,
+                        "start": True, "eps_lo": 0.5, "certified_map": cm, "falsified_map": fm, "eps_hi": np.inf}
+                       for i, (cm, fm) in enumerate(rows)])
+    row = table(df, scene, [0.5], with_map=True).iloc[0]
+    assert row["map ε̄: falsified"].startswith("40% (")
+    assert row["map ε̄: undecided"] == "40%"
+    assert row["soundness: map certified and falsified"] == 1
+
+
+def test_the_stage_decides_start_cells_with_the_maps_bound(tmp_path):
+    """`python -m pipeline.bracket bracket.error_map=...` on a tiny grid: a map whose bound is 2 on the band behind
+    the obstacle and 0.05 elsewhere; the csv says per start cell whether it is certified or falsified with the map,
+    never both, each falsified cell with its path (`<law>_map`) and an adversary; the falsified ones lie where the
+    map's bound is large (the runs through the band)."""
+    from pipeline.bracket.stage import run
+    from pipeline.config import compose
+
+    rows = [(x, x + 2.0, y, y + 2.0, 2.0 if (-30 <= x < -10 and -4 <= y < 4) else 0.05)
+            for x in range(-60, 60, 2) for y in range(-40, 40, 2)]
+    pd.DataFrame(rows, columns=["x0", "x1", "y0", "y1", "eps_bar"]).to_csv(tmp_path / "map.csv", index=False)
+    tiny = ["bracket.cell=4.0", "bracket.start_cell=20", "bracket.eps=[0.1]", "bracket.n_bisect=0",
+            "bracket.n_dirs=8", "bracket.tail=4", "bracket.lookahead=4", "bracket.commit=4", "bracket.trap_dirs=16",
+            "sim.horizon=8", "bracket.controllers=[hybrid,smooth]"]
+    out = run(compose("bracket", [*tiny, f"bracket.error_map={tmp_path / 'map.csv'}",
+                                  f"paths.outputs_dir={tmp_path}", f"paths.output_dir={tmp_path / 'run'}"]))
+    df = pd.read_csv(out["path"] / "bracket.csv")
+    assert not (df.certified_map & df.falsified_map).any()
+    assert df.falsified_map.any() and (df.map_adversary[df.falsified_map].isin(ADVERSARIES)).all()
+    paths = np.load(out["path"] / "counterexamples.npz")
+    for name in ("hybrid", "smooth"):
+        rows_ = (df.falsified_map & (df.controller == name)).to_numpy()[df.controller == name]
+        assert np.isfinite(paths[f"{name}_map"][:, rows_]).all()
+    tab = (out["path"] / "table.md").read_text()
+    assert "map ε̄: undecided" in tab and "soundness: map certified and falsified" in tab
+    smooth = df[df.controller == "smooth"]
+    on_axis = (smooth.x1 <= -10) & (smooth.y0 < 0) & (smooth.y1 > 0)
+    assert smooth.falsified_map[on_axis].all()  # Proposition 1 with the map's bound where the runs stall
