@@ -107,15 +107,15 @@ def _badness(loop: FrameLoop, st: dict) -> np.ndarray:
 
 class MapBound:
     """A bound that depends on the true position: a certified error map's `ε̄` there (`table.at`, the smallest bound
-    of the cells holding the point), and 0 where the map is certified nowhere: a counterexample is then within the
-    map's certificate where it has one and exact elsewhere."""
+    of the cells holding the point) times `scale`, and 0 where the map is certified nowhere: a counterexample is then
+    within the map's certificate where it has one and exact elsewhere."""
 
-    def __init__(self, table):
-        self.table = table
+    def __init__(self, table, scale: float = 1.0):
+        self.table, self.scale = table, float(scale)
 
     def __call__(self, p: np.ndarray) -> np.ndarray:
         v = self.table.at(p)
-        return np.where(np.isfinite(v), v, 0.0)
+        return self.scale * np.where(np.isfinite(v), v, 0.0)
 
 
 def _now(eps, p: np.ndarray) -> np.ndarray:

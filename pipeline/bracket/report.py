@@ -16,7 +16,8 @@ def table(df: pd.DataFrame, scene, eps_list, with_map: bool = False) -> pd.DataF
     through); the certified arrival bound beside the nominal run's arrival (seconds, medians over certified cells)
     and the certified cells whose nominal run arrives later than the bound (a soundness bug); with a `kappa_hi`
     column, the share falsified through the camera and the median `κ_hi` on `K`; with the error map, the shares
-certified, falsified (a run failed with errors within the map's `ε̄`) and undecided with its bound, and the cells
+certified, falsified (a run failed with errors within the map's `ε̄`; the median scale of that bound still
+failing) and undecided with its bound, and the cells
 both certified and falsified with it (a soundness bug); with the map and the camera, the map-certified cells
     whose clean camera loop failed (a soundness bug of the chain: map bound, certificate)."""
     behind, on_K = behind_obstacles(df, scene)
@@ -48,7 +49,9 @@ both certified and falsified with it (a soundness bug); with the map and the cam
                                     if with_map else "-")
         if with_map and "falsified_map" in g:
             cm, fm = g.certified_map.astype(bool), g.falsified_map.astype(bool)
-            row["map ε̄: falsified"] = f"{fm.mean():.0%} ({int(bh.falsified_map.astype(bool).sum())}/{len(bh)} behind)"
+            sc = f", median scale {g.map_scale_hi[fm].median():.2g}" if "map_scale_hi" in g and fm.any() else ""
+            row["map ε̄: falsified"] = (f"{fm.mean():.0%} ({int(bh.falsified_map.astype(bool).sum())}/{len(bh)} "
+                                        f"behind{sc})")
             row["map ε̄: undecided"] = f"{(~cm & ~fm).mean():.0%}"
         row["soundness: ε_lo > ε_hi"] = int((g.eps_lo > g.eps_hi).sum())
         if with_map and "falsified_map" in g:  # a certified start that a run within the map's bound breaks

@@ -29,7 +29,8 @@ class BracketSettings:
     per cell) on cells of side `cell` in a frame rotated by
     `angle` with edges over `frames` camera frames, and the falsifier from the centre of every start cell of side `start_cell`, bisecting `ε_hi` on
     `[0, eps_max]` in `n_bisect` steps (its adversaries: :mod:`pipeline.bracket.falsifier`; the ``trap`` one aimed at the
-    back vertex with `trap_dirs` directions within `trap_reach` of it, aiming `trap_offset` outside it); success is
+    back vertex with `trap_dirs` directions within `trap_reach` of it, aiming `trap_offset` outside it; with
+    `error_map` also within the map's own `ε̄`, the failing scale of that bound bisected in `map_bisect` steps); success is
     reaching `B(p_T, goal_radius)` within `sim.horizon` seconds.
     With `camera_map` (a perception map: path, name-id, id or name), the falsifier through the camera too: `κ_hi`
     bisected on the integer levels `[0, kappa_max]`, `pgd_steps` PGD steps per frame towards the directions of
@@ -62,6 +63,7 @@ class BracketSettings:
     trap_dirs: PositiveInt = 64
     trap_reach: Positive = 3.0
     trap_offset: NonNegative = 0.2
+    map_bisect: NonNegativeInt = 2
     formats: Annotated[list[str], NonEmpty()] = field(default_factory=lambda: ["png"])
     camera_map: str | None = None
     kappa_max: Annotated[int, Range(ge=1, le=255)] = 16

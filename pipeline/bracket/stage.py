@@ -6,7 +6,8 @@ within `sim.horizon`; NaN: none), `funnel` (certified there through its sub-squa
 :mod:`pipeline.bracket.funnel`), `arrival_bound` (seconds: the certified arrival bound at that ε),
 `arrival_nominal` (seconds: the falsifier's start without error), `certified_map` (certified with the error map's
 ε̄, when given; then also `falsified_map`, a run from the cell's centre failed under every adversary's error within
-the map's `ε̄` at each frame's position, and `map_adversary`), `eps_hi` (inf: no failure found up to `eps_max`; NaN: no start), the adversary and outcome of the
+the map's `ε̄` at each frame's position, `map_adversary` and `map_scale_hi`, the smallest scale of that bound found
+failing), `eps_hi` (inf: no failure found up to `eps_max`; NaN: no start), the adversary and outcome of the
 counterexample; with
 `bracket.camera_map` also `kappa_hi` (the falsifier through the camera, pixel levels; inf: none up to `kappa_max`),
 `camera_adversary`, `camera_outcome`), `table.md` (the bracket table), `certificate.json` (the abstraction's sizes
@@ -212,7 +213,7 @@ def bracket_rows(name, law, scene, bs, sim, camera, emap, starts, pmap=None, los
     more = {}
     if emap is not None:
         t0 = time.perf_counter()
-        cols, more["map"] = map_rows(loop, emap, search, centres, inside)
+        cols, more["map"] = map_rows(loop, emap, search, centres, inside, bs.map_bisect)
         stats["map_falsifier_seconds"] = time.perf_counter() - t0
         for k, v in cols.items():
             rows[k] = v
@@ -225,19 +226,32 @@ def bracket_rows(name, law, scene, bs, sim, camera, emap, starts, pmap=None, los
     return rows, stats, paths, more
 
 
-def map_rows(loop: FrameLoop, emap, search: Search, centres: np.ndarray, inside: np.ndarray) -> tuple[dict, np.ndarray]:
+def map_rows(loop: FrameLoop, emap, search: Search, centres: np.ndarray, inside: np.ndarray,
+             n_bisect: int) -> tuple[dict, np.ndarray]:
     """Every adversary with the error map's own bound (:class:`MapBound`: its `ε̄` at the true position each frame, 0
     where it is certified nowhere) from the start cells' centres: the columns `falsified_map` (a run failed: no
-    certificate from this map's bound can hold there) and `map_adversary`, and the paths `(frames + 1, cells, 2)`."""
-    failed, which, _, path = attack(loop, centres[inside], MapBound(emap), search)
+    certificate from this map's bound can hold there), `map_adversary` and `map_scale_hi` (the smallest scale `s` of
+    the bound found failing, bisected on `(0, 1]` in `n_bisect` steps: the map's `ε̄` is `1/s` times what this
+    counterexample needs; NaN: not falsified), and the paths `(frames + 1, cells, 2)` at that scale."""
+    p0 = centres[inside]
+    failed, which, _, path = attack(loop, p0, MapBound(emap), search)
+    scale = np.where(failed, 1.0, np.nan)
+    lo = np.zeros(len(p0))
+    for _ in range(n_bisect):
+        mid = 0.5 * (lo + scale)
+        for s in np.unique(mid[failed]):  # the rows at one scale run together
+            rows = np.flatnonzero(failed & (mid == s))
+            f, w, _, pth = attack(loop, p0[rows], MapBound(emap, s), search)
+            scale[rows[f]], which[rows[f]], path[:, rows[f]] = s, w[f], pth[:, f]
+            lo[rows[~f]] = s
     n = len(centres)
-    fals = np.zeros(n, bool)
+    fals, scale_all = np.zeros(n, bool), np.full(n, np.nan)
     adv = np.full(n, "", dtype=object)
-    fals[inside] = failed
+    fals[inside], scale_all[inside] = failed, scale
     adv[inside] = [ADVERSARIES[a] if a >= 0 else "" for a in which]
     paths = np.full((path.shape[0], n, 2), np.nan)
     paths[:, inside] = path
-    return {"falsified_map": fals, "map_adversary": adv}, paths
+    return {"falsified_map": fals, "map_adversary": adv, "map_scale_hi": scale_all}, paths
 
 
 def camera_rows(loop: FrameLoop, pmap, bs, centres: np.ndarray, inside: np.ndarray) -> tuple[dict, np.ndarray]:
