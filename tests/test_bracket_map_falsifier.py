@@ -134,7 +134,9 @@ def test_the_stage_decides_start_cells_with_the_maps_bound(tmp_path):
     assert df.falsified_map.any() and (df.map_adversary[df.falsified_map].isin(ADVERSARIES)).all()
     # the failing scale of the map's bound, bisected twice on (0, 1]: finite exactly where falsified
     assert (df.map_scale_hi.notna() == df.falsified_map).all()
-    assert df.map_scale_hi.dropna().isin([0.25, 0.5, 0.75, 1.0]).all()
+    assert df.map_scale_hi.dropna().isin([0.0, 0.25, 0.5, 0.75, 1.0]).all()
+    nominal_fails = (df.eps_hi == 0) & (df.controller == "smooth")  # the smooth law stalls on K without error
+    assert nominal_fails.any() and (df.map_scale_hi[nominal_fails] == 0).all()
     paths = np.load(out["path"] / "counterexamples.npz")
     for name in ("hybrid", "smooth"):
         rows_ = (df.falsified_map & (df.controller == name)).to_numpy()[df.controller == name]

@@ -231,15 +231,19 @@ def map_rows(loop: FrameLoop, emap, search: Search, centres: np.ndarray, inside:
     """Every adversary with the error map's own bound (:class:`MapBound`: its `ε̄` at the true position each frame, 0
     where it is certified nowhere) from the start cells' centres: the columns `falsified_map` (a run failed: no
     certificate from this map's bound can hold there), `map_adversary` and `map_scale_hi` (the smallest scale `s` of
-    the bound found failing, bisected on `(0, 1]` in `n_bisect` steps: the map's `ε̄` is `1/s` times what this
-    counterexample needs; NaN: not falsified), and the paths `(frames + 1, cells, 2)` at that scale."""
+    the bound found failing, bisected on `(0, 1]` in `n_bisect` steps after the run without error (0: the nominal
+    run fails, an error the bound allows too); the map's `ε̄` is `1/s` times what this counterexample needs; NaN: not
+    falsified), and the paths `(frames + 1, cells, 2)` at that scale."""
     p0 = centres[inside]
-    failed, which, _, path = attack(loop, p0, MapBound(emap), search)
-    scale = np.where(failed, 1.0, np.nan)
+    failed, which, _, path = attack(loop, p0, MapBound(emap, 0.0), search, adversaries=("fixed",))  # e = 0 too
+    scale = np.where(failed, 0.0, np.nan)
+    rows = np.flatnonzero(~failed)
+    f, w, _, pth = attack(loop, p0[rows], MapBound(emap), search)
+    failed[rows[f]], which[rows[f]], scale[rows[f]], path[:, rows[f]] = True, w[f], 1.0, pth[:, f]
     lo = np.zeros(len(p0))
     for _ in range(n_bisect):
         mid = 0.5 * (lo + scale)
-        for s in np.unique(mid[failed]):  # the rows at one scale run together
+        for s in np.unique(mid[failed & (scale > 0)]):  # the rows at one scale run together
             rows = np.flatnonzero(failed & (mid == s))
             f, w, _, pth = attack(loop, p0[rows], MapBound(emap, s), search)
             scale[rows[f]], which[rows[f]], path[:, rows[f]] = s, w[f], pth[:, f]
