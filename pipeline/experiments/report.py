@@ -166,9 +166,12 @@ OTHER_FILES = [
                            "behind the obstacle): its certified ε̄ against c - r, Theorem 1's hypothesis, the sampled "
                            "and attacked errors beside it (copied from `outputs/certified/<map>-<id>/`; docs/certify.md)"),
     ("fig_certified_*.png", "the same certified error map drawn beside the sampled one (docs/certify.md)"),
-    ("tab_bracket_*.md", "the closed loop's bracket for one tuning or field (make multi): certified ε_lo and falsified ε_hi per controller "
+    ("tab_bracket_*.md", "the closed loop's bracket for one tuning or field (make multi): certified ε_lo and falsified ε_hi per controller, "
+                         "and with a certified error map (make paper: the band's) the start cells certified, falsified "
+                         "(a signal within the map's ε̄ breaks the loop) and undecided with the map's own bound "
                          "(copied from `outputs/bracket/bracket-<id>/`; docs/bracket.md)"),
-    ("fig_bracket_*.png", "the same bracket drawn over the start cells (docs/bracket.md)"),
+    ("fig_bracket_*.png", "the same bracket drawn over the start cells; hatched: certified (top) and falsified (bottom) "
+                          "with the map's ε̄ (docs/bracket.md)"),
     ("index/*.json", "an experiment's index entry: the record this page is written from"),
     (".*.experiments.json", "the experiments stage's stamp: the command its last run started with (the stage is not "
                             "started again while it and every file of its entries are unchanged)"),
