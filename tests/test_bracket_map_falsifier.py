@@ -110,19 +110,22 @@ def test_table_counts_what_the_maps_bound_decides():
     row = table(df, scene, [0.5], with_map=True).iloc[0]
     assert row["map ε̄: falsified"].startswith("40% (")
     assert row["map ε̄: undecided"] == "40%"
+    df["map_eps_start"] = [1.0, 1.0, np.inf, 0.5, 1.0]  # one undecided cell starts where the map has no bound
+    row = table(df, scene, [0.5], with_map=True).iloc[0]
+    assert row["map ε̄: undecided"] == "40% (1 start where the map has no bound)"
     assert row["soundness: map certified and falsified"] == 1
 
 
 def test_the_stage_decides_start_cells_with_the_maps_bound(tmp_path):
     """`python -m pipeline.bracket bracket.error_map=...` on a tiny grid: a map whose bound is 2 on the band behind
-    the obstacle and 0.05 elsewhere; the csv says per start cell whether it is certified or falsified with the map,
+    the obstacle and 0.05 elsewhere up to x = 30 (none beyond); the csv says per start cell whether it is certified or falsified with the map,
     never both, each falsified cell with its path (`<law>_map`) and an adversary; the falsified ones lie where the
     map's bound is large (the runs through the band)."""
     from pipeline.bracket.stage import run
     from pipeline.config import compose
 
     rows = [(x, x + 2.0, y, y + 2.0, 2.0 if (-30 <= x < -10 and -4 <= y < 4) else 0.05)
-            for x in range(-60, 60, 2) for y in range(-40, 40, 2)]
+            for x in range(-60, 30, 2) for y in range(-40, 40, 2)]
     pd.DataFrame(rows, columns=["x0", "x1", "y0", "y1", "eps_bar"]).to_csv(tmp_path / "map.csv", index=False)
     tiny = ["bracket.cell=4.0", "bracket.start_cell=20", "bracket.eps=[0.1]", "bracket.n_bisect=0",
             "bracket.n_dirs=8", "bracket.tail=4", "bracket.lookahead=4", "bracket.commit=4", "bracket.trap_dirs=16",
@@ -143,6 +146,9 @@ def test_the_stage_decides_start_cells_with_the_maps_bound(tmp_path):
         assert np.isfinite(paths[f"{name}_map"][:, rows_]).all()
     tab = (out["path"] / "table.md").read_text()
     assert "map ε̄: undecided" in tab and "soundness: map certified and falsified" in tab
+    beyond = (df.x0 + df.x1) / 2 > 30  # the map's table stops at x = 30: no bound at these starts
+    assert beyond.any() and np.isinf(df.map_eps_start[beyond & df.start]).all()
+    assert np.isfinite(df.map_eps_start[~beyond & df.start]).all()
     smooth = df[df.controller == "smooth"]
     on_axis = (smooth.x1 <= -10) & (smooth.y0 < 0) & (smooth.y1 > 0)
     assert smooth.falsified_map[on_axis].all()  # Proposition 1 with the map's bound where the runs stall

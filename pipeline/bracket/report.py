@@ -52,7 +52,10 @@ both certified and falsified with it (a soundness bug); with the map and the cam
             sc = f", median scale {g.map_scale_hi[fm].median():.2g}" if "map_scale_hi" in g and fm.any() else ""
             row["map ε̄: falsified"] = (f"{fm.mean():.0%} ({int(bh.falsified_map.astype(bool).sum())}/{len(bh)} "
                                         f"behind{sc})")
-            row["map ε̄: undecided"] = f"{(~cm & ~fm).mean():.0%}"
+            und = ~cm & ~fm
+            off = (f" ({int((und & ~np.isfinite(g.map_eps_start)).sum())} start where the map has no bound)"
+                   if "map_eps_start" in g else "")
+            row["map ε̄: undecided"] = f"{und.mean():.0%}{off}"
         row["soundness: ε_lo > ε_hi"] = int((g.eps_lo > g.eps_hi).sum())
         if with_map and "falsified_map" in g:  # a certified start that a run within the map's bound breaks
             row["soundness: map certified and falsified"] = int((cm & fm).sum())

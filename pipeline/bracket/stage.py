@@ -233,7 +233,8 @@ def map_rows(loop: FrameLoop, emap, search: Search, centres: np.ndarray, inside:
     certificate from this map's bound can hold there), `map_adversary` and `map_scale_hi` (the smallest scale `s` of
     the bound found failing, bisected on `(0, 1]` in `n_bisect` steps after the run without error (0: the nominal
     run fails, an error the bound allows too); the map's `ε̄` is `1/s` times what this counterexample needs; NaN: not
-    falsified), and the paths `(frames + 1, cells, 2)` at that scale."""
+    falsified), `map_eps_start` (the map's `ε̄` at the falsifier's start; inf: the map is certified nowhere there),
+    and the paths `(frames + 1, cells, 2)` at that scale."""
     p0 = centres[inside]
     failed, which, _, path = attack(loop, p0, MapBound(emap, 0.0), search, adversaries=("fixed",))  # e = 0 too
     scale = np.where(failed, 0.0, np.nan)
@@ -255,7 +256,9 @@ def map_rows(loop: FrameLoop, emap, search: Search, centres: np.ndarray, inside:
     adv[inside] = [ADVERSARIES[a] if a >= 0 else "" for a in which]
     paths = np.full((path.shape[0], n, 2), np.nan)
     paths[:, inside] = path
-    return {"falsified_map": fals, "map_adversary": adv, "map_scale_hi": scale_all}, paths
+    at_start = np.full(n, np.nan)
+    at_start[inside] = emap.at(p0)
+    return {"falsified_map": fals, "map_adversary": adv, "map_scale_hi": scale_all, "map_eps_start": at_start}, paths
 
 
 def camera_rows(loop: FrameLoop, pmap, bs, centres: np.ndarray, inside: np.ndarray) -> tuple[dict, np.ndarray]:
