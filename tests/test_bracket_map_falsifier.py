@@ -152,3 +152,26 @@ def test_the_stage_decides_start_cells_with_the_maps_bound(tmp_path):
     smooth = df[df.controller == "smooth"]
     on_axis = (smooth.x1 <= -10) & (smooth.y0 < 0) & (smooth.y1 > 0)
     assert smooth.falsified_map[on_axis].all()  # Proposition 1 with the map's bound where the runs stall
+
+
+def test_a_uniform_counterexample_inside_the_maps_bound_falsifies_with_the_map():
+    """`map_rows` with the uniform falsifier's result: a counterexample at `ε_hi` whose path keeps the map's bound at
+    least `ε_hi` is within the map's bound as it is: the cell is falsified with the map without a search (adversary
+    "uniform", scale `ε_hi / least bound`); one whose path meets a smaller bound is not taken."""
+    from pipeline.bracket.falsifier import falsify
+    from pipeline.bracket.stage import map_rows
+    from pipeline.control import SmoothController
+
+    loop = FrameLoop(SCENE, SmoothController(SCENE), horizon=30.0, delta=5.0)
+    p0 = np.array([[-20.0, 0.4]])
+    fast = Search(n_dirs=8, lookahead=4, commit=4, tail=8, n_random=1, trap_dirs=16)
+    br = falsify(loop, p0, eps_max=2.0, n_bisect=3, search=fast)
+    assert 0 < br.eps_hi[0] <= 2.0
+    wide = _table([(-60.0, 60.0, -40.0, 40.0, 2.0)])
+    cols, _ = map_rows(loop, wide, fast, p0, np.array([True]), 0, (br.eps_hi, br.path))
+    assert cols["falsified_map"][0] and cols["map_adversary"][0] == "uniform"
+    assert cols["map_scale_hi"][0] == br.eps_hi[0] / 2.0
+    # the same counterexample where the map's bound along its path is below ε_hi: not taken as it is
+    thin = _table([(-60.0, 60.0, -40.0, 40.0, 0.5 * br.eps_hi[0])])
+    cols, _ = map_rows(loop, thin, fast, p0, np.array([True]), 0, (br.eps_hi, br.path))
+    assert cols["map_adversary"][0] != "uniform"

@@ -213,7 +213,7 @@ def bracket_rows(name, law, scene, bs, sim, camera, emap, starts, pmap=None, los
     more = {}
     if emap is not None:
         t0 = time.perf_counter()
-        cols, more["map"] = map_rows(loop, emap, search, centres, inside, bs.map_bisect)
+        cols, more["map"] = map_rows(loop, emap, search, centres, inside, bs.map_bisect, (br.eps_hi, br.path))
         stats["map_falsifier_seconds"] = time.perf_counter() - t0
         for k, v in cols.items():
             rows[k] = v
@@ -226,26 +226,38 @@ def bracket_rows(name, law, scene, bs, sim, camera, emap, starts, pmap=None, los
     return rows, stats, paths, more
 
 
-def map_rows(loop: FrameLoop, emap, search: Search, centres: np.ndarray, inside: np.ndarray,
-             n_bisect: int) -> tuple[dict, np.ndarray]:
+def map_rows(loop: FrameLoop, emap, search: Search, centres: np.ndarray, inside: np.ndarray, n_bisect: int,
+             uniform: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[dict, np.ndarray]:
     """Every adversary with the error map's own bound (:class:`MapBound`: its `ε̄` at the true position each frame, 0
     where it is certified nowhere) from the start cells' centres: the columns `falsified_map` (a run failed: no
     certificate from this map's bound can hold there), `map_adversary` and `map_scale_hi` (the smallest scale `s` of
     the bound found failing, bisected on `(0, 1]` in `n_bisect` steps after the run without error (0: the nominal
     run fails, an error the bound allows too); the map's `ε̄` is `1/s` times what this counterexample needs; NaN: not
     falsified), `map_eps_start` (the map's `ε̄` at the falsifier's start; inf: the map is certified nowhere there),
-    and the paths `(frames + 1, cells, 2)` at that scale."""
+    and the paths `(frames + 1, cells, 2)` at that scale. `uniform`: the uniform falsifier's `(ε_hi, paths)` of the
+    same starts; a counterexample whose path keeps the map's bound at least `ε_hi` at every frame is one within the
+    map's bound as it is (its errors are at most `ε_hi`): falsified without a search (`map_adversary` "uniform"), at
+    scale `max ε_hi / ε̄` along the path, not bisected further."""
     p0 = centres[inside]
+    bound = MapBound(emap)
     failed, which, _, path = attack(loop, p0, MapBound(emap, 0.0), search, adversaries=("fixed",))  # e = 0 too
     scale = np.where(failed, 0.0, np.nan)
+    if uniform is not None:  # the uniform counterexamples the map's bound covers as they are
+        eps_hi, u_path = uniform
+        least = np.min([bound(u_path[k]) for k in range(len(u_path))], axis=0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            s_u = np.where(least > 0, eps_hi / least, np.where(eps_hi == 0, 0.0, np.inf))
+        take = ~failed & np.isfinite(eps_hi) & (s_u <= 1.0)
+        failed[take], which[take], scale[take], path[:, take] = True, len(ADVERSARIES), s_u[take], u_path[:, take]
     rows = np.flatnonzero(~failed)
-    f, w, _, pth = attack(loop, p0[rows], MapBound(emap), search)
+    f, w, _, pth = attack(loop, p0[rows], bound, search)
     failed[rows[f]], which[rows[f]], scale[rows[f]], path[:, rows[f]] = True, w[f], 1.0, pth[:, f]
     lo = np.zeros(len(p0))
+    searched = failed & (scale == 1.0)  # found by the search at the map's bound: bisected (the others have a scale)
     for _ in range(n_bisect):
         mid = 0.5 * (lo + scale)
-        for s in np.unique(mid[failed & (scale > 0)]):  # the rows at one scale run together
-            rows = np.flatnonzero(failed & (mid == s))
+        for s in np.unique(mid[searched]):  # the rows at one scale run together
+            rows = np.flatnonzero(searched & (mid == s))
             f, w, _, pth = attack(loop, p0[rows], MapBound(emap, s), search)
             scale[rows[f]], which[rows[f]], path[:, rows[f]] = s, w[f], pth[:, f]
             lo[rows[~f]] = s
@@ -253,7 +265,7 @@ def map_rows(loop: FrameLoop, emap, search: Search, centres: np.ndarray, inside:
     fals, scale_all = np.zeros(n, bool), np.full(n, np.nan)
     adv = np.full(n, "", dtype=object)
     fals[inside], scale_all[inside] = failed, scale
-    adv[inside] = [ADVERSARIES[a] if a >= 0 else "" for a in which]
+    adv[inside] = [("uniform" if a == len(ADVERSARIES) else ADVERSARIES[a]) if a >= 0 else "" for a in which]
     paths = np.full((path.shape[0], n, 2), np.nan)
     paths[:, inside] = path
     at_start = np.full(n, np.nan)
