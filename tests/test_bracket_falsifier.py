@@ -7,7 +7,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.bracket.falsifier import Search, falsify, directions, fixed_error, run_adversary, trap_policy, vertex_aims
+from pipeline.bracket.falsifier import (
+    Search,
+    directions,
+    falsify,
+    fixed_error,
+    run_adversary,
+    trap_policy,
+    vertex_aims,
+)
 from pipeline.bracket.loop import OUTCOMES, REACHED, STALLED, FrameLoop
 from pipeline.control import CBFController, HybridController, Scene, SmoothController
 from pipeline.sim import CameraSettings, SimSettings, simulate
