@@ -132,10 +132,9 @@ class _BucketIndex:
         key = bx * self.shape[1] + by
         order = np.argsort(key, kind="stable")
         key, owner = key[order], owner[order]
-        self.start = np.searchsorted(key, np.arange(self.shape[0] * self.shape[1] + 1))
-        self.owner = owner
-        width = int(np.diff(self.start).max()) if len(owner) else 0
-        slot = np.arange(len(key)) - self.start[key]
+        start = np.searchsorted(key, np.arange(self.shape[0] * self.shape[1] + 1))
+        width = int(np.diff(start).max()) if len(owner) else 0
+        slot = np.arange(len(key)) - start[key]
         self.table = np.full((self.shape[0] * self.shape[1], max(width, 1)), -1)
         self.table[key, slot] = owner
 

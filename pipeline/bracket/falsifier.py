@@ -147,10 +147,11 @@ def run_adversary(loop: FrameLoop, p0: np.ndarray, eps, kind: str, search: Searc
     p0 = np.asarray(p0, float)
     probe = {"p": p0, "xd": loop.controller.initial_state(p0)}
     policy = _policy(loop, kind, dirs, search)
+    now = _now(eps, p0)
     if kind in ("receding", "trap"):  # the frame-0 error sets the initial mode: §3.5's
-        e0 = fixed_error(loop, probe, _now(eps, p0))
+        e0 = play(fixed_error(loop, probe, now), now)
     else:
-        e0 = policy(probe, _now(eps, p0))
+        e0 = play(policy(probe, now), now)
     st = loop.start(p0, e0)
     path = [st["p"].copy()] if record else None
     played = [] if record else None

@@ -244,7 +244,7 @@ def map_rows(loop: FrameLoop, emap, search: Search, centres: np.ndarray, inside:
     scale = np.where(failed, 0.0, np.nan)
     if uniform is not None:  # the uniform counterexamples the map's bound covers as they are
         eps_hi, u_path = uniform
-        least = np.min([bound(u_path[k]) for k in range(len(u_path))], axis=0)
+        least = bound(u_path.reshape(-1, 2)).reshape(u_path.shape[:2]).min(axis=0)  # every frame at once
         with np.errstate(invalid="ignore", divide="ignore"):
             s_u = np.where(least > 0, eps_hi / least, np.where(eps_hi == 0, 0.0, np.inf))
         take = ~failed & np.isfinite(eps_hi) & (s_u <= 1.0)
