@@ -97,3 +97,23 @@ def test_the_search_over_real_renders_stays_under_the_bound_and_finds_real_error
     assert (best <= limit + SLACK).all(), "a rendered frame past its certified bound"
     print(f"real renders, {n} cells: reach of the bound max {(best / limit).max():.2f}, median "
           f"{np.median(best / limit):.2f}")
+
+
+def test_split_cells_on_the_arena_border_hold_against_the_pgd_on_their_leaves(production):
+    """On the arena's border (the robot clipped by the image's edge) the bound splits; the PGD on the leaves' own
+    relaxations stays inside it, while the same PGD on each whole cell's relaxation (wider: images no leaf admits)
+    goes past the leaves' union: the attack must search the set the bound is about. No rendered frame past it."""
+    from pipeline.certify.attack import pgd_check
+    from pipeline.certify.split import certify_cells, leaf_cells
+
+    model, _, camera = production
+    prep = prepare(model, camera, 0.0, torch.float32)
+    cells = np.array([[x, x + 0.25, y, y + 0.25] for x in np.arange(-50.0, -48.5, 0.25) for y in (29.5, 29.75)])
+    lower, upper, depth, *_ = certify_cells(prep, cells, "crown", 1.4, 1, progress=False)
+    assert (depth == 1).all()
+    leaves = pgd_check(model, camera, cells, lower, upper, 0.0, len(cells), 25, 0,
+                       leaves=lambda c: leaf_cells(prep, c, "crown", 1.4, 1))
+    assert leaves["violations"] == 0 and leaves["render_violations"] == 0, leaves["counterexample"]
+    assert leaves["share_max"] > 0.9  # the attack reaches the bound: it would see an excess
+    whole = pgd_check(model, camera, cells, lower, upper, 0.0, len(cells), 25, 0)
+    assert whole["violations"] > 0  # the wider set: what the attack searched before

@@ -124,3 +124,56 @@ def test_certify_reports_its_pgd_progress_and_names_the_region(tiny_maps, tmp_pa
     from pipeline.certify.figures import scope
 
     assert scope(None) == "the operational set"  # without a region the wording stays
+
+
+def test_diamond_include_covers_the_diamond_but_not_the_disc_interior():
+    """Issue 48: the hybrid law's runs slide along the diamond's faces and dip into it, and the operational set
+    (the errormap stage's) leaves the diamond out, so the bracket found no bound along 51 start cells' runs.
+    `diamond=include` certifies its cells too, but not those wholly inside the disc (no run is there)."""
+    from pipeline.certify.stage import cells_of
+    from pipeline.config import build
+    from pipeline.control.covering import in_diamond
+
+    scene = build(compose("bracket", []).scene, "scene")
+    arena = ((-50.0, 50.0), (-30.0, 30.0))
+    cells, _, _, _, op = cells_of(arena, 0.5, None, scene, 1.5)
+    _, _, _, _, inc = cells_of(arena, 0.5, None, scene, 1.5, "include")
+    centres = np.column_stack([cells[:, :2].mean(1), cells[:, 2:].mean(1)])
+    dia = in_diamond(scene, centres)
+    assert not op[dia].any() and inc[dia].any()
+    assert np.array_equal(inc[~dia], op[~dia])  # nothing changes outside the diamond
+    o = scene.obstacles[0]
+    corners = np.stack([np.hypot(cells[:, i] - o.center[0], cells[:, j] - o.center[1])
+                        for i in (0, 1) for j in (2, 3)], 1)
+    wholly = corners.max(1) <= o.radius
+    assert wholly.any() and not inc[wholly].any()
+    assert inc[dia & ~wholly].all()  # every diamond cell that a run can reach, the cells meeting the circle too
+
+
+def test_the_pgd_attacks_the_leaves_a_split_cell_was_bounded_on(tiny_maps, tmp_path, monkeypatch):
+    """A split cell's bound is the union of its leaves' bounds, each over the leaf's own relaxation of the renderer;
+    the PGD attacked the whole cell's relaxation, wider, and reported "violations" that no image of a leaf has (the
+    arena's border, 2026-12-05). With every cell split once (`tolerance=1e-9`) each attacked box is a quarter of a
+    drawn cell: one of its leaves."""
+    import pipeline.certify.attack as attack
+    from pipeline.certify.stage import run
+
+    boxes = []
+    real = attack.pgd_worst
+
+    def spy(model, camera, cells, *a, **k):
+        boxes.append(np.asarray(cells, float))
+        return real(model, camera, cells, *a, **k)
+
+    monkeypatch.setattr(attack, "pgd_worst", spy)
+    out = run(_cfg(tiny_maps, tmp_path, "kappas=[0.0]", "max_depth=1", "tolerance=1e-9"))
+    s = out["summary"]
+    assert s["kappas"]["0"]["depth"]["1"] == s["n_cells"]
+    b = np.concatenate(boxes)
+    assert len(b) == s["kappas"]["0"]["pgd"]["cells"] == 4
+    assert np.allclose(b[:, 1] - b[:, 0], s["cell"] / 2) and np.allclose(b[:, 3] - b[:, 2], s["cell"] / 2)
+    cells = np.load(out["path"] / "cells.npz")
+    x, y = cells["x"], cells["y"]  # each leaf lies in an operational cell of the grid
+    for x0, x1, y0, y1 in b:
+        i, j = np.argmin(np.abs(y - (y0 + y1) / 2)), np.argmin(np.abs(x - (x0 + x1) / 2))
+        assert cells["operational"][i, j] and abs(x[j] - x0) <= s["cell"] / 2 and abs(y[i] - y0) <= s["cell"] / 2

@@ -4,9 +4,12 @@ A table (CSV or parquet) with one row per cell of positions: `x0, x1, y0, y1, ep
 certified error map of `pipeline.certify` writes one per `kappa`, `error_map_kappa<κ>.csv`), or a certify output's
 folder (its `kappa = 0` table); `bracket.error_map` also takes the folder's `name-id` under `paths.certified_dir`. A grid cell of the abstraction gets the largest
 `eps_bar` of the table cells it meets; a grid cell that no table cell covers gets `inf` (it cannot be
-certified), so a map certified only on part of the arena certifies only runs that stay there. Several tables of one
-perception map (:class:`Finest`: the whole operational set, and a region certified again with finer splitting)
-each bound the error soundly where they cover it, so a grid cell takes the smallest of their bounds.
+certified), so a map certified only on part of the arena certifies only runs that stay there. A grid cell is read
+on its part inside the arena (`arena`: the camera sees nothing beyond it, and a run that leaves it has failed,
+which the abstraction counts itself). Several tables of one perception map (:class:`Finest`: the whole operational
+set, a region certified again with finer splitting, the diamond and the border certified apart) each bound the
+error soundly where they cover it, so a grid cell takes the smallest of their bounds, or, where no table covers
+it alone but their cells together do (tables that tile the arena), the largest bound of all the cells meeting it.
 
 The falsifier takes the map's bound at a point (`at`): the smallest `eps_bar` of the table cells whose closed box
 holds it (every one of them bounds the error there), `inf` where none does.
@@ -37,9 +40,9 @@ class Uniform:
 
 
 class CellTable:
-    """`ε̄` from a table of cells (module docstring)."""
+    """`ε̄` from a table of cells (module docstring): a path, a DataFrame or an array `(N, 5)` of the columns."""
 
-    def __init__(self, table):
+    def __init__(self, table, arena=None):
         import pandas as pd
 
         if isinstance(table, (str, Path)):
@@ -51,6 +54,8 @@ class CellTable:
                     " (a certify output's folder holds error_map_kappa0.csv when its kappas include 0)"
                     if path.name == "error_map_kappa0.csv" else ""))
             table = pd.read_parquet(path) if path.suffix == ".parquet" else pd.read_csv(path, float_precision="round_trip")
+        if isinstance(table, np.ndarray):
+            table = pd.DataFrame(table, columns=list(COLUMNS))
         missing = [c for c in COLUMNS if c not in table.columns]
         if missing:
             raise ConfigError("bracket.error_map", f"needs columns {list(COLUMNS)}, missing {missing}")
@@ -60,36 +65,43 @@ class CellTable:
         if (arr[:, 4] < 0).any() or np.isnan(arr[:, 4]).any():
             raise ConfigError("bracket.error_map", "eps_bar must be >= 0 (inf: not certified)")
         self.cells = arr
+        self.arena = None if arena is None else np.asarray(arena, float).reshape(2, 2)
         self.name = "certified map"
         self._index = None
 
+    @property
+    def index(self) -> _BucketIndex:
+        if self._index is None:
+            self._index = _BucketIndex(self.cells)
+        return self._index
+
     def __call__(self, points, boxes=None, frame=None) -> np.ndarray:
-        """The largest `eps_bar` over table cells meeting each grid cell (its world bounding box: sound)."""
+        """The largest `eps_bar` over table cells meeting each grid cell (its world bounding box, within the arena:
+        sound), `inf` where they do not cover it."""
         if boxes is None:
             raise ValueError("a cell table needs the grid cells")
-        C = np.stack([boxes[:, [0, 2]], boxes[:, [1, 2]], boxes[:, [1, 3]], boxes[:, [0, 3]]], axis=1)
-        W = frame.to_world(C.reshape(-1, 2)).reshape(-1, 4, 2) if frame is not None else C
-        lo, hi = W.min(axis=1), W.max(axis=1)
-        t = self.cells
-        out = np.full(len(boxes), -np.inf)
-        covered = np.zeros(len(boxes))
-        area = (hi[:, 0] - lo[:, 0]) * (hi[:, 1] - lo[:, 1])
-        for s in range(0, len(t), 4096):
-            tt = t[s:s + 4096]
-            ox = np.minimum(hi[:, None, 0], tt[None, :, 1]) - np.maximum(lo[:, None, 0], tt[None, :, 0])
-            oy = np.minimum(hi[:, None, 1], tt[None, :, 3]) - np.maximum(lo[:, None, 1], tt[None, :, 2])
-            meet = (ox >= 0) & (oy >= 0)
-            out = np.maximum(out, np.where(meet, tt[None, :, 4], -np.inf).max(axis=1))
-            covered += (np.clip(ox, 0, None) * np.clip(oy, 0, None)).sum(axis=1)
+        lo, hi = world_boxes(boxes, frame, self.arena)
+        out, covered = self.index.over(lo, hi)
+        area = np.prod(np.maximum(hi - lo, 0.0), axis=1)
         out[covered < area * (1 - 1e-9)] = np.inf  # part of the cell has no bound
+        out[(hi <= lo).any(axis=1)] = np.inf  # no part inside the arena (the view's rules hold there)
         return out
 
     def at(self, points: np.ndarray) -> np.ndarray:
         """The bound at each point `(N, 2)`: the smallest `eps_bar` of the cells whose closed box holds it (`inf`:
         none). The cells are bucketed on a grid of their median width, so a point meets only its bucket's cells."""
-        if self._index is None:
-            self._index = _BucketIndex(self.cells)
-        return self._index.smallest(np.asarray(points, float).reshape(-1, 2))
+        return self.index.smallest(np.asarray(points, float).reshape(-1, 2))
+
+
+def world_boxes(boxes: np.ndarray, frame=None, arena=None) -> tuple[np.ndarray, np.ndarray]:
+    """The world bounding boxes `(lo, hi)` of grid cells `(N, 4)` (in `frame`'s coordinates), clipped to `arena`."""
+    C = np.stack([boxes[:, [0, 2]], boxes[:, [1, 2]], boxes[:, [1, 3]], boxes[:, [0, 3]]], axis=1)
+    W = frame.to_world(C.reshape(-1, 2)).reshape(-1, 4, 2) if frame is not None else C
+    lo, hi = W.min(axis=1), W.max(axis=1)
+    if arena is not None:
+        lo, hi = np.maximum(lo, arena[:, 0]), np.minimum(hi, arena[:, 1])
+        hi = np.maximum(hi, lo)  # wholly outside: an empty box
+    return lo, hi
 
 
 class Finest:
@@ -99,6 +111,7 @@ class Finest:
     def __init__(self, tables: list[CellTable]):
         self.tables = list(tables)
         self.name = "certified maps"
+        self.union = _union(self.tables)
 
     @property
     def cells(self) -> np.ndarray:
@@ -106,11 +119,28 @@ class Finest:
         return np.concatenate([np.column_stack([t.cells, np.full(len(t.cells), i)]) for i, t in enumerate(self.tables)])
 
     def __call__(self, points, boxes=None, frame=None) -> np.ndarray:
-        return np.min([t(points, boxes, frame) for t in self.tables], axis=0)
+        each = [t(points, boxes, frame) for t in self.tables]
+        return np.min(each + ([self.union(points, boxes, frame)] if self.union is not None else []), axis=0)
 
     def at(self, points: np.ndarray) -> np.ndarray:
         """The smallest of the tables' bounds at each point (`inf`: no table covers it)."""
         return np.min([t.at(points) for t in self.tables], axis=0)
+
+
+def _union(tables: list[CellTable]) -> CellTable | None:
+    """All the tables' cells as one table (a box in several: its smallest bound), when they do not overlap but
+    where identical (the cells of one certify grid in tables that tile the arena); None otherwise (a grid cell then
+    needs one table that covers it alone)."""
+    if len(tables) < 2:
+        return None
+    cells = np.concatenate([t.cells for t in tables])
+    boxes, inverse = np.unique(cells[:, :4], axis=0, return_inverse=True)
+    eps = np.full(len(boxes), np.inf)
+    np.minimum.at(eps, inverse.ravel(), cells[:, 4])
+    union = CellTable(np.column_stack([boxes, eps]), arena=tables[0].arena)
+    _, covered = union.index.over(boxes[:, [0, 2]], boxes[:, [1, 3]])
+    area = (boxes[:, 1] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 2])
+    return union if (covered <= area * (1 + 1e-9)).all() else None  # more: two cells overlap
 
 
 class _BucketIndex:
@@ -140,6 +170,34 @@ class _BucketIndex:
 
     def _bucket(self, xy: np.ndarray) -> np.ndarray:
         return np.clip(np.floor((xy - self.lo) / self.h).astype(int), 0, self.shape - 1)
+
+    def over(self, lo: np.ndarray, hi: np.ndarray, chunk: int = 4096) -> tuple[np.ndarray, np.ndarray]:
+        """Per box `[lo, hi]` `(N, 2)`: the largest `eps_bar` of the cells whose closed box meets it (`-inf`: none)
+        and the area of the box they cover, each cell counted once (in the bucket of the lower-left corner of its
+        part of the box)."""
+        out, covered = np.full(len(lo), -np.inf), np.zeros(len(lo))
+        for s in range(0, len(lo), chunk):
+            out[s:s + chunk], covered[s:s + chunk] = self._over(lo[s:s + chunk], hi[s:s + chunk])
+        return out, covered
+
+    def _over(self, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        out, covered = np.full(len(lo), -np.inf), np.zeros(len(lo))
+        b0, b1 = self._bucket(lo), self._bucket(hi)
+        nx, ny = b1[:, 0] - b0[:, 0] + 1, b1[:, 1] - b0[:, 1] + 1
+        box = np.repeat(np.arange(len(lo)), nx * ny)
+        k = np.arange(len(box)) - np.repeat(np.cumsum(nx * ny) - nx * ny, nx * ny)
+        bx, by = b0[box, 0] + k % nx[box], b0[box, 1] + k // nx[box]
+        cand = self.table[bx * self.shape[1] + by]  # (pairs, width), -1: empty slot
+        c = self.cells[np.maximum(cand, 0)]
+        cx, cy = np.maximum(lo[box, 0, None], c[..., 0]), np.maximum(lo[box, 1, None], c[..., 2])
+        ox = np.minimum(hi[box, 0, None], c[..., 1]) - cx
+        oy = np.minimum(hi[box, 1, None], c[..., 3]) - cy
+        meet = (cand >= 0) & (ox >= 0) & (oy >= 0)
+        home = self._bucket(np.stack([cx, cy], -1))
+        once = meet & (home[..., 0] == bx[:, None]) & (home[..., 1] == by[:, None])
+        np.maximum.at(out, box, np.where(meet, c[..., 4], -np.inf).max(axis=1))
+        np.add.at(covered, box, np.where(once, np.clip(ox, 0, None) * np.clip(oy, 0, None), 0.0).sum(axis=1))
+        return out, covered
 
     def smallest(self, points: np.ndarray) -> np.ndarray:
         out = np.full(len(points), np.inf)

@@ -67,7 +67,7 @@ def objects(cfg: DictConfig):
     if camera.period is None:
         raise ConfigError("camera.period", "the bracket needs a frame period (the sampled loop), got null")
     lost = lost_frames(sim, camera, bs, laws)
-    emap = error_map(cfg, bs)
+    emap = error_map(cfg, bs, scene.bounds)
     return scene, laws, bs, sim, camera, emap, camera_map_folder(cfg, bs, scene), lost
 
 
@@ -92,9 +92,10 @@ def lost_frames(sim, camera, bs, laws) -> dict[str, LostFrames]:
                              camera.max_drift) for name, law in laws.items()}
 
 
-def error_map(cfg: DictConfig, bs):
+def error_map(cfg: DictConfig, bs, arena=None):
     """`bracket.error_map` as `ε̄` (None: not set): a cell table, or a certify output (folder, name-id or id)
-    resolved as every tracked input; several (a list): :class:`Finest`, all of one perception map."""
+    resolved as every tracked input; several (a list): :class:`Finest`, all of one perception map. `arena`: the
+    camera's (a grid cell's bound is over its part inside)."""
     refs = [bs.error_map] if isinstance(bs.error_map, str) else list(bs.error_map or [])
     tables, models = [], set()
     for item in refs:
@@ -108,7 +109,7 @@ def error_map(cfg: DictConfig, bs):
         summary = (ref if ref.is_dir() else ref.parent) / "summary.json"
         if summary.is_file():  # a certify output: the perception map it bounds
             models.add(str(json.loads(summary.read_text())["model"]["id"]))
-        tables.append(CellTable(ref))
+        tables.append(CellTable(ref, arena=arena))
     if len(models) > 1:
         raise ConfigError("bracket.error_map", f"the tables bound different perception maps ({', '.join(sorted(models))}):"
                                                " the smallest bound per cell holds for one map only")

@@ -100,16 +100,27 @@ def render_worst(model, camera, cells, rounds: int = 6, seed: int = 0) -> tuple[
 
 
 def pgd_check(model, camera, cells: np.ndarray, lower: np.ndarray, upper: np.ndarray, kappa: float, n_cells: int,
-              steps: int, seed: int, batch: int = 64, progress: bool = False) -> dict:
+              steps: int, seed: int, batch: int = 64, progress: bool = False, leaves=None) -> dict:
     """The attack on `n_cells` cells drawn at random (seeded) against their bounds `lower, upper (N, 2)`: how many
     directions it pushes past the bound (`violations`, with the worst as a counterexample), and how far towards
     the bound it gets (`share`: the attack's largest error over the bound, per direction, max and median).
-    `progress`: the stage's progress (:mod:`pipeline.progress`), one ascent per cell and direction."""
+    `leaves`: for split cells, `leaves(cells) -> (boxes, owner)` (:func:`.split.leaf_cells`): each drawn cell is
+    attacked on one of its leaves drawn at random (seeded), over that leaf's relaxation, which is what its bound
+    holds for; the cell's own relaxation is wider and admits images no leaf's does (such an "excess" is no
+    counterexample: found on the arena's border, 2026-12-05). `progress`: the stage's progress
+    (:mod:`pipeline.progress`), one ascent per cell and direction."""
     rng = np.random.default_rng([int(seed), 7919])
     pick = np.sort(rng.choice(len(cells), size=min(int(n_cells), len(cells)), replace=False))
+    boxes = cells[pick]
+    if leaves is not None and len(pick):
+        leaf, owner = leaves(cells[pick])
+        draw = np.random.default_rng([int(seed), 7927]).random(len(leaf))  # one leaf per cell, uniformly
+        first = np.lexsort((draw, owner))  # per owner its leaves, the smallest draw first
+        keep = first[np.r_[True, owner[first][1:] != owner[first][:-1]]]
+        boxes = leaf[keep[np.argsort(owner[keep])]]
     with progress_bar(total=4 * len(pick), desc=f"PGD kappa={float(kappa):g}", unit="ascent",
                       enabled=progress) as bar:
-        worst = torch.cat([pgd_worst(model, camera, cells[pick[s:s + batch]], kappa, steps, seed, bar=bar)
+        worst = torch.cat([pgd_worst(model, camera, boxes[s:s + batch], kappa, steps, seed, bar=bar)
                            for s in range(0, len(pick), batch)]).numpy()
     limit = np.concatenate([upper[pick], -lower[pick]], 1)
     excess = worst - limit
@@ -123,5 +134,6 @@ def pgd_check(model, camera, cells: np.ndarray, lower: np.ndarray, upper: np.nda
                     "render_share_median": float(np.median(real_share))}
     return {"cells": int(len(pick)), "steps": int(steps), "violations": int((excess > 0).sum()), **rendered,
             "worst_excess": float(excess[k]), "share_max": float(share.max()), "share_median": float(np.median(share)),
-            "counterexample": {"cell": cells[pick[k[0]]].tolist(), "direction": ["+x", "+y", "-x", "-y"][k[1]],
+            "counterexample": {"cell": cells[pick[k[0]]].tolist(), "leaf": boxes[k[0]].tolist(),
+                               "direction": ["+x", "+y", "-x", "-y"][k[1]],
                                "error": float(worst[k])} if excess[k] > 0 else None}

@@ -23,6 +23,7 @@ class CertifySettings:
     pgd_cells: NonNegativeInt = 256
     pgd_steps: PositiveInt = 25
     operational_margin: Literal["auto"] | NonNegative = "auto"
+    diamond: Literal["exclude", "include"] = "exclude"
     region: list[list[float]] | None = None
     batch: PositiveInt = 1024
     dtype: Literal["float32", "float64"] = "float32"

@@ -54,6 +54,21 @@ def eps_of(lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
     return np.sqrt((np.maximum(np.abs(lower), np.abs(upper)) ** 2).sum(-1))
 
 
+def _levels(prep: Prepared, cells: np.ndarray, mode: str, tolerance: float, max_depth: int, batch: int, bar):
+    """The splitting, level by level: per level `(cells, owner, lower, upper, heading, done)`, `done` the cells that
+    are leaves (their bound within the tolerance, or the depth reached)."""
+    current, owner = np.asarray(cells, dtype=np.float64), np.arange(len(cells))
+    for d in range(max_depth + 1):
+        lo, hi, head = _bound_all(prep, current, mode, batch, bar)
+        split = (eps_of(lo, hi) > tolerance) if d < max_depth else np.zeros(len(current), dtype=bool)
+        yield current, owner, lo, hi, head, ~split
+        if not split.any():
+            return
+        current, owner = _children(current[split]), np.repeat(owner[split], 8 if current.shape[1] == 6 else 4)
+        bar.total += len(current)
+        bar.refresh()
+
+
 def certify_cells(prep: Prepared, cells: np.ndarray, mode: str = "crown", tolerance: float = np.inf,
                   max_depth: int = 0, batch: int = 1024, progress: bool = True, desc: str = "certify", bar=None):
     """Per cell: `(lower (N, 2), upper (N, 2), depth (N,), leaves (N,), heading (N,))`: the per-coordinate bounds
@@ -63,24 +78,29 @@ def certify_cells(prep: Prepared, cells: np.ndarray, mode: str = "crown", tolera
     n = len(cells)
     lower, upper, heading = np.full((n, 2), np.inf), np.full((n, 2), -np.inf), np.full(n, -np.inf)
     depth, leaves = np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int64)
-    current, owner = np.asarray(cells, dtype=np.float64), np.arange(n)
     own = progress_bar(total=n, desc=desc, unit="cell", enabled=progress) if bar is None else contextlib.nullcontext(bar)
     with own as bar:
-        for d in range(max_depth + 1):
-            lo, hi, head = _bound_all(prep, current, mode, batch, bar)
-            split = (eps_of(lo, hi) > tolerance) if d < max_depth else np.zeros(len(current), dtype=bool)
-            done = ~split
+        for d, (_, owner, lo, hi, head, done) in enumerate(_levels(prep, cells, mode, tolerance, max_depth, batch, bar)):
             np.minimum.at(lower, owner[done], lo[done])
             np.maximum.at(upper, owner[done], hi[done])
             np.fmax.at(heading, owner[done], head[done])
             np.add.at(leaves, owner[done], 1)
-            if not split.any():
-                break
-            depth[owner[split]] = d + 1
-            current, owner = _children(current[split]), np.repeat(owner[split], 8 if current.shape[1] == 6 else 4)
-            bar.total += len(current)
-            bar.refresh()
+            depth[owner[~done]] = d + 1
     return lower, upper, depth, leaves, np.where(np.isfinite(heading), heading, np.nan)
+
+
+def leaf_cells(prep: Prepared, cells: np.ndarray, mode: str = "crown", tolerance: float = np.inf, max_depth: int = 0,
+               batch: int = 1024) -> tuple[np.ndarray, np.ndarray]:
+    """The leaves :func:`certify_cells` bounds `cells` on (the same splitting, recomputed): `(leaf boxes, owner)`,
+    `owner[i]` the index in `cells` of leaf `i`. A split cell's bound is the union of its leaves' bounds, each over
+    its own relaxation of the renderer: what an attack on the bound must search (the cell's own relaxation, wider,
+    admits images no leaf's does)."""
+    boxes, owners = [], []
+    with progress_bar(total=len(cells), desc="leaves", unit="cell", enabled=False) as bar:
+        for current, owner, *_, done in _levels(prep, cells, mode, tolerance, max_depth, batch, bar):
+            boxes.append(current[done])
+            owners.append(owner[done])
+    return np.concatenate(boxes), np.concatenate(owners)
 
 
 def sampled_errors(predict, camera, cells: np.ndarray, lower: np.ndarray, upper: np.ndarray, n: int, seed: int,

@@ -26,9 +26,10 @@ from pipeline.certify.attack import pgd_check
 from pipeline.certify.bounds import prepare
 from pipeline.certify.figures import scope, write_figures, write_table
 from pipeline.certify.settings import CertifySettings
-from pipeline.certify.split import certify_cells, eps_of, pose_cells, sampled_errors
+from pipeline.certify.split import certify_cells, eps_of, leaf_cells, pose_cells, sampled_errors
 from pipeline.config import build
 from pipeline.config import settings as settings_
+from pipeline.control.covering import in_diamond
 from pipeline.errormap import estimates as core
 from pipeline.errormap.analysis import operational_margin, operational_set
 from pipeline.errors import ConfigError, ModelError
@@ -36,13 +37,17 @@ from pipeline.lineage import debug_overrides, resolve_map
 from pipeline.perception.maps import load_perception_map
 
 
-def cells_of(arena, cell: float, region, scene, margin: float):
-    """The grid of cells (`(x0, x1, y0, y1)` rows), its shape and centres, and the operational ones."""
+def cells_of(arena, cell: float, region, scene, margin: float, diamond: str = "exclude"):
+    """The grid of cells (`(x0, x1, y0, y1)` rows), its shape and centres, and the operational ones (`diamond`
+    "include": the diamond's cells too, but those wholly inside an obstacle's disc, which no run reaches)."""
     try:
         points, shape, xs, ys = core.arena_grid(arena, cell)
     except ValueError as err:
         raise ConfigError("cell", str(err)) from None
     op = operational_set(points, scene, arena, margin)
+    if diamond == "include":
+        op = op | in_diamond(scene, points)
+        op &= ~in_discs(scene, points, cell / 2)
     if region is not None:
         (rx0, rx1), (ry0, ry1) = region
         op &= (points[:, 0] >= rx0) & (points[:, 0] <= rx1) & (points[:, 1] >= ry0) & (points[:, 1] <= ry1)
@@ -51,6 +56,16 @@ def cells_of(arena, cell: float, region, scene, margin: float):
     h = cell / 2
     cells = np.column_stack([points[:, 0] - h, points[:, 0] + h, points[:, 1] - h, points[:, 1] + h])
     return cells, shape, xs, ys, op
+
+
+def in_discs(scene, centres: np.ndarray, half: float) -> np.ndarray:
+    """The cells (of half-side `half` around `centres`) that lie wholly inside an obstacle's disc: their farthest
+    corner within the radius."""
+    out = np.zeros(len(centres), bool)
+    for o in scene.obstacles:
+        far = np.hypot(np.abs(centres[:, 0] - o.center[0]) + half, np.abs(centres[:, 1] - o.center[1]) + half)
+        out |= far <= o.radius
+    return out
 
 
 REDUCE = {"violations": "sum", "worst": "max", "seconds": "sum", "sampled_seconds": "sum"}  # a chunk's scalars
@@ -92,8 +107,10 @@ def _per_kappa(prep, pmap, camera, cells, s, margin_cr, shards_dir: Path):
     pgd = None
     if s.pgd_cells > 0:  # an attacker on the bound: PGD over the position and the admissible images
         t2 = time.perf_counter()
+        leaf_of = None if s.max_depth == 0 else (  # the leaves the bounds were computed on: the relaxations to attack
+            lambda c: leaf_cells(prep, c, s.mode, s.tolerance, s.max_depth, s.batch))
         pgd = pgd_check(pmap.model, camera, bounded, lower, upper, prep.kappa, s.pgd_cells, s.pgd_steps,
-                        s.seed, progress=bool(s.progress))
+                        s.seed, progress=bool(s.progress), leaves=leaf_of)
         pgd["seconds"] = time.perf_counter() - t2
     per_cell = lambda v, f: None if v is None else f(v.reshape(len(cells), k, *v.shape[1:]), 1)  # noqa: E731
     lower, upper, heading, emp, head_emp = (per_cell(v, f) for v, f in ((lower, np.min), (upper, np.max),
@@ -151,7 +168,7 @@ def run(cfg: DictConfig, *, perception_map=None, camera=None) -> dict:
         print(f"certify: {final} is complete (force=true to recompute)")
         return {"path": final, "summary": json.loads((final / "summary.json").read_text()), "skipped": True}
     margin = operational_margin(s.operational_margin, camera)
-    cells, shape, xs, ys, op = cells_of(arena, float(s.cell), s.region, scene, margin)
+    cells, shape, xs, ys, op = cells_of(arena, float(s.cell), s.region, scene, margin, s.diamond)
     cov = scene.covering(0)
     margin_cr = float(cov.c - cov.obstacle_radius)
     torch.set_num_threads(int(s.threads))
@@ -180,7 +197,7 @@ def run(cfg: DictConfig, *, perception_map=None, camera=None) -> dict:
                                                        "position_head": head, "outputs": "pose" if pose else "position"},
                **({"headings": int(s.headings)} if pose else {}),
                "cell": float(s.cell), "n_cells": int(op.sum()), "region": tracking.to_plain(s.region),
-               "operational_margin": margin,
+               "operational_margin": margin, "diamond": s.diamond,
                "mode": s.mode, "tolerance": s.tolerance, "max_depth": s.max_depth, "samples": s.samples,
                "margin_c_minus_r": margin_cr, "torch_threads": int(s.threads), "kappas": levels}
     meta = {"recipe": tracking.strip_keys(plain, identity.CERTIFY_VOLATILE), "inputs": {"model": str(pmap.id)},
