@@ -175,3 +175,31 @@ def test_a_uniform_counterexample_inside_the_maps_bound_falsifies_with_the_map()
     thin = _table([(-60.0, 60.0, -40.0, 40.0, 0.5 * br.eps_hi[0])])
     cols, _ = map_rows(loop, thin, fast, p0, np.array([True]), 0, (br.eps_hi, br.path))
     assert cols["map_adversary"][0] != "uniform"
+
+
+def test_a_start_where_the_maps_bound_is_largest_falsifies_the_cell():
+    """A certificate claims every start of its cell; the map's bound is largest where the camera clips the robot
+    (the arena's border), not at the centre. `worst_starts` finds the accepted start of largest bound on a 9 x 9
+    lattice of the cell, and `map_rows` searches from it where the centre's search found nothing: the smooth law,
+    a map whose bound is 0.2 on `K` only, a start cell straddling `K` with its centre off it (that run arrives),
+    falsified from its lattice point on `K` (the fixed adversary stalls it at the saddle)."""
+    from pipeline.bracket.stage import map_rows
+    from pipeline.bracket.starts import worst_starts
+    from pipeline.control import SmoothController
+
+    loop = FrameLoop(SCENE, SmoothController(SCENE), horizon=30.0, delta=5.0)
+    band = _table([(x, x + 0.5, -0.3, 0.3, 0.2) for x in np.arange(-40.0, -10.0, 0.5)])
+    cell = np.array([[-25.0, -20.0, -0.25, 4.25]])  # lattice rows at y = 0, 0.5, ..., 4
+    worst, b = worst_starts(SCENE, cell, MapBound(band))  # 0 where the map has no bound: the falsifier's
+    assert worst[0, 1] == 0.0 and b[0] == 0.2 and -25.0 < worst[0, 0] < -20.0
+    centre = cell[:, [0, 2]] + (cell[:, [1, 3]] - cell[:, [0, 2]]) / 2
+    fast = Search(n_dirs=8, lookahead=4, commit=4, tail=8, n_random=1, trap_dirs=16)
+    alone, _ = map_rows(loop, band, fast, centre, np.array([True]), 0)
+    assert not alone["falsified_map"][0]
+    cols, paths = map_rows(loop, band, fast, centre, np.array([True]), 1, worst=worst)
+    assert cols["falsified_map"][0] and cols["map_adversary"][0] in ADVERSARIES
+    assert (cols["map_x"][0], cols["map_y"][0]) == tuple(worst[0]) and cols["map_eps_start"][0] == 0.2
+    np.testing.assert_array_equal(paths[0, 0], worst[0])  # the counterexample's path starts there
+    # a start the simulator refuses (in the diamond) is never drawn, even where the bound is largest
+    far, _ = worst_starts(SCENE, np.array([[-12.0, -6.0, -3.0, 3.0]]), lambda p: -np.abs(p[:, 0] + 9.0))
+    assert np.abs(far[0]).sum() > 8 * np.sqrt(2) and far[0, 0] == -9.0  # on x = -9, off the diamond

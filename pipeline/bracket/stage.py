@@ -37,7 +37,7 @@ from pipeline.bracket.falsifier import ADVERSARIES, MapBound, Search, attack, fa
 from pipeline.bracket.loop import OUTCOMES, REACHED, RUNNING, FrameLoop
 from pipeline.bracket.lost import LostFrames
 from pipeline.bracket.report import table
-from pipeline.bracket.starts import falsifier_starts, start_cells
+from pipeline.bracket.starts import falsifier_starts, start_cells, worst_starts
 from pipeline.config import build
 from pipeline.errors import ConfigError, DatasetError
 from pipeline.experiments.report import markdown_table
@@ -214,7 +214,8 @@ def bracket_rows(name, law, scene, bs, sim, camera, emap, starts, pmap=None, los
     more = {}
     if emap is not None:
         t0 = time.perf_counter()
-        cols, more["map"] = map_rows(loop, emap, search, centres, inside, bs.map_bisect, (br.eps_hi, br.path))
+        worst, _ = worst_starts(scene, starts, MapBound(emap))
+        cols, more["map"] = map_rows(loop, emap, search, centres, inside, bs.map_bisect, (br.eps_hi, br.path), worst)
         stats["map_falsifier_seconds"] = time.perf_counter() - t0
         for k, v in cols.items():
             rows[k] = v
@@ -228,21 +229,31 @@ def bracket_rows(name, law, scene, bs, sim, camera, emap, starts, pmap=None, los
 
 
 def map_rows(loop: FrameLoop, emap, search: Search, centres: np.ndarray, inside: np.ndarray, n_bisect: int,
-             uniform: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[dict, np.ndarray]:
+             uniform: tuple[np.ndarray, np.ndarray] | None = None, worst=None) -> tuple[dict, np.ndarray]:
     """Every adversary with the error map's own bound (:class:`MapBound`: its `ε̄` at the true position each frame, 0
     where it is certified nowhere) from the start cells' centres: the columns `falsified_map` (a run failed: no
     certificate from this map's bound can hold there), `map_adversary` and `map_scale_hi` (the smallest scale `s` of
     the bound found failing, bisected on `(0, 1]` in `n_bisect` steps after the run without error (0: the nominal
     run fails, an error the bound allows too); the map's `ε̄` is `1/s` times what this counterexample needs; NaN: not
     falsified), `map_eps_start` (the map's `ε̄` at the falsifier's start; inf: the map is certified nowhere there),
-    and the paths `(frames + 1, cells, 2)` at that scale. `uniform`: the uniform falsifier's `(ε_hi, paths)` of the
-    same starts; a counterexample whose path keeps the map's bound at least `ε_hi` at every frame is one within the
-    map's bound as it is (its errors are at most `ε_hi`): falsified without a search (`map_adversary` "uniform"), at
-    scale `max ε_hi / ε̄` along the path, not bisected further."""
-    p0 = centres[inside]
+    `map_x, map_y` (that start) and the paths `(frames + 1, cells, 2)` at that scale. `uniform`: the uniform
+    falsifier's `(ε_hi, paths)` of the same starts; a counterexample whose path keeps the map's bound at least `ε_hi`
+    at every frame is one within the map's bound as it is (its errors are at most `ε_hi`): falsified without a
+    search (`map_adversary` "uniform"), at scale `max ε_hi / ε̄` along the path, not bisected further. `worst`: per
+    start cell a second start (:func:`.starts.worst_starts`: where the map's bound is largest), searched from where
+    the centre's search found nothing."""
+    p0 = centres[inside].copy()
     bound = MapBound(emap)
-    failed, which, _, path = attack(loop, p0, MapBound(emap, 0.0), search, adversaries=("fixed",))  # e = 0 too
-    scale = np.where(failed, 0.0, np.nan)
+    failed, which = np.zeros(len(p0), bool), np.full(len(p0), -1)
+    scale, path = np.full(len(p0), np.nan), np.full((loop.n_frames + 1, len(p0), 2), np.nan)
+
+    def tried(p: np.ndarray, rows: np.ndarray, s: float) -> np.ndarray:  # from p[rows] at scale s (0: no error)
+        f, w, _, pth = attack(loop, p[rows], MapBound(emap, s), search, adversaries=("fixed",) if s == 0 else ADVERSARIES)
+        r = rows[f]
+        failed[r], which[r], scale[r], path[:, r] = True, w[f], s, pth[:, f]
+        return r
+
+    tried(p0, np.arange(len(p0)), 0.0)  # the run without error: an error every bound allows
     if uniform is not None:  # the uniform counterexamples the map's bound covers as they are
         eps_hi, u_path = uniform
         least = bound(u_path.reshape(-1, 2)).reshape(u_path.shape[:2]).min(axis=0)  # every frame at once
@@ -250,9 +261,12 @@ def map_rows(loop: FrameLoop, emap, search: Search, centres: np.ndarray, inside:
             s_u = np.where(least > 0, eps_hi / least, np.where(eps_hi == 0, 0.0, np.inf))
         take = ~failed & np.isfinite(eps_hi) & (s_u <= 1.0)
         failed[take], which[take], scale[take], path[:, take] = True, len(ADVERSARIES), s_u[take], u_path[:, take]
-    rows = np.flatnonzero(~failed)
-    f, w, _, pth = attack(loop, p0[rows], bound, search)
-    failed[rows[f]], which[rows[f]], scale[rows[f]], path[:, rows[f]] = True, w[f], 1.0, pth[:, f]
+    tried(p0, np.flatnonzero(~failed), 1.0)
+    if worst is not None:  # where the map's bound is largest in the cell: a start the certificate claims too
+        alt = worst[inside]
+        rows = np.flatnonzero(~failed & (bound(alt) > bound(p0)))
+        r = np.concatenate([tried(alt, rows, 0.0), tried(alt, rows[~failed[rows]], 1.0)])
+        p0[r] = alt[r]
     lo = np.zeros(len(p0))
     searched = failed & (scale == 1.0)  # found by the search at the map's bound: bisected (the others have a scale)
     for _ in range(n_bisect):
@@ -269,9 +283,10 @@ def map_rows(loop: FrameLoop, emap, search: Search, centres: np.ndarray, inside:
     adv[inside] = [("uniform" if a == len(ADVERSARIES) else ADVERSARIES[a]) if a >= 0 else "" for a in which]
     paths = np.full((path.shape[0], n, 2), np.nan)
     paths[:, inside] = path
-    at_start = np.full(n, np.nan)
-    at_start[inside] = emap.at(p0)
-    return {"falsified_map": fals, "map_adversary": adv, "map_scale_hi": scale_all, "map_eps_start": at_start}, paths
+    at_start, start = np.full(n, np.nan), np.full((n, 2), np.nan)
+    at_start[inside], start[inside] = emap.at(p0), p0
+    return {"falsified_map": fals, "map_adversary": adv, "map_scale_hi": scale_all, "map_eps_start": at_start,
+            "map_x": start[:, 0], "map_y": start[:, 1]}, paths
 
 
 def camera_rows(loop: FrameLoop, pmap, bs, centres: np.ndarray, inside: np.ndarray) -> tuple[dict, np.ndarray]:

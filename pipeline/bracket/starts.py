@@ -50,6 +50,22 @@ def falsifier_starts(scene, starts: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return p0, ok
 
 
+def worst_starts(scene, starts: np.ndarray, bound, n: int = 9) -> tuple[np.ndarray, np.ndarray]:
+    """Per start cell `(N, 4)` the start the simulator accepts where `bound(points) -> (M,)` (the falsifier's error
+    bound at a point: the map's `ε̄`, 0 where it has none) is largest, among `n x n` points centred in the cell's sub-squares (never on its edges), and that
+    bound (`-inf`: no point accepted). A certificate claims every start of its cell, so a run from any of them that
+    fails falsifies it; the map's bound is largest on the arena's border, where the image clips the robot."""
+    t = (np.arange(n) + 0.5) / n
+    tx, ty = (g.ravel() for g in np.meshgrid(t, t, indexing="ij"))
+    P = np.stack([starts[:, :1] + tx * (starts[:, 1:2] - starts[:, :1]),
+                  starts[:, 2:3] + ty * (starts[:, 3:4] - starts[:, 2:3])], axis=-1)  # (N, n², 2)
+    flat = P.reshape(-1, 2)
+    ok = ~in_diamond(scene, flat) & (clearance(flat, scene) >= 0)
+    b = np.where(ok, np.asarray(bound(flat), float), -np.inf).reshape(len(P), -1)
+    k = np.argmax(b, axis=1)
+    return P[np.arange(len(P)), k], b[np.arange(len(P)), k]
+
+
 def behind_obstacles(df: pd.DataFrame, scene) -> tuple[np.ndarray, np.ndarray]:
     """Start cells behind an obstacle (its frame's `a < -c`, `|b| < 15`) and on `K` (also crossed by its axis
     `b = 0`), over the obstacles."""
