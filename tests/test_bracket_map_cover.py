@@ -13,6 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pipeline.bracket.bounds import CellTable, Finest
+from tests.test_bracket_map_falsifier import tables_and_points
 
 
 def _brute(cells: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -29,28 +30,17 @@ def _brute(cells: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
 
 @st.composite
 def tables_and_boxes(draw):
-    """A grid of square cells, some split in four, some missing (as the certify stage writes them), and boxes of
-    any size anywhere, edges on the cells' lines included."""
-    h = draw(st.sampled_from([0.25, 0.5, 1.0]))
-    nx, ny = draw(st.integers(1, 7)), draw(st.integers(1, 7))
-    rows = []
-    for i in range(nx):
-        for j in range(ny):
-            kind = draw(st.sampled_from(["whole", "whole", "split", "missing"]))
-            a, b = i * h, j * h
-            if kind == "whole":
-                rows.append((a, a + h, b, b + h, draw(st.floats(0, 5))))
-            elif kind == "split":
-                rows += [(a + u, a + u + h / 2, b + v, b + v + h / 2, draw(st.floats(0, 5)))
-                         for u in (0, h / 2) for v in (0, h / 2)]
-    if not rows:
-        rows.append((0.0, h, 0.0, h, 1.0))
+    """A grid of square cells, some split in four, some missing (the falsifier's test's tables, as the certify stage
+    writes them), and boxes of any size anywhere, edges on the cells' lines included."""
+    cells, _ = draw(tables_and_points())
+    h = float((cells[:, 1] - cells[:, 0]).max())
+    origin = cells[:, [0, 2]].min(axis=0)
     k = draw(st.integers(1, 25))
-    q = st.integers(-2, 2 * max(nx, ny) + 2)
+    q = st.integers(-2, 16)
     a = np.array(draw(st.lists(st.tuples(q, q, st.integers(0, 6), st.integers(0, 6)), min_size=k, max_size=k)), float)
-    lo = a[:, :2] * h / 2
+    lo = origin + a[:, :2] * h / 2
     hi = lo + a[:, 2:] * h / 3 + 1e-3
-    return np.array(rows), lo, hi
+    return cells, lo, hi
 
 
 @given(tables_and_boxes())
