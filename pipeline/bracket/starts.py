@@ -52,8 +52,8 @@ def falsifier_starts(scene, starts: np.ndarray) -> tuple[np.ndarray, np.ndarray]
 
 def worst_starts(scene, starts: np.ndarray, bound, n: int = 9) -> tuple[np.ndarray, np.ndarray]:
     """Per start cell `(N, 4)` the start the simulator accepts where `bound(points) -> (M,)` (the falsifier's error
-    bound at a point: the map's `ε̄`, 0 where it has none) is largest, among `n x n` points centred in the cell's sub-squares (never on its edges), and that
-    bound (`-inf`: no point accepted). A certificate claims every start of its cell, so a run from any of them that
+    bound at a point: the map's `ε̄`, 0 where it has none) is largest, among `n x n` points centred in the cell's
+    sub-squares (never on its edges), and that bound (`-inf`: no point accepted). A certificate claims every start of its cell, so a run from any of them that
     fails falsifies it; the map's bound is largest on the arena's border, where the image clips the robot."""
     t = (np.arange(n) + 0.5) / n
     tx, ty = (g.ravel() for g in np.meshgrid(t, t, indexing="ij"))
