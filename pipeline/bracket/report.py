@@ -16,10 +16,10 @@ def table(df: pd.DataFrame, scene, eps_list, with_map: bool = False) -> pd.DataF
     through); the certified arrival bound beside the nominal run's arrival (seconds, medians over certified cells)
     and the certified cells whose nominal run arrives later than the bound (a soundness bug); with a `kappa_hi`
     column, the share falsified through the camera and the median `κ_hi` on `K`; with the error map, the shares
-certified, falsified (a run failed with errors within the map's `ε̄`; the median scale of that bound still
-failing) and undecided with its bound, and the cells
-both certified and falsified with it (a soundness bug); with the map and the camera, the map-certified cells
-    whose clean camera loop failed (a soundness bug of the chain: map bound, certificate)."""
+    certified, falsified (a run failed with errors within the map's `ε̄`; the median scale of that bound still
+    failing) and undecided with its bound, and the cells both certified and falsified with it (a soundness bug);
+    with the map and the camera, the map-certified cells whose clean camera loop failed (a soundness bug of the
+    chain: map bound, certificate)."""
     behind, on_K = behind_obstacles(df, scene)
     start = df["start"].to_numpy(bool) if "start" in df else np.ones(len(df), bool)
     out = []

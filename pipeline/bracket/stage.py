@@ -248,7 +248,7 @@ def map_rows(loop: FrameLoop, emap, search: Search, centres: np.ndarray, inside:
     scale, path = np.full(len(p0), np.nan), np.full((loop.n_frames + 1, len(p0), 2), np.nan)
 
     def tried(p: np.ndarray, rows: np.ndarray, s: float) -> np.ndarray:  # from p[rows] at scale s (0: no error)
-        f, w, _, pth = attack(loop, p[rows], MapBound(emap, s), search, adversaries=("fixed",) if s == 0 else ADVERSARIES)
+        f, w, _, pth = attack(loop, p[rows], MapBound(emap, s), search, adversaries=ADVERSARIES[:1] if s == 0 else ADVERSARIES)
         r = rows[f]
         failed[r], which[r], scale[r], path[:, r] = True, w[f], s, pth[:, f]
         return r

@@ -114,10 +114,10 @@ def pgd_check(model, camera, cells: np.ndarray, lower: np.ndarray, upper: np.nda
     boxes = cells[pick]
     if leaves is not None and len(pick):
         leaf, owner = leaves(cells[pick])
-        draw = np.random.default_rng([int(seed), 7927]).random(len(leaf))  # one leaf per cell, uniformly
-        first = np.lexsort((draw, owner))  # per owner its leaves, the smallest draw first
-        keep = first[np.r_[True, owner[first][1:] != owner[first][:-1]]]
-        boxes = leaf[keep[np.argsort(owner[keep])]]
+        order = np.argsort(owner, kind="stable")  # each drawn cell's leaves together, the cells in order
+        count = np.bincount(owner, minlength=len(pick))
+        u = np.random.default_rng([int(seed), 7927]).random(len(pick))  # one leaf per cell, uniformly
+        boxes = leaf[order[np.cumsum(count) - count + (u * count).astype(int)]]
     with progress_bar(total=4 * len(pick), desc=f"PGD kappa={float(kappa):g}", unit="ascent",
                       enabled=progress) as bar:
         worst = torch.cat([pgd_worst(model, camera, boxes[s:s + batch], kappa, steps, seed, bar=bar)
