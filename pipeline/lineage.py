@@ -15,7 +15,7 @@ from pathlib import Path
 import yaml
 
 from pipeline import identity, tracking
-from pipeline.config import compose
+from pipeline.config import build, compose
 from pipeline.errors import ConfigError, DatasetError
 from pipeline.render import Occlusion, load_occlusion
 from pipeline.repo import CONF_DIR, write_atomic
@@ -135,6 +135,19 @@ def expected_map_id(name: str, overrides=()) -> str | None:
     return id_ if model_name == name else None
 
 
+def expected_map_manifest(cfg) -> dict:
+    """The fields of a map's manifest that the ids downstream of it read (name, id, scene, arena, the model's
+    `outputs`), for the map a composed train config trains, before it is trained: from the config and its dataset
+    (rendered: read from the dataset's manifest). `make paper` pins the error maps and certified maps of the maps it
+    trains in the same pool with them (:func:`expected_errormap_id`); the train stage writes the same values."""
+    ds_name, ds_id = train_dataset_id(cfg)
+    name, id_ = identity.map_identity(tracking.to_plain_lenient(cfg), ds_name, ds_id)
+    ds = tracking.read_manifest(resolve_dataset(f"{ds_name}-{ds_id}", cfg.paths.datasets_dir, debug_overrides(cfg)))
+    camera = build(ds["render"], "render", scene=build(ds["scene"], "scene"))  # the train stage's `ds.camera()`
+    return {"name": name, "id": id_, "scene": ds["scene"], "arena": [list(a) for a in camera.arena],
+            "model": {"outputs": cfg.model.get("outputs")}}
+
+
 def resolve_map(ref, models_dir, field: str = "maps", overrides=()) -> Path:
     """A perception map by path, `name-id`, id or name (`overrides`, e.g. `debug=tiny`, join the train config a
     name means)."""
@@ -163,9 +176,10 @@ def errormap_identity(cfg, map_manifest: dict) -> tuple[str, str]:
     return map_manifest["name"], id_
 
 
-def expected_errormap_id(map_folder: Path, overrides=()) -> tuple[str, str]:
-    """(name, id) of the error map `python -m pipeline.errormap maps=[<map name-id>]` computes for a map folder."""
-    m = tracking.read_manifest(map_folder)
+def expected_errormap_id(map_folder: Path | dict, overrides=()) -> tuple[str, str]:
+    """(name, id) of the error map `python -m pipeline.errormap maps=[<map name-id>]` computes for a map folder (or
+    the manifest of a map not trained yet: :func:`expected_map_manifest`)."""
+    m = map_folder if isinstance(map_folder, dict) else tracking.read_manifest(map_folder)
     return errormap_identity(compose("errormap", [f"maps={m['name']}-{m['id']}", *overrides]), m)
 
 

@@ -1,11 +1,14 @@
 """`make paper`: the DAG data -> train -> errormap -> experiments, each stage as its own Hydra job.
 
-Inputs are pinned by id from stage to stage: the paper job computes the id each stage's config produces
-(with the `args` overrides), passes `maps.clean=clean-<id>` etc. to the next stage, and writes
-`outputs/paper/paper.lock.yaml` listing every dataset, map, error map and experiment result with its config
-hash and code version, and the run's debug level. Stages skip work whose tracked output is up to date (checked
-against its manifest first), and figures whose inputs did not change are not redrawn, so a second `make paper`
-with nothing changed only starts the stages; another folder of the same name made on the side changes nothing.
+Inputs are pinned by id from stage to stage: the paper job computes the id each stage's config produces (with the
+`args` overrides), passes `maps.clean=clean-<id>` etc. to the next stage, and writes
+`outputs/paper/paper.lock.yaml` listing every dataset, map, error map and experiment result with its config hash
+and code version, and the run's debug level. The data come first; every later job (maps, error maps, certify,
+experiments, brackets, learned policies) runs in one pool, each started once the jobs making the folders its
+command line names are done (the ids are known before anything is trained: `expected_map_manifest`). Stages skip
+work whose tracked output is up to date (checked against its manifest first), and figures whose inputs did not
+change are not redrawn, so a second `make paper` with nothing changed only starts the stages; another folder of the
+same name made on the side changes nothing.
 A smoke run (`debug=tiny`) writes its figures, index and lock to `outputs/debug/paper/` (conf/debug/tiny.yaml).
 """
 
@@ -27,14 +30,13 @@ from pipeline.config import compose, settings
 from pipeline.errors import ConfigError, PipelineError
 from pipeline.experiments import checks as experiment_checks  # not `inputs_read` here: stage_main reads it
 from pipeline.experiments.report import write_index
-from pipeline.identity import map_identity
 from pipeline.jobs import Job, run_jobs
 from pipeline.lineage import (
     dataset_identity,
     debug_overrides,
     expected_errormap_id,
+    expected_map_manifest,
     map_recipe,
-    train_dataset_id,
     write_lock,
 )
 from pipeline.paper_profile import Runner
@@ -196,39 +198,30 @@ def run(cfg) -> dict:
         return {n: ds_root / f"{n}-{dataset_identity(compose('data', [f'data={n}', *paths, *args['data']]))[1]}"
                 for n in datasets}
 
-    def map_folder(name: str) -> Path:
-        c = compose("train", [f"data={map_recipe(name)[0]}", *map_recipe(name)[1], *paths, *args["train"]])
-        return models_root / "-".join(map_identity(tracking.to_plain_lenient(c), *train_dataset_id(c)))
-
-    def map_folders():
-        return {n: map_folder(n) for n in maps}
-
-    def errormap_folders():
-        return {n: Path(cfg.paths.errormaps_dir) / "-".join(expected_errormap_id(
-            models_root / lock["maps"][n].name, [*paths, *args["errormap"]])) for n in errormaps}
-
     lock: dict[str, dict[str, Path]] = {"datasets": {}, "maps": {}, "errormaps": {}, "certified": {}, "bracket": {},
                                         "experiments": {}, "learned": {}}
     runner = Runner(cfg, timings, stop)
-    jobs = {"data": lambda: [Job("data", ["-m", f"data={','.join(datasets)}", *paths, *args["data"]], "data")],
-            "train": lambda: [Job("train", [f"data={map_recipe(n)[0]}", *map_recipe(n)[1], *paths, *args["train"]],
-                                  f"train {n}") for n in maps],
-            "errormap": lambda: [Job("errormap", [f"maps=[{lock['maps'][m].name}]", *paths, *args["errormap"]],
-                                     f"errormap {m}") for m in errormaps]}
-    for stage, kind, names, folders in (("data", "datasets", datasets, dataset_folders),
-                                        ("train", "maps", maps, map_folders),
-                                        ("errormap", "errormaps", errormaps, errormap_folders)):
-        if not names:
-            continue
-        found = up_to_date(stage, folders)
-        if found is None:  # up to date: not started
-            runner.stage(stage, jobs[stage]())
-        lock[kind] = found or folders()
+    if datasets:  # every later job reads a dataset: alone first (one job, seconds)
+        found = up_to_date("data", dataset_folders)
+        if found is None:
+            runner.stage("data", [Job("data", ["-m", f"data={','.join(datasets)}", *paths, *args["data"]], "data")])
+        lock["datasets"] = found or dataset_folders()
+    train_argv = {n: [f"data={map_recipe(n)[0]}", *map_recipe(n)[1], *paths, *args["train"]] for n in maps}
+    # the ids of the maps and of what reads them, before any is trained: every later stage joins one pool, each job
+    # waiting for the jobs that make what its command line names (Runner._waiting)
+    manifests = {n: expected_map_manifest(compose("train", a)) for n, a in train_argv.items()}
+    lock["maps"] = {n: models_root / f"{m['name']}-{m['id']}" for n, m in manifests.items()}
+    lock["errormaps"] = {n: Path(cfg.paths.errormaps_dir) / "-".join(expected_errormap_id(
+        manifests[n], [*paths, *args["errormap"]])) for n in errormaps}
+    runner.made_by.update({f.name: f"train {n}" for n, f in lock["maps"].items()})
+    runner.made_by.update({f.name: f"errormap {n}" for n, f in lock["errormaps"].items()})
     map_refs = {n: f.name for n, f in lock["maps"].items()}
     em_refs = {n: f.name for n, f in lock["errormaps"].items()}
-    after = {  # the stages after the maps (pipeline.paper_stages), in one pool: none reads another's output but
-        # bracket <- certify (with bracket_map) and the comparison <- its policies, whose jobs wait for those (Job.after)
-        "certified": lambda: paper_stages.certified(cfg, list(cfg.certify), paths, args, lock, runner)
+    after = {  # the stages after the data, in one pool: a job starts once the jobs that make its inputs are done
+        "train": lambda: _built("train", maps, lock["maps"], runner, lambda n: Job("train", train_argv[n], f"train {n}")),
+        "errormap": lambda: _built("errormap", errormaps, lock["errormaps"], runner, lambda n: Job(
+            "errormap", [f"maps=[{map_refs[n]}]", *paths, *args["errormap"]], f"errormap {n}")),
+        "certified": lambda: paper_stages.certified(cfg, list(cfg.certify), paths, args, lock, runner, manifests)
         if cfg.get("certify") else {},
         "experiments": lambda: _experiments(cfg, list(cfg.experiments), paths, args, map_refs, em_refs, lock, runner)
         if cfg.experiments else {},
@@ -237,8 +230,8 @@ def run(cfg) -> dict:
         "learned": lambda: paper_stages.learned(cfg, list(cfg.learned), paths, args, map_refs, runner)
         if cfg.get("learned") else {},
     }
-    with runner.together():  # their jobs side by side in one pool (the 1-core jobs beside the experiments')
-        for key in ("certified", "experiments", "bracket", "learned"):  # learned holds its policies' jobs too
+    with runner.together():  # their jobs side by side in one pool (the 1-core jobs beside each other)
+        for key in after:  # learned holds its policies' jobs too
             made = after[key]()  # the folders it will make (bracket's pin reads lock["certified"])
             if key in lock:
                 lock[key] = made
@@ -254,6 +247,13 @@ def run(cfg) -> dict:
     print(f"\n[paper] done in {total / 60:.1f} min ({line}); see {cfg.paths.paper_dir}/index.md; inputs pinned in "
           f"{lock_path}")
     return {"timings": timings, "total": total, "lock": lock_path, "maps": map_refs, "errormaps": em_refs}
+
+
+def _built(stage: str, names: list[str], folders: dict[str, Path], runner, job) -> dict[str, Path]:
+    """The train or errormap stage: `job(name)` for each of `names`, unless every folder of `folders` is built."""
+    if names and up_to_date(stage, lambda: folders, runner.said) is None:
+        runner.stage(stage, [job(n) for n in names])
+    return folders
 
 
 def _experiments(cfg, experiments, paths, args, map_refs, em_refs, lock, runner) -> dict[str, Path]:

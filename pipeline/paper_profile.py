@@ -10,6 +10,7 @@ to start the longest jobs first) in the paper's folder.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import os
 import time
@@ -40,6 +41,7 @@ class Runner:
         self._held: list | None = None  # the stages held for one pool (together)
         self.closed = False  # every stage ran: a stage called again only reads and publishes
         self.said: set[str] = set()  # the stages reported up to date (said once per run)
+        self.made_by: dict[str, str] = {}  # output folder name -> label of the job of this run that makes it
 
     def _order(self) -> dict[str, float]:
         try:
@@ -74,7 +76,7 @@ class Runner:
     def _run(self, stages) -> bool:
         self.log_dir.mkdir(parents=True, exist_ok=True)  # the jobs append their phases there, alone or side by side
         t0 = time.perf_counter()
-        jobs = [j for _, js, _ in stages for j in js]
+        jobs = [self._waiting(j) for _, js, _ in stages for j in js]
         of = {j.label: stage for stage, js, _ in stages for j in js}
         done = run_jobs(jobs, workers=self.workers, tag=self.tag, stop=self.stop, log_dir=self.log_dir,
                         profile=self.phases_file, order=self._order())
@@ -87,6 +89,13 @@ class Runner:
             if then is not None and ok[stage]:
                 then()
         return all(ok.values())
+
+    def _waiting(self, job: Job) -> Job:
+        """`job`, waiting also for the jobs of its pool that make an output its command line names (`made_by`);
+        a job of another pool, or a folder already built, is not waited for (:func:`pipeline.jobs.run_jobs`)."""
+        makers = [label for name, label in self.made_by.items()
+                  if label != job.label and any(name in arg for arg in job.argv)]
+        return dataclasses.replace(job, after=tuple(dict.fromkeys((*job.after, *makers))))
 
     def table(self) -> pd.DataFrame:
         phases = read_phases(self.phases_file)

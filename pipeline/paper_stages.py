@@ -41,9 +41,11 @@ def up_to_date(stage: str, expected, said: set | None = None) -> dict[str, Path]
     return folders
 
 
-def certified(cfg, names, paths, args, lock, runner) -> dict[str, Path]:
-    """The certify stage (docs/certify.md) on the maps `names` this run built (not started when what the current
-    certify config makes is there); their tables and heat maps copied into the paper folder (`tab_/fig_certified_*`)."""
+def certified(cfg, names, paths, args, lock, runner, manifests=None) -> dict[str, Path]:
+    """The certify stage (docs/certify.md) on the maps `names` this run builds (not started when what the current
+    certify config makes is there; `manifests`: the maps' manifests before they are trained,
+    :func:`pipeline.lineage.expected_map_manifest`); their tables and heat maps copied into the paper folder
+    (`tab_/fig_certified_*`)."""
     argv = {n: [f"maps={lock['maps'][n].name}", *paths, *args["certify"]] for n in names}
 
     def folders():
@@ -51,7 +53,7 @@ def certified(cfg, names, paths, args, lock, runner) -> dict[str, Path]:
         for n, a in argv.items():
             c = compose("certify", a)
             s = tracking.to_plain({k: c[k] for k in c.keys() if k not in ("paths", "hydra")})
-            m = tracking.read_manifest(lock["maps"][n])
+            m = (manifests or {}).get(n) or tracking.read_manifest(lock["maps"][n])
             out[n] = Path(cfg.paths.certified_dir) / f"{m['name']}-{certify_id(s, m['id'], m['scene'], m['arena'])}"
         return out
 
@@ -111,13 +113,12 @@ def imitations(cfg, configs, paths, args, map_refs, runner) -> dict[str, Path]:
     ppo = "ppo" in configs
     configs = [c for c in configs if c != "ppo"]
 
-    def trunk_pin(config: str) -> list[str]:
-        trunk = compose(config, [*paths, *args["imitate"]]).imitation.trunk_from
-        return [f"imitation.trunk_from={map_refs[trunk]}"] if trunk in map_refs else []
-
-    argv = {c: [*trunk_pin(c), *paths, *args["imitate"]] for c in configs}
+    trunks = {c: map_refs.get(compose(c, [*paths, *args["imitate"]]).imitation.trunk_from) for c in configs}
+    argv = {c: [*([f"imitation.trunk_from={trunks[c]}"] if trunks[c] else []), *paths, *args["imitate"]]
+            for c in configs}
     composed = {c: compose(c, a) for c, a in argv.items()}
-    policies = {c: Path(k.paths.models_dir) / f"{k.name}-{imitation_id(k)}" for c, k in composed.items()}
+    policies = {c: Path(k.paths.models_dir) / f"{k.name}-{imitation_id(k, *([trunks[c]] if trunks[c] else []))}"
+                for c, k in composed.items()}  # a trunk this run trains: its folder's name, before it is there
     jobs = [Job("imitate", ["--config-name", c, *a], f"imitate {c}", module="pipeline.learned.imitate")
             for c, a in argv.items()]
     if ppo:

@@ -167,3 +167,26 @@ def test_stages_held_together_run_in_one_pool_and_then_follow_their_own_jobs(chi
     assert after[2:] == ["learned"]  # the failed stage's `then` does not run
     runner.closed = True
     assert not runner.stage("again", [job("d")]) and not (out / "d.threads").exists()
+
+
+def test_a_job_waits_for_the_job_of_its_pool_that_makes_a_folder_its_command_names(child, tmp_path, monkeypatch):
+    """`make paper` holds every stage after the data in one pool: an error map waits for its map's training, an
+    experiment for the maps and error maps it is pinned to (their folders named on its command line, `made_by`), and
+    a job whose inputs are built already (or made by nobody in the pool) waits for nothing."""
+    job, out = child
+    runner = _runner(tmp_path, monkeypatch, {}, stop=True)
+    runner.made_by.update({"mapx-0123456789": "job train", "mapx-9876543210": "job errormap"})
+
+    def reader(me, *pins):
+        return Job("fake", [str(out), me, "-", "0", *pins], f"job {me}", module="fake_stage")
+
+    with runner.together():
+        runner.stage("experiments", [reader("both", "maps.a=mapx-0123456789", "errormaps.a=mapx-9876543210"),
+                                     reader("free", "maps.a=mapy-0123456789")])
+        runner.stage("errormap", [reader("errormap", "maps=[mapx-0123456789]")])
+        runner.stage("train", [job("train")])
+    after = {d.job.label: d.job.after for _, d in runner.done}
+    assert after == {"job both": ("job train", "job errormap"), "job free": (), "job errormap": ("job train",),
+                     "job train": ()}
+    order = (out / "order.txt").read_text().split()
+    assert order.index("train") < order.index("errormap") < order.index("both")

@@ -13,6 +13,7 @@ import pytest
 from pipeline import tracking
 from pipeline.cli import REPO_ROOT, compose
 from pipeline.errors import ConfigError
+from pipeline.lineage import expected_errormap_id, expected_map_manifest
 from pipeline.plants import SingleIntegrator, Unicycle
 
 ARENA = ((-50.0, 50.0), (-30.0, 30.0))
@@ -387,15 +388,22 @@ def test_a_tiny_pose_map_through_data_train_errormap_and_the_context(tmp_path):
     small = ["data=unicycle", "data.splits.train=256", "data.splits.val=64", "data.splits.test=64",
              "data.sampling.closed_loop.starts=8", "data.sampling.closed_loop.horizon=5.0"]
     assert data_run(compose("data", [*small, *paths]))["counts"]["train"] == 256
-    out = train_run(compose("train", [*small, *paths, "model=pose", "trainer=debug", "eval_levels=[none]"]))
+    train_cfg = compose("train", [*small, *paths, "model=pose", "trainer=debug", "eval_levels=[none]"])
+    expected = expected_map_manifest(train_cfg)  # before training: what make paper pins the map's readers with
+    out = train_run(train_cfg)
     metrics = out["metrics"]
     assert set(metrics["test_split"]["heading"]) == {"mean_deg", "median_deg", "p95_deg", "max_deg"}
     folder = tmp_path / "models" / f"{out['name']}-{out['id']}"
     pm = load_perception_map(folder, device="cpu")
     assert pm.pose
-    em = errormap_run(compose("errormap", [f"maps={folder}", f"paths.errormaps_dir={tmp_path / 'em'}", *paths,
-                                           "grid.step=10.0", "headings=2", "occlusion_levels=[none]",
-                                           "formats=[png]", "train_samples=64", "progress=false", "device=cpu"]))
+    em_args = [f"paths.errormaps_dir={tmp_path / 'em'}", *paths, "grid.step=10.0", "headings=2",
+               "occlusion_levels=[none]", "formats=[png]", "train_samples=64", "progress=false", "device=cpu"]
+    em = errormap_run(compose("errormap", [f"maps={folder}", *em_args]))
+    manifest = tracking.read_manifest(folder)
+    assert {k: expected[k] for k in ("name", "id", "scene", "arena")} == \
+        {k: manifest[k] for k in ("name", "id", "scene", "arena")}
+    assert em["path"].name == "-".join(expected_errormap_id(expected, em_args)) == \
+        "-".join(expected_errormap_id(folder, em_args))  # a pose map's error map: the id reads the model's outputs
     h = em["summary"]["levels"]["none"]["heading"]
     assert h["fields"] == 2 and 0 <= h["mean_deg"] <= 180
     cfg = compose("experiments", [f"paths.outputs_dir={tmp_path / 'out'}", *paths, "experiment=noise_failure",
