@@ -181,3 +181,23 @@ def test_the_clouds_app_with_and_without_a_gate(tiny_maps, tmp_path):
     assert gated["gated"]["sampled"]["violations"] == 0
     assert np.all(tables[1][:, 9] <= tables[1][:, 4])
     assert np.allclose(tables[1][:, 10] + tables[1][:, 11] + tables[1][:, 6], 1.0)
+
+
+def test_clouds_gate_clean_is_the_maps_own_gate_and_names_the_key_without_one(tiny_maps, tmp_path):
+    """`clouds.gate=clean` reads the gate the train stage fitted (the loop's operating point), so a certificate is not
+    run against a gate copied by hand from another map; the number enters the id as if it had been passed."""
+    from pipeline import tracking
+    from pipeline.certify.clouds_cli import check, clean_gate
+    from pipeline.cli import compose
+
+    root, ids = tiny_maps
+    base = [f"paths.models_dir={root / 'models'}", f"paths.certified_dir={tmp_path / 'certified'}"]
+    gate = tracking.read_manifest(root / "models" / ids["occluded"])["metrics"]["calibration"]["clean_gate"]["gate_px"]
+    s = check(compose("certify_clouds", [*base, f"clouds.maps={ids['occluded']}", "clouds.gate=clean"]))["settings"]
+    given = check(compose("certify_clouds", [*base, f"clouds.maps={ids['occluded']}", f"clouds.gate={gate!r}"]))
+    assert s.gate == gate and s.recipe() == given["settings"].recipe()
+    flat = tmp_path / "flat_map-0123456789"  # a map without an uncertainty head has no clean gate in its manifest
+    flat.mkdir()
+    (flat / "manifest.json").write_text('{"id": "0123456789", "metrics": {"test_split": {"mae_px": 0.1}}}')
+    with pytest.raises(ConfigError, match=r"^clouds\.gate: clean: perception map flat_map-0123456789 has no clean"):
+        clean_gate(flat)

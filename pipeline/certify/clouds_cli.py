@@ -1,16 +1,17 @@
 """`python -m pipeline.certify.clouds_cli clouds.maps=<ref> clouds.occlusion=heavy clouds.layouts=299 ...`: perception
 certified under clouds (issue 44; :mod:`pipeline.certify.clouds`), a Hydra app (conf/certify_clouds.yaml).
 
-For the map and the cells of `clouds.region`: a sound bound per cell and cloud layout (N layouts of the level's
-own process), the Clopper-Pearson `eps_bar_delta` per cell, and two checks of it: `samples` positions per cell and
+For the map and the cells of `clouds.region`: a sound bound per cell and cloud layout (N layouts of the level's own
+process), the Clopper-Pearson `eps_bar_delta` per cell, and two checks of it: `samples` positions per cell and
 layout rendered with that layout through the real camera (none may pass its layout's bound) and `fresh` frames per
 cell under fresh layouts (the share above `eps_bar_delta` should sit under `delta`). With `clouds.gate` (a number,
-`camera.gate`'s units; null: no gate) the map's predicted error is bounded too (:mod:`pipeline.certify.gate`): the
-table adds `eps_bar_delta_gated`, `flagged_share`, `undecided_share` (a flagged frame is dropped, no error). Writes
-`table.csv` (one row per cell) and `clouds.json` (the summary) into a tracked folder,
-`<paths.certified_dir>/clouds/<map>_<level>-<id>/` (the id: the settings that determine its bytes, the map's id, its
-scene and the code), and prints one summary line (two with a gate). In shards like the certify stage
-(:mod:`.shards`: `clouds.shards`, `clouds.shard`, chunks of `clouds.chunk` cells). Bad settings: one line, exit 2.
+`camera.gate`'s units; `clean`: the map's own clean-image gate from its manifest; null: no gate) the map's predicted
+error is bounded too (:mod:`pipeline.certify.gate`): the table adds `eps_bar_delta_gated`, `flagged_share`,
+`undecided_share` (a flagged frame is dropped, no error). Writes `table.csv` (one row per cell) and `clouds.json`
+(the summary) into a tracked folder, `<paths.certified_dir>/clouds/<map>_<level>-<id>/` (the id: the settings that
+determine its bytes, the map's id, its scene and the code), and prints one summary line (two with a gate). In shards
+like the certify stage (:mod:`.shards`: `clouds.shards`, `clouds.shard`, chunks of `clouds.chunk` cells). Bad
+settings: one line, exit 2.
 """
 
 from __future__ import annotations
@@ -51,7 +52,7 @@ class CloudsSettings:
     samples: NonNegativeInt = 2
     fresh: NonNegativeInt = 200
     threads: PositiveInt = 1
-    gate: Positive | None = None
+    gate: Literal["clean"] | Positive | None = None
     dtype: Literal["float32", "float64"] = "float32"
     chunk: PositiveInt = 64
     shards: PositiveInt = 1
@@ -81,7 +82,19 @@ def check(cfg: DictConfig) -> dict:
     s = CloudsSettings(**tracking.to_plain(cfg.clouds))
     occ = load_occlusion(s.occlusion, field=f"{F}.occlusion")
     folder = resolve_map(s.maps, cfg.paths.models_dir, field=f"{F}.maps")
+    if s.gate == "clean":  # the number enters the id: the same output as passing it
+        s = dataclasses.replace(s, gate=clean_gate(folder))
     return {"settings": s, "occlusion": occ, "folder": folder}
+
+
+def clean_gate(folder) -> float:
+    """The map's own clean-image gate (its manifest's `metrics.calibration.clean_gate.gate_px`: the operating point
+    the train stage fitted, docs/train.md; 1 px = 1 world unit here), or one line naming `clouds.gate`."""
+    gate = ((tracking.read_manifest(folder).get("metrics") or {}).get("calibration") or {}).get("clean_gate") or {}
+    if not isinstance(gate.get("gate_px"), (int, float)):
+        raise ConfigError(f"{F}.gate", f"clean: perception map {folder.name} has no clean gate in its manifest (a map "
+                                       "trained with model.uncertainty=gaussian has one); give the gate as a number")
+    return float(gate["gate_px"])
 
 
 main = stage_main("certify_clouds", run="pipeline.certify.clouds_run:run", check="pipeline.certify.clouds_cli:check")
