@@ -201,3 +201,26 @@ def test_clouds_gate_clean_is_the_maps_own_gate_and_names_the_key_without_one(ti
     (flat / "manifest.json").write_text('{"id": "0123456789", "metrics": {"test_split": {"mae_px": 0.1}}}')
     with pytest.raises(ConfigError, match=r"^clouds\.gate: clean: perception map flat_map-0123456789 has no clean"):
         clean_gate(flat)
+
+
+def test_the_clouds_progress_moves_within_a_chunk(tiny_maps, tmp_path, monkeypatch, capsys):
+    """A heavy chunk is minutes of bounds (64 cells x 299 layouts): the bar moves per layout, bounds and gate, not
+    once per chunk (a run of 3 chunks printed nothing for ten minutes)."""
+    import re
+
+    from pipeline import progress as pr
+    from pipeline.certify.clouds_run import run
+    from pipeline.cli import compose
+
+    monkeypatch.setattr(pr, "LINE_INTERVAL", 0.0)
+    monkeypatch.setattr(pr, "DELAY", 0.0)
+    root, ids = tiny_maps
+    cfg = compose("certify_clouds", [f"paths.models_dir={root / 'models'}", f"clouds.maps={ids['occluded']}",
+                                     f"paths.certified_dir={tmp_path / 'certified'}", "clouds.limit=2",
+                                     "clouds.layouts=4", "clouds.samples=1", "clouds.fresh=2", "clouds.gate=0.5",
+                                     f"hydra.run.dir={tmp_path}"])
+    with open_dict(cfg):
+        cfg.paths.output_dir = str(tmp_path)
+    run(cfg)
+    done = [int(n) for n in re.findall(r"x 4 layouts: (\d+)/2 cell", capsys.readouterr().err)]
+    assert 1 in done and done[-1] == 2, done  # one chunk of 2 cells: a cell's worth of layout passes shows

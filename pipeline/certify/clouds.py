@@ -130,9 +130,9 @@ def layout_prep(prep: Prepared, layouts: Layouts, j: int, table: torch.Tensor | 
     return Prepared(prep.net, static_pass(prep.net, bg), prep.camera, 0.0, win)
 
 
-def over_layouts(prep: Prepared, layouts: Layouts, bound, shape: tuple[int, ...]):
+def over_layouts(prep: Prepared, layouts: Layouts, bound, shape: tuple[int, ...], tick=None):
     """`bound(prepared under one layout) -> (lo, hi)` for every layout, as `lower, upper (C, L, ...)` (`shape`:
-    `(C, ...)`); clear layouts share the clean bound, computed once."""
+    `(C, ...)`); clear layouts share the clean bound, computed once. `tick()` after each layout (progress)."""
     table = torch.as_tensor(apply_table())
     lower, upper = (np.empty((shape[0], len(layouts), *shape[1:])) for _ in range(2))
     clean = None
@@ -140,20 +140,22 @@ def over_layouts(prep: Prepared, layouts: Layouts, bound, shape: tuple[int, ...]
         for j in range(len(layouts)):
             if layouts.clear[j] and clean is not None:
                 lower[:, j], upper[:, j] = clean
-                continue
-            lo, hi = bound(layout_prep(prep, layouts, j, table))
-            lower[:, j], upper[:, j] = lo, hi
-            if layouts.clear[j]:
-                clean = (lo, hi)
+            else:
+                lo, hi = bound(layout_prep(prep, layouts, j, table))
+                lower[:, j], upper[:, j] = lo, hi
+                if layouts.clear[j]:
+                    clean = (lo, hi)
+            if tick is not None:
+                tick()
     return lower, upper
 
 
 def layout_bounds(prep: Prepared, cells: np.ndarray, layouts: Layouts, mode: str = "crown",
-                  tolerance: float = np.inf, max_depth: int = 0, batch: int = 1024):
+                  tolerance: float = np.inf, max_depth: int = 0, batch: int = 1024, tick=None):
     """`eps_bar(P, layout)` for every cell and layout: `eps (C, L)`, per-coordinate `lower, upper (C, L, 2)` (the
     stage's :func:`.split.certify_cells` on each layout; clear layouts share the clean bound, computed once)."""
     lower, upper = over_layouts(prep, layouts, lambda p: certify_cells(p, cells, mode, tolerance, max_depth, batch,
-                                                                       progress=False)[:2], (len(cells), 2))
+                                                                       progress=False)[:2], (len(cells), 2), tick)
     return eps_of(lower, upper), lower, upper
 
 
@@ -233,14 +235,16 @@ def sampled_check(predict, camera, occ: Occlusion, cells: np.ndarray, lower, upp
 
 def certify_clouds(model, camera, cells: np.ndarray, occ: Occlusion, layouts: int = 299, delta: float = 0.01,
                    confidence: float = 0.95, seed: int = 0, mode: str = "crown", tolerance: float = np.inf,
-                   max_depth: int = 0, batch: int = 1024, at: float | None = None, dtype=torch.float32) -> dict:
+                   max_depth: int = 0, batch: int = 1024, at: float | None = None, dtype=torch.float32,
+                   tick=None) -> dict:
     """The table under clouds (Hydra-free): per cell `eps_bar_delta`, the layouts, the certified share at `at`
     (`c - r`, say), the clean bound; and the cost. Layouts: `occ.sample(layouts, default_rng(seed))`. The gate's
-    columns: :func:`pipeline.certify.clouds_run.certify_gated`."""
+    columns: :func:`pipeline.certify.clouds_run.certify_gated`. `tick()` after each layout's bounds."""
     t0 = time.perf_counter()
     prep = prepare(model, camera, 0.0, dtype)
     draws = layout_maps(occ, occ.sample(layouts, np.random.default_rng(seed), camera.shape), camera.background)
-    eps, lower, upper = layout_bounds(prep, np.asarray(cells, np.float64), draws, mode, tolerance, max_depth, batch)
+    eps, lower, upper = layout_bounds(prep, np.asarray(cells, np.float64), draws, mode, tolerance, max_depth, batch,
+                                      tick)
     ed = eps_delta(eps, delta, confidence)
     out = {"cells": np.asarray(cells), "eps": eps, "lower": lower, "upper": upper, "layouts": draws,
            "eps_bar_delta": ed, "n_layouts": layouts, "k_star": max_exceedances(layouts, delta, confidence),

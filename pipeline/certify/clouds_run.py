@@ -38,17 +38,17 @@ REDUCE.update({k: "max" for k in ("sampled_worst", "fresh_worst_cell_rate", "gat
 
 
 def certify_gated(model, camera, cells, occ, layouts, delta, confidence, seed, mode, tolerance, max_depth,
-                  at=None, gate: float | None = None, dtype=torch.float32) -> dict:
+                  at=None, gate: float | None = None, dtype=torch.float32, tick=None) -> dict:
     """:func:`.clouds.certify_clouds`, and with a `gate` (a map with an uncertainty head): the gate statistic's
     bounds `gate_lower, gate_upper (C, L)`, `eps_bar_delta_gated` and (with `at`) the flagged and undecided shares."""
     t0 = time.perf_counter()
     out = certify_clouds(model, camera, cells, occ, layouts, delta, confidence, seed, mode, tolerance, max_depth,
-                         at=at, dtype=dtype)
+                         at=at, dtype=dtype, tick=tick)
     if gate is None:
         return out
     t1 = time.perf_counter()
     prep, eps, draws = prepare(model, camera, 0.0, dtype), out["eps"], out["layouts"]
-    glo, ghi = g.layout_gate(model, prep, np.asarray(cells, np.float64), draws, mode)
+    glo, ghi = g.layout_gate(model, prep, np.asarray(cells, np.float64), draws, mode, tick)
     eg = g.eps_delta_gated(eps, glo, gate, delta, confidence)
     out.update(gate=gate, gate_lower=glo, gate_upper=ghi, eps_bar_delta_gated=eg, gate_seconds=time.perf_counter() - t1)
     out["seconds"] = time.perf_counter() - t0
@@ -80,11 +80,12 @@ def region_cells(s, camera, scene) -> np.ndarray:
     return cells
 
 
-def chunk_part(pmap, camera, occ, cells, s, margin: float, stream: int) -> shards.Part:
-    """One chunk of cells: its table columns and its checks' counts (the random streams `(seed, stream)`)."""
+def chunk_part(pmap, camera, occ, cells, s, margin: float, stream: int, tick=None) -> shards.Part:
+    """One chunk of cells: its table columns and its checks' counts (the random streams `(seed, stream)`); `tick()`
+    after each layout's bounds (and gate bounds)."""
     r = certify_gated(pmap.model, camera, cells, occ, s.layouts, s.delta, s.confidence, s.seed, s.mode, s.tolerance,
                       s.max_depth, at=margin, gate=s.gate,
-                      dtype=torch.float64 if s.dtype == "float64" else torch.float32)
+                      dtype=torch.float64 if s.dtype == "float64" else torch.float32, tick=tick)
     t0 = time.perf_counter()
     bad, worst = sampled_check(pmap.predict, camera, occ, cells, r["lower"], r["upper"], r["layouts"], s.samples,
                                s.seed, stream) if s.samples else (0, None)
@@ -140,9 +141,17 @@ def run(cfg) -> dict:
         return {**summary, "path": final, "skipped": True}
     shards_dir = root / shards.SHARDS_DIR / final.name
 
-    def chunk(a, b, c, bar):
-        part = chunk_part(pmap, camera, occ, cells[a:b], s, margin, c)
-        bar.update(b - a)
+    def chunk(a, b, c, bar):  # the bar moves inside a chunk (a heavy chunk is minutes of bounds): each layout's
+        per, done = (b - a) / (s.layouts * (1 if s.gate is None else 2)), [0.0, 0]  # pass is this share of its cells
+
+        def tick():
+            done[0] += per
+            if (whole := int(done[0]) - done[1]) > 0:  # whole cells: the bar counts cells
+                bar.update(whole)
+                done[1] += whole
+
+        part = chunk_part(pmap, camera, occ, cells[a:b], s, margin, c, tick)
+        bar.update((b - a) - done[1])  # the rest once its checks are done
         return part
 
     part = shards.run_sharded(len(cells), s.chunk, s, shards_dir, "clouds", chunk, REDUCE,

@@ -153,11 +153,12 @@ def gate_range(vh: VarHead, prep: Prepared, cells, mode: str = "crown") -> tuple
     return torch.cat(out_lo), torch.cat(out_hi)
 
 
-def layout_gate(model, prep: Prepared, cells: np.ndarray, layouts, mode: str = "crown"):
+def layout_gate(model, prep: Prepared, cells: np.ndarray, layouts, mode: str = "crown", tick=None):
     """`(lower, upper) (C, L)`: the gate statistic's bounds for every cell and layout (clear layouts: the clean
-    bound, once), as :func:`.clouds.layout_bounds` goes over them."""
+    bound, once), as :func:`.clouds.layout_bounds` goes over them (`tick()` after each layout)."""
     vh = var_head(model)
-    return over_layouts(prep, layouts, lambda p: [t.numpy() for t in gate_range(vh, p, cells, mode)], (len(cells),))
+    return over_layouts(prep, layouts, lambda p: [t.numpy() for t in gate_range(vh, p, cells, mode)], (len(cells),),
+                        tick)
 
 
 def verdicts(eps: np.ndarray, gate_lower: np.ndarray, at: float, gate: float) -> np.ndarray:
