@@ -13,6 +13,7 @@ import contextlib
 import dataclasses
 import json
 import os
+import re
 import time
 from pathlib import Path
 
@@ -93,8 +94,8 @@ class Runner:
     def _waiting(self, job: Job) -> Job:
         """`job`, waiting also for the jobs of its pool that make an output its command line names (`made_by`);
         a job of another pool, or a folder already built, is not waited for (:func:`pipeline.jobs.run_jobs`)."""
-        makers = [label for name, label in self.made_by.items()
-                  if label != job.label and any(name in arg for arg in job.argv)]
+        named = {t for arg in job.argv for t in re.split(r"[=\[\],/\s]", arg)}  # whole folder names, not parts
+        makers = [label for name, label in self.made_by.items() if label != job.label and name in named]
         return dataclasses.replace(job, after=tuple(dict.fromkeys((*job.after, *makers))))
 
     def table(self) -> pd.DataFrame:

@@ -182,7 +182,7 @@ def test_a_job_waits_for_the_job_of_its_pool_that_makes_a_folder_its_command_nam
 
     with runner.together():
         runner.stage("experiments", [reader("both", "maps.a=mapx-0123456789", "errormaps.a=mapx-9876543210"),
-                                     reader("free", "maps.a=mapy-0123456789")])
+                                     reader("free", "maps.a=mapy-0123456789", "maps.b=mapx-0123456789_copy")])
         runner.stage("errormap", [reader("errormap", "maps=[mapx-0123456789]")])
         runner.stage("train", [job("train")])
     after = {d.job.label: d.job.after for _, d in runner.done}
