@@ -150,14 +150,48 @@ def test_several_error_maps_give_the_smallest_bound_per_cell(tmp_path):
                                                               for x in range(0, 4) for y in range(0, 4)])
     cfg = SimpleNamespace(paths=SimpleNamespace(certified_dir=str(tmp_path / "c")))
     table = lambda f: str(f / "error_map_kappa0.csv")  # noqa: E731 - a certify output's table, beside its summary
-    emap = error_map(cfg, SimpleNamespace(error_map=[table(whole), table(region)]))
+    emap = error_map(cfg, SimpleNamespace(error_map=[table(whole), table(region)], error_map_kappa=0.0))
     assert isinstance(emap, Finest)
     boxes = np.array([[0.0, 1.0, 0.0, 1.0], [1.5, 2.5, 0.0, 1.0], [-3.0, -2.0, 0.0, 1.0], [3.5, 4.5, 0.0, 1.0]])
     np.testing.assert_array_equal(emap(boxes[:, [0, 2]], boxes), [0.5, 2.0, 2.0, np.inf])
     other = _certify_output(tmp_path / "c" / "m-ccc", "m2", [[0.0, 1.0, 0.0, 1.0, 0.1]])
     with pytest.raises(ConfigError, match="different perception maps") as err:
-        error_map(cfg, SimpleNamespace(error_map=[table(whole), table(other)]))
+        error_map(cfg, SimpleNamespace(error_map=[table(whole), table(other)], error_map_kappa=0.0))
     assert err.value.field == "bracket.error_map"
+
+
+def test_error_map_kappa_reads_the_table_at_that_pixel_budget_and_refuses_what_cannot_vouch_for_it(tmp_path):
+    """`bracket.error_map_kappa`: a certify output's table at that budget (another budget's bounds differ); a budget the
+    output does not hold, a table that is not a certify output's at that budget, or a camera map other than the one
+    the tables bound: one line naming the field."""
+    from types import SimpleNamespace
+
+    from pipeline.bracket.bounds import CellTable
+    from pipeline.bracket.stage import error_map
+
+    folder = _certify_output(tmp_path / "c" / "m-aaa", "m1", [[0.0, 1.0, 0.0, 1.0, 0.5]])
+    pd.DataFrame([[0.0, 1.0, 0.0, 1.0, 3.0]], columns=["x0", "x1", "y0", "y1", "eps_bar"]).to_csv(
+        folder / "error_map_kappa1.csv", index=False)
+    cfg = SimpleNamespace(paths=SimpleNamespace(certified_dir=str(tmp_path / "c")))
+    box = np.array([[0.0, 1.0, 0.0, 1.0]])
+    assert CellTable(folder).cells[0, 4] == 0.5 and CellTable(folder, kappa=1.0).cells[0, 4] == 3.0
+    with pytest.raises(ConfigError, match=r"no table at kappa 2 \(its kappas: 0, 1\)") as err:
+        CellTable(folder, kappa=2.0)
+    assert err.value.field == "bracket.error_map_kappa"
+    at = lambda k, ref=str(folder / "error_map_kappa1.csv"), cam=None: error_map(  # noqa: E731
+        cfg, SimpleNamespace(error_map=ref, error_map_kappa=k), camera_folder=cam)(box[:, [0, 2]], box)
+    assert at(1.0)[0] == 3.0
+    with pytest.raises(ConfigError, match="nothing vouches") as err:
+        at(1.0, str(folder / "error_map_kappa0.csv"))
+    assert err.value.field == "bracket.error_map_kappa"
+    cam = tmp_path / "models" / "other-0123456789"
+    cam.mkdir(parents=True)
+    (cam / "manifest.json").write_text(json.dumps({"id": "other"}))
+    with pytest.raises(ConfigError, match="the attacked map's") as err:
+        at(1.0, cam=cam)
+    assert err.value.field == "bracket.error_map"
+    (cam / "manifest.json").write_text(json.dumps({"id": "m1"}))
+    assert at(1.0, cam=cam)[0] == 3.0
 
 
 def test_a_named_tuning_reaches_every_object_and_the_id_and_an_override_after_it_wins():
@@ -194,9 +228,14 @@ def test_table_counts_map_certified_cells_the_clean_camera_loop_breaks():
     df = pd.DataFrame([{"controller": "hybrid", "x0": x0, "x1": x1, "y0": y0, "y1": y1, "eps_lo": 0.1,
                         "certified_map": cm, "eps_hi": np.inf, "kappa_hi": k} for x0, x1, y0, y1, cm, k in rows])
     row = table(df, scene, [0.1], with_map=True).iloc[0]
-    assert row["soundness: map-certified, κ_hi = 0"] == 2
+    assert row["soundness: κ_hi <= κ_lo"] == 2 and row["camera: certified (κ_lo)"] == "75% (3 at κ_lo 0)"
     assert row["map ε̄: certified"] == "75% (2/2 behind)"
-    assert "soundness: map-certified, κ_hi = 0" not in table(df.drop(columns="kappa_hi"), scene, [0.1], True)
+    assert "soundness: κ_hi <= κ_lo" not in table(df.drop(columns="kappa_hi"), scene, [0.1], True)
+    # certified with the map's ε̄ at a pixel budget of 5 levels (κ_lo = 5): a camera failure at 5 or below breaks it
+    df["kappa_lo"] = np.where(df.certified_map, 5.0, np.nan)
+    df["kappa_hi"] = [6.0, 5.0, np.inf, 1.0]
+    row = table(df, scene, [0.1], with_map=True).iloc[0]
+    assert row["soundness: κ_hi <= κ_lo"] == 1 and row["camera: certified (κ_lo)"] == "75% (3 at κ_lo 5)"
 
 
 def test_table_counts_the_start_cells_the_bracket_leaves_open():

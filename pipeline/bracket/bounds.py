@@ -2,7 +2,7 @@
 
 A table (CSV or parquet) with one row per cell of positions: `x0, x1, y0, y1, eps_bar` (world units; the
 certified error map of `pipeline.certify` writes one per `kappa`, `error_map_kappa<κ>.csv`), or a certify output's
-folder (its `kappa = 0` table); `bracket.error_map` also takes the folder's `name-id` under `paths.certified_dir`. A grid cell of the abstraction gets the largest
+folder (its table at `bracket.error_map_kappa`, 0 by default); `bracket.error_map` also takes the folder's `name-id` under `paths.certified_dir`. A grid cell of the abstraction gets the largest
 `eps_bar` of the table cells it meets; a grid cell that no table cell covers gets `inf` (it cannot be
 certified), so a map certified only on part of the arena certifies only runs that stay there. A grid cell is read
 on its part inside the arena (`arena`: the camera sees nothing beyond it, and a run that leaves it has failed,
@@ -42,17 +42,19 @@ class Uniform:
 class CellTable:
     """`ε̄` from a table of cells (module docstring): a path, a DataFrame or an array `(N, 5)` of the columns."""
 
-    def __init__(self, table, arena=None):
+    def __init__(self, table, arena=None, kappa: float = 0.0):
         import pandas as pd
 
         if isinstance(table, (str, Path)):
             path = Path(table)
-            if path.is_dir():  # a certified error map's folder (pipeline.certify): its table at kappa 0
-                path = path / "error_map_kappa0.csv"
+            if path.is_dir():  # a certified error map's folder (pipeline.certify): its table at pixel budget kappa
+                path = path / f"error_map_kappa{float(kappa):g}.csv"
+                if not path.is_file():
+                    have = sorted(p.name[len("error_map_kappa"):-4] for p in path.parent.glob("error_map_kappa*.csv"))
+                    raise ConfigError("bracket.error_map_kappa", f"{path.parent.name} has no table at kappa "
+                                                                 f"{float(kappa):g} (its kappas: {', '.join(have) or 'none'})")
             if not path.is_file():
-                raise ConfigError("bracket.error_map", f"no such file: {path}" + (
-                    " (a certify output's folder holds error_map_kappa0.csv when its kappas include 0)"
-                    if path.name == "error_map_kappa0.csv" else ""))
+                raise ConfigError("bracket.error_map", f"no such file: {path}")
             table = pd.read_parquet(path) if path.suffix == ".parquet" else pd.read_csv(path, float_precision="round_trip")
         if isinstance(table, np.ndarray):
             table = pd.DataFrame(table, columns=list(COLUMNS))

@@ -26,7 +26,7 @@ CameraAdversary = Literal["fixed", "mode_aware"]
 class BracketSettings:
     """What the bracket computes (docs/bracket.md): the certificate at each uniform `eps` (and at the certified
     error map's `ε̄` when `error_map` names its cell table, or several of one perception map: the smallest bound
-    per cell) on cells of side `cell` in a frame rotated by
+    per cell; a certify output's table at the pixel budget `error_map_kappa`) on cells of side `cell` in a frame rotated by
     `angle` with edges over `frames` camera frames, and the falsifier from the centre of every start cell of side `start_cell`, bisecting `ε_hi` on
     `[0, eps_max]` in `n_bisect` steps (its adversaries: :mod:`pipeline.bracket.falsifier`; the ``trap`` one aimed at the
     back vertex with `trap_dirs` directions within `trap_reach` of it, aiming `trap_offset` outside it; with
@@ -45,6 +45,7 @@ class BracketSettings:
     controllers: Annotated[list[Law], NonEmpty()] = field(default_factory=lambda: ["hybrid", "smooth", "cbf"])
     eps: Annotated[list[NonNegative], NonEmpty()] = field(default_factory=lambda: [0.1, 0.25, 0.5])
     error_map: str | Annotated[list[str], NonEmpty(distinct=True)] | None = None
+    error_map_kappa: NonNegative = 0.0
     cell: Positive = 1.0
     angle: float = 45.0
     n_split: PositiveInt = 4

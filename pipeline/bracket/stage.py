@@ -10,7 +10,8 @@ the map's `ε̄` at each frame's position, `map_adversary` and `map_scale_hi`, t
 failing), `eps_hi` (inf: no failure found up to `eps_max`; NaN: no start), the adversary and outcome of the
 counterexample; with
 `bracket.camera_map` also `kappa_hi` (the falsifier through the camera, pixel levels; inf: none up to `kappa_max`),
-`camera_adversary`, `camera_outcome`), `table.md` (the bracket table), `certificate.json` (the abstraction's sizes
+`camera_adversary`, `camera_outcome`; with both maps `kappa_lo`, `bracket.error_map_kappa` where certified with the
+map's ε̄), `table.md` (the bracket table), `certificate.json` (the abstraction's sizes
 and counts per controller and ε), `counterexamples.npz` (the paths; `<controller>_map`: within the
 map's ε̄; `<controller>_camera`: through the camera) and
 `bracket.png`.
@@ -67,8 +68,8 @@ def objects(cfg: DictConfig):
     if camera.period is None:
         raise ConfigError("camera.period", "the bracket needs a frame period (the sampled loop), got null")
     lost = lost_frames(sim, camera, bs, laws)
-    emap = error_map(cfg, bs, scene.bounds)
-    return scene, laws, bs, sim, camera, emap, camera_map_folder(cfg, bs, scene), lost
+    cam_folder = camera_map_folder(cfg, bs, scene)
+    return scene, laws, bs, sim, camera, error_map(cfg, bs, scene.bounds, cam_folder), cam_folder, lost
 
 
 def lost_frames(sim, camera, bs, laws) -> dict[str, LostFrames]:
@@ -92,10 +93,11 @@ def lost_frames(sim, camera, bs, laws) -> dict[str, LostFrames]:
                              camera.max_drift) for name, law in laws.items()}
 
 
-def error_map(cfg: DictConfig, bs, arena=None):
+def error_map(cfg: DictConfig, bs, arena=None, camera_folder: Path | None = None):
     """`bracket.error_map` as `ε̄` (None: not set): a cell table, or a certify output (folder, name-id or id)
-    resolved as every tracked input; several (a list): :class:`Finest`, all of one perception map. `arena`: the
-    camera's (a grid cell's bound is over its part inside)."""
+    resolved as every tracked input, its table at `bracket.error_map_kappa`; several (a list): :class:`Finest`,
+    all of one perception map, the map of `camera_folder` when given (`bracket.camera_map`). `arena`: the camera's
+    (a grid cell's bound is over its part inside)."""
     refs = [bs.error_map] if isinstance(bs.error_map, str) else list(bs.error_map or [])
     tables, models = [], set()
     for item in refs:
@@ -109,12 +111,22 @@ def error_map(cfg: DictConfig, bs, arena=None):
         summary = (ref if ref.is_dir() else ref.parent) / "summary.json"
         if summary.is_file():  # a certify output: the perception map it bounds
             models.add(str(json.loads(summary.read_text())["model"]["id"]))
-        tables.append(CellTable(ref, arena=arena))
+        if bs.error_map_kappa > 0 and ref.is_file() and ref.name != f"error_map_kappa{bs.error_map_kappa:g}.csv":
+            raise ConfigError("bracket.error_map_kappa", f"{ref.name} is not a certify output's table at kappa "
+                                                         f"{bs.error_map_kappa:g} (error_map_kappa{bs.error_map_kappa:g}"
+                                                         ".csv, or its folder): nothing vouches for the pixel budget")
+        tables.append(CellTable(ref, arena=arena, kappa=bs.error_map_kappa))
     if len(models) > 1:
         raise ConfigError("bracket.error_map", f"the tables bound different perception maps ({', '.join(sorted(models))}):"
                                                " the smallest bound per cell holds for one map only")
     if not tables:
         return None
+    if camera_folder is not None and models:  # the camera's κ_lo is the certificate of the map it attacks
+        camera_id = str(tracking.read_manifest(camera_folder).get("id"))
+        if camera_id not in models:
+            raise ConfigError("bracket.error_map", f"bounds perception map {', '.join(sorted(models))}, and "
+                                                   f"bracket.camera_map is {camera_folder.name} (id {camera_id}): the "
+                                                   "camera's certified budget must be the attacked map's")
     return tables[0] if len(tables) == 1 else Finest(tables)
 
 
@@ -225,6 +237,8 @@ def bracket_rows(name, law, scene, bs, sim, camera, emap, starts, pmap=None, los
         stats["camera_falsifier_seconds"] = time.perf_counter() - t0
         for k, v in cols.items():
             rows[k] = v
+        if emap is not None:  # the map's ε̄ at error_map_kappa holds for every frame within that many levels
+            rows["kappa_lo"] = np.where(by_map, bs.error_map_kappa, np.nan)
     return rows, stats, paths, more
 
 
