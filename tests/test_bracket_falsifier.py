@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from pipeline.bracket.falsifier import (
     Search,
@@ -132,3 +134,24 @@ def test_the_vertex_trap_follows_the_frames_travel_not_the_hysteresis(chi, lam):
     assert (held["outcome"] == STALLED).all(), [OUTCOMES[o] for o in held["outcome"]]
     free = run_adversary(loop, p0, np.full(2, 0.7), "trap", Search(), record=False)
     assert (free["outcome"] == REACHED).all(), [OUTCOMES[o] for o in free["outcome"]]
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**31 - 1))
+def test_segment_distance_is_the_distance_to_every_point_of_each_segment(seed):
+    """The falsifier's exact segment checks (`Segments`): the distance from each of several points to each step's
+    segment is the minimum over the segment's points (a dense sampling, endpoints included, can only be above it
+    and comes within its spacing), one point or several in one call, zero-length segments included."""
+    from pipeline.bracket.loop import segment_distance
+
+    rng = np.random.default_rng(seed)
+    p0 = rng.uniform(-5, 5, (12, 2))
+    p1 = p0 + rng.uniform(-2, 2, (12, 2)) * (rng.random((12, 1)) > 0.2)  # some segments of length 0
+    c = rng.uniform(-6, 6, (4, 2))
+    d = segment_distance(p0, p1, c)
+    s = np.linspace(0, 1, 2001)
+    pts = p0[:, None] + s[None, :, None] * (p1 - p0)[:, None]  # (12, 2001, 2)
+    sampled = np.hypot(pts[:, :, None, 0] - c[:, 0], pts[:, :, None, 1] - c[:, 1]).min(1)  # (12, 4)
+    spacing = np.hypot(*(p1 - p0).T)[:, None] / 2000
+    assert d.shape == (12, 4) and (d <= sampled + 1e-12).all() and (sampled - d <= spacing + 1e-12).all()
+    np.testing.assert_array_equal(segment_distance(p0, p1, c[1]), d[:, 1])

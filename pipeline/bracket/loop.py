@@ -33,14 +33,19 @@ __all__ = ["COLLIDED", "LEFT", "OUTCOMES", "REACHED", "RUNNING", "STALLED", "TIM
 
 
 def segment_distance(p0: np.ndarray, p1: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """Smallest distance from the point `c` to the segments `p0 -> p1` (rows)."""
-    d = p1 - p0
-    dd = np.einsum("ij,ij->i", d, d)
+    """Smallest distances from the points `c` (`(K, 2)`; one point `(2,)`: `(N,)`) to the segments `p0 -> p1`
+    (rows): `(N, K)`, every point in one pass."""
+    c = np.asarray(c, float)
+    one = c.ndim == 1
+    c = c.reshape(-1, 2)
+    dx, dy = p1[:, 0] - p0[:, 0], p1[:, 1] - p0[:, 1]
+    dd = (dx * dx + dy * dy)[:, None]
+    ox, oy = c[None, :, 0] - p0[:, 0, None], c[None, :, 1] - p0[:, 1, None]  # (N, K)
     with np.errstate(invalid="ignore", divide="ignore"):
-        t = np.where(dd > 0, np.einsum("ij,ij->i", c - p0, d) / dd, 0.0)
+        t = np.where(dd > 0, (ox * dx[:, None] + oy * dy[:, None]) / dd, 0.0)
     t = np.clip(t, 0.0, 1.0)
-    x = p0 + t[:, None] * d
-    return np.hypot(x[:, 0] - c[0], x[:, 1] - c[1])
+    out = np.hypot(p0[:, 0, None] + t * dx[:, None] - c[None, :, 0], p0[:, 1, None] + t * dy[:, None] - c[None, :, 1])
+    return out[:, 0] if one else out
 
 
 def clearance(p: np.ndarray, scene) -> np.ndarray:
@@ -69,9 +74,9 @@ class Segments(Monitor):
 
     def step(self, k, t, c, active):
         p, p1 = self.prev, c
-        self.clear = np.min([segment_distance(p, p1, centre) - r for centre, r in zip(self.centres, self.radii)],
-                            axis=0)
-        arrived = segment_distance(p, p1, self.pT) <= self.delta
+        dist = segment_distance(p, p1, np.vstack([self.centres, self.pT]))  # the obstacles' centres, then the goal
+        self.clear = np.min(dist[:, :-1] - self.radii, axis=1)
+        arrived = dist[:, -1] <= self.delta
         left = (p1[:, 0] < self.x0) | (p1[:, 0] > self.x1) | (p1[:, 1] < self.y0) | (p1[:, 1] > self.y1)
         codes = np.zeros(len(c), dtype=np.int8)
         codes[active & left] = LEFT
