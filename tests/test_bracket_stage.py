@@ -142,7 +142,7 @@ def test_several_error_maps_give_the_smallest_bound_per_cell(tmp_path):
     from types import SimpleNamespace
 
     from pipeline.bracket.bounds import Finest
-    from pipeline.bracket.stage import error_map
+    from pipeline.bracket.maps import error_map
 
     whole = _certify_output(tmp_path / "c" / "m-aaa", "m1", [[x, x + 1, y, y + 1, 2.0] for x in range(-4, 4)
                                                              for y in range(-4, 4)])
@@ -167,7 +167,7 @@ def test_error_map_kappa_reads_the_table_at_that_pixel_budget_and_refuses_what_c
     from types import SimpleNamespace
 
     from pipeline.bracket.bounds import CellTable
-    from pipeline.bracket.stage import error_map
+    from pipeline.bracket.maps import error_map
 
     folder = _certify_output(tmp_path / "c" / "m-aaa", "m1", [[0.0, 1.0, 0.0, 1.0, 0.5]])
     pd.DataFrame([[0.0, 1.0, 0.0, 1.0, 3.0]], columns=["x0", "x1", "y0", "y1", "eps_bar"]).to_csv(

@@ -31,16 +31,17 @@ import numpy as np
 import pandas as pd
 from omegaconf import DictConfig
 
-from pipeline import lineage, tracking
-from pipeline.bracket.bounds import CellTable, Finest, Uniform
+from pipeline import tracking
+from pipeline.bracket.bounds import Uniform
 from pipeline.bracket.certify_loop import certify, funnel_starts
 from pipeline.bracket.falsifier import ADVERSARIES, MapBound, Search, attack, falsify
 from pipeline.bracket.loop import OUTCOMES, REACHED, RUNNING, FrameLoop
 from pipeline.bracket.lost import LostFrames
+from pipeline.bracket.maps import camera_map_folder, error_map
 from pipeline.bracket.report import table
 from pipeline.bracket.starts import falsifier_starts, start_cells, worst_starts
 from pipeline.config import build
-from pipeline.errors import ConfigError, DatasetError
+from pipeline.errors import ConfigError
 from pipeline.experiments.report import markdown_table
 from pipeline.sim.composed import loop_parts
 from pipeline.sim.simulator import stall_threshold
@@ -91,72 +92,6 @@ def lost_frames(sim, camera, bs, laws) -> dict[str, LostFrames]:
     return {name: LostFrames(bs.lost_frames, camera.predict, camera.period,
                              0.0 if law.u_max is None else max(law.u_max, law.push_speed), camera.drift,
                              camera.max_drift) for name, law in laws.items()}
-
-
-def error_map(cfg: DictConfig, bs, arena=None, camera_folder: Path | None = None):
-    """`bracket.error_map` as `ε̄` (None: not set): a cell table, or a certify output (folder, name-id or id)
-    resolved as every tracked input, its table at `bracket.error_map_kappa`; several (a list): :class:`Finest`,
-    all of one perception map, the map of `camera_folder` when given (`bracket.camera_map`). `arena`: the camera's
-    (a grid cell's bound is over its part inside)."""
-    refs = [bs.error_map] if isinstance(bs.error_map, str) else list(bs.error_map or [])
-    tables, models = [], set()
-    for item in refs:
-        ref = Path(item)
-        if not ref.is_file():
-            try:
-                ref = tracking.resolve(Path(cfg.paths.certified_dir), item, kind="certified error map",
-                                       field="bracket.error_map", expected=lambda name: None)
-            except DatasetError as err:
-                raise ConfigError("bracket.error_map", str(err)) from None
-        summary = (ref if ref.is_dir() else ref.parent) / "summary.json"
-        if summary.is_file():  # a certify output: the perception map it bounds
-            models.add(str(json.loads(summary.read_text())["model"]["id"]))
-        if bs.error_map_kappa > 0 and ref.is_file() and ref.name != f"error_map_kappa{bs.error_map_kappa:g}.csv":
-            raise ConfigError("bracket.error_map_kappa", f"{ref.name} is not a certify output's table at kappa "
-                                                         f"{bs.error_map_kappa:g} (error_map_kappa{bs.error_map_kappa:g}"
-                                                         ".csv, or its folder): nothing vouches for the pixel budget")
-        tables.append(CellTable(ref, arena=arena, kappa=bs.error_map_kappa))
-    if len(models) > 1:
-        raise ConfigError("bracket.error_map", f"the tables bound different perception maps ({', '.join(sorted(models))}):"
-                                               " the smallest bound per cell holds for one map only")
-    if not tables:
-        return None
-    if camera_folder is not None and models:  # the camera's κ_lo is the certificate of the map it attacks
-        camera_id = str(tracking.read_manifest(camera_folder).get("id"))
-        if camera_id not in models:
-            raise ConfigError("bracket.error_map", f"bounds perception map {', '.join(sorted(models))}, and "
-                                                   f"bracket.camera_map is {camera_folder.name} (id {camera_id}): the "
-                                                   "camera's certified budget must be the attacked map's")
-    return tables[0] if len(tables) == 1 else Finest(tables)
-
-
-def camera_map_folder(cfg: DictConfig, bs, scene) -> Path | None:
-    """The folder of `bracket.camera_map` (None: not set), checked: a position map rendering the bracket's scene."""
-    if bs.camera_map is None:
-        return None
-    if scene.n_obstacles != 1:
-        raise ConfigError("bracket.camera_map", f"the camera falsifier renders one obstacle; scene {scene.name!r} has "
-                                                f"{scene.n_obstacles}: null here")
-    try:
-        folder = lineage.resolve_map(bs.camera_map, cfg.paths.models_dir, field="bracket.camera_map",
-                                     overrides=lineage.debug_overrides(cfg))
-    except DatasetError as err:
-        raise ConfigError("bracket.camera_map", str(err).splitlines()[0]) from None
-    m = tracking.read_manifest(folder)
-    if (m.get("model") or {}).get("outputs") == "pose":
-        raise ConfigError("bracket.camera_map", f"{folder.name} is a pose map: the bracket's loop is the single "
-                                                "integrator (a position map)")
-    if "scene" not in m or "render" not in m:
-        raise ConfigError("bracket.camera_map", f"{folder.name}'s manifest has no scene or render config")
-    seen = build(m["scene"], "scene")
-    same = (np.allclose(seen.p_T, scene.p_T) and seen.n_obstacles == scene.n_obstacles
-            and np.allclose(seen.p_0, scene.p_0) and np.isclose(seen.obstacle_radius, scene.obstacle_radius)
-            and np.allclose(seen.bounds, scene.bounds))
-    if not same:
-        raise ConfigError("bracket.camera_map", f"{folder.name} renders another scene (target {list(seen.p_T)}, "
-                                                f"arena {seen.bounds}) than the bracket's (target {list(scene.p_T)}, "
-                                                f"arena {scene.bounds})")
-    return folder
 
 
 def check(cfg: DictConfig) -> None:
