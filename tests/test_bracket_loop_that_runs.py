@@ -171,6 +171,9 @@ def test_grid_cells_inside_the_diamond_are_not_starts():
     (["sim.model=continuous"], "sim.model"),
     (["bracket.lost_frames=2", "controller.u_max=null", "controllers.smooth.u_max=null",
       "controllers.cbf.u_max=null"], "bracket.lost_frames"),
+    (["camera.predict=true", "camera.innovation=3.0"], "camera.innovation"),  # eps_max 4: frames within it rejected
+    (["camera.innovation=8.0"], "camera.innovation"),  # no prediction to check a frame against
+    (["camera.predict=true", "camera.innovation=8.0", "bracket.error_map=occluded_keypoint"], "camera.innovation"),
 ])
 def test_what_the_proof_does_not_model_is_refused_in_one_line(args, field):
     """A loop that loses frames without a bound on consecutive losses, the continuous-time loop, lost frames with a

@@ -33,8 +33,8 @@ SIM = {"model": "sampled", "dt": 0.02, "horizon": 7.0, "delta": 1.5, "record_eve
        "seed": 11, "method": "dopri5", "rtol": 1e-5, "atol": 1e-3, "h_max": 0.2, "stall_speed": 0.3, "stall_share": 0.03,
        "stall_time": 4.0}
 CAMERA = {"period": 0.04, "p_fail": 0.3, "gate": 1.25, "heading": "imu", "heading_noise": 0.05, "predict": True,
-          "drift": 0.2, "max_drift": 3.0}
-TO_SIMULATE = {"period", "p_fail", "predict", "drift", "max_drift"}  # camera fields the simulator reads
+          "drift": 0.2, "max_drift": 3.0, "innovation": 2.5}
+TO_SIMULATE = {"period", "p_fail", "predict", "drift", "max_drift", "innovation"}  # camera fields the simulator reads
 TO_MEASURE = {"gate": "gate", "heading": "heading", "heading_noise": "heading_noise"}  # ...the camera measurement
 
 
@@ -81,6 +81,8 @@ def test_sim_and_camera_settings_reach_the_simulator_and_the_camera(tmp_path, mo
     assert leader["camera"].p_fail == 0.0  # the leader reads its own state: no camera to lose frames of
     assert not leader["sim"].stop_on_success and leader["sim"].horizon == SIM["horizon"]  # its own override only
     assert ctx.simulate(ctx.controller(), x0, p_fail=0.5) is not None and calls[-1]["camera"].p_fail == 0.5
+    ctx.simulate(ctx.controller(), x0, innovation=False)  # the paper's loop beside a defended one: every frame used
+    assert calls[-1]["camera"].innovation is None and calls[-1]["camera"].p_fail == CAMERA["p_fail"]
 
     seen = {}
     monkeypatch.setattr(runs, "CameraMeasure", lambda camera, pm, occ, **kw: seen.update(kw) or "measure")

@@ -86,12 +86,29 @@ def lost_frames(sim, camera, bs, laws) -> dict[str, LostFrames]:
         field_ = "camera.p_fail" if camera.p_fail > 0 else "camera.gate"
         raise ConfigError(field_, f"{cause} loses frames, and the proof assumes every frame arrives unless "
                                   "bracket.lost_frames (the most consecutive lost frames it covers) is >= 1")
+    if camera.predict and camera.innovation is not None:
+        _check_innovation(camera.innovation, bs)
     if bs.lost_frames > 0 and any(law.u_max is None for law in laws.values()):
         raise ConfigError("bracket.lost_frames", "a law without a speed limit (u_max null): a lost frame's input "
                                                  "comes from a frame taken an unbounded distance away")
     return {name: LostFrames(bs.lost_frames, camera.predict, camera.period,
                              0.0 if law.u_max is None else max(law.u_max, law.push_speed), camera.drift,
                              camera.max_drift) for name, law in laws.items()}
+
+
+def _check_innovation(innovation: float, bs) -> None:
+    """`camera.innovation` rejects no frame of a loop whose frames err by at most `innovation / 2` (two of them
+    differ by at most twice that; `pipeline.sim.closed_loop.DeadReckoning`): the proof covers it where every `ε` it
+    reasons about is that small, a per-cell map bound not at all."""
+    largest = max([*bs.eps, bs.eps_max])
+    if bs.error_map is not None:
+        raise ConfigError("camera.innovation", "the proof covers the innovation check for a uniform ε only (frames "
+                                               "within innovation / 2 are never rejected), not with "
+                                               "bracket.error_map: camera.innovation=null")
+    if innovation < 2 * largest:
+        raise ConfigError("camera.innovation", f"the proof covers a loop that rejects no frame within its ε: needs "
+                                               f">= 2 x the largest ε tried ({largest:g}: bracket.eps, "
+                                               f"bracket.eps_max) = {2 * largest:g}, got {innovation:g}")
 
 
 def check(cfg: DictConfig) -> None:

@@ -40,16 +40,19 @@ class Runs:
     def simulate(self, controller, x0, *, scene: Scene | None = None, disturbance=None, measure=None,
                  target_fn=None, p_fail: float | None = None, seed: int | None = None, record: bool = True,
                  record_every: int | None = None, horizon: float | None = None, model: str | None = None,
-                 stop_on_success: bool | None = None):
+                 stop_on_success: bool | None = None, innovation: bool = True):
         """One batched run with the run's `sim` and `camera` settings; `model` (sampled | continuous), `horizon`,
         `record_every` and `stop_on_success` replace the `sim` keys of those names, `p_fail` (a scenario's failure
-        condition) `camera.p_fail`, for this run."""
+        condition) `camera.p_fail`, for this run; `innovation=False`: this run uses every frame it is delivered
+        (`camera.innovation` off: the paper's loop beside a defended one)."""
         over = {"model": model, "horizon": horizon, "record_every": record_every,
                 "stop_on_success": None if stop_on_success is None else bool(stop_on_success)}
         over = {k: v for k, v in over.items() if v is not None and v != getattr(self.sim, k)}
         sim = replace(self.sim, **over) if over else self.sim
         cs = self.camera_settings
         camera = replace(cs, p_fail=p_fail) if p_fail is not None and p_fail != cs.p_fail else cs
+        if not innovation and camera.innovation is not None:
+            camera = replace(camera, innovation=None)
         if sim.model == "continuous" and camera.p_fail > 0:
             raise ConfigError("camera.p_fail", f"a continuous-time run takes no camera failures, got {camera.p_fail} "
                                                "(camera.p_fail=0, or the scenario's sampled time model)")

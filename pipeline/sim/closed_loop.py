@@ -53,10 +53,19 @@ class DeadReckoning:
     """A lost frame's estimate predicted with the vehicle's own input held over the frame, `m <- plant.step(m, w,
     T_s)` (`p_hat <- p_hat + T_s u`), instead of held. Its uncertainty `r` grows by `drift` per unit of distance
     predicted (the odometry's error) and is 0 after a frame is used; past `max_drift` the vehicle stops (input 0)
-    until a frame is used again: it no longer knows well enough where it is to move (docs/attacks.md)."""
+    until a frame is used again: it no longer knows well enough where it is to move (docs/attacks.md).
+
+    `innovation` (world units; None: off): a delivered frame whose position is farther than `innovation + r` from
+    the prediction contradicts the vehicle's own motion and is not used (a *rejected* frame, lost like a gated
+    one); it is kept as a *candidate*, predicted alike, and the vehicle stops while one is pending. The next frame
+    within `innovation + r` of the prediction is used (the candidate was the outlier), or, within `innovation` of
+    the candidate, it is used instead (two frames agree against the prediction: the estimate was the outlier, it
+    is re-localised). Two frames within `ε` of the truth never differ by more than `2 ε` (the prediction carries
+    the last used frame's error), so a loop whose used frames err by at most `innovation / 2` rejects none."""
 
     drift: float = 0.1
     max_drift: float = 2.0
+    innovation: float | None = None
 
 
 def _counters(n: int) -> dict[str, np.ndarray]:
@@ -161,9 +170,14 @@ class SampledLoop(_Loop):
         self._guarded = (x, guarded)
         w = self.plant.actuate(self.measured(x), self._smoothed(u))
         if self.reckoning is not None:
-            w = np.where((x.drift > self.reckoning.max_drift)[:, None], 0.0, w)  # the fallback: stop
+            w = np.where(self._stopped(x)[:, None], 0.0, w)  # the fallback: stop
             self._held = w
         return w
+
+    def _stopped(self, x) -> np.ndarray:
+        """Dead reckoning's stop: the estimate's uncertainty past `max_drift`, or a rejected frame pending."""
+        stop = x.drift > self.reckoning.max_drift
+        return stop | ~np.isnan(x.candidate[:, 0]) if self.reckoning.innovation is not None else stop
 
     def _smoothed(self, u: np.ndarray) -> np.ndarray:
         """The mean of this frame's command and the `plant.smoothing - 1` before it (fewer at a run's start): one
@@ -180,7 +194,9 @@ class SampledLoop(_Loop):
         guarded = self._guarded[1] if self._guarded[0] is x else np.zeros(len(x), dtype=bool)
         counts = {"guard_frames": guarded, "saturated_frames": self.plant.saturated(w)}
         if self.reckoning is not None:
-            counts |= {"predicted_frames": x.predicted, "stopped_frames": x.drift > self.reckoning.max_drift}
+            counts |= {"predicted_frames": x.predicted, "stopped_frames": self._stopped(x)}
+            if self.reckoning.innovation is not None:
+                counts["rejected_frames"] = x.rejected
         return counts
 
     def measured(self, x):
@@ -201,6 +217,8 @@ class SampledLoop(_Loop):
             target = np.asarray(self.target_fn(0.0, 0, self.plant.position(c0), all_idx, rng), dtype=float)
         xd = self.controller.initial_state(self.plant.point(m), target)
         reckon = {} if self.reckoning is None else {"drift": np.zeros(len(c0)), "predicted": np.zeros(len(c0), bool)}
+        if self.reckoning is not None and self.reckoning.innovation is not None:
+            reckon |= {"candidate": np.full_like(c0, np.nan), "rejected": np.zeros(len(c0), bool)}
         return State(c0, m=m, target=target, **xd, **_counters(len(c0)), **reckon)
 
     def sample(self, x, frame, rng, active):
@@ -230,8 +248,22 @@ class SampledLoop(_Loop):
         if self.reckoning is None:
             return x.replace(m=m, target=target)
         moved = row_norm(self.plant.position(prior) - self.plant.position(x.m))
-        drift = np.where(used, 0.0, x.drift + self.reckoning.drift * moved)
-        return x.replace(m=m, target=target, drift=drift, predicted=~used & active)
+        r = x.drift + self.reckoning.drift * moved
+        checked = {}
+        if self.reckoning.innovation is not None:
+            m, used, checked = self._innovation(x, prior, m, used, r, active)
+        return x.replace(m=m, target=target, drift=np.where(used, 0.0, r), predicted=~used & active, **checked)
+
+    def _innovation(self, x, prior, m, used, r, active):
+        """:class:`DeadReckoning`'s `innovation` check of the frames about to be used: `(m, used, state)`."""
+        pos, limit = self.plant.position, self.reckoning.innovation
+        candidate = self.plant.step(x.candidate, np.where(active[:, None], self._held, 0.0), self.period)
+        with np.errstate(invalid="ignore"):  # NaN rows: no candidate (never within reach)
+            ok = (row_norm(pos(m) - pos(prior)) <= limit + r) | (row_norm(pos(m) - pos(candidate)) <= limit)
+        rejected = used & ~ok
+        candidate = np.where(rejected[:, None], m, np.where((used & ok)[:, None], np.nan, candidate))
+        m = np.where(rejected[:, None], prior, m)
+        return m, used & ok, {"candidate": candidate, "rejected": rejected}
 
 
 class ContinuousLoop(_Loop):

@@ -59,7 +59,9 @@ class CameraSettings:
     radians (`heading: imu`, the ablation of SPEC §3.7). A lost frame holds the last estimate (`predict: false`, the
     paper's failure model) or predicts it with the vehicle's own input (`predict: true`, dead reckoning:
     :class:`pipeline.sim.closed_loop.DeadReckoning`, its uncertainty growing by `drift` per unit of distance, the
-    vehicle stopping past `max_drift` world units until a frame is used)."""
+    vehicle stopping past `max_drift` world units until a frame is used; with `innovation`, a delivered frame farther
+    than `innovation` plus that uncertainty from the prediction is rejected, the vehicle stopping until two frames
+    agree, docs/attacks.md)."""
 
     period: Positive | None = 0.05
     p_fail: FailureRate = 0.0
@@ -69,6 +71,12 @@ class CameraSettings:
     predict: bool = False
     drift: NonNegative = 0.1
     max_drift: Positive = 2.0
+    innovation: Positive | None = None
+
+    def __post_init__(self):
+        if self.innovation is not None and not self.predict:
+            raise ConfigError("camera.innovation", "checks a frame against the dead-reckoned prediction: needs "
+                                                   "camera.predict=true (or camera.innovation=null)")
 
 
 def frame_steps(dt: float, period: float | None) -> int:

@@ -118,7 +118,8 @@ def simulate(scene, controller, x0: np.ndarray, *, sim: SimSettings = _SIM, came
         try:  # V3 of SPEC §3.6 needs the frame period: checked here
             loop = SampledLoop(scene, controller, plant, disturbance, measure=measure, target_fn=target_fn,
                                p_fail=p_fail, dt=dt, every=every,
-                               reckoning=DeadReckoning(camera.drift, camera.max_drift) if camera.predict else None)
+                               reckoning=DeadReckoning(camera.drift, camera.max_drift, camera.innovation)
+                               if camera.predict else None)
         except ConfigError as err:
             raise explain_steering(plant, err) from None
         arc = solve_sampled(loop, loop.initial(c0, rng), dt=dt, n_steps=sim.n_steps, every=every, rng=rng,
@@ -150,7 +151,7 @@ def _result(scene, controller, plant, x0, arc, m, monitor: ArrivalCollision, del
         "pushouts": arc.outside,
         "guard_frames": arc.counts.get("guard_frames", np.zeros(len(x0), dtype=np.int64)),
         "saturated_frames": arc.counts.get("saturated_frames", np.zeros(len(x0), dtype=np.int64)),
-        **{k: arc.counts[k] for k in ("predicted_frames", "stopped_frames") if k in arc.counts},  # dead reckoning
+        **{k: arc.counts[k] for k in ("predicted_frames", "stopped_frames", "rejected_frames") if k in arc.counts},  # dead reckoning
         "path_length": arc.path,
         "final_error": final_error,
         "termination": np.asarray(TERMINATIONS)[term],

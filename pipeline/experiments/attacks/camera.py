@@ -108,6 +108,8 @@ class _AttackSweep(Scenario):
                "attacked_images": len(frames)}
         if "stopped_frames" in m:  # dead reckoning (camera.predict): agents its fallback stopped at least once
             row["stopped_by_drift"] = int(np.sum(m["stopped_frames"] > 0))
+        if "rejected_frames" in m:  # camera.innovation: agents with a frame rejected against their own motion
+            row["rejected"] = int(np.sum(m["rejected_frames"] > 0))
         if frames["predicted_error"].notna().any():
             row |= {"flag_rate": float(frames["flagged"].mean()), "flag_rate_near_K": _mean(frames["flagged"][near]),
                     "gated_share": float(frames["gated"].mean())}
@@ -134,7 +136,7 @@ class _AttackSweep(Scenario):
                 measure = ctx.camera_measure(self.map, self.scene_clouds(), attack=att, gate=gate if gated else None,
                                              flag_gate=gate, keep_clouds=rec)
                 res = ctx.simulate(ctx.controller(ctrl), x0, measure=measure, record=rec, record_every=every,
-                                   horizon=self.horizon)
+                                   horizon=self.horizon, innovation=gated)
                 frames = measure.table()
                 label = {"budget": budget, "attack": att.label(), "controller": ctrl, "gated": gated}
                 rows.append(self.row(ctx, res, frames, **label))

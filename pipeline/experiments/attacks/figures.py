@@ -18,7 +18,8 @@ from pipeline.viz import legend_outside  # noqa: E402
 TABLE = ["budget", "attack", "controller", "gated", "n", "success_rate", "success_lo", "success_hi", "stalled_rate",
          "stalled_lo", "stalled_hi", "collision_rate", "collision_lo", "collision_hi", "timed_out",
          "induced_along_near_K", "induced_norm_near_K", "induced_along_start", "induced_norm_start", "induced_norm_run",
-         "flag_rate", "flag_rate_near_K", "gated_share", "frames_near_K"]
+         "flag_rate", "flag_rate_near_K", "gated_share", "frames_near_K",
+         "stopped_by_drift", "rejected"]  # dead reckoning's agents stopped, and with a frame rejected (camera.innovation)
 
 
 def _sweep_figure(res, xlabel: str, title: str):
@@ -89,6 +90,17 @@ def gated_words(res) -> tuple[str, str]:
             "(`experiment.gated` is empty, or the map has no uncertainty head)")
 
 
+def _reckoning_words(res) -> str:
+    """The caption's words for dead reckoning's columns, where the table has them."""
+    df, words = res.tables["summary"], ""
+    if "stopped_by_drift" in df:
+        words += "; stopped_by_drift: agents dead reckoning stopped at least once (camera.predict)"
+    if "rejected" in df:
+        words += ("; rejected: agents of the gated loop with a kept frame rejected against their own motion "
+                  "(camera.innovation), the vehicle stopped until two frames agreed")
+    return words
+
+
 def _gate(res) -> str:
     g = res.info.get("gate")
     return "–" if g is None else f"{g:.3g} units"
@@ -103,7 +115,8 @@ def draw_worst_cloud(scen, ctx, res, out) -> None:
     _table(scen, res, out, f"tab_{scen.id}",
            "Worst cloud vs level from starts near K: success, stall and collision rates with 95% Wilson CIs; the "
            "induced estimate error (clouded - clear) along -sign(b) e_b and in norm near K, first frame and run; "
-           f"flag rate of the uncertainty head at gate {_gate(res)} and {gated_words(res)[1]}.")
+           f"flag rate of the uncertainty head at gate {_gate(res)} and {gated_words(res)[1]}"
+           f"{_reckoning_words(res)}.")
     if res.info.get("record") is not None and "rec_smooth_p" in res.arrays and "rec_hybrid_p" in res.arrays:
         _worst_cloud_gif(scen, ctx, res, out)
 
