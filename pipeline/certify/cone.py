@@ -53,22 +53,19 @@ def as_form(value: torch.Tensor, slots: int) -> torch.Tensor:
     return torch.cat([value[:, None], value.new_zeros((value.shape[0], slots - 1, *value.shape[1:]))], 1)
 
 
-def _shift(t: torch.Tensor, sel: torch.Tensor, extra: int, dim: int) -> torch.Tensor:
-    """`t` zero-padded by `extra` along `dim` (-1 or -2), after it (`sel` false) or one before it (`sel` true)."""
-    before = [0, 0] * (-dim - 1)
-    sel = sel.view(-1, *[1] * (t.dim() - 1))
-    return torch.where(sel, F.pad(t, before + [1, extra - 1]), F.pad(t, before + [0, extra]))
-
-
 def place(inner: torch.Tensor, outer: torch.Tensor, offset: torch.Tensor) -> torch.Tensor:
     """`outer (N, ..., H, W)` with `inner (N, ..., h, w)` written at the per-cell `offset (N, 2)` in {0, 1}^2
-    (`H - h >= 1`, `W - w >= 1`)."""
-    mask = torch.ones_like(inner[:1]).expand_as(inner)
-    for axis, dim in ((0, -2), (1, -1)):
-        extra = outer.shape[dim] - inner.shape[dim]
-        sel = offset[:, axis] == 1
-        inner, mask = _shift(inner, sel, extra, dim), _shift(mask, sel, extra, dim)
-    return torch.where(mask > 0, inner, outer)
+    (`H - h >= 1`, `W - w >= 1`): one slice per offset, the cells of each written together."""
+    dtype = torch.promote_types(inner.dtype, outer.dtype)
+    out = outer.to(dtype).expand(len(inner), *outer.shape[1:]).clone()
+    h, w = inner.shape[-2:]
+    code = offset[:, 0] * 2 + offset[:, 1]
+    for k in range(4):
+        rows = torch.nonzero(code == k).flatten()
+        if rows.numel():
+            r, c = divmod(k, 2)
+            out[rows, ..., r:r + h, c:c + w] = inner[rows].to(dtype)
+    return out
 
 
 def extract(outer: torch.Tensor, offset: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:

@@ -34,7 +34,7 @@ def _back_block(rec: Block, weight: torch.Tensor, lam: torch.Tensor, const: torc
     aligned = members.unflatten(-1, (2, 2)).movedim(-2, -3).reshape(n, p, -1, 2 * pr, 2 * pc)
     osize = (rec.size[0] + 2, rec.size[1] + 2)
     changed = extract(aligned, rec.parity, osize)
-    static_lam = aligned - _embed(changed, aligned, rec.parity)
+    static_lam = place(torch.zeros_like(changed), aligned, rec.parity)  # the window's coefficients moved to `changed`
     const = _add(const, _static(static_lam, rec.pool_lo, rec.pool_hi))
     return _back_relu_conv(rec, weight, changed, const, level0)
 
@@ -60,10 +60,6 @@ def _back_relu_conv(rec: Block, weight: torch.Tensor, changed: torch.Tensor, con
 def _add(form: torch.Tensor, value: torch.Tensor) -> torch.Tensor:
     """`form (N, P, S) + value (N, P)` on the constant slot."""
     return torch.cat([form[..., :1] + value[..., None], form[..., 1:]], -1)
-
-
-def _embed(inner: torch.Tensor, outer: torch.Tensor, offset: torch.Tensor) -> torch.Tensor:
-    return place(inner, torch.zeros_like(outer), offset)
 
 
 def backward(net, cone: Cone, lam: torch.Tensor, const: torch.Tensor, pix_lo: torch.Tensor, pix_hi: torch.Tensor):

@@ -55,6 +55,9 @@ class VarHead:
     cols: torch.Tensor
     scale: torch.Tensor
 
+    def __post_init__(self):
+        self.w1f_padded = pad(self.w1f.flatten(0, 1))  # once: `(H C, h + 2M, w + 2M)`, gathered per cell and layout
+
 
 def pool_matrix(n: int, m: int) -> torch.Tensor:
     """`adaptive_avg_pool` along one axis of `n` to `m` bins as a matrix `(m, n + 2 MARGIN)` (bins `[floor(i n /
@@ -111,7 +114,7 @@ def _forms(vh: VarHead, prep: Prepared, cells: torch.Tensor, mode: str):
     # the features' window: its forms replace the static values there
     lo, hi = cone.lo.double(), cone.hi.double()
     size = tuple(lo.shape[-2:])
-    win = gather(pad(vh.w1f.flatten(0, 1)), cone.origin, size).unflatten(1, vh.w1f.shape[:2])  # (N, H, C, pr, pc)
+    win = gather(vh.w1f_padded, cone.origin, size).unflatten(1, vh.w1f.shape[:2])  # (N, H, C, pr, pc)
     s_win = gather(pad(f_st), cone.origin, size)  # (N, C, pr, pc)
     const = total - (win * s_win[:, None]).flatten(2).sum(-1)  # (N, H)
     wp, wn = win.clamp(min=0), win.clamp(max=0)
