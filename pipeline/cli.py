@@ -68,6 +68,23 @@ def _watching_sigint():
             signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
+@contextlib.contextmanager
+def _one_line():
+    """A user error: one line, exit 2; Ctrl-C (or Lightning's exit after it): exit 130, said once (130: reported
+    already, here or by a stage of make paper)."""
+    try:
+        yield
+    except PipelineError as err:
+        report_error(err)
+        sys.exit(2)
+    except KeyboardInterrupt:
+        _interrupted()
+    except SystemExit as done:
+        if _SIGINT["seen"] and done.code != 130:
+            _interrupted()
+        raise
+
+
 # ------------------------------------------------------------------------------------------ the command line
 def _overrides(argv: list[str]):
     """The command line as Hydra reads it, and its overrides with each one's sweep flag (None: Hydra's parser
@@ -158,17 +175,8 @@ def stage_main(config_name: str, run: str, check: str | None = None):
     errors are one line and exit 2."""
 
     def guarded(cfg: DictConfig):
-        try:
+        with _one_line():
             return resolve(run)(cfg)
-        except PipelineError as err:
-            report_error(err)
-            sys.exit(2)
-        except KeyboardInterrupt:
-            _interrupted()
-        except SystemExit as done:
-            if _SIGINT["seen"] and done.code != 130:  # 130: reported already (here, or by a stage of make paper)
-                _interrupted()
-            raise
 
     import hydra
 
@@ -177,20 +185,10 @@ def stage_main(config_name: str, run: str, check: str | None = None):
     @functools.wraps(guarded)
     def entry():
         os.environ.setdefault("HYDRA_FULL_ERROR", "0")
-        try:
-            with _watching_sigint():
-                checking = resolve(check) if check else None
-                reads = getattr(sys.modules[checking.__module__], "inputs_read", None) if checking else None
-                before_hydra(config_name, sys.argv[1:], checking, reads)
-                return main()
-        except PipelineError as err:
-            report_error(err)
-            sys.exit(2)
-        except KeyboardInterrupt:
-            _interrupted()
-        except SystemExit as done:
-            if _SIGINT["seen"] and done.code != 130:
-                _interrupted()
-            raise
+        with _one_line(), _watching_sigint():
+            checking = resolve(check) if check else None
+            reads = getattr(sys.modules[checking.__module__], "inputs_read", None) if checking else None
+            before_hydra(config_name, sys.argv[1:], checking, reads)
+            return main()
 
     return entry

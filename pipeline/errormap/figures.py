@@ -50,36 +50,36 @@ def _panels(n: int, title: str):
     return fig, axes[:, 0]
 
 
-def _error_map_figure(worst: dict, results: dict, *, scene, arena, extent, levels):
-    """The error map: worst |E| per point, one shared colour scale."""
+def _worst_figure(worst: dict, title: str, label: str, caption, *, scene, arena, extent, levels):
+    """One panel per level of a worst-case map `worst[level]` on a shared colour scale; `caption(level)` its title."""
     norm, floor = _shared_norm(list(worst.values()))
-    fig, axes = _panels(len(levels), "ε-error map |E(p)| = |l(h(p)) - p|")
+    fig, axes = _panels(len(levels), title)
     for ax, lv in zip(axes, levels):
         im = ax.imshow(np.maximum(worst[lv], floor), origin="lower", extent=extent, cmap="magma_r", norm=norm,
                        interpolation="nearest")
         draw_scene(ax, scene, arena)
+        ax.set_title(caption(lv), fontsize=9)
+        fig.colorbar(im, ax=ax, label=label, extend="max", shrink=0.85)
+    return fig
+
+
+def _error_map_figure(worst: dict, results: dict, **view):
+    """The error map: worst |E| per point, one shared colour scale."""
+    def caption(lv):
         r = results[lv]
-        ax.set_title(f"occlusion {lv}: mean {r['mean']:.2f}, p95 {r['p95']:.2f}, max {r['max']:.2f}"
-                     f" (operational set)", fontsize=9)
-        fig.colorbar(im, ax=ax, label="|E| (world units)", extend="max", shrink=0.85)
-    return fig
+        return f"occlusion {lv}: mean {r['mean']:.2f}, p95 {r['p95']:.2f}, max {r['max']:.2f} (operational set)"
+    return _worst_figure(worst, "ε-error map |E(p)| = |l(h(p)) - p|", "|E| (world units)", caption, **view)
 
 
-
-def _heading_figure(fields: dict, results: dict, *, scene, arena, extent, levels):
+def _heading_figure(fields: dict, results: dict, **view):
     """A pose map: the worst heading error per point over the headings drawn, beside |E|."""
-    worst_h = {lv: np.abs(fields[f"H_{lv}"]).max(axis=0) for lv in levels}
-    norm, floor = _shared_norm(list(worst_h.values()))
-    fig, axes = _panels(len(levels), "heading error |θ̂ - θ| of a pose map (worst over the headings drawn)")
-    for ax, lv in zip(axes, levels):
-        im = ax.imshow(np.maximum(worst_h[lv], floor), origin="lower", extent=extent, cmap="magma_r", norm=norm,
-                       interpolation="nearest")
-        draw_scene(ax, scene, arena)
+    def caption(lv):
         h = results[lv]["heading"]
-        ax.set_title(f"occlusion {lv}: mean {h['mean_deg']:.2f}°, p95 {h['p95_deg']:.2f}°, max "
-                     f"{h['max_deg']:.1f}° (operational set, all headings)", fontsize=9)
-        fig.colorbar(im, ax=ax, label="|Δθ| (degrees)", extend="max", shrink=0.85)
-    return fig
+        return (f"occlusion {lv}: mean {h['mean_deg']:.2f}°, p95 {h['p95_deg']:.2f}°, max {h['max_deg']:.1f}° "
+                "(operational set, all headings)")
+    worst_h = {lv: np.abs(fields[f"H_{lv}"]).max(axis=0) for lv in view["levels"]}
+    return _worst_figure(worst_h, "heading error |θ̂ - θ| of a pose map (worst over the headings drawn)",
+                         "|Δθ| (degrees)", caption, **view)
 
 
 def _slope_figure(fields: dict, results: dict, *, scene, arena, extent, levels):
