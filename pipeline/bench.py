@@ -19,6 +19,8 @@ import time
 
 import torch
 
+from pipeline.allocator import keep_freed_memory
+
 AREAS = ("sim", "data", "train", "errormap", "experiments", "envs")
 
 
@@ -41,6 +43,7 @@ def ceiling_gflops(device: str = "cpu", quick: bool = False) -> float:
 
 
 def _worker(fn, args, threads: int, barrier, queue) -> None:
+    keep_freed_memory()  # as every stage does when it starts (a spawned process starts with glibc's defaults)
     torch.set_num_threads(threads)
     barrier.wait()  # every worker starts its timed work together
     queue.put(fn(*args))
@@ -115,7 +118,9 @@ def main(argv=None) -> int:
     if unknown:
         print(f"error: unknown bench area(s) {sorted(unknown)}; choose from {AREAS}", file=sys.stderr)
         return 2
-    print(f"# bench on {os.cpu_count()} CPU cores (GLIBC_TUNABLES={os.environ.get('GLIBC_TUNABLES', '')})")
+    kept = keep_freed_memory()
+    print(f"# bench on {os.cpu_count()} CPU cores (GLIBC_TUNABLES={os.environ.get('GLIBC_TUNABLES', '')}; "
+          f"freed memory kept: {kept}, pipeline.allocator)")
     print(format_table(collect(args.areas, quick=args.quick)))
     return 0
 

@@ -26,6 +26,7 @@ from collections.abc import Callable
 
 from omegaconf import DictConfig
 
+from pipeline.allocator import keep_freed_memory
 from pipeline.config import compose, resolve
 from pipeline.errors import ConfigError, PipelineError
 from pipeline.preflight import preflight
@@ -185,6 +186,7 @@ def stage_main(config_name: str, run: str, check: str | None = None):
     @functools.wraps(guarded)
     def entry():
         os.environ.setdefault("HYDRA_FULL_ERROR", "0")
+        keep_freed_memory()  # the same bytes, fewer page faults (pipeline.allocator)
         with _one_line(), _watching_sigint():
             checking = resolve(check) if check else None
             reads = getattr(sys.modules[checking.__module__], "inputs_read", None) if checking else None

@@ -6,6 +6,7 @@ network; then batched inference (`pipeline.perception.bench`)."""
 from __future__ import annotations
 
 import logging
+import os
 import time
 import warnings
 
@@ -14,6 +15,7 @@ import numpy as np
 import torch
 from torch.utils.data import BatchSampler, DataLoader, RandomSampler
 
+from pipeline.allocator import ENV
 from pipeline.bench import ceiling_gflops, side_by_side
 from pipeline.config import build, compose
 from pipeline.perception import bench as infer_bench
@@ -110,7 +112,28 @@ def schedule_rows(quick: bool = False) -> list[dict]:
             {"section": "train", "case": f"cpu: training side by side / ceiling, {tag}", "value": flops * lit / 1e9 / peak,
              "unit": "x", "note": "target >= 0.60x (3x fwd FLOPs)"},
         ]
-    return rows
+    return rows + allocator_rows(steps)
+
+
+def allocator_rows(steps: int) -> list[dict]:
+    """One raw training loop of make paper's map (batch 32, one thread) in a fresh process with glibc's malloc
+    defaults (`PIPELINE_MALLOC=system`) against one with the freed memory kept (`pipeline.allocator`, what every
+    stage sets): the same arithmetic, fewer page faults."""
+    args = ("raw", ("model=keypoint",), 32, steps)
+    old = os.environ.get(ENV)
+    try:
+        os.environ[ENV] = "system"  # a spawned worker reads it when it calls keep_freed_memory
+        system = side_by_side(job_rate, args, workers=1)[0]
+    finally:
+        if old is None:
+            del os.environ[ENV]
+        else:
+            os.environ[ENV] = old
+    kept = side_by_side(job_rate, args, workers=1)[0]
+    return [{"section": "train", "case": "make paper's map, batch 32, 1 thread: glibc's malloc defaults", "value": system,
+             "unit": "img/s", "note": "PIPELINE_MALLOC=system"},
+            {"section": "train", "case": "same, freed memory kept (every stage: pipeline.allocator)", "value": kept,
+             "unit": "img/s", "note": f"{kept / system:.2f}x the defaults (the same bytes)"}]
 
 
 def bench(quick: bool = False) -> list[dict]:
