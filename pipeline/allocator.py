@@ -4,8 +4,9 @@ A training step, a PGD step or an inference chunk allocates the same few activat
 again. glibc's defaults hand them back to the kernel as soon as they are freed (large blocks are `mmap`ed and
 unmapped; the heap's top is trimmed past a threshold of twice the last unmapped block), so every step faults its
 buffers in again page by page: 5.1 million minor page faults in 120 training steps of make paper's map, a fifth of
-the step in the kernel. With the heap kept (`M_TRIM_THRESHOLD` 512 MiB) and blocks up to 32 MiB (glibc's largest
-allowed `M_MMAP_THRESHOLD` on 64-bit) served from it, the same steps run 1.25x faster (docs/speed.md §12).
+the step in the kernel (glibc raises its mmap threshold as blocks are freed, but never past 32 MiB, and the
+validation's batches are larger). With the heap kept (`M_TRIM_THRESHOLD` 1 GiB) and blocks up to 256 MiB served
+from it (`M_MMAP_THRESHOLD`), the same steps run 1.25x faster (docs/speed.md §12).
 
 Only the allocator's bookkeeping changes: the arithmetic, and so every output byte, is the same. Every stage calls
 :func:`keep_freed_memory` when it starts (`pipeline.cli.stage_main`); `PIPELINE_MALLOC=system` in the environment
@@ -20,8 +21,8 @@ import platform
 import sys
 
 M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3  # glibc's <malloc.h>
-TRIM_BYTES = 512 << 20  # free memory the heap's top keeps before giving it back to the kernel
-MMAP_BYTES = 32 << 20  # blocks up to this come from the heap (glibc refuses more than 32 MiB on 64-bit)
+TRIM_BYTES = 1 << 30  # free memory the heap's top keeps before giving it back to the kernel
+MMAP_BYTES = 256 << 20  # blocks up to this come from the heap (a validation batch's activations included)
 ENV = "PIPELINE_MALLOC"
 
 
