@@ -53,7 +53,9 @@ def _compiler_present() -> bool:
     return any(shutil.which(c) for c in ("cc", "gcc", "clang", "g++", "c++"))
 
 
-CHUNK_BYTES = 24 * 2**20  # below glibc's largest mmap threshold (32 MiB): a chunk's activations reuse the heap
+# below glibc's own largest mmap threshold (32 MiB), so a chunk's activations reuse the heap even with glibc's defaults
+# (every stage raises the threshold, pipeline.allocator); the chunk also fixes the outputs' float32 rounding
+CHUNK_BYTES = 24 * 2**20
 
 
 def activation_bytes(model: PerceptionMap) -> int:
