@@ -1,6 +1,6 @@
 """glibc's malloc told to keep what a stage frees (docs/speed.md §12).
 
-A training step, a PGD step or an inference chunk allocates the same few activation buffers of 1–30 MB again and
+A training step, a PGD step or an inference chunk allocates the same few activation buffers of 1–400 MB again and
 again. glibc's defaults hand them back to the kernel as soon as they are freed (large blocks are `mmap`ed and
 unmapped; the heap's top is trimmed past a threshold of twice the last unmapped block), so every step faults its
 buffers in again page by page: 5.1 million minor page faults in 120 training steps of make paper's map, a fifth of
@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import ctypes
 import os
-import platform
 import sys
 
 M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3  # glibc's <malloc.h>
@@ -26,12 +25,19 @@ MMAP_BYTES = 256 << 20  # blocks up to this come from the heap (a validation bat
 ENV = "PIPELINE_MALLOC"
 
 
+def _glibc() -> bool:
+    try:
+        return os.confstr("CS_GNU_LIBC_VERSION") is not None  # "glibc 2.36"; musl has no such name
+    except (ValueError, OSError):
+        return False
+
+
 def keep_freed_memory(trim: int = TRIM_BYTES, mmap: int = MMAP_BYTES) -> bool:
     """Set glibc's trim and mmap thresholds for this process (and the children it forks). True when both were
     set; False where the C library is not glibc, or `PIPELINE_MALLOC=system` asks for its defaults."""
     if os.environ.get(ENV, "").strip().lower() == "system":
         return False
-    if not sys.platform.startswith("linux") or platform.libc_ver()[0] != "glibc":
+    if not sys.platform.startswith("linux") or not _glibc():
         return False
     mallopt = getattr(ctypes.CDLL(None), "mallopt", None)
     if mallopt is None:

@@ -13,11 +13,11 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
     os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import pytest  # noqa: E402
+from hypothesis import settings  # noqa: E402
 
 from pipeline.allocator import keep_freed_memory  # noqa: E402
 
 keep_freed_memory()  # as every stage's process does (pipeline.allocator): the same bytes, fewer page faults
-from hypothesis import settings  # noqa: E402
 
 # `make test` (and CI) draws the same property-test examples every run, so a result does not depend on the
 # day; `make test-explore` (HYPOTHESIS_PROFILE=explore) draws fresh ones each run (500 where a test sets no count) to look for new failures.
