@@ -10,7 +10,9 @@ from it (`M_MMAP_THRESHOLD`), the same steps run 1.25x faster (docs/speed.md §1
 
 Only the allocator's bookkeeping changes: the arithmetic, and so every output byte, is the same. Every stage calls
 :func:`keep_freed_memory` when it starts (`pipeline.cli.stage_main`); `PIPELINE_MALLOC=system` in the environment
-keeps glibc's defaults (to measure the difference). Elsewhere than glibc (macOS, musl) it does nothing.
+keeps glibc's defaults (to measure the difference). Elsewhere than glibc (macOS, musl) it does nothing. It adds to
+the Makefile's `GLIBC_TUNABLES=glibc.malloc.hugetlb=1` (huge pages: fewer faults per byte mapped, only under `make`);
+this one stops the mapping again, in every stage's process however it is started.
 """
 
 from __future__ import annotations
