@@ -262,8 +262,12 @@ def test_the_imitation_id_follows_its_trunk_map_and_a_missing_one_is_one_line(tm
     assert "python -m pipeline.train data=clean model=keypoint" in lines[0]
 
 
-def test_ppo_runs_on_the_vector_environment_through_sb3(tmp_path):
-    """SB3's PPO on the batched environment (a few agent-steps): episodes end, the model and its curve are written."""
+def test_ppo_runs_on_the_vector_environment_through_sb3(tmp_path, monkeypatch):
+    """SB3's PPO on the batched environment (a few agent-steps): episodes end, the model and its curve are written,
+    and nothing else: no `SB3-<date>` folder is left in the temporary directory (SB3's default logger made one per
+    run)."""
+    import tempfile
+
     from pipeline.cli import compose
     from pipeline.learned.ppo import SB3VecEnv, run
 
@@ -274,9 +278,13 @@ def test_ppo_runs_on_the_vector_environment_through_sb3(tmp_path):
     assert obs.shape == (3, 60, 100, 3) and r.dtype == np.float32 and len(infos) == 3
     cfg = compose("ppo", ["ppo.num_envs=4", "ppo.total_timesteps=32", "ppo.n_steps=8", "ppo.batch_size=16",
                           "ppo.n_epochs=1", "init=points", "init.points=[[39.0,0.5]]",
-                          f"paths.models_dir={tmp_path}", f"paths.output_dir={tmp_path}"])
+                          f"paths.models_dir={tmp_path / 'models'}", f"paths.output_dir={tmp_path / 'models'}"])
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))
     out = run(cfg)
     assert (out["path"] / "model.zip").is_file()
+    assert list(scratch.iterdir()) == []
     curve = np.loadtxt(out["path"] / "curve.csv", delimiter=",", skiprows=1, ndmin=2)
     assert len(curve) >= 1 and set(curve[:, 1]) <= {0.0, 1.0}  # starts 1.1 units from the target: episodes end
     made = (out["path"] / "model.zip").stat().st_mtime_ns

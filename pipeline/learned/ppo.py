@@ -19,6 +19,7 @@ import torch
 from omegaconf import DictConfig
 from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.vec_env import VecEnv
 
 from pipeline import tracking
@@ -104,6 +105,8 @@ def run(cfg: DictConfig) -> dict:
 
     model = PPO("CnnPolicy", env, n_steps=s.n_steps, batch_size=s.batch_size, n_epochs=s.n_epochs,
                 learning_rate=s.learning_rate, seed=s.seed, verbose=0, device="cpu")
+    # no log files: without a logger of its own, `learn` makes an empty tempdir/SB3-<date> folder per run
+    model.set_logger(Logger(folder=None, output_formats=[]))
     t0 = time.perf_counter()
     model.learn(total_timesteps=s.total_timesteps, callback=Curve())
     wall = time.perf_counter() - t0
