@@ -15,7 +15,7 @@ from pipeline.bracket.frame import Frame
 from pipeline.bracket.funnel import ball_max, node_funnels, run_funnels
 from pipeline.bracket.lost import LostFrames
 from pipeline.bracket.modes import initial_modes
-from pipeline.bracket.refine import Refinement, refine
+from pipeline.bracket.refine import FineWin, Refinement, refine
 from pipeline.bracket.winning import arrival_frames, certified_cells, win
 from pipeline.control import HybridController, in_diamond
 
@@ -33,6 +33,7 @@ class Certificate:
     scene: object = None   # the world scene (its obstacles' diamonds)
     node_frames: np.ndarray | None = None  # (nodes,) frames to the goal from a node of Win (inf elsewhere)
     eps_cells: np.ndarray | None = None    # (grid cells,) the error bound the abstraction took on each cell
+    fine: FineWin | None = None            # the back vertex's window, refined: its Win (funnels hand off there too)
 
 
 def certify(law, eps_world, *, h: float, angle: float, period: float, goal_radius: float, n_split: int = 4,
@@ -69,6 +70,7 @@ def certify(law, eps_world, *, h: float, angle: float, period: float, goal_radiu
         stats["funnel_nodes"] = int((np.isfinite(seeds) & ~pre.won).sum())
     else:
         seeds = None
+    fine_win = None
     if refine_half > 0 and scene.n_obstacles == 1:
         bad, _ = unsafe_cells(scene, boxes, np.isfinite(eps), goal_radius, view)
         fine = Refinement(rlaw, grid, lost.eps(eps_world), frame, half=refine_half, factor=refine_factor,
@@ -77,6 +79,7 @@ def certify(law, eps_world, *, h: float, angle: float, period: float, goal_radiu
                           arena=law.scene.bounds)
         if fine.ok:
             W, stats, to_goal = refine(ab, W, stats, to_goal, fine, period, scene.p_T, seeds)
+            fine_win = FineWin(fine.fine, fine.frames)
     arrival = np.where(view, arrival_frames(ab, to_goal), np.inf)
     cert = certified_cells(ab, W, to_goal, horizon) & view
     corners = np.stack([boxes[:, [0, 2]], boxes[:, [1, 2]], boxes[:, [1, 3]], boxes[:, [0, 3]]], axis=1)
@@ -85,7 +88,7 @@ def certify(law, eps_world, *, h: float, angle: float, period: float, goal_radiu
     stats = {**stats, "nodes": int(len(ab.safe)), "edges": int(len(ab.succ)), "cells": int(grid.n),
              "horizon_frames": float(horizon), "beyond_horizon": int((certified_cells(ab, W) & view & ~cert).sum()),
              "lost_frames": lost.describe()}
-    return Certificate(frame, grid, ab, W, cert, stats, arrival, no_start, law.scene, to_goal, eps)
+    return Certificate(frame, grid, ab, W, cert, stats, arrival, no_start, law.scene, to_goal, eps, fine_win)
 
 
 def funnels_apply(law, lost: LostFrames | None) -> bool:

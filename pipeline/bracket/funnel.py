@@ -15,10 +15,12 @@ though the runs themselves pass it by many units. A funnel keeps the set of posi
   `|p - p_T| >= s` (its Jacobian `I - (s/r)(I - e_r e_r^T)` has eigenvalues 1 and `1 - s/r`); the error turns the
   direction by at most `asin(ε/r)` and the barrier by at most `turn`, so `c' = F(c)`,
   `ρ' = ρ + s (asin(ε/r_lo) + turn)` (`r_lo = |c - p_T| - ρ`).
-- **The hand-off.** At a frame `k` where the ball's grid cells (every cell meeting its bounding square in the
-  abstraction's frame) are all in `Win` in the funnel's mode, every run is in a winning node at that frame instant
-  (the frame's decision keeps the mode: the perceived ball is free): it arrives within `k + max frames(node)`
-  frames. The funnel takes the smallest such bound over its frames.
+- **The hand-off.** At a frame `k` where the ball's grid cells (every cell meeting the ball, in the abstraction's
+  frame) are all in `Win` in the funnel's mode, every run is in a winning node at that frame instant (the frame's
+  decision keeps the mode: the perceived ball is free): it arrives within `k + max frames(node)` frames. Inside the
+  back vertex's refined window the fine cells meeting the ball do the same with the fine `Win`'s bounds (the same
+  node semantics, :class:`pipeline.bracket.refine.FineWin`), and the smaller of the two bounds is taken. The funnel
+  takes the smallest such bound over its frames.
 
 Used for the abstraction's nodes (:func:`node_funnels`: a node whose cell's funnel hands off joins `Win`) and for
 the start cells' sub-squares (:func:`pipeline.bracket.certify_loop.funnel_starts`). `ε` over a ball: the largest
@@ -86,10 +88,9 @@ def gain(law) -> float:
     return law.k if isinstance(law, CBFController) else 2.0 * law.k * law.scene.covering(0).phi_weight
 
 
-def _cells_of_ball(cert, g: np.ndarray, rad: np.ndarray, width: int):
-    """Grid cells meeting the bounding squares of balls (grid frame): `(N, width²)` indices, -1 where none; and
-    rows whose square overflows the grid or `width` cells."""
-    grid = cert.grid
+def _cells_of_ball(grid, g: np.ndarray, rad: np.ndarray, width: int):
+    """Cells of `grid` meeting balls `B(g, rad)` (grid frame; a cell's closed square within `rad` of the centre):
+    `(N, width²)` indices, -1 where none; and rows whose bounding square overflows the grid or `width` cells."""
     lo_x = np.floor((g[:, 0] - rad - grid.x0) / grid.h).astype(np.int64)
     hi_x = np.floor((g[:, 0] + rad - grid.x0) / grid.h).astype(np.int64)
     lo_y = np.floor((g[:, 1] - rad - grid.y0) / grid.h).astype(np.int64)
@@ -98,7 +99,11 @@ def _cells_of_ball(cert, g: np.ndarray, rad: np.ndarray, width: int):
         (hi_y - lo_y >= width)
     ox, oy = np.meshgrid(np.arange(width), np.arange(width), indexing="ij")
     ix, iy = lo_x[:, None] + ox.ravel(), lo_y[:, None] + oy.ravel()
-    inside = (ix <= hi_x[:, None]) & (iy <= hi_y[:, None]) & ~over[:, None]
+    x, y = grid.x0 + ix * grid.h, grid.y0 + iy * grid.h  # the cells' lower corners: their distance to the centre
+    dx = np.maximum(np.maximum(x - g[:, :1], g[:, :1] - x - grid.h), 0.0)
+    dy = np.maximum(np.maximum(y - g[:, 1:], g[:, 1:] - y - grid.h), 0.0)
+    meets = np.hypot(dx, dy) <= rad[:, None] + TOL
+    inside = (ix <= hi_x[:, None]) & (iy <= hi_y[:, None]) & meets & ~over[:, None]
     return np.where(inside, ix * grid.ny + iy, -1), over
 
 
@@ -124,12 +129,15 @@ def run_funnels(cert, law, centres: np.ndarray, rad0: float, q: int, period: flo
     alive = np.ones(len(c), bool)
     modes = cert.abstraction.modes
     node_frames = np.where(cert.won, cert.node_frames, np.inf).reshape(-1, modes)[:, q - 1]
+    window = cert.fine
     for k in range(int(min(horizon, 10**6)) + 1):
         rows = np.flatnonzero(alive)
         if rows.size == 0:
             break
         cr, rr = c[rows], rad[rows]
         eps, handed = ball_max(cert, cr, rr, cert.eps_cells, node_frames)
+        if window is not None:  # a ball inside the refined window: its fine cells' bounds (each sound: the smaller)
+            handed = np.minimum(handed, ball_max(cert, cr, rr, window.frames[:, q - 1], grid=window.grid)[0])
         r_lo = np.hypot(*(cr - p_T).T) - rr
         fine, turn = free(law, q, cr, rr + eps, period)
         ok = np.isfinite(eps) & fine & (r_lo - eps > s + TOL)
@@ -144,12 +152,13 @@ def run_funnels(cert, law, centres: np.ndarray, rad0: float, q: int, period: flo
     return np.where(best <= horizon, best, np.inf)
 
 
-def ball_max(cert, c: np.ndarray, rad: np.ndarray, *per_cell: np.ndarray) -> list[np.ndarray]:
-    """For balls `B(c, rad)` (world), the largest value of each per-grid-cell array over the cells meeting the ball
-    (inf where the ball leaves the grid)."""
+def ball_max(cert, c: np.ndarray, rad: np.ndarray, *per_cell: np.ndarray, grid=None) -> list[np.ndarray]:
+    """For balls `B(c, rad)` (world), the largest value of each per-cell array of `grid` (the certificate's, or
+    another in its frame: the refined window's) over the cells meeting the ball (inf where the ball leaves it)."""
+    grid = cert.grid if grid is None else grid
     rad = np.broadcast_to(np.asarray(rad, float), (len(c),))
-    width = int(np.ceil(2 * rad.max() / cert.grid.h)) + 2 if len(c) else 1
-    cells, over = _cells_of_ball(cert, cert.frame.to_grid(c), rad, width)
+    width = int(np.ceil(2 * rad.max() / grid.h)) + 2 if len(c) else 1
+    cells, over = _cells_of_ball(grid, cert.frame.to_grid(c), rad, width)
     idx = np.maximum(cells, 0)
     return [np.where(over, np.inf, np.where(cells >= 0, v[idx], -np.inf).max(axis=1)) for v in per_cell]
 

@@ -91,6 +91,15 @@ def _csr(rows: list, cols: list, n: int) -> tuple[np.ndarray, np.ndarray]:
     return np.searchsorted(rows, np.arange(n + 1)), cols
 
 
+@dataclasses.dataclass
+class FineWin:
+    """The window's fine `Win` as the funnels read it (:func:`pipeline.bracket.funnel.run_funnels`): its grid (the
+    abstraction's frame) and, per fine cell and mode, the arrival bound in frames (inf: not in `Win`)."""
+
+    grid: Grid
+    frames: np.ndarray  # (fine cells, modes)
+
+
 class Refinement:
     """The fine graph of one window, built once per certificate, and its coupling to the coarse `Win` (module doc).
 
@@ -186,6 +195,7 @@ class Refinement:
         safe[self.exits] = False  # an exit is winning through its seed or not at all
         fine = dataclasses.replace(ab, safe=safe)
         W, stats, fr = win(fine, self.period, self.p_T, seeds=np.where(np.isfinite(seeds), seeds, np.inf))
+        self.frames = np.where(W, fr, np.inf).reshape(-1, modes)  # the funnels hand off here too (FineWin)
         f = self.factor
         g = self.fine
         ix, iy = np.divmod(np.arange(g.n), g.ny)
