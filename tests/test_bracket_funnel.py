@@ -185,34 +185,3 @@ def test_a_ball_meets_exactly_the_cells_it_lists(x, y, rad, h, seed):
     dy = np.maximum(np.maximum(boxes[:, 2] - y, y - boxes[:, 3]), 0.0)
     assert (np.hypot(dx, dy) <= rad + 1e-6).all()
     assert (boxes[:, 1] >= x - rad - 1e-9).all() and (boxes[:, 0] <= x + rad + 1e-9).all()
-
-
-def test_funnels_hand_off_to_the_refined_window_and_those_starts_survive_the_simulator():
-    """`make bracket`'s settings at ε = 0.5 (the back vertex refined): funnels whose ball reaches the window hand off
-    to its fine `Win` (the coarse cells there hold nodes the window loses), which certifies start cells behind the
-    obstacle near the axis that the coarse hand-off alone does not; 6 random accepted points of each, run by
-    `pipeline.sim.simulate` under this suite's error signals, reach the goal disc by their certified bound."""
-    import dataclasses
-
-    from pipeline.bracket.stage import objects
-    from pipeline.bracket.starts import start_cells
-    from pipeline.config import compose
-
-    scene, laws, bs, sim_cfg, camera, _, _, lost = objects(compose("bracket", []))
-    law, eps = laws["hybrid"], 0.5
-    n_frames = int(round(sim_cfg.horizon / camera.period))
-    cert = certify(law, Uniform(eps), h=bs.cell, angle=bs.angle, period=camera.period, goal_radius=bs.goal_radius,
-                   n_split=bs.n_split, window=bs.window, frames=bs.frames, horizon=n_frames, lost=lost["hybrid"],
-                   funnels=True, refine_half=bs.refine, refine_factor=bs.refine_factor)
-    assert cert.fine is not None and np.isfinite(cert.fine.frames).any()
-    starts = start_cells(scene, bs.start_cell)
-    ok, bound, _, _ = funnel_starts(cert, law, starts, bs.funnel_split, camera.period, n_frames)
-    coarse = funnel_starts(dataclasses.replace(cert, fine=None), law, starts, bs.funnel_split, camera.period,
-                           n_frames)[0]
-    centre = starts[:, :2].mean(1)
-    near = (centre < -12) & (np.abs(starts[:, 2:].mean(1)) <= 7.5)
-    new = ok & ~coarse
-    assert ok[coarse].all() and new[near].sum() >= 2, (new.sum(), new[near].sum())
-    cells = np.repeat(np.flatnonzero(new), 6)
-    run_certified_points(scene, law, starts, cells, bound, horizon=sim_cfg.horizon, delta=bs.goal_radius,
-                         period=camera.period, eps=eps, rng=np.random.default_rng(5), seed=13)

@@ -19,7 +19,7 @@ from pipeline.bracket.bounds import Uniform
 from pipeline.bracket.certify_loop import certified_starts, certify
 from pipeline.bracket.enclosures import DIRS
 from pipeline.bracket.lost import LostFrames
-from pipeline.bracket.winning import win
+from pipeline.bracket.winning import directional_frames, win
 from pipeline.control import HybridController, Scene, SmoothController, in_diamond
 from pipeline.sim import CameraSettings, SimSettings, simulate
 
@@ -37,6 +37,43 @@ def corridor(n: int, speed: float, period: float) -> Abstraction:
     safe, goal = np.ones(n, bool), np.arange(n) == 0
     return Abstraction(grid, 1, U, safe, goal, indptr, np.concatenate(succ), np.ones((n, 1), bool),
                        np.zeros(n, bool), 1)
+
+
+def chain(n: int, step: float) -> Abstraction:
+    """`n` cells of side 1 along `x` (cell 0 the goal), every input `(-step, 0)` per unit time (a frame of 1 moves a
+    run by `step` in (1, 2)), each cell stepping to the cells its endpoint set meets: `i - 1` and `i - 2`. Acyclic, and
+    its longest path advances one cell a frame where every run advances `step`."""
+    grid = Grid(0.0, 0.0, 1.0, n, 1)
+    U = np.broadcast_to(DIRS @ np.array([-step, 0.0]), (n, 1, len(DIRS))).copy()
+    succ = [np.array([c for c in (i - 2, i - 1) if c >= 0]) for i in range(1, n)]
+    indptr = np.concatenate([[0, 0], np.cumsum([len(s) for s in succ])])
+    safe, goal = np.ones(n, bool), np.arange(n) == 0
+    return Abstraction(grid, 1, U, safe, goal, indptr, np.concatenate(succ), np.ones((n, 1), bool),
+                       np.zeros(n, bool), 1)
+
+
+def slowest_frames(n: int, step: float) -> int:
+    """Frames of the slowest run from the far end of the chain's last (half-open) cell to the goal cell."""
+    x, k = n - 1e-9, 0
+    while x >= 1.0:
+        x, k = x - step, k + 1
+    return k
+
+
+@settings(max_examples=examples(40), deadline=None)
+@given(n=st.integers(3, 40), step=st.floats(1.05, 1.95))
+def test_the_directional_bound_covers_the_slowest_run_and_beats_the_longest_path(n, step):
+    """On the chain (period 1) the longest path charges a frame per cell, `n - 1` from the last one; the bound through
+    the set of nodes along which `x` falls by `step` a frame (:func:`directional_frames`) is at least the slowest run's
+    frames (soundness), at most two above it (tightness), and below the longest path once the chain is long."""
+    ab = chain(n, step)
+    W, _, frames = win(ab, 1.0, np.array([0.5, 0.5]))
+    assert W.all() and frames[-1] == n - 1
+    tight = directional_frames(ab, W, frames, 1.0, ~np.repeat(ab.goal, ab.modes), shares=(1.0,))
+    k = slowest_frames(n, step)
+    assert (tight <= frames).all() and tight[-1] >= k and tight[-1] <= k + 2, (tight[-1], k, frames[-1])
+    if n >= 12:
+        assert tight[-1] < frames[-1]
 
 
 @settings(max_examples=examples(40), deadline=None)
@@ -263,3 +300,62 @@ def run_certified_points(scene, law, starts, cells, bound, *, horizon, delta, pe
     assert m["success"].all() and not m["collision"].any(), p0[~m["success"]]
     # a start already in the goal disc has the bound 0 frames; the loop reports its arrival at its first step
     assert (m["time_to_target"] <= np.maximum(bound[cells], 1) * period + 1e-9).all()
+
+
+@pytest.fixture(scope="module")
+def default_eps1():
+    """`make bracket`'s settings at ε = 1 (the hybrid law, the back vertex refined): the objects, the start cells and
+    the certificates with and without the bounds through sets of nodes (`bracket.directional`)."""
+    from pipeline.bracket.stage import objects
+    from pipeline.bracket.starts import start_cells
+    from pipeline.config import compose
+
+    scene, laws, bs, sim_cfg, camera, _, _, lost = objects(compose("bracket", []))
+    law = laws["hybrid"]
+    n_frames = int(round(sim_cfg.horizon / camera.period))
+    kw = dict(h=bs.cell, angle=bs.angle, period=camera.period, goal_radius=bs.goal_radius, n_split=bs.n_split,
+              window=bs.window, frames=bs.frames, horizon=n_frames, lost=lost["hybrid"], funnels=True,
+              refine_half=bs.refine, refine_factor=bs.refine_factor)
+    certs = {d: certify(law, Uniform(1.0), directional=d, **kw) for d in (False, True)}
+    return scene, law, bs, sim_cfg, camera, start_cells(scene, bs.start_cell), n_frames, certs
+
+
+def test_bounds_through_sets_certify_more_within_the_horizon_and_those_starts_arrive_by_them(default_eps1):
+    """At ε = 1 the arrival bounds through sets of nodes in the back vertex's window bring start cells under the 30 s
+    horizon that the longest path alone leaves above it, and 4 random accepted points of each, run by
+    `pipeline.sim.simulate` under this file's error signals within ε, reach the goal disc by their (tighter) certified
+    bound without a collision."""
+    from pipeline.bracket.certify_loop import funnel_starts
+
+    scene, law, bs, sim_cfg, camera, starts, n_frames, certs = default_eps1
+    fw = (bs.funnel_split, camera.period, n_frames)
+    plain = funnel_starts(certs[False], law, starts, *fw)[0]
+    ok, bound, _, _ = funnel_starts(certs[True], law, starts, *fw)
+    new = ok & ~plain
+    assert ok[plain].all() and new.sum() >= 3, new.sum()
+    cells = np.repeat(np.flatnonzero(new), 4)
+    run_certified_points(scene, law, starts, cells, bound, horizon=sim_cfg.horizon, delta=bs.goal_radius,
+                         period=camera.period, eps=1.0, rng=np.random.default_rng(17), seed=23)
+
+
+def test_funnels_hand_off_to_the_refined_window_and_those_starts_survive_the_simulator(default_eps1):
+    """Funnels whose ball reaches the back vertex's window hand off to its fine `Win` (the coarse cells there hold
+    nodes the window loses): at ε = 1 that certifies start cells behind the obstacle near the axis that the coarse
+    hand-off alone does not, and 6 random accepted points of each, run by `pipeline.sim.simulate` under this file's
+    error signals, reach the goal disc by their certified bound."""
+    import dataclasses
+
+    from pipeline.bracket.certify_loop import funnel_starts
+
+    scene, law, bs, sim_cfg, camera, starts, n_frames, certs = default_eps1
+    cert = certs[True]
+    assert cert.fine is not None and np.isfinite(cert.fine.frames).any()
+    fw = (bs.funnel_split, camera.period, n_frames)
+    ok, bound, _, _ = funnel_starts(cert, law, starts, *fw)
+    coarse = funnel_starts(dataclasses.replace(cert, fine=None), law, starts, *fw)[0]
+    near = (starts[:, :2].mean(1) < -12) & (np.abs(starts[:, 2:].mean(1)) <= 7.5)
+    new = ok & ~coarse
+    assert ok[coarse].all() and new[near].sum() >= 2, (new.sum(), new[near].sum())
+    cells = np.repeat(np.flatnonzero(new), 6)
+    run_certified_points(scene, law, starts, cells, bound, horizon=sim_cfg.horizon, delta=bs.goal_radius,
+                         period=camera.period, eps=1.0, rng=np.random.default_rng(5), seed=13)

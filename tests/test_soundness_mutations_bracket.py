@@ -8,6 +8,7 @@ proof with `monkeypatch` (a mutation) and asserts that the same check, run the s
 | ditto, within the horizon | ditto at a 5 s horizon | `certified_cells` ignores the horizon |
 | the held-input enclosure contains every held input | sampled perceived points, the loop's own held input | the barrier term's interval (hybrid) or sector (smooth, CBF) halved |
 | the arrival bound covers the slowest run through a transient component | the corridor of `test_bracket_loop_that_runs` | the frames spent inside a component dropped |
+| the bound through a set of nodes covers the slowest run (`directional_frames`) | the chain of `test_bracket_loop_that_runs` | a run's start read at its cell's nearest point, not its farthest |
 | a held frame's perceived point lies within `ε + L T_s v̄` of the position (`lost.py`) | every frame of `simulate` runs losing up to `L` frames in a row | the growth `L T_s v̄` halved |
 
 The closed-loop checks use the certificate's defaults (`conf/bracket.yaml`: cells of 1 unit at 45°, `n_split` 4,
@@ -34,7 +35,7 @@ import numpy as np
 import pytest
 from test_bracket_certificate import SCENE as BOX_SCENE  # the enclosure check's scene and boxes
 from test_bracket_certificate import _boxes, _modes
-from test_bracket_loop_that_runs import PERIOD, _lossy_errors, corridor
+from test_bracket_loop_that_runs import PERIOD, _lossy_errors, chain, corridor, slowest_frames
 
 from pipeline.bracket import certify_loop, inputs, winning
 from pipeline.bracket.bounds import Uniform
@@ -233,6 +234,22 @@ def test_arrival_bound_check_catches_dropping_the_frames_inside_a_component(monk
                         lambda ab, comp, *a: (np.zeros(len(comp)), rule(ab, comp, *a)[1]))
     _, _, frames = winning.win(corridor(n, speed, PERIOD), PERIOD, np.array([0.5, 0.5]))
     assert frames[1:].max() < slowest(), (frames[1:].max(), slowest())
+
+
+def test_directional_bound_check_catches_a_start_read_at_the_cells_nearest_point(monkeypatch):
+    """Claim: the arrival bound through a set of nodes covers every run (`winning.directional_frames`). The chain of
+    `test_bracket_loop_that_runs` (acyclic, every input `(-step, 0)`): a run from the far end of its last cell needs
+    `k` frames and the bound is at least `k`; with each cell's extent in the decreasing direction read at its nearest
+    point (the cell shrunk to its lower corner: the run starting anywhere on it not counted) it is below `k`."""
+    n, step = 21, 1.5
+    ab = chain(n, step)
+    W, _, frames = winning.win(ab, 1.0, np.array([0.5, 0.5]))
+    members = ~np.repeat(ab.goal, ab.modes)
+    assert winning.directional_frames(ab, W, frames, 1.0, members, shares=(1.0,))[-1] >= slowest_frames(n, step)
+    corner = np.repeat(ab.grid.boxes()[:, [0, 2]], ab.modes, axis=0)  # each cell's lower corner
+    monkeypatch.setattr(winning, "_extent", lambda ab_: corner @ winning.DIRS.T)
+    tight = winning.directional_frames(ab, W, frames, 1.0, members, shares=(1.0,))
+    assert tight[-1] < slowest_frames(n, step), (tight[-1], slowest_frames(n, step))
 
 
 # ------------------------------------------------------------------------------------------- lost frames

@@ -38,7 +38,8 @@ class Certificate:
 
 def certify(law, eps_world, *, h: float, angle: float, period: float, goal_radius: float, n_split: int = 4,
             window: int = 8, frames: int = 1, horizon: float = np.inf, lost: LostFrames | None = None,
-            funnels: bool = False, refine_half: float = 0.0, refine_factor: int = 16) -> Certificate:
+            funnels: bool = False, refine_half: float = 0.0, refine_factor: int = 16,
+            directional: bool = False) -> Certificate:
     """`law`'s certificate on cells of side `h` in the frame rotated by `angle`; `eps_world(points (N, 2)) ->
     (N,)` the error bound at world points of a cell (`max` over its corners and centre is taken, so `eps_world`
     must be the largest bound over any cell it is asked about: see :mod:`pipeline.bracket.bounds`). `horizon`: the
@@ -46,7 +47,8 @@ def certify(law, eps_world, *, h: float, angle: float, period: float, goal_radiu
     (:mod:`pipeline.bracket.lost`; None: every frame delivered). `funnels`: nodes whose cell's funnel hands off to
     `Win` join it with the funnel's bound, and `Win` is solved again (:func:`funnels_apply`). `refine_half > 0`: a
     window of that half-width around the back vertex on cells `refine_factor` times finer, coupled to these cells
-    (:mod:`pipeline.bracket.refine`; one obstacle)."""
+    (:mod:`pipeline.bracket.refine`; one obstacle); `directional`: the window's arrival bounds also through sets
+    of nodes (:func:`pipeline.bracket.winning.directional_frames`)."""
     frame = Frame(angle)
     rlaw = frame.law(law)
     scene = rlaw.scene
@@ -78,7 +80,7 @@ def certify(law, eps_world, *, h: float, angle: float, period: float, goal_radiu
                           may_stop=lost.may_stop, coarse_bad=bad, coarse_eps=eps, view=bounds,
                           arena=law.scene.bounds)
         if fine.ok:
-            W, stats, to_goal = refine(ab, W, stats, to_goal, fine, period, scene.p_T, seeds)
+            W, stats, to_goal = refine(ab, W, stats, to_goal, fine, period, scene.p_T, seeds, directional)
             fine_win = FineWin(fine.fine, fine.frames)
     arrival = np.where(view, arrival_frames(ab, to_goal), np.inf)
     cert = certified_cells(ab, W, to_goal, horizon) & view

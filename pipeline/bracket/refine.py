@@ -35,7 +35,7 @@ from pipeline.bracket.abstraction import Abstraction, Grid, cell_hits, dilate, u
 from pipeline.bracket.enclosures import DIRS, split
 from pipeline.bracket.inputs import support
 from pipeline.bracket.modes import Modes
-from pipeline.bracket.winning import win
+from pipeline.bracket.winning import directional_frames, win
 
 ROUNDS = 4  # fine and coarse Win solved alternately at most this many times (they stop as soon as nothing is added)
 
@@ -182,8 +182,9 @@ class Refinement:
         self.edge_from, self.edge_to = np.concatenate(ex_rows), np.concatenate(ex_cols)
         self.ok = True
 
-    def coarse_seeds(self, won: np.ndarray, frames: np.ndarray) -> tuple[np.ndarray, dict]:
-        """Per coarse node, the arrival bound the window proves (inf elsewhere), from the coarse `Win` and bounds."""
+    def coarse_seeds(self, won: np.ndarray, frames: np.ndarray, tighten: bool = False) -> tuple[np.ndarray, dict]:
+        """Per coarse node, the arrival bound the window proves (inf elsewhere), from the coarse `Win` and bounds;
+        `tighten`: the fine bounds also through sets of nodes (:func:`pipeline.bracket.winning.directional_frames`)."""
         n_f, modes = len(self.ab.safe), self.ab.modes
         best = np.full(n_f, -np.inf)  # the exits' bounds: 1 + the largest over their coarse successors
         np.maximum.at(best, self.edge_from, np.where(won[self.edge_to], frames[self.edge_to], np.inf))
@@ -195,6 +196,8 @@ class Refinement:
         safe[self.exits] = False  # an exit is winning through its seed or not at all
         fine = dataclasses.replace(ab, safe=safe)
         W, stats, fr = win(fine, self.period, self.p_T, seeds=np.where(np.isfinite(seeds), seeds, np.inf))
+        if tighten:  # bounds through sets of nodes as well (docs/bracket.md "Arrival bounds through a set")
+            fr = directional_frames(fine, W, fr, self.period, safe & ~np.repeat(ab.goal, modes) & ~np.isfinite(seeds))
         self.frames = np.where(W, fr, np.inf).reshape(-1, modes)  # the funnels hand off here too (FineWin)
         f = self.factor
         g = self.fine
@@ -208,16 +211,22 @@ class Refinement:
 
 
 def refine(ab, won, stats, frames, refinement: Refinement, period: float, p_T: np.ndarray,
-           seeds: np.ndarray | None):
+           seeds: np.ndarray | None, directional: bool = False):
     """Rounds of fine and coarse `Win` (module docstring), until the window adds nothing: the coarse `(Win, stats,
-    frames)`."""
+    frames)`. `directional`: then one more round with the fine bounds tightened through sets of nodes (one: the
+    tightening costs seconds, and the rounds before it have settled `Win`)."""
     seeds = np.full(len(won), np.inf) if seeds is None else seeds.copy()
     info = {}
-    for _ in range(ROUNDS):
-        add, info = refinement.coarse_seeds(won, frames)
+    rounds, tighten = 0, False
+    while True:
+        add, info = refinement.coarse_seeds(won, frames, tighten=tighten)
         new = np.minimum(seeds, np.where(add < frames, add, np.inf))  # only where the window proves a smaller bound
-        if np.array_equal(new, seeds):
+        changed = not np.array_equal(new, seeds)
+        if changed:
+            seeds = new
+            won, stats, frames = win(ab, period, p_T, seeds=seeds)
+        rounds += 1
+        if tighten or ((not changed or rounds >= ROUNDS) and not directional):
             break
-        seeds = new
-        won, stats, frames = win(ab, period, p_T, seeds=seeds)
+        tighten = not changed or rounds >= ROUNDS  # settled: one more round, tightened
     return won, {**stats, **info, "refined_nodes": int((np.isfinite(seeds) & won).sum())}, frames

@@ -40,7 +40,8 @@ class BracketSettings:
     `funnel_split`: sub-squares per side of a start cell the abstraction does not certify, each followed by a funnel
     through free space (:mod:`pipeline.bracket.funnel`); 0: the abstraction alone. `refine`: the half-width of a window
     around the back vertex where the abstraction runs on cells `refine_factor` times finer, edges over one frame
-    (:mod:`pipeline.bracket.refine`); 0: off."""
+    (:mod:`pipeline.bracket.refine`); 0: off. `directional`: the window's arrival bounds also through sets of nodes
+    along which a direction decreases (:func:`pipeline.bracket.winning.directional_frames`)."""
 
     controllers: Annotated[list[Law], NonEmpty()] = field(default_factory=lambda: ["hybrid", "smooth", "cbf"])
     eps: Annotated[list[NonNegative], NonEmpty()] = field(default_factory=lambda: [0.1, 0.25, 0.5])
@@ -76,6 +77,7 @@ class BracketSettings:
     funnel_split: NonNegativeInt = 10
     refine: NonNegative = 10.0
     refine_factor: Annotated[int, Range(ge=2, le=64)] = 8
+    directional: bool = True
 
     def __post_init__(self):
         if self.commit > self.lookahead:

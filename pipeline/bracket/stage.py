@@ -132,7 +132,7 @@ def bracket_rows(name, law, scene, bs, sim, camera, emap, starts, pmap=None, los
                      stall_speed=stall_threshold(sim, law), stall_time=sim.stall_time)
     kw = dict(h=bs.cell, angle=bs.angle, period=camera.period, goal_radius=bs.goal_radius, n_split=bs.n_split,
               window=bs.window, frames=bs.frames, horizon=loop.n_frames, lost=lost, funnels=bs.funnel_split > 0,
-              refine_half=bs.refine, refine_factor=bs.refine_factor)
+              refine_half=bs.refine, refine_factor=bs.refine_factor, directional=bs.directional)
     eps_lo = np.full(len(starts), np.nan)
     arrival = np.full(len(starts), np.nan)
     stats = {}
