@@ -249,7 +249,7 @@ def directional_frames(ab: Abstraction, W: np.ndarray, frames: np.ndarray, perio
             else:
                 continue  # not converged: no bound from this set
             bound = np.where(S & np.isfinite(R), hi / step + R, np.inf)
-            frames = np.minimum(frames, bound)
+            frames = np.minimum(frames, np.floor(bound + 1e-9))  # a count of frames: a whole number below the bound
     return frames
 
 
