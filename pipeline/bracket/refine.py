@@ -197,7 +197,7 @@ class Refinement:
         fine = dataclasses.replace(ab, safe=safe)
         W, stats, fr = win(fine, self.period, self.p_T, seeds=np.where(np.isfinite(seeds), seeds, np.inf))
         if tighten:  # bounds through sets of nodes as well (docs/bracket.md "Arrival bounds through a set")
-            fr = directional_frames(fine, W, fr, self.period, safe & ~np.repeat(ab.goal, modes) & ~np.isfinite(seeds))
+            fr = directional_frames(fine, W, fr, self.period, safe & ~np.repeat(ab.goal, modes))  # exits: unsafe
         self.frames = np.where(W, fr, np.inf).reshape(-1, modes)  # the funnels hand off here too (FineWin)
         f = self.factor
         g = self.fine
@@ -217,16 +217,20 @@ def refine(ab, won, stats, frames, refinement: Refinement, period: float, p_T: n
     tightening costs seconds, and the rounds before it have settled `Win`)."""
     seeds = np.full(len(won), np.inf) if seeds is None else seeds.copy()
     info = {}
-    rounds, tighten = 0, False
-    while True:
+
+    def one_round(tighten: bool) -> bool:
+        nonlocal seeds, won, stats, frames, info
         add, info = refinement.coarse_seeds(won, frames, tighten=tighten)
         new = np.minimum(seeds, np.where(add < frames, add, np.inf))  # only where the window proves a smaller bound
-        changed = not np.array_equal(new, seeds)
-        if changed:
-            seeds = new
-            won, stats, frames = win(ab, period, p_T, seeds=seeds)
-        rounds += 1
-        if tighten or ((not changed or rounds >= ROUNDS) and not directional):
+        if np.array_equal(new, seeds):
+            return False
+        seeds = new
+        won, stats, frames = win(ab, period, p_T, seeds=seeds)
+        return True
+
+    for _ in range(ROUNDS):
+        if not one_round(False):
             break
-        tighten = not changed or rounds >= ROUNDS  # settled: one more round, tightened
+    if directional:
+        one_round(True)
     return won, {**stats, **info, "refined_nodes": int((np.isfinite(seeds) & won).sum())}, frames

@@ -204,7 +204,7 @@ def directional_frames(ab: Abstraction, W: np.ndarray, frames: np.ndarray, perio
     larger than a frame's travel an abstract path may advance by much less per frame than any run does.
 
     For a support direction `d_j` and a rate `c > 0`, `S` is the set of `members` (nodes of `Win` with a finite
-    bound, neither goal nor seeded) whose every input (`Abstraction.U`: over all its edge's frames) has
+    bound and the abstraction's own edges and inputs: not goal nodes, nor the window's exits) whose every input (`Abstraction.U`: over all its edge's frames) has
     `d_j·u <= -c`: while a run stays in `S`, `d_j·p` falls by at least `c T_s` a frame. A run from `n ∈ S`
     (`d_j·p <= hi_n`, the largest on its cell) that is still in `S` at a frame instant in node `v` (reached from `n`
     along edges inside `S`) has spent at most `(hi_n - lo_v) / (c T_s)` frames (`lo_v` the smallest of `d_j·p` on
