@@ -196,10 +196,36 @@ def test_a_start_where_the_maps_bound_is_largest_falsifies_the_cell():
     fast = Search(n_dirs=8, lookahead=4, commit=4, tail=8, n_random=1, trap_dirs=16)
     alone, _ = map_rows(loop, band, fast, centre, np.array([True]), 0)
     assert not alone["falsified_map"][0]
-    cols, paths = map_rows(loop, band, fast, centre, np.array([True]), 1, worst=worst)
+    cols, paths = map_rows(loop, band, fast, centre, np.array([True]), 1, alts=(worst,))
     assert cols["falsified_map"][0] and cols["map_adversary"][0] in ADVERSARIES
     assert (cols["map_x"][0], cols["map_y"][0]) == tuple(worst[0]) and cols["map_eps_start"][0] == 0.2
     np.testing.assert_array_equal(paths[0, 0], worst[0])  # the counterexample's path starts there
     # a start the simulator refuses (in the diamond) is never drawn, even where the bound is largest
     far, _ = worst_starts(SCENE, np.array([[-12.0, -6.0, -3.0, 3.0]]), lambda p: -np.abs(p[:, 0] + 9.0))
     assert np.abs(far[0]).sum() > 8 * np.sqrt(2) and far[0, 0] == -9.0  # on x = -9, off the diamond
+
+
+def test_a_start_nearest_K_falsifies_a_cell_whose_centre_arrives():
+    """The hybrid law's trap lives on `K` (the axis behind the obstacle): make bracket's scene and law, a map whose
+    bound is 1.75 everywhere, the start cell `[-47.5, -42.5] x [2.5, 7.5]` beside `K`. From its centre (2.5 units
+    farther from the axis) every adversary lets the run arrive; `axis_starts` gives the cell's accepted lattice point
+    nearest `K`, and from there the trap adversary holds the run at the vertex within the map's bound."""
+    from pipeline.bracket.stage import map_rows, objects
+    from pipeline.bracket.starts import axis_starts
+    from pipeline.config import compose
+
+    scene, laws, bs, sim, camera, *_ = objects(compose("bracket", []))
+    loop = FrameLoop(scene, laws["hybrid"], period=camera.period, horizon=sim.horizon, delta=bs.goal_radius)
+    cells = np.array([[-47.5, -42.5, 2.5, 7.5], [20.0, 25.0, 2.5, 7.5]])  # the second lies in front of the obstacle
+    near, d = axis_starts(scene, cells)
+    assert np.isclose(near[0, 1], 2.5 + 5 / 18) and np.isclose(d[0], near[0, 1]) and -47.5 < near[0, 0] < -42.5
+    assert np.isinf(d[1])  # no point of it behind an obstacle
+    wide = _table([(-60.0, 60.0, -40.0, 40.0, 1.75)])
+    fast = Search(n_dirs=8, lookahead=4, commit=4, tail=8, n_random=1, trap_dirs=16)
+    centre = np.array([[-45.0, 5.0]])
+    alone, _ = map_rows(loop, wide, fast, centre, np.array([True]), 0)
+    assert not alone["falsified_map"][0]
+    cols, paths = map_rows(loop, wide, fast, centre, np.array([True]), 0, alts=(near[:1],))
+    assert cols["falsified_map"][0] and cols["map_adversary"][0] == "trap"
+    assert (cols["map_x"][0], cols["map_y"][0]) == tuple(near[0])
+    assert np.hypot(*(paths[-1, 0] - vertex_aims(scene, 0.0)[0])) < 1.5  # held at the vertex

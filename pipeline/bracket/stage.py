@@ -39,7 +39,7 @@ from pipeline.bracket.loop import OUTCOMES, REACHED, RUNNING, FrameLoop
 from pipeline.bracket.lost import LostFrames
 from pipeline.bracket.maps import camera_map_folder, error_map
 from pipeline.bracket.report import table
-from pipeline.bracket.starts import falsifier_starts, start_cells, worst_starts
+from pipeline.bracket.starts import axis_starts, falsifier_starts, start_cells, worst_starts
 from pipeline.config import build
 from pipeline.errors import ConfigError
 from pipeline.experiments.report import markdown_table
@@ -178,8 +178,12 @@ def bracket_rows(name, law, scene, bs, sim, camera, emap, starts, pmap=None, los
     more = {}
     if emap is not None:
         t0 = time.perf_counter()
-        worst, _ = worst_starts(scene, starts, MapBound(emap))
-        cols, more["map"] = map_rows(loop, emap, search, centres, inside, bs.map_bisect, (br.eps_hi, br.path), worst)
+        worst, b_worst = worst_starts(scene, starts, MapBound(emap))
+        worst[~(b_worst > MapBound(emap)(centres))] = np.nan  # only where the bound is larger than at the centre
+        near_k, d_k = axis_starts(scene, starts)
+        near_k[~np.isfinite(d_k)] = np.nan
+        alts = (worst, near_k)
+        cols, more["map"] = map_rows(loop, emap, search, centres, inside, bs.map_bisect, (br.eps_hi, br.path), alts)
         stats["map_falsifier_seconds"] = time.perf_counter() - t0
         for k, v in cols.items():
             rows[k] = v
@@ -195,7 +199,7 @@ def bracket_rows(name, law, scene, bs, sim, camera, emap, starts, pmap=None, los
 
 
 def map_rows(loop: FrameLoop, emap, search: Search, centres: np.ndarray, inside: np.ndarray, n_bisect: int,
-             uniform: tuple[np.ndarray, np.ndarray] | None = None, worst=None) -> tuple[dict, np.ndarray]:
+             uniform: tuple[np.ndarray, np.ndarray] | None = None, alts=()) -> tuple[dict, np.ndarray]:
     """Every adversary with the error map's own bound (:class:`MapBound`: its `ε̄` at the true position each frame, 0
     where it is certified nowhere) from the start cells' centres: the columns `falsified_map` (a run failed: no
     certificate from this map's bound can hold there), `map_adversary` and `map_scale_hi` (the smallest scale `s` of
@@ -205,9 +209,10 @@ def map_rows(loop: FrameLoop, emap, search: Search, centres: np.ndarray, inside:
     `map_x, map_y` (that start) and the paths `(frames + 1, cells, 2)` at that scale. `uniform`: the uniform
     falsifier's `(ε_hi, paths)` of the same starts; a counterexample whose path keeps the map's bound at least `ε_hi`
     at every frame is one within the map's bound as it is (its errors are at most `ε_hi`): falsified without a
-    search (`map_adversary` "uniform"), at scale `max ε_hi / ε̄` along the path, not bisected further. `worst`: per
-    start cell a second start (:func:`.starts.worst_starts`: where the map's bound is largest), searched from where
-    the centre's search found nothing."""
+    search (`map_adversary` "uniform"), at scale `max ε_hi / ε̄` along the path, not bisected further. `alts`: per
+    start cell further starts `(cells, 2)` each, searched in turn where the searches before found nothing (the
+    stage's: :func:`.starts.worst_starts`, where the map's bound is largest, then :func:`.starts.axis_starts`, the
+    point nearest `K`; a row of NaN: none). A certificate claims every start of its cell."""
     p0 = centres[inside].copy()
     bound = MapBound(emap)
     failed, which = np.zeros(len(p0), bool), np.full(len(p0), -1)
@@ -228,9 +233,9 @@ def map_rows(loop: FrameLoop, emap, search: Search, centres: np.ndarray, inside:
         take = ~failed & np.isfinite(eps_hi) & (s_u <= 1.0)
         failed[take], which[take], scale[take], path[:, take] = True, len(ADVERSARIES), s_u[take], u_path[:, take]
     tried(p0, np.flatnonzero(~failed), 1.0)
-    if worst is not None:  # where the map's bound is largest in the cell: a start the certificate claims too
-        alt = worst[inside]
-        rows = np.flatnonzero(~failed & (bound(alt) > bound(p0)))
+    for alt in alts:  # other starts the certificate claims too, where nothing failed yet
+        alt = alt[inside]
+        rows = np.flatnonzero(~failed & np.isfinite(alt).all(axis=1) & (alt != p0).any(axis=1))
         r = np.concatenate([tried(alt, rows, 0.0), tried(alt, rows[~failed[rows]], 1.0)])
         p0[r] = alt[r]
     lo = np.zeros(len(p0))

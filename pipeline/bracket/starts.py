@@ -50,20 +50,42 @@ def falsifier_starts(scene, starts: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return p0, ok
 
 
-def worst_starts(scene, starts: np.ndarray, bound, n: int = 9) -> tuple[np.ndarray, np.ndarray]:
-    """Per start cell `(N, 4)` the start the simulator accepts where `bound(points) -> (M,)` (the falsifier's error
-    bound at a point: the map's `ε̄`, 0 where it has none) is largest, among `n x n` points centred in the cell's
-    sub-squares (never on its edges), and that bound (`-inf`: no point accepted). A certificate claims every start of its cell, so a run from any of them that
-    fails falsifies it; the map's bound is largest on the arena's border, where the image clips the robot."""
+def _interior(scene, starts: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """`n x n` points per start cell `(N, n², 2)`, centred in its sub-squares (never on its edges; odd `n`: the
+    centre among them), and whether the simulator accepts each `(N, n²)`."""
     t = (np.arange(n) + 0.5) / n
     tx, ty = (g.ravel() for g in np.meshgrid(t, t, indexing="ij"))
     P = np.stack([starts[:, :1] + tx * (starts[:, 1:2] - starts[:, :1]),
-                  starts[:, 2:3] + ty * (starts[:, 3:4] - starts[:, 2:3])], axis=-1)  # (N, n², 2)
+                  starts[:, 2:3] + ty * (starts[:, 3:4] - starts[:, 2:3])], axis=-1)
     flat = P.reshape(-1, 2)
-    ok = ~in_diamond(scene, flat) & (clearance(flat, scene) >= 0)
-    b = np.where(ok, np.asarray(bound(flat), float), -np.inf).reshape(len(P), -1)
+    return P, (~in_diamond(scene, flat) & (clearance(flat, scene) >= 0)).reshape(len(P), -1)
+
+
+def worst_starts(scene, starts: np.ndarray, bound, n: int = 9) -> tuple[np.ndarray, np.ndarray]:
+    """Per start cell `(N, 4)` the start the simulator accepts where `bound(points) -> (M,)` (the falsifier's error
+    bound at a point: the map's `ε̄`, 0 where it has none) is largest, among the cell's `n x n` interior points, and
+    that bound (`-inf`: no point accepted). A certificate claims every start of its cell, so a run from any of them
+    that fails falsifies it; the map's bound is largest on the arena's border, where the image clips the robot."""
+    P, ok = _interior(scene, starts, n)
+    b = np.where(ok, np.asarray(bound(P.reshape(-1, 2)), float).reshape(ok.shape), -np.inf)
     k = np.argmax(b, axis=1)
     return P[np.arange(len(P)), k], b[np.arange(len(P)), k]
+
+
+def axis_starts(scene, starts: np.ndarray, n: int = 9) -> tuple[np.ndarray, np.ndarray]:
+    """Per start cell `(N, 4)` the start the simulator accepts nearest `K` (an obstacle's axis behind it: its frame's
+    `a < -c`, `b = 0`) among the cell's `n x n` interior points, and its distance `|b|` to that axis (`inf`: no point
+    of the cell behind an obstacle). The hybrid law's trap lives on `K` (docs/bracket.md, "The falsifier aimed at
+    the vertex"): a run from a cell's edge nearest the axis needs less error to be held there than one from its
+    centre (measured from the edge 2.5 units off the axis: `ε_hi` 1.25–2.5 against 2.25–4 from the centre)."""
+    P, ok = _interior(scene, starts, n)
+    d = np.full(ok.shape, np.inf)
+    for cov in scene.coverings:
+        a, b = cov.to_frame(P.reshape(-1, 2))
+        d = np.minimum(d, np.where(a < -cov.c, np.abs(b), np.inf).reshape(ok.shape))
+    d = np.where(ok, d, np.inf)
+    k = np.argmin(d, axis=1)
+    return P[np.arange(len(P)), k], d[np.arange(len(P)), k]
 
 
 def behind_obstacles(df: pd.DataFrame, scene) -> tuple[np.ndarray, np.ndarray]:
