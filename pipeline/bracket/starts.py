@@ -77,7 +77,7 @@ def axis_starts(scene, starts: np.ndarray, n: int = 9) -> tuple[np.ndarray, np.n
     `a < -c`, `b = 0`) among the cell's `n x n` interior points, and its distance `|b|` to that axis (`inf`: no point
     of the cell behind an obstacle). The hybrid law's trap lives on `K` (docs/bracket.md, "The falsifier aimed at
     the vertex"): a run from a cell's edge nearest the axis needs less error to be held there than one from its
-    centre (measured from the edge 2.5 units off the axis: `ε_hi` 1.25–2.5 against 2.25–4 from the centre)."""
+    centre (measured from 2.55 units off the axis: `ε_hi` 1.25–2.5 against 2.25–inf from the centres, 5 off it)."""
     P, ok = _interior(scene, starts, n)
     d = np.full(ok.shape, np.inf)
     for cov in scene.coverings:
