@@ -1,7 +1,6 @@
 """Preflight: every job of a command line (each value of a sweep) composed and checked before any job runs: Hydra's
 composition, the schema (:func:`pipeline.config.check_schema`), the output paths and the stage's own cheap check, so
-that a bad input is one line and exit code 2 before any work. What the stage's check built, its run uses (:func:`prepared`).
-"""
+that a bad input is one line and exit code 2 before any work. What the stage's check built, its run uses (:func:`prepared`)."""
 
 from __future__ import annotations
 

@@ -2,8 +2,7 @@
 `X | None`, lists, tuples, mappings, dataclasses key by key, `Annotated[X, rule]` with the rules below) and raises one
 :class:`ConfigError` naming the key. A config node is checked against its target's annotations
 (:mod:`pipeline.config`); an object built from Python checks its arguments the same way (:func:`checked` on its
-class, :func:`check_fields` on a dataclass instance) and keeps only its cross-field rules.
-"""
+class, :func:`check_fields` on a dataclass instance) and keeps only its cross-field rules."""
 from __future__ import annotations
 
 import collections.abc
@@ -168,8 +167,7 @@ def _plural(words: str) -> str:
 
 
 def check_value(value, tp, path: str) -> None:
-    """`ConfigError(path, "must be <tp in words>, got <value>")` unless `value` fits the annotation `tp` (an element
-    or key inside it that does not fit: naming its own path)."""
+    """`ConfigError(path, "must be <tp in words>, got <value>")` unless `value` fits `tp` (an element: its own path)."""
     if not _fits(value, tp, path):
         raise ConfigError(path, f"must be {describe(tp)}, got {value!r}")
 
@@ -178,8 +176,8 @@ _ACCEPTED: set[tuple] = set()  # (annotation, value as JSON) pairs accepted in t
 
 
 def check_once(value, tp, path: str) -> None:
-    """:func:`check_value`, once per process for a plain (JSON) value and annotation: a value a config node's check
-    accepted is not checked again by the constructor it is passed to, nor by the next build of the node."""
+    """:func:`check_value`, once per process for a plain (JSON) value and annotation (the constructor a node's value
+    is passed to, or the node's next build, does not check it again)."""
     try:
         key = (tp, json.dumps(value, sort_keys=True))
         if key in _ACCEPTED:

@@ -706,3 +706,39 @@ def test_compose_turns_hydras_errors_into_one_config_error(overrides, field, rea
     with pytest.raises(ConfigError) as err:
         compose("train", overrides)
     assert err.value.field == field and reason in err.value.reason and "\n" not in str(err.value)
+
+
+def test_compose_composes_once_and_every_caller_gets_its_own_copy(monkeypatch):
+    """`pipeline.config.compose` runs Hydra once per name and group choices in a process; values (`key=value`) are set
+    on a deep copy by Hydra's own last step, so every call equals Hydra's composition of the same overrides byte for
+    byte, a caller's edit never reaches the next call, and an error is raised every time, never kept."""
+    import hydra
+    from omegaconf import OmegaConf, open_dict
+
+    from pipeline import config
+
+    calls = []
+    real = hydra.compose
+    monkeypatch.setattr(hydra, "compose", lambda **kw: calls.append(kw) or real(**kw))
+    config._composed.cache_clear()
+
+    def theirs(overrides):
+        with hydra.initialize_config_dir(version_base="1.3", config_dir=str(CONF_DIR)):
+            return OmegaConf.to_yaml(real(config_name="simulate", overrides=overrides))
+
+    a = config.compose("simulate", ["sim.horizon=7.0"])
+    with open_dict(a):  # edits, a new key among them, stay in this copy
+        a.sim.horizon, a.controller.extra = 99.0, None
+    b = config.compose("simulate", ["sim.horizon=7.0"])
+    assert len(calls) == 1 and b.sim.horizon == 7.0 and "extra" not in b.controller and b is not a
+    jobs = [["sim.horizon=8.0", "paths.root_dir=/tmp/r1"], ["controller.chi=1.5", "sim.seed=3"], []]
+    for job in jobs:  # values only: no composition more, and Hydra's config
+        assert OmegaConf.to_yaml(config.compose("simulate", job)) == theirs(job) and len(calls) == 1, job
+    for job in (["controller=smooth", "sim.horizon=8.0"], ["controller=smooth"], ["+sim.extra=1", "sim.horizon=2.0"]):
+        assert OmegaConf.to_yaml(config.compose("simulate", job, check=False)) == theirs(job), job
+    assert len(calls) == 3  # a group choice composes (once), and an added key goes to Hydra with every override
+    for _ in range(2):
+        for bad in (["sim.horizonn=1"], ["controller=nope"], ["sim.horizon=[1"]):
+            with pytest.raises(ConfigError):
+                config.compose("simulate", bad)
+    assert len(calls) == 5  # each bad group choice tried by Hydra each time (the bad value and parse: no composition)
