@@ -185,3 +185,39 @@ def test_a_ball_meets_exactly_the_cells_it_lists(x, y, rad, h, seed):
     dy = np.maximum(np.maximum(boxes[:, 2] - y, y - boxes[:, 3]), 0.0)
     assert (np.hypot(dx, dy) <= rad + 1e-6).all()
     assert (boxes[:, 1] >= x - rad - 1e-9).all() and (boxes[:, 0] <= x + rad + 1e-9).all()
+
+
+def test_arrival_bounds_follow_the_edges_after_the_seeds(monkeypatch):
+    """`win` takes a funnel's seed as it is (its node's edges not followed); once the window has won its successors
+    the edges may give less. After :func:`relax_frames` every node of `Win` whose successors all are in `Win` has a
+    bound at most its edges' frames plus their largest bound (the named tuning `wide_barrier`, cells of 1.5, ε = 0.5:
+    the window and the funnels both at work), more start cells fit the horizon than without it, and random accepted
+    points of the cells it brought under the horizon reach the goal disc by their new bound in the simulator."""
+    import pipeline.bracket.certify_loop as loop_mod
+    from pipeline.bracket.stage import objects
+    from pipeline.bracket.starts import start_cells
+    from pipeline.config import compose
+
+    scene, laws, bs, sim_cfg, camera, _, _, lost = objects(compose("bracket", ["tuning=wide_barrier"]))
+    law = laws["hybrid"]
+    n_frames = int(round(sim_cfg.horizon / camera.period))
+    kw = dict(h=1.5, angle=bs.angle, period=camera.period, goal_radius=bs.goal_radius, n_split=bs.n_split,
+              window=bs.window, frames=bs.frames, horizon=n_frames, lost=lost["hybrid"], funnels=True,
+              refine_half=10.0, refine_factor=4)
+    cert = certify(law, Uniform(0.5), **kw)
+    ab, W, F = cert.abstraction, cert.won, cert.node_frames
+    f = np.where(ab.multi, ab.frames, 1)
+    deg = np.diff(ab.indptr)
+    rows = np.flatnonzero(W & (deg > 0) & (F > 0))
+    worst = np.maximum.reduceat(F[ab.succ], ab.indptr[np.flatnonzero(deg > 0)])[np.searchsorted(np.flatnonzero(deg > 0), rows)]
+    assert (F[rows] <= f[rows] + worst + 1e-9).all(), (F[rows] - f[rows] - worst).max()
+    monkeypatch.setattr(loop_mod, "relax_frames", lambda ab, W, frames: frames)
+    loose = certify(law, Uniform(0.5), **kw)
+    assert (loose.won == W).all() and (F <= loose.node_frames).all()
+    starts = start_cells(scene, bs.start_cell)
+    ok, bound, _ = certified_starts(cert, starts)
+    before = certified_starts(loose, starts)[0]
+    assert ok[before].all() and (ok & ~before).sum() >= 2, (ok & ~before).sum()
+    cells = np.repeat(np.flatnonzero(ok & ~before), 6)
+    run_certified_points(scene, law, starts, cells, bound, horizon=sim_cfg.horizon, delta=bs.goal_radius,
+                         period=camera.period, eps=0.5, rng=np.random.default_rng(5), seed=11)

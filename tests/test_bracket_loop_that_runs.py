@@ -304,8 +304,9 @@ def run_certified_points(scene, law, starts, cells, bound, *, horizon, delta, pe
 
 @pytest.fixture(scope="module")
 def default_eps1():
-    """`make bracket`'s settings at ε = 1 (the hybrid law, the back vertex refined): the objects, the start cells and
-    the certificates with and without the bounds through sets of nodes (`bracket.directional`)."""
+    """`make bracket`'s settings at ε = 1 (the hybrid law, the back vertex refined) on cells of 1 (the default before
+    2026-12-06; at 0.75 the bounds through sets add no start cell at ε = 1): the objects, the start cells and the
+    certificates with and without the bounds through sets of nodes (`bracket.directional`)."""
     from pipeline.bracket.stage import objects
     from pipeline.bracket.starts import start_cells
     from pipeline.config import compose
@@ -313,7 +314,7 @@ def default_eps1():
     scene, laws, bs, sim_cfg, camera, _, _, lost = objects(compose("bracket", []))
     law = laws["hybrid"]
     n_frames = int(round(sim_cfg.horizon / camera.period))
-    kw = dict(h=bs.cell, angle=bs.angle, period=camera.period, goal_radius=bs.goal_radius, n_split=bs.n_split,
+    kw = dict(h=1.0, angle=bs.angle, period=camera.period, goal_radius=bs.goal_radius, n_split=bs.n_split,
               window=bs.window, frames=bs.frames, horizon=n_frames, lost=lost["hybrid"], funnels=True,
               refine_half=bs.refine, refine_factor=bs.refine_factor)
     certs = {d: certify(law, Uniform(1.0), directional=d, **kw) for d in (False, True)}

@@ -16,7 +16,7 @@ from pipeline.bracket.funnel import ball_max, node_funnels, run_funnels
 from pipeline.bracket.lost import LostFrames
 from pipeline.bracket.modes import initial_modes
 from pipeline.bracket.refine import FineWin, Refinement, refine
-from pipeline.bracket.winning import arrival_frames, certified_cells, win
+from pipeline.bracket.winning import arrival_frames, certified_cells, relax_frames, win
 from pipeline.control import HybridController, in_diamond
 
 
@@ -82,6 +82,7 @@ def certify(law, eps_world, *, h: float, angle: float, period: float, goal_radiu
         if fine.ok:
             W, stats, to_goal = refine(ab, W, stats, to_goal, fine, period, scene.p_T, seeds, directional)
             fine_win = FineWin(fine.fine, fine.frames)
+    to_goal = relax_frames(ab, W, to_goal) if seeds is not None or fine_win is not None else to_goal
     arrival = np.where(view, arrival_frames(ab, to_goal), np.inf)
     cert = certified_cells(ab, W, to_goal, horizon) & view
     corners = np.stack([boxes[:, [0, 2]], boxes[:, [1, 2]], boxes[:, [1, 3]], boxes[:, [0, 3]]], axis=1)

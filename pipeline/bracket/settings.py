@@ -47,7 +47,7 @@ class BracketSettings:
     eps: Annotated[list[NonNegative], NonEmpty()] = field(default_factory=lambda: [0.1, 0.25, 0.5])
     error_map: str | Annotated[list[str], NonEmpty(distinct=True)] | None = None
     error_map_kappa: NonNegative = 0.0
-    cell: Positive = 1.0
+    cell: Positive = 0.75
     angle: float = 45.0
     n_split: PositiveInt = 4
     window: PositiveInt = 12

@@ -181,6 +181,29 @@ def win(ab: Abstraction, period: float, p_T: np.ndarray,
     return W, stats, frames
 
 
+def relax_frames(ab: Abstraction, W: np.ndarray, frames: np.ndarray, max_rounds: int = 100_000) -> np.ndarray:
+    """Arrival bounds no larger than `frames` (:func:`win`'s, or after the funnels and the window), each still an upper
+    bound: from a node of `Win` whose successors are all in `Win`, every run is in one of them after `f(v)` frames, so
+    `f(v) + max_s frames(s)` bounds it too, and the smaller of two bounds is one. Iterated to the fixed point (each
+    round from sound bounds gives sound bounds). It matters where a node's bound came from another argument: a
+    funnel's seed is taken as it is in :func:`win` (its node's own edges not followed), and may be longer than the
+    path through the node's edges once the window has won its successors."""
+    n = len(W)
+    f = np.where(ab.multi, ab.frames, 1).astype(float) if ab.multi is not None else np.ones(n)
+    deg = np.diff(ab.indptr)
+    has = np.flatnonzero(deg > 0)
+    pick = np.flatnonzero(W[has] & (frames[has] > 0))  # positions in `has` of the nodes to tighten
+    rows = has[pick]
+    out = frames.astype(float).copy()
+    for _ in range(max_rounds):
+        cand = f[rows] + np.maximum.reduceat(out[ab.succ], ab.indptr[has])[pick]
+        lower = cand < out[rows]
+        if not lower.any():
+            break
+        out[rows[lower]] = cand[lower]
+    return out
+
+
 def arrival_frames(ab: Abstraction, frames: np.ndarray) -> np.ndarray:
     """Per start cell, the largest arrival bound over the initial nodes it can have `(cells,)` (inf: one of them
     is not in `Win`; a cell without initial nodes: inf)."""
