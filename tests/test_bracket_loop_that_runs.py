@@ -13,6 +13,7 @@ import pytest
 from budget import examples  # tests/budget.py: more examples under make test-explore
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from shared import computed_once  # tests/shared.py: computed once per session, read by every xdist worker
 
 from pipeline.bracket.abstraction import Abstraction, Grid
 from pipeline.bracket.bounds import Uniform
@@ -303,7 +304,7 @@ def run_certified_points(scene, law, starts, cells, bound, *, horizon, delta, pe
 
 
 @pytest.fixture(scope="module")
-def default_eps1():
+def default_eps1(tmp_path_factory, worker_id):
     """`make bracket`'s settings at ε = 1 (the hybrid law, the back vertex refined) on cells of 1 (the default before
     2026-12-06; at 0.75 the bounds through sets add no start cell at ε = 1): the objects, the start cells and the
     certificates with and without the bounds through sets of nodes (`bracket.directional`)."""
@@ -317,7 +318,8 @@ def default_eps1():
     kw = dict(h=1.0, angle=bs.angle, period=camera.period, goal_radius=bs.goal_radius, n_split=bs.n_split,
               window=bs.window, frames=bs.frames, horizon=n_frames, lost=lost["hybrid"], funnels=True,
               refine_half=bs.refine, refine_factor=bs.refine_factor)
-    certs = {d: certify(law, Uniform(1.0), directional=d, **kw) for d in (False, True)}
+    certs = computed_once(tmp_path_factory, worker_id, "default_eps1",  # about a minute: once per session
+                          lambda: {d: certify(law, Uniform(1.0), directional=d, **kw) for d in (False, True)})
     return scene, law, bs, sim_cfg, camera, start_cells(scene, bs.start_cell), n_frames, certs
 
 
