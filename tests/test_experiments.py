@@ -24,33 +24,55 @@ def _cfg(tmp_path, *extra):
                                    *publish, *extra])
 
 
-def test_every_bundle_runs_in_one_multirun(tmp_path):
-    """`-m experiment=glob(*) debug=tiny` with a perfect map: every figure/table and index.md appear."""
+PAPER_FIGURES = {"perception_closeness": "fig1_perception_closeness", "sensitive_set": "fig2_sensitive_set",
+                 "coverings": "fig3_coverings", "scheme": "fig4_scheme",
+                 "leader_follower": "fig5_leader_follower_level_sets", "occlusion": "fig6_occlusion",
+                 "noise_failure": "fig7_robustness_noise_failure"}  # the paper's figures, in its order (issue 12)
+
+
+def _published(paper, bundles) -> str:
+    """index.md of a paper folder, checked for a section per bundle, a figure (pdf + png) per bundle, LaTeX tables."""
+    index = (paper / "index.md").read_text()
+    for exp in bundles:
+        assert f"## {exp} " in index, exp
+    figures = sorted(paper.glob("fig*.pdf"))
+    assert len(figures) >= len(bundles)
+    for f in figures:
+        assert f.with_suffix(".png").stat().st_size > 1000
+    for tex in paper.glob("tab*.tex"):
+        assert tex.read_text().startswith("\\begin{table}")
+    return index
+
+
+def test_the_papers_bundles_run_in_one_multirun_and_keep_its_order(tmp_path):
+    """`-m experiment=<the paper's seven bundles> debug=tiny` with a perfect map, in one multirun and one paper
+    folder: index.md lists fig1..fig7 in the paper's order whatever order the jobs ran in (the other bundles:
+    `test_every_other_bundle_runs_at_debug_tiny`)."""
     proc = subprocess.run(
-        [sys.executable, "-m", "pipeline.experiments", "-m", "experiment=glob(*)", "debug=tiny", "perception=oracle",
-         "publish=true", f"paths.paper_dir={tmp_path / 'paper'}", f"paths.outputs_dir={tmp_path / 'out'}",
-         f"hydra.sweep.dir={tmp_path / 'sweep'}"],
+        [sys.executable, "-m", "pipeline.experiments", "-m", f"experiment={','.join(sorted(PAPER_FIGURES))}",
+         "debug=tiny", "perception=oracle", "publish=true", f"paths.paper_dir={tmp_path / 'paper'}",
+         f"paths.outputs_dir={tmp_path / 'out'}", f"hydra.sweep.dir={tmp_path / 'sweep'}"],
         cwd=REPO_ROOT, capture_output=True, text=True, timeout=600,
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
-    index = (tmp_path / "paper" / "index.md").read_text()
-    for exp in BUNDLES:
-        assert f"## {exp} " in index, exp
-    figures = sorted((tmp_path / "paper").glob("fig*.pdf"))
-    assert len(figures) >= len(BUNDLES) - 1  # monte_carlo has a table and a figure; all others a figure
-    for f in figures:
-        assert f.with_suffix(".png").stat().st_size > 1000
-    for tex in (tmp_path / "paper").glob("tab*.tex"):
-        assert tex.read_text().startswith("\\begin{table}")
-    # the paper's numbering (issue 12): fig1..fig7 are the paper's figures, in its order, then ours
-    paper_figs = ["fig1_perception_closeness", "fig2_sensitive_set", "fig3_coverings", "fig4_scheme",
-                  "fig5_leader_follower_level_sets", "fig6_occlusion", "fig7_robustness_noise_failure"]
-    stems = {f.stem for f in figures}
-    assert set(paper_figs) <= stems, sorted(stems)
-    assert all(int(s.split("_")[0][3:]) >= 8 for s in stems - set(paper_figs)), sorted(stems)
-    positions = [index.index(f"{stem}.png") for stem in paper_figs]
+    index = _published(tmp_path / "paper", PAPER_FIGURES)
+    stems = {f.stem for f in (tmp_path / "paper").glob("fig*.pdf")}
+    assert stems == set(PAPER_FIGURES.values()), sorted(stems)
+    positions = [index.index(f"{stem}.png") for stem in PAPER_FIGURES.values()]
     assert positions == sorted(positions)  # index.md lists them in the paper's order
     assert "paper Fig. 4" in index and (tmp_path / "paper" / "anim6_occlusion.gif").stat().st_size > 10_000
+
+
+@pytest.mark.parametrize("bundle", [b for b in BUNDLES if b not in PAPER_FIGURES])
+def test_every_other_bundle_runs_at_debug_tiny(tmp_path, bundle):
+    """Every bundle beyond the paper's figures runs at `debug=tiny` with a perfect map and publishes its figure,
+    numbered after the paper's seven (fig8 on)."""
+    from pipeline.experiments.stage import run
+
+    run(_cfg(tmp_path, f"experiment={bundle}", "debug=tiny", "perception=oracle"))
+    _published(tmp_path / "paper", [bundle])
+    stems = [f.stem for f in (tmp_path / "paper").glob("fig*.pdf")]
+    assert all(int(s.split("_")[0][3:]) >= 8 for s in stems), stems
 
 
 def test_noise_failure_perfect_map_succeeds(tmp_path):
@@ -110,8 +132,8 @@ def test_tables_carry_the_raw_metrics_and_cache_redraws(tmp_path):
 def test_determinism_same_config_same_numbers(tmp_path):
     from pipeline.experiments.stage import run
 
-    a = run(_cfg(tmp_path / "a", "experiment=noise_failure", "perception=oracle"))["results"]
-    b = run(_cfg(tmp_path / "b", "experiment=noise_failure", "perception=oracle"))["results"]
+    a = run(_cfg(tmp_path / "a", "experiment=noise_failure", "perception=oracle", "debug=tiny"))["results"]
+    b = run(_cfg(tmp_path / "b", "experiment=noise_failure", "perception=oracle", "debug=tiny"))["results"]
     pd.testing.assert_frame_equal(a.tables["metrics"], b.tables["metrics"])
     np.testing.assert_array_equal(a.arrays["foll_p"], b.arrays["foll_p"])
 
