@@ -228,3 +228,46 @@ def test_a_start_nearest_K_falsifies_a_cell_whose_centre_arrives():
     # the counterexample starts at the point nearest K: the searches from the centre (tried first) found nothing
     assert (cols["map_x"][0], cols["map_y"][0]) == tuple(near[0])
     assert np.hypot(*(paths[-1, 0] - vertex_aims(scene, 0.0)[0])) < 1.5  # held at the vertex
+
+
+def test_the_uniform_falsifier_from_the_point_nearest_K_lowers_eps_hi_and_its_counterexample_replays():
+    """`bracket.axis_start`: make bracket's scene and hybrid law, the start cell `[-47.5, -42.5] x [2.5, 7.5]` beside
+    `K` and one in front of the obstacle. From the centre the bisection on `[0, 4]` (one step) ends at 4: at 2 every
+    adversary lets the run arrive; from the point nearest `K` the trap holds it at 2, so the cell's `ε_hi` falls to
+    2 with that start and path, and the trap adversary played again from there at 2 keeps the run from the goal
+    disc. The cell in front of the obstacle (no point behind it) is not tried; with `axis_start` below the point's
+    distance nothing is."""
+    from types import SimpleNamespace
+
+    from pipeline.bracket.falsifier import falsify
+    from pipeline.bracket.stage import axis_falsifier, objects
+    from pipeline.config import compose
+
+    scene, laws, bs, sim, camera, *_ = objects(compose("bracket", []))
+    loop = FrameLoop(scene, laws["hybrid"], period=camera.period, horizon=15.0, delta=bs.goal_radius)  # 15 s: cheaper
+    cells = np.array([[-47.5, -42.5, 2.5, 7.5], [20.0, 25.0, 2.5, 7.5]])
+    centres = cells.reshape(-1, 2, 2).mean(axis=2)
+    fast = Search(n_dirs=8, lookahead=4, commit=4, tail=8, n_random=1, trap_dirs=16)
+    br = falsify(loop, centres, 4.0, 1, fast)
+    assert br.eps_hi[0] == 4.0, br.eps_hi  # from the centre: broken at 4, not at 2
+    settings_ = SimpleNamespace(axis_start=5.0, eps_max=4.0, n_bisect=1)
+
+    def columns():
+        return {"eps_hi": br.eps_hi.copy(), "adversary": br.adversary.astype(object), "outcome":
+                np.full(2, "", dtype=object), "paths": br.path.copy(), "start": centres.copy()}
+
+    hi = columns()
+    info = axis_falsifier(loop, scene, cells, centres, np.array([True, True]), settings_, fast, hi)
+    assert info["starts"] == 1 and info["lowered"] == 1  # the cell in front of the obstacle is not tried
+    assert hi["eps_hi"][0] == 2.0 and hi["adversary"][0] == "trap" and hi["eps_hi"][1] == br.eps_hi[1]
+    start = hi["start"][0]
+    assert np.isclose(start[1], 2.5 + 5 / 18) and -47.5 < start[0] < -42.5  # the lattice point nearest K
+    np.testing.assert_array_equal(hi["paths"][0, 0], start)  # the counterexample's path starts there
+    again = run_adversary(loop, start[None], np.array([2.0]), "trap", fast)
+    assert again["outcome"][0] != REACHED
+    np.testing.assert_allclose(again["path"][-1, 0], hi["paths"][-1, 0])
+    assert np.hypot(*(again["path"][-1, 0] - scene.p_T)) > bs.goal_radius
+    quiet = columns()
+    settings_.axis_start = 2.5  # the point is 2.78 from K: beyond it
+    assert axis_falsifier(loop, scene, cells, centres, np.array([True, True]), settings_, fast, quiet)["starts"] == 0
+    assert quiet["eps_hi"][0] == 4.0

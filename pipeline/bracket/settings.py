@@ -41,7 +41,9 @@ class BracketSettings:
     through free space (:mod:`pipeline.bracket.funnel`); 0: the abstraction alone. `refine`: the half-width of a window
     around the back vertex where the abstraction runs on cells `refine_factor` times finer, edges over one frame
     (:mod:`pipeline.bracket.refine`); 0: off. `directional`: the window's arrival bounds also through sets of nodes
-    along which a direction decreases (:func:`pipeline.bracket.winning.directional_frames`)."""
+    along which a direction decreases (:func:`pipeline.bracket.winning.directional_frames`). `axis_start`: the
+    uniform falsifier also from each start cell's point nearest `K` where that point is within this distance of `K`
+    and nearer to it than the centre (the smaller `ε_hi` kept, its start in `hi_x, hi_y`); 0: off."""
 
     controllers: Annotated[list[Law], NonEmpty()] = field(default_factory=lambda: ["hybrid", "smooth", "cbf"])
     eps: Annotated[list[NonNegative], NonEmpty()] = field(default_factory=lambda: [0.1, 0.25, 0.5])
@@ -78,6 +80,7 @@ class BracketSettings:
     refine: NonNegative = 10.0
     refine_factor: Annotated[int, Range(ge=2, le=64)] = 8
     directional: bool = True
+    axis_start: NonNegative = 0.0
 
     def __post_init__(self):
         if self.commit > self.lookahead:

@@ -39,7 +39,7 @@ from pipeline.bracket.loop import OUTCOMES, REACHED, RUNNING, FrameLoop
 from pipeline.bracket.lost import LostFrames
 from pipeline.bracket.maps import camera_map_folder, error_map
 from pipeline.bracket.report import table
-from pipeline.bracket.starts import axis_starts, falsifier_starts, start_cells, worst_starts
+from pipeline.bracket.starts import axis_distance, axis_starts, falsifier_starts, start_cells, worst_starts
 from pipeline.config import build
 from pipeline.errors import ConfigError
 from pipeline.experiments.report import markdown_table
@@ -168,13 +168,17 @@ def bracket_rows(name, law, scene, bs, sim, camera, emap, starts, pmap=None, los
     adv, out = np.full(len(starts), "no start", dtype=object), np.full(len(starts), "", dtype=object)
     eps_hi[inside], adv[inside] = br.eps_hi, br.adversary
     out[inside] = [OUTCOMES[o] if np.isfinite(e) else "" for o, e in zip(br.outcome, br.eps_hi)]
+    paths = np.full((br.path.shape[0], len(starts), 2), np.nan)
+    paths[:, inside] = br.path
+    hi_start = np.where(inside[:, None], centres, np.nan)
+    if bs.axis_start > 0:  # the falsifier again from the points nearest K: the smaller ε_hi kept
+        stats["axis_falsifier"] = axis_falsifier(loop, scene, starts, centres, inside, bs, search, {
+            "eps_hi": eps_hi, "adversary": adv, "outcome": out, "paths": paths, "start": hi_start})
     rows = pd.DataFrame({"controller": name, "x0": starts[:, 0], "x1": starts[:, 1], "y0": starts[:, 2],
                          "y1": starts[:, 3], "start": ~no_start, "eps_lo": eps_lo, "funnel": funnel,
                          "arrival_bound": arrival,
                          "arrival_nominal": t_sim, "certified_map": by_map, "eps_hi": eps_hi, "adversary": adv,
-                         "outcome": out})
-    paths = np.full((br.path.shape[0], len(starts), 2), np.nan)
-    paths[:, inside] = br.path
+                         "outcome": out, "hi_x": hi_start[:, 0], "hi_y": hi_start[:, 1]})
     more = {}
     if emap is not None:
         t0 = time.perf_counter()
@@ -196,6 +200,25 @@ def bracket_rows(name, law, scene, bs, sim, camera, emap, starts, pmap=None, los
         if emap is not None:  # the map's ε̄ at error_map_kappa holds for every frame within that many levels
             rows["kappa_lo"] = np.where(by_map, bs.error_map_kappa, np.nan)
     return rows, stats, paths, more
+
+
+def axis_falsifier(loop: FrameLoop, scene, starts, centres, inside, bs, search: Search, hi: dict) -> dict:
+    """The uniform falsifier again from the start cells' points nearest `K` (:func:`.starts.axis_starts`) within
+    `bs.axis_start` of it and nearer than the centre; where it fails at a smaller `ε`, the columns `hi` (`eps_hi`,
+    `adversary`, `outcome`, `paths`, `start`: over all cells) take its counterexample. The hybrid law's trap on `K`
+    needs less error from a cell's edge nearest the axis (docs/bracket.md, "The start cells near the axis")."""
+    t0 = time.perf_counter()
+    near_k, d_k = axis_starts(scene, starts)
+    rows = np.flatnonzero(inside & (d_k <= bs.axis_start) & (d_k < axis_distance(scene, centres) - 1e-9))
+    lowered = np.zeros(0, int)
+    if rows.size:
+        bk = falsify(loop, near_k[rows], bs.eps_max, bs.n_bisect, search)
+        k = bk.eps_hi < hi["eps_hi"][rows]
+        lowered = rows[k]
+        hi["eps_hi"][lowered], hi["adversary"][lowered] = bk.eps_hi[k], bk.adversary[k]
+        hi["outcome"][lowered] = [OUTCOMES[o] for o in bk.outcome[k]]
+        hi["paths"][:, lowered], hi["start"][lowered] = bk.path[:, k], near_k[lowered]
+    return {"starts": int(len(rows)), "lowered": int(len(lowered)), "seconds": time.perf_counter() - t0}
 
 
 def map_rows(loop: FrameLoop, emap, search: Search, centres: np.ndarray, inside: np.ndarray, n_bisect: int,

@@ -79,13 +79,19 @@ def axis_starts(scene, starts: np.ndarray, n: int = 9) -> tuple[np.ndarray, np.n
     the vertex"): a run from a cell's edge nearest the axis needs less error to be held there than one from its
     centre (measured from 2.55 units off the axis: `ε_hi` 1.25–2.5 against 2.25–inf from the centres, 5 off it)."""
     P, ok = _interior(scene, starts, n)
-    d = np.full(ok.shape, np.inf)
-    for cov in scene.coverings:
-        a, b = cov.to_frame(P.reshape(-1, 2))
-        d = np.minimum(d, np.where(a < -cov.c, np.abs(b), np.inf).reshape(ok.shape))
-    d = np.where(ok, d, np.inf)
+    d = np.where(ok, axis_distance(scene, P.reshape(-1, 2)).reshape(ok.shape), np.inf)
     k = np.argmin(d, axis=1)
     return P[np.arange(len(P)), k], d[np.arange(len(P)), k]
+
+
+def axis_distance(scene, p: np.ndarray) -> np.ndarray:
+    """The distance `|b|` of points `(N, 2)` to the nearest obstacle's `K` (its axis behind it, `a < -c`), `inf` for
+    a point behind no obstacle `(N,)`."""
+    d = np.full(len(p), np.inf)
+    for cov in scene.coverings:
+        a, b = cov.to_frame(p)
+        d = np.minimum(d, np.where(a < -cov.c, np.abs(b), np.inf))
+    return d
 
 
 def behind_obstacles(df: pd.DataFrame, scene) -> tuple[np.ndarray, np.ndarray]:
