@@ -4,6 +4,8 @@ ordinary simulator (`pipeline.sim.simulate`) with this suite's own error signals
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import pytest
 from budget import examples  # tests/budget.py: more examples under make test-explore
@@ -92,6 +94,7 @@ def test_the_free_region_is_the_attraction_turned_by_at_most_turn(law):
     assert checked > 1000 and (turned > 100 or isinstance(law, CBFController)), (checked, turned)
 
 
+@functools.lru_cache(maxsize=4)  # the hybrid law's at 0.5 serves two tests (on one worker: computed once)
 def _funnel_cells(law, eps, funnels=True):
     from pipeline.bracket.stage import objects
     from pipeline.bracket.starts import start_cells
