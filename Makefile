@@ -62,6 +62,9 @@ bracket: $(STAMP) ## the closed loop bracketed: certified eps_lo and falsified e
 certify: $(STAMP) ## certified error maps: sound bounds of the perception error over cells (SPEC 5.1-5.3; docs/certify.md)
 	$(PY) -m pipeline.certify $(ARGS)
 
+certify-clouds: $(STAMP) ## certified error maps under clouds: eps_bar_delta per cell over the level's layouts (issue 44; docs/certify.md)
+	$(PY) -m pipeline.certify.clouds_cli $(ARGS)
+
 experiments: $(STAMP) ## every scenario of make paper (figures under outputs/side/<experiment>-<id>/; ARGS=publish=true: outputs/paper/)
 	$(PY) -m pipeline.experiments -m 'experiment=glob(*,exclude=[perception_generalisation,multi_*,unicycle*,dense_*,camera_attack_sweep,worst_cloud_sweep,geometry_margin_grid])' $(ARGS)
 
@@ -86,4 +89,4 @@ docs-check: $(STAMP) ## which map ids quoted in README.md and docs/*.md the curr
 clean: ## remove generated data and outputs (keeps .venv)
 	rm -rf data/datasets outputs/* && touch outputs/.gitkeep
 
-.PHONY: help setup run paper multi dagger generalisation learned simulate data verify-data train errormap certify bracket experiments test test-all bench lint docs-check clean
+.PHONY: help setup run paper multi dagger generalisation learned simulate data verify-data train errormap certify certify-clouds bracket experiments test test-all bench lint docs-check clean

@@ -16,7 +16,8 @@ What the loop does with a lost frame (:class:`pipeline.sim.closed_loop.SampledLo
 The first frame is always delivered (a vehicle starts with an estimate). The certificate then holds for every run
 with at most `L` consecutive losses; with independent losses of probability `p` per frame, a run of `N` frames has
 more with probability at most `(N - L) p^(L+1)` (a union bound over the windows of `L + 1` frames after the first):
-:func:`LostFrames.p_more`.
+:func:`LostFrames.p_more`. :func:`lost_frames` builds the model from the config and refuses, in one line, what it
+does not cover.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.bracket.abstraction import dilate
+from pipeline.errors import ConfigError
 
 
 @dataclass(frozen=True)
@@ -82,3 +84,41 @@ class Stale:
             raise ValueError("a stale bound needs the grid cells")
         grown = dilate(boxes, np.full(len(boxes), self.reach))
         return self.inner(points, boxes=grown, frame=frame) + self.add
+
+
+def lost_frames(sim, camera, bs, laws) -> dict[str, LostFrames]:
+    """The loop's frame model as the proof takes it (SPEC §5.6, :mod:`pipeline.bracket.lost`); what it does not
+    model is refused in one line: the continuous-time loop, frames lost or gated with no bound on consecutive losses
+    (`bracket.lost_frames`), a law without a speed limit when frames may be lost."""
+    if sim.model != "sampled":
+        raise ConfigError("sim.model", f"the bracket proves the sampled loop (a frame every camera.period, the input "
+                                       f"held between frames), not sim.model={sim.model}: sampled here")
+    losing = camera.p_fail > 0 or camera.gate is not None
+    if losing and bs.lost_frames == 0:
+        cause = f"camera.p_fail = {camera.p_fail:g}" if camera.p_fail > 0 else f"camera.gate = {camera.gate:g}"
+        field_ = "camera.p_fail" if camera.p_fail > 0 else "camera.gate"
+        raise ConfigError(field_, f"{cause} loses frames, and the proof assumes every frame arrives unless "
+                                  "bracket.lost_frames (the most consecutive lost frames it covers) is >= 1")
+    if camera.predict and camera.innovation is not None:
+        _check_innovation(camera.innovation, bs)
+    if bs.lost_frames > 0 and any(law.u_max is None for law in laws.values()):
+        raise ConfigError("bracket.lost_frames", "a law without a speed limit (u_max null): a lost frame's input "
+                                                 "comes from a frame taken an unbounded distance away")
+    return {name: LostFrames(bs.lost_frames, camera.predict, camera.period,
+                             0.0 if law.u_max is None else max(law.u_max, law.push_speed), camera.drift,
+                             camera.max_drift) for name, law in laws.items()}
+
+
+def _check_innovation(innovation: float, bs) -> None:
+    """`camera.innovation` rejects no frame of a loop whose frames err by at most `innovation / 2` (two of them
+    differ by at most twice that; `pipeline.sim.closed_loop.DeadReckoning`): the proof covers it where every `ε` it
+    reasons about is that small, a per-cell map bound not at all."""
+    largest = max([*bs.eps, bs.eps_max])
+    if bs.error_map is not None:
+        raise ConfigError("camera.innovation", "the proof covers the innovation check for a uniform ε only (frames "
+                                               "within innovation / 2 are never rejected), not with "
+                                               "bracket.error_map: camera.innovation=null")
+    if innovation < 2 * largest:
+        raise ConfigError("camera.innovation", f"the proof covers a loop that rejects no frame within its ε: needs "
+                                               f">= 2 x the largest ε tried ({largest:g}: bracket.eps, "
+                                               f"bracket.eps_max) = {2 * largest:g}, got {innovation:g}")

@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -12,6 +13,7 @@ from omegaconf import DictConfig
 
 from pipeline import lineage, tracking
 from pipeline.bracket.bounds import CellTable, Finest
+from pipeline.bracket.clouds import check_alone, clouds_folder, clouds_table
 from pipeline.config import build
 from pipeline.errors import ConfigError, DatasetError
 
@@ -20,17 +22,15 @@ def error_map(cfg: DictConfig, bs, arena=None, camera_folder: Path | None = None
     """`bracket.error_map` as `ε̄` (None: not set): a cell table, or a certify output (folder, name-id or id)
     resolved as every tracked input, its table at `bracket.error_map_kappa`; several (a list): :class:`Finest`,
     all of one perception map, the map of `camera_folder` when given (`bracket.camera_map`). `arena`: the camera's
-    (a grid cell's bound is over its part inside)."""
+    (a grid cell's bound is over its part inside). A clouds output (under `certified_dir/clouds`): its
+    `eps_bar_delta`, alone (:mod:`.clouds`)."""
     refs = [bs.error_map] if isinstance(bs.error_map, str) else list(bs.error_map or [])
     tables, models = [], set()
     for item in refs:
-        ref = Path(item)
-        if not ref.is_file():
-            try:
-                ref = tracking.resolve(Path(cfg.paths.certified_dir), item, kind="certified error map",
-                                       field="bracket.error_map", expected=lambda name: None)
-            except DatasetError as err:
-                raise ConfigError("bracket.error_map", str(err)) from None
+        ref = _resolve(Path(cfg.paths.certified_dir), item)
+        if (clouds := clouds_folder(ref)) is not None:
+            check_alone(len(refs), bs.error_map_kappa, camera_folder)
+            return clouds_table(clouds, arena)
         summary = (ref if ref.is_dir() else ref.parent) / "summary.json"
         if summary.is_file():  # a certify output: the perception map it bounds
             models.add(str(json.loads(summary.read_text())["model"]["id"]))
@@ -51,6 +51,25 @@ def error_map(cfg: DictConfig, bs, arena=None, camera_folder: Path | None = None
                                                    f"bracket.camera_map is {camera_folder.name} (id {camera_id}): the "
                                                    "camera's certified budget must be the attacked map's")
     return tables[0] if len(tables) == 1 else Finest(tables)
+
+
+def _resolve(root: Path, item: str) -> Path:
+    """A table file as it is; else a certify output (folder, name-id or id) under `root`, or a clouds output under
+    `root/clouds`; one line naming `bracket.error_map` when neither holds it."""
+    ref = Path(item)
+    if ref.is_file():
+        return ref
+    try:
+        return tracking.resolve(root, item, kind="certified error map", field="bracket.error_map",
+                                expected=lambda name: None)
+    except DatasetError as err:
+        if (root / "clouds").is_dir() and os.sep not in item and not ref.is_dir():
+            try:
+                return tracking.resolve(root / "clouds", item, kind="certified error map under clouds",
+                                        field="bracket.error_map", expected=lambda name: None)
+            except DatasetError:
+                pass
+        raise ConfigError("bracket.error_map", str(err)) from None
 
 
 def camera_map_folder(cfg: DictConfig, bs, scene) -> Path | None:

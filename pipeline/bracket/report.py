@@ -18,6 +18,7 @@ def table(df: pd.DataFrame, scene, eps_list, with_map: bool = False) -> pd.DataF
     column, the share falsified through the camera and the median `κ_hi` on `K`; with the error map, the shares
     certified, falsified (a run failed with errors within the map's `ε̄`; the median scale of that bound still
     failing) and undecided with its bound, and the cells both certified and falsified with it (a soundness bug);
+    with a clouds table (:mod:`.clouds`), the median and least bound on a certified start's failure over the clouds;
     with the map and the camera, the start cells certified through the camera (`κ_lo`: with the map's `ε̄` at
     the pixel budget `bracket.error_map_kappa`, every frame within `κ_lo` levels of the rendered one) and those of
     them the camera falsifier breaks at a budget `κ_hi <= κ_lo` (a soundness bug of the chain: map bound,
@@ -58,6 +59,9 @@ def table(df: pd.DataFrame, scene, eps_list, with_map: bool = False) -> pd.DataF
             off = (f" ({int((und & ~np.isfinite(g.map_eps_start)).sum())} start where the map has no bound)"
                    if "map_eps_start" in g else "")
             row["map ε̄: undecided"] = f"{und.mean():.0%}{off}"
+        if with_map and "clouds_p_fail" in g:  # a clouds table's ε̄_δ: the run's failure over the clouds
+            p = g.clouds_p_fail[g.certified_map.astype(bool)]
+            row["clouds: P(fail) per run <="] = f"{p.median():.3g} (best {p.min():.3g})" if len(p) else "-"
         row["soundness: ε_lo > ε_hi"] = int((g.eps_lo > g.eps_hi).sum())
         if with_map and "falsified_map" in g:  # a certified start that a run within the map's bound breaks
             row["soundness: map certified and falsified"] = int((cm & fm).sum())

@@ -5,7 +5,8 @@ cell holds starts the simulator accepts: not wholly in the diamond), `eps_lo` (t
 within `sim.horizon`; NaN: none), `funnel` (certified there through its sub-squares' funnels,
 :mod:`pipeline.bracket.funnel`), `arrival_bound` (seconds: the certified arrival bound at that ε),
 `arrival_nominal` (seconds: the falsifier's start without error), `certified_map` (certified with the error map's
-ε̄, when given; then also `falsified_map`, a run from the cell's centre failed under every adversary's error within
+ε̄, when given; then also `map_arrival_bound` (seconds, that certificate's), `clouds_p_fail` (a clouds table's
+`eps_bar_delta`: the bound on the run's failure over the clouds, :mod:`pipeline.bracket.clouds`), `falsified_map`, a run from the cell's centre failed under every adversary's error within
 the map's `ε̄` at each frame's position, `map_adversary` and `map_scale_hi`, the smallest scale of that bound found
 failing), `eps_hi` (inf: no failure found up to `eps_max`; NaN: no start), the adversary and outcome of the
 counterexample; with
@@ -36,7 +37,7 @@ from pipeline.bracket.bounds import Uniform
 from pipeline.bracket.certify_loop import certify, funnel_starts
 from pipeline.bracket.falsifier import ADVERSARIES, MapBound, Search, attack, falsify
 from pipeline.bracket.loop import OUTCOMES, REACHED, RUNNING, FrameLoop
-from pipeline.bracket.lost import LostFrames
+from pipeline.bracket.lost import LostFrames, lost_frames
 from pipeline.bracket.maps import camera_map_folder, error_map
 from pipeline.bracket.report import table
 from pipeline.bracket.starts import axis_distance, axis_starts, falsifier_starts, start_cells, worst_starts
@@ -71,44 +72,6 @@ def objects(cfg: DictConfig):
     lost = lost_frames(sim, camera, bs, laws)
     cam_folder = camera_map_folder(cfg, bs, scene)
     return scene, laws, bs, sim, camera, error_map(cfg, bs, scene.bounds, cam_folder), cam_folder, lost
-
-
-def lost_frames(sim, camera, bs, laws) -> dict[str, LostFrames]:
-    """The loop's frame model as the proof takes it (SPEC §5.6, :mod:`pipeline.bracket.lost`); what it does not
-    model is refused in one line: the continuous-time loop, frames lost or gated with no bound on consecutive losses
-    (`bracket.lost_frames`), a law without a speed limit when frames may be lost."""
-    if sim.model != "sampled":
-        raise ConfigError("sim.model", f"the bracket proves the sampled loop (a frame every camera.period, the input "
-                                       f"held between frames), not sim.model={sim.model}: sampled here")
-    losing = camera.p_fail > 0 or camera.gate is not None
-    if losing and bs.lost_frames == 0:
-        cause = f"camera.p_fail = {camera.p_fail:g}" if camera.p_fail > 0 else f"camera.gate = {camera.gate:g}"
-        field_ = "camera.p_fail" if camera.p_fail > 0 else "camera.gate"
-        raise ConfigError(field_, f"{cause} loses frames, and the proof assumes every frame arrives unless "
-                                  "bracket.lost_frames (the most consecutive lost frames it covers) is >= 1")
-    if camera.predict and camera.innovation is not None:
-        _check_innovation(camera.innovation, bs)
-    if bs.lost_frames > 0 and any(law.u_max is None for law in laws.values()):
-        raise ConfigError("bracket.lost_frames", "a law without a speed limit (u_max null): a lost frame's input "
-                                                 "comes from a frame taken an unbounded distance away")
-    return {name: LostFrames(bs.lost_frames, camera.predict, camera.period,
-                             0.0 if law.u_max is None else max(law.u_max, law.push_speed), camera.drift,
-                             camera.max_drift) for name, law in laws.items()}
-
-
-def _check_innovation(innovation: float, bs) -> None:
-    """`camera.innovation` rejects no frame of a loop whose frames err by at most `innovation / 2` (two of them
-    differ by at most twice that; `pipeline.sim.closed_loop.DeadReckoning`): the proof covers it where every `ε` it
-    reasons about is that small, a per-cell map bound not at all."""
-    largest = max([*bs.eps, bs.eps_max])
-    if bs.error_map is not None:
-        raise ConfigError("camera.innovation", "the proof covers the innovation check for a uniform ε only (frames "
-                                               "within innovation / 2 are never rejected), not with "
-                                               "bracket.error_map: camera.innovation=null")
-    if innovation < 2 * largest:
-        raise ConfigError("camera.innovation", f"the proof covers a loop that rejects no frame within its ε: needs "
-                                               f">= 2 x the largest ε tried ({largest:g}: bracket.eps, "
-                                               f"bracket.eps_max) = {2 * largest:g}, got {innovation:g}")
 
 
 def check(cfg: DictConfig) -> None:
@@ -146,11 +109,12 @@ def bracket_rows(name, law, scene, bs, sim, camera, emap, starts, pmap=None, los
         funnel[ok] = by_funnel[ok]
         stats[f"eps={eps:g}"] = {**cert.stats, "certified_starts": int(ok.sum()), "by_funnel": int(by_funnel.sum()),
                                  "seconds": time.perf_counter() - t0}
-    by_map = np.full(len(starts), False)
+    by_map, map_frames = np.full(len(starts), False), None
     if emap is not None:
         cert = certify(law, emap, **kw)
-        by_map, _, _, by_funnel = funnel_starts(cert, law, starts, **fw)
-        stats["error_map"] = {**cert.stats, "certified_starts": int(by_map.sum()), "by_funnel": int(by_funnel.sum())}
+        by_map, map_frames, _, by_funnel = funnel_starts(cert, law, starts, **fw)
+        stats["error_map"] = {**cert.stats, "certified_starts": int(by_map.sum()), "by_funnel": int(by_funnel.sum()),
+                              **({"clouds": emap.clouds.summary()} if hasattr(emap, "clouds") else {})}
     if lost is not None and lost.max_lost > 0:
         stats["lost_frames"] = {"model": lost.describe(), "p_fail": camera.p_fail,
                                 "p_more_per_run": lost.p_more(camera.p_fail, loop.n_frames)}
@@ -182,13 +146,12 @@ def bracket_rows(name, law, scene, bs, sim, camera, emap, starts, pmap=None, los
     more = {}
     if emap is not None:
         t0 = time.perf_counter()
-        worst, b_worst = worst_starts(scene, starts, MapBound(emap))
-        worst[~(b_worst > MapBound(emap)(centres))] = np.nan  # only where the bound is larger than at the centre
-        near_k, d_k = axis_starts(scene, starts)
-        near_k[~np.isfinite(d_k)] = np.nan
-        alts = (worst, near_k)
-        cols, more["map"] = map_rows(loop, emap, search, centres, inside, bs.map_bisect, (br.eps_hi, br.path), alts)
+        cols, more["map"] = map_columns(loop, scene, starts, emap, search, centres, inside, bs, (br.eps_hi, br.path))
         stats["map_falsifier_seconds"] = time.perf_counter() - t0
+        frames = np.where(by_map, np.maximum(map_frames, 1), np.nan)  # the map's certified arrival bound
+        rows["map_arrival_bound"] = frames * camera.period
+        if hasattr(emap, "clouds"):  # a clouds table: the run's failure over the clouds (pipeline.bracket.clouds)
+            rows["clouds_p_fail"] = emap.clouds.p_fail(frames, lost.max_lost if lost else 0, camera.p_fail)
         for k, v in cols.items():
             rows[k] = v
     if pmap is not None:
@@ -200,6 +163,16 @@ def bracket_rows(name, law, scene, bs, sim, camera, emap, starts, pmap=None, los
         if emap is not None:  # the map's ε̄ at error_map_kappa holds for every frame within that many levels
             rows["kappa_lo"] = np.where(by_map, bs.error_map_kappa, np.nan)
     return rows, stats, paths, more
+
+
+def map_columns(loop: FrameLoop, scene, starts, emap, search: Search, centres, inside, bs, uniform):
+    """:func:`map_rows` from the cells' centres, then where the map's bound is largest
+    (:func:`.starts.worst_starts`, where it is larger than at the centre), then the points nearest `K`."""
+    worst, b_worst = worst_starts(scene, starts, MapBound(emap))
+    worst[~(b_worst > MapBound(emap)(centres))] = np.nan  # only where the bound is larger than at the centre
+    near_k, d_k = axis_starts(scene, starts)
+    near_k[~np.isfinite(d_k)] = np.nan
+    return map_rows(loop, emap, search, centres, inside, bs.map_bisect, uniform, (worst, near_k))
 
 
 def axis_falsifier(loop: FrameLoop, scene, starts, centres, inside, bs, search: Search, hi: dict) -> dict:
@@ -318,6 +291,7 @@ def bracket_id(cfg: DictConfig, bs, emap, cam_folder: Path | None = None) -> tup
              "bracket": {**tracking.to_plain(cfg.bracket), "error_map": None, "camera_map": None},
              "camera_map": None if cam_folder is None else cam_folder.name,
              "error_map": None if emap is None else hashlib.sha256(np.ascontiguousarray(emap.cells).tobytes()).hexdigest(),
+             "clouds": getattr(emap, "clouds", None) and emap.clouds.summary(),
              "code": tracking.code_version(*CODE)}
     return tracking.content_id(parts), {**parts, "error_map_ref": bs.error_map, "camera_map_ref": bs.camera_map}
 

@@ -1,0 +1,108 @@
+"""The certified error map under clouds as the bracket's `ε̄` (issue 44; docs/bracket.md, "Under clouds").
+
+The clouds app (`python -m pipeline.certify.clouds_cli`, docs/certify.md "Under clouds") writes a tracked folder,
+`<paths.certified_dir>/clouds/<map>_<level>-<id>/`, whose `table.csv` gives per cell `P` of positions
+`eps_bar_delta(P)`: with confidence `1 - β` (per cell), a frame at any position of `P` rendered under a fresh layout of
+the level's cloud process is within `eps_bar_delta(P)` of the truth with probability `>= 1 - δ`. Read as `ε̄`
+(`bracket.error_map=<that folder, its name-id or its table.csv>`), the certificate's conclusion becomes a statement in
+probability over the clouds, per start certified with it (`bracket.csv`'s `clouds_p_fail`):
+
+    P(the run fails) <= F δ  (+ the lost frames' `(F - L) p^(L+1)` when `camera.p_fail > 0`)
+
+with `F` the start's certified arrival bound in frames (`map_arrival_bound / T_s`): a run whose every frame lies
+within its cell's bound is a run the abstraction covers, so it arrives within `F` frames; before that, each frame's
+layout is drawn afresh, independently of where the run is, so a union bound over those `F` frames bounds the chance
+that any of them leaves its cell's bound. It holds given the Clopper-Pearson statements of the cells the run passes;
+each holds at confidence `1 - β`, and all the table's `n` cells together at `1 - n β` at least (Bonferroni:
+`certificate.json`'s `clouds.joint_confidence`, 0 when vacuous). This is the honest first version; docs/certify.md
+("What the bracket cannot read from this table yet") says what is better: one statistic per layout over the whole
+region (a single confidence), and `δ` small enough that `F δ` says something (at `δ = 0.01` a run of 100 frames is
+bounded by 1).
+
+Not read: the gated column (`eps_bar_delta_gated` bounds the frames the gate keeps, but how many it drops in a row
+is not bounded by the table; the ungated bound read here holds for every frame, kept or dropped). Refused in one
+line: a pixel budget `κ > 0` (the clouds app certifies `κ = 0`), a clouds table beside other tables (the smallest of two bounds that each hold with probability
+`1 - δ` holds with `1 - 2δ` only), and the camera falsifier's `κ_lo` (it is a clean-image certificate).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from pipeline import tracking
+from pipeline.bracket.bounds import CellTable
+from pipeline.errors import ConfigError
+
+SUMMARY = "clouds.json"
+
+
+def clouds_folder(ref: Path) -> Path | None:
+    """The clouds output `ref` names (its folder, or its `table.csv`), None when it is not one."""
+    folder = ref if ref.is_dir() else ref.parent
+    if not (folder / SUMMARY).is_file() or (ref.is_file() and ref.name != "table.csv"):
+        return None
+    return folder
+
+
+@dataclass(frozen=True)
+class CloudsBound:
+    """What a clouds table claims (module docstring): per cell, within `eps_bar_delta` with probability `>= 1 - delta`
+    per frame at confidence `confidence`, for perception map `map_id` under cloud level `level`."""
+
+    map_id: str
+    level: str
+    layouts: int
+    delta: float
+    confidence: float
+    cells: int
+
+    @property
+    def joint_confidence(self) -> float:
+        """Every cell's statement at once (Bonferroni), 0 when vacuous."""
+        return max(0.0, 1.0 - self.cells * (1.0 - self.confidence))
+
+    def p_fail(self, frames: np.ndarray, max_lost: int = 0, p_lost: float = 0.0) -> np.ndarray:
+        """The bound on a run's failure over the clouds, per start of certified arrival bound `frames` (NaN: not
+        certified): `F δ`, plus `(F - L) p^(L+1)` for frames lost with probability `p_lost`, at most 1."""
+        f = np.asarray(frames, float)
+        lost = np.maximum(f - max_lost, 0.0) * p_lost ** (max_lost + 1) if p_lost > 0 else 0.0
+        return np.minimum(1.0, f * self.delta + lost)
+
+    def summary(self) -> dict:
+        return {**asdict(self), "joint_confidence": self.joint_confidence,
+                "per_run": "P(fail) <= F delta (+ the lost frames' (F - L) p^(L+1)), F the certified arrival bound in "
+                           "frames, given the statements of the cells the run passes (each at `confidence`)"}
+
+
+def clouds_table(folder: Path, arena=None) -> CellTable:
+    """The clouds output's table as a :class:`CellTable` of `eps_bar_delta`, with its claim as `.clouds`."""
+    summary = json.loads((folder / SUMMARY).read_text())
+    table = pd.read_csv(folder / "table.csv", float_precision="round_trip")
+    table.columns = [c.strip().lstrip("# ") for c in table.columns]
+    if "eps_bar_delta" not in table.columns:
+        raise ConfigError("bracket.error_map", f"{folder.name}/table.csv has no eps_bar_delta column")
+    out = CellTable(table.rename(columns={"eps_bar_delta": "eps_bar"}), arena=arena)
+    model = (tracking.read_manifest(folder).get("inputs") or {}).get("model")
+    out.clouds = CloudsBound(map_id=str(model), level=str(summary["occlusion"]), layouts=int(summary["layouts"]),
+                             delta=float(summary["delta"]), confidence=float(summary["confidence"]),
+                             cells=len(table))
+    out.name = f"clouds {out.clouds.level}: eps_bar_delta (delta {out.clouds.delta:g})"
+    return out
+
+
+def check_alone(n_refs: int, kappa: float, camera_folder) -> None:
+    """A clouds table is read alone, at `κ = 0`, without the camera's `κ_lo` (module docstring), or one line."""
+    if n_refs > 1:
+        raise ConfigError("bracket.error_map", "a clouds table is read alone: the smallest of bounds that each hold with "
+                                               "probability 1 - delta holds with less")
+    if kappa > 0:
+        raise ConfigError("bracket.error_map_kappa", f"the clouds table certifies kappa 0 (clean pixels under the "
+                                                     f"clouds), got {kappa:g}")
+    if camera_folder is not None:
+        raise ConfigError("bracket.camera_map", "the camera falsifier's kappa_lo is a clean-image certificate, not one "
+                                                "under clouds: null with a clouds table")
