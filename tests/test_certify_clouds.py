@@ -263,6 +263,9 @@ def test_an_all_transparent_layout_is_the_clean_bound_exactly(camera, keypoint):
 
 # ---- the Hydra app: bad settings are one line (exit 2) before any work; a tiny run writes its table and summary
 def test_the_clouds_app_checks_its_settings_and_runs_tiny(tiny_maps, tmp_path):
+    from pipeline.bracket.maps import (
+        error_map,  # the bracket reads the output as its ε̄ (pipeline.bracket.clouds)
+    )
     from pipeline.certify.clouds_cli import check
     from pipeline.certify.clouds_run import run
     from pipeline.cli import compose
@@ -284,8 +287,6 @@ def test_the_clouds_app_checks_its_settings_and_runs_tiny(tiny_maps, tmp_path):
     assert summary["cells"] == 2 and summary["layouts"] == 3 and summary["sampled"]["violations"] == 0
     table = np.loadtxt(summary["path"] / "table.csv", delimiter=",", skiprows=1)
     assert table.shape == (2, 9) and (table[:, 4] > 0).all()
-    from pipeline.bracket.maps import error_map  # the bracket reads the output as its ε̄ (pipeline.bracket.clouds)
-
     emap = error_map(SimpleNamespace(paths=SimpleNamespace(certified_dir=str(tmp_path / "certified"))),
                      SimpleNamespace(error_map=summary["path"].name, error_map_kappa=0.0))
     np.testing.assert_array_equal(emap.cells, table[:, :5])
