@@ -19,17 +19,19 @@ TINY = ["bracket.cell=2.0", "bracket.start_cell=20", "bracket.eps=[0.1]", "brack
         "bracket.controllers=[hybrid]"]
 
 
-def clouds_output(root, eps, delta=0.01, model="m1", cell=2.0, name="occluded_keypoint_heavy"):
+def clouds_output(root, eps, delta=0.01, model="m1", cell=2.0, name="occluded_keypoint_heavy", gate=None):
     """A clouds output as `pipeline.certify.clouds_run` writes it (its own writer and a tracked folder), over the
-    default arena in cells of `cell` with `eps_bar_delta = eps(x, y)` at their centres."""
+    default arena in cells of `cell` with `eps_bar_delta = eps(x, y)` at their centres (with `gate`: the gated
+    columns too, `eps_bar_delta_gated` a tenth of it)."""
     from pipeline.certify.clouds_run import write
 
     xs, ys = np.arange(-50.0, 50.0, cell), np.arange(-30.0, 30.0, cell)
     cells = np.array([[x, x + cell, y, y + cell] for x in xs for y in ys])
     e = np.array([eps(x + cell / 2, y + cell / 2) for x, _, y, _ in cells], float)
-    arrays = {"eps_bar_delta": e, "share": np.ones(len(e)), "violation_cp": np.full(len(e), delta), "eps_clear": e}
+    arrays = {"eps_bar_delta": e, "share": np.ones(len(e)), "violation_cp": np.full(len(e), delta), "eps_clear": e,
+              "eps_bar_delta_gated": e / 10, "flagged_share": np.full(len(e), 0.5), "undecided_share": np.zeros(len(e))}
     summary = {"map": f"occluded_keypoint-{model}", "occlusion": "heavy", "cells": len(e), "layouts": 299,
-               "delta": delta, "confidence": 0.95}
+               "delta": delta, "confidence": 0.95, **({"gated": {"gate": gate}} if gate is not None else {})}
     id_ = tracking.content_id(summary, e.tolist())
     with tracking.tracked_output(root / "clouds", name, id_, {"recipe": summary, "inputs": {"model": model}}) as tmp:
         write(tmp, cells, arrays, summary)
@@ -94,3 +96,33 @@ def test_the_bracket_bounds_each_certified_run_s_failure_over_the_clouds_by_F_de
     other = compose("bracket", [*args, f"bracket.error_map={clouds_output(tmp_path / 'd', lambda x, y: 0.1)}"])
     _, _, bs, _, _, emap, cam, _ = objects(other)
     assert emap.clouds.delta == 0.01 and bracket_id(other, bs, emap, cam)[0] != out["path"].name.split("-")[-1]
+
+
+def test_the_gated_column_is_read_for_a_loop_that_drops_what_the_table_flags(tmp_path):
+    """`bracket.error_map_gated`: the table's `eps_bar_delta_gated`, for a loop gated at most at the table's gate and
+    losing frames (`bracket.lost_frames`); a loop gated higher or not at all, a table certified without a gate, or the
+    key without a clouds table: one line naming the field."""
+    from pipeline.bracket.stage import objects
+
+    root = tmp_path
+    gated, plain = (clouds_output(root / k, lambda x, y: 2.0, gate=g) for k, g in (("g", 0.56), ("p", None)))
+    base = [*TINY, f"paths.outputs_dir={root}", "bracket.error_map_gated=true", "bracket.lost_frames=2"]
+    box = np.array([[10.5, 11.5, 0.5, 1.5]])
+    emap = objects(compose("bracket", [*base, f"bracket.error_map={gated}", "camera.gate=0.5"]))[5]
+    assert emap(box[:, [0, 2]], box)[0] == pytest.approx(0.2) and emap.clouds.gate == 0.56
+    assert "dropped in a row" in emap.clouds.summary()["per_run"]
+    ungated = objects(compose("bracket", [*TINY, f"paths.outputs_dir={root}", f"bracket.error_map={gated}"]))[5]
+    assert ungated(box[:, [0, 2]], box)[0] == 2.0 and ungated.clouds.gate is None
+    for args, field in (([f"bracket.error_map={gated}", "camera.gate=0.6"], "camera.gate"),
+                        ([f"bracket.error_map={gated}", "bracket.lost_frames=0", "camera.gate=0.5"], "camera.gate"),
+                        ([f"bracket.error_map={plain}", "camera.gate=0.5"], "bracket.error_map_gated")):
+        with pytest.raises(ConfigError) as err:
+            objects(compose("bracket", [*base, *args]))
+        assert err.value.field == field, err.value
+    clean = root / "m-aaa"
+    clean.mkdir()
+    pd.DataFrame([[0.0, 1.0, 0.0, 1.0, 0.5]], columns=["x0", "x1", "y0", "y1", "eps_bar"]).to_csv(
+        clean / "table.csv", index=False)
+    with pytest.raises(ConfigError) as err:
+        objects(compose("bracket", [*base, f"bracket.error_map={clean / 'table.csv'}", "camera.gate=0.5"]))
+    assert err.value.field == "bracket.error_map_gated"

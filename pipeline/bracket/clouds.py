@@ -19,9 +19,13 @@ each holds at confidence `1 - β`, and all the table's `n` cells together at `1 
 region (a single confidence), and `δ` small enough that `F δ` says something (at `δ = 0.01` a run of 100 frames is
 bounded by 1).
 
-Not read: the gated column (`eps_bar_delta_gated` bounds the frames the gate keeps, but how many it drops in a row
-is not bounded by the table; the ungated bound read here holds for every frame, kept or dropped). Refused in one
-line: a pixel budget `κ > 0` (the clouds app certifies `κ = 0`), a clouds table beside other tables (the smallest of two bounds that each hold with probability
+With `bracket.error_map_gated` the table's gated column is read instead: `eps_bar_delta_gated(P)` holds for a frame
+with probability `>= 1 - δ` or the frame is flagged, that is, surely dropped by a loop whose `camera.gate` is at most
+the table's gate (required, with `bracket.lost_frames >= 1`, the drops being lost frames of the proof). Then `F δ`
+bounds the failures of the runs with at most `L` frames dropped in a row: the table bounds how often a frame is
+flagged from below, not how many are dropped in a row (`certificate.json` says so). Refused in one line: the gated
+column without a gate in the loop or above the table's, a table without one, a pixel budget `κ > 0` (the clouds app
+certifies `κ = 0`), a clouds table beside other tables (the smallest of two bounds that each hold with probability
 `1 - δ` holds with `1 - 2δ` only), and the camera falsifier's `κ_lo` (it is a clean-image certificate).
 """
 
@@ -60,6 +64,7 @@ class CloudsBound:
     delta: float
     confidence: float
     cells: int
+    gate: float | None = None  # the gated column: frames whose predicted error is surely above it are dropped
 
     @property
     def joint_confidence(self) -> float:
@@ -74,24 +79,35 @@ class CloudsBound:
         return np.minimum(1.0, f * self.delta + lost)
 
     def summary(self) -> dict:
+        given = "" if self.gate is None else ", for the runs with at most L frames dropped in a row (not bounded here)"
         return {**asdict(self), "joint_confidence": self.joint_confidence,
                 "per_run": "P(fail) <= F delta (+ the lost frames' (F - L) p^(L+1)), F the certified arrival bound in "
-                           "frames, given the statements of the cells the run passes (each at `confidence`)"}
+                           f"frames, given the statements of the cells the run passes (each at `confidence`){given}"}
 
 
-def clouds_table(folder: Path, arena=None) -> CellTable:
-    """The clouds output's table as a :class:`CellTable` of `eps_bar_delta`, with its claim as `.clouds`."""
+def clouds_table(folder: Path, arena=None, gated: bool = False, camera_gate: float | None = None) -> CellTable:
+    """The clouds output's table as a :class:`CellTable` of `eps_bar_delta` (`gated`: `eps_bar_delta_gated`, for a
+    loop gated at `camera_gate`), with its claim as `.clouds`; one line naming the field where it would not hold."""
     summary = json.loads((folder / SUMMARY).read_text())
     table = pd.read_csv(folder / "table.csv", float_precision="round_trip")
     table.columns = [c.strip().lstrip("# ") for c in table.columns]
-    if "eps_bar_delta" not in table.columns:
-        raise ConfigError("bracket.error_map", f"{folder.name}/table.csv has no eps_bar_delta column")
-    out = CellTable(table.rename(columns={"eps_bar_delta": "eps_bar"}), arena=arena)
+    column = "eps_bar_delta_gated" if gated else "eps_bar_delta"
+    gate = (summary.get("gated") or {}).get("gate")
+    if gated and (gate is None or column not in table.columns):
+        raise ConfigError("bracket.error_map_gated", f"{folder.name} was certified without a gate (clouds.gate): it "
+                                                     "has no gated column")
+    if gated and (camera_gate is None or camera_gate > float(gate)):
+        raise ConfigError("camera.gate", f"the gated column drops the frames whose predicted error is surely above "
+                                         f"{float(gate):g} (the table's gate): the loop's gate must be at most that, got "
+                                         f"{camera_gate}")
+    if column not in table.columns:
+        raise ConfigError("bracket.error_map", f"{folder.name}/table.csv has no {column} column")
+    out = CellTable(table.rename(columns={column: "eps_bar"})[["x0", "x1", "y0", "y1", "eps_bar"]], arena=arena)
     model = (tracking.read_manifest(folder).get("inputs") or {}).get("model")
     out.clouds = CloudsBound(map_id=str(model), level=str(summary["occlusion"]), layouts=int(summary["layouts"]),
                              delta=float(summary["delta"]), confidence=float(summary["confidence"]),
-                             cells=len(table))
-    out.name = f"clouds {out.clouds.level}: eps_bar_delta (delta {out.clouds.delta:g})"
+                             cells=len(table), gate=float(gate) if gated else None)
+    out.name = f"clouds {out.clouds.level}: {column} (delta {out.clouds.delta:g})"
     return out
 
 

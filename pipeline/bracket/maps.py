@@ -30,7 +30,8 @@ def error_map(cfg: DictConfig, bs, arena=None, camera_folder: Path | None = None
         ref = _resolve(Path(cfg.paths.certified_dir), item)
         if (clouds := clouds_folder(ref)) is not None:
             check_alone(len(refs), bs.error_map_kappa, camera_folder)
-            return clouds_table(clouds, arena)
+            gated = bool(getattr(bs, "error_map_gated", False))
+            return clouds_table(clouds, arena, gated, cfg.camera.gate if gated else None)
         summary = (ref if ref.is_dir() else ref.parent) / "summary.json"
         if summary.is_file():  # a certify output: the perception map it bounds
             models.add(str(json.loads(summary.read_text())["model"]["id"]))
@@ -42,6 +43,9 @@ def error_map(cfg: DictConfig, bs, arena=None, camera_folder: Path | None = None
     if len(models) > 1:
         raise ConfigError("bracket.error_map", f"the tables bound different perception maps ({', '.join(sorted(models))}):"
                                                " the smallest bound per cell holds for one map only")
+    if getattr(bs, "error_map_gated", False):
+        raise ConfigError("bracket.error_map_gated", "reads a clouds output's gated column (make certify-clouds); "
+                                                     "bracket.error_map names none")
     if not tables:
         return None
     if camera_folder is not None and models:  # the camera's κ_lo is the certificate of the map it attacks
