@@ -600,7 +600,7 @@ def test_paper_keeps_its_maps_when_a_quick_experiment_trains_another(tmp_path):
             "certify=[clean_keypoint]",
             f"args.certify={q(['cell=2.0', 'region=[[30.0,46.0],[-6.0,6.0]]', 'kappas=[0.0]', 'samples=2', 'pgd_cells=2', 'pgd_steps=2'])}",
             "bracket=[wide_barrier]", "bracket_map=clean_keypoint",
-            f"args.bracket={q(['bracket.controllers=[hybrid]', 'bracket.cell=4.0', 'bracket.start_cell=20', 'bracket.eps=[0.1]', 'bracket.n_bisect=0', 'bracket.n_dirs=8', 'bracket.tail=4', 'bracket.lookahead=4', 'bracket.commit=4', 'sim.horizon=8'])}",
+            f"args.bracket={q(['bracket.controllers=[hybrid]', 'bracket.cell=4.0', 'bracket.start_cell=20', 'bracket.eps=[0.1]', 'bracket.n_bisect=0', 'bracket.n_dirs=8', 'bracket.tail=4', 'bracket.lookahead=4', 'bracket.commit=4', 'sim.horizon=8', 'bracket.refine=0', 'bracket.funnel_split=0'])}",
             f"args.experiments={q(['debug=tiny'])}", "learned=[imitate]",
             f"args.imitate={q(['imitation.agents=2', 'imitation.rounds=0', 'imitation.epochs=1', 'imitation.max_frames=4', 'model.hidden=8'])}",
             f"args.learned={q(['learned.agents=2', 'learned.near_k=2', 'learned.agents_list=[hybrid,imitated]', 'learned.attack_list=[imitated]', 'learned.clouds_list=[]', 'learned.cloud_attack_list=[]', 'learned.attack_steps=1', 'sim.horizon=1', 'learned.grid=[5,4]'])}",
