@@ -89,10 +89,10 @@ def test_sweep_smooth_stalls_hybrid_does_not(tmp_path):
     from pipeline.experiments.stage import run
 
     out = run(_cfg(tmp_path, "experiment=robustness_sweep", "perception=oracle", "scale=0.1",
-                   "experiment.eps=[0.5]", "experiment.disturbances=[adversarial]"))
+                   "experiment.eps=[0.5]", "experiment.disturbances=[adversarial]", "sim.horizon=12"))
     sweep = out["results"].tables["sweep"].set_index("controller")
-    assert sweep.loc["hybrid", "success_rate"] == 1.0
-    assert sweep.loc["smooth", "success_rate"] == 0.0
+    assert sweep.loc["hybrid", "success_rate"] == 1.0 and sweep.loc["hybrid", "stalled"] == 0.0
+    assert sweep.loc["smooth", "success_rate"] == 0.0 and sweep.loc["smooth", "stalled"] == 1.0  # stalled, not late
     assert sweep.loc["cbf", "success_rate"] <= 0.05
 
 
