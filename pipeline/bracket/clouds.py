@@ -15,7 +15,7 @@ layout is drawn afresh, independently of where the run is, so a union bound over
 that any of them leaves its cell's bound. It holds given the Clopper-Pearson statements of the cells the run passes;
 each holds at confidence `1 - β`, and all the table's `n` cells together at `1 - n β` at least (Bonferroni:
 `certificate.json`'s `clouds.joint_confidence`, 0 when vacuous). This is the honest first version; docs/certify.md
-("What the bracket cannot read from this table yet") says what is better: one statistic per layout over the whole
+("What the bracket reads from this table, and why it says little yet") says what is better: one statistic per layout over the whole
 region (a single confidence), and `δ` small enough that `F δ` says something (at `δ = 0.01` a run of 100 frames is
 bounded by 1).
 

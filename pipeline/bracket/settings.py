@@ -26,9 +26,9 @@ CameraAdversary = Literal["fixed", "mode_aware"]
 class BracketSettings:
     """What the bracket computes (docs/bracket.md): the certificate at each uniform `eps` (and at the certified
     error map's `ε̄` when `error_map` names its cell table, or several of one perception map: the smallest bound
-    per cell; a certify output's table at the pixel budget `error_map_kappa`; a clouds output's `eps_bar_delta`, or with
-    `error_map_gated` its gated column, the flagged frames dropped: :mod:`pipeline.bracket.clouds`) on cells of side `cell` in a frame rotated by
-    `angle` with edges over `frames` camera frames, and the falsifier from the centre of every start cell of side `start_cell`, bisecting `ε_hi` on
+    per cell; a certify output's table at the pixel budget `error_map_kappa`; a clouds output's `eps_bar_delta`, or
+    with `error_map_gated` its gated column, the flagged frames dropped: :mod:`pipeline.bracket.clouds`) on cells of
+    side `cell` in a frame rotated by `angle` with edges over `frames` camera frames, and the falsifier from the centre of every start cell of side `start_cell`, bisecting `ε_hi` on
     `[0, eps_max]` in `n_bisect` steps (its adversaries: :mod:`pipeline.bracket.falsifier`; the ``trap`` one aimed at the
     back vertex with `trap_dirs` directions within `trap_reach` of it, aiming `trap_offset` outside it; with
     `error_map` also within the map's own `ε̄`, the failing scale of that bound bisected in `map_bisect` steps); success is

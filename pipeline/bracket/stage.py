@@ -5,9 +5,9 @@ cell holds starts the simulator accepts: not wholly in the diamond), `eps_lo` (t
 within `sim.horizon`; NaN: none), `funnel` (certified there through its sub-squares' funnels,
 :mod:`pipeline.bracket.funnel`), `arrival_bound` (seconds: the certified arrival bound at that ε),
 `arrival_nominal` (seconds: the falsifier's start without error), `certified_map` (certified with the error map's
-ε̄, when given; then also `map_arrival_bound` (seconds, that certificate's), `clouds_p_fail` (a clouds table's
-`eps_bar_delta`: the bound on the run's failure over the clouds, :mod:`pipeline.bracket.clouds`), `falsified_map`, a run from the cell's centre failed under every adversary's error within
-the map's `ε̄` at each frame's position, `map_adversary` and `map_scale_hi`, the smallest scale of that bound found
+ε̄, when given; then also `map_arrival_bound` (seconds, that certificate's), `clouds_p_fail` (with a clouds table:
+the bound on the run's failure over the clouds, :mod:`pipeline.bracket.clouds`), `falsified_map`, a run from the
+cell's centre failed under every adversary's error within the map's `ε̄` at each frame's position, `map_adversary` and `map_scale_hi`, the smallest scale of that bound found
 failing), `eps_hi` (inf: no failure found up to `eps_max`; NaN: no start), the adversary and outcome of the
 counterexample; with
 `bracket.camera_map` also `kappa_hi` (the falsifier through the camera, pixel levels; inf: none up to `kappa_max`),
