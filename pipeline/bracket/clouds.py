@@ -89,8 +89,7 @@ def clouds_table(folder: Path, arena=None, gated: bool = False, camera_gate: flo
     """The clouds output's table as a :class:`CellTable` of `eps_bar_delta` (`gated`: `eps_bar_delta_gated`, for a
     loop gated at `camera_gate`), with its claim as `.clouds`; one line naming the field where it would not hold."""
     summary = json.loads((folder / SUMMARY).read_text())
-    table = pd.read_csv(folder / "table.csv", float_precision="round_trip")
-    table.columns = [c.strip().lstrip("# ") for c in table.columns]
+    table = pd.read_csv(folder / "table.csv", float_precision="round_trip")  # the app's header: no comment mark
     column = "eps_bar_delta_gated" if gated else "eps_bar_delta"
     gate = (summary.get("gated") or {}).get("gate")
     if gated and (gate is None or column not in table.columns):

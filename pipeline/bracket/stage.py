@@ -7,8 +7,8 @@ within `sim.horizon`; NaN: none), `funnel` (certified there through its sub-squa
 `arrival_nominal` (seconds: the falsifier's start without error), `certified_map` (certified with the error map's
 ε̄, when given; then also `map_arrival_bound` (seconds, that certificate's), `clouds_p_fail` (with a clouds table:
 the bound on the run's failure over the clouds, :mod:`pipeline.bracket.clouds`), `falsified_map`, a run from the
-cell's centre failed under every adversary's error within the map's `ε̄` at each frame's position, `map_adversary` and `map_scale_hi`, the smallest scale of that bound found
-failing), `eps_hi` (inf: no failure found up to `eps_max`; NaN: no start), the adversary and outcome of the
+cell's centre failed under every adversary's error within the map's `ε̄` at each frame's position, `map_adversary`
+and `map_scale_hi`, the smallest scale of that bound found failing), `eps_hi` (inf: no failure found up to `eps_max`; NaN: no start), the adversary and outcome of the
 counterexample; with
 `bracket.camera_map` also `kappa_hi` (the falsifier through the camera, pixel levels; inf: none up to `kappa_max`),
 `camera_adversary`, `camera_outcome`; with both maps `kappa_lo`, `bracket.error_map_kappa` where certified with the
