@@ -50,6 +50,33 @@ def test_enclosure_contains_every_sampled_held_input(law_cls):
                 assert (u[q == mode] @ DIRS.T <= h[mode][q == mode] + 1e-9).all()
 
 
+@pytest.mark.parametrize("law_cls", LAWS)
+def test_blocks_of_the_supports_and_of_the_cell_hits_change_no_bit(law_cls, monkeypatch):
+    """`saturated_support` and `cell_hits` work in blocks that stay in the cache: blocks of 1, 3 and 7 rows give
+    the bits of one block over every row (a block that loses its rows' alignment, or whose one-row product takes
+    BLAS's vector path, would differ), and the supports are those of one product over all points."""
+    import pipeline.bracket.abstraction as abstraction
+    import pipeline.bracket.inputs as inputs
+
+    rng = np.random.default_rng(4)
+    law = law_cls(SCENE)
+    boxes = _boxes(rng, 301)
+    grid = Grid.over([[-52.0, 52.0], [-32.0, 32.0]], 1.0)
+    whole = {q: support(law, boxes, q, 0.05) for q in _modes(law)}
+    cen = boxes.reshape(-1, 2, 2).mean(axis=2)
+    polys = cen @ DIRS.T + rng.uniform(0.1, 3.0, (len(cen), 1))  # a polygon around each box's centre
+    hits = abstraction.cell_hits(grid, polys, 12)
+    X = rng.normal(size=(50, 16, 2)) * 3 + rng.normal(size=(50, 1, 2))
+    assert np.array_equal(inputs.points_support(X), (X @ DIRS.T).max(axis=-2))
+    for rows in (1, 3, 7):
+        monkeypatch.setattr(inputs, "SUPPORT_CHUNK", rows)
+        monkeypatch.setattr(abstraction, "HITS_CHUNK", rows)
+        for q in _modes(law):
+            assert np.array_equal(support(law, boxes, q, 0.05), whole[q])
+        assert all(np.array_equal(a, b) for a, b in zip(abstraction.cell_hits(grid, polys, 12), hits))
+    assert len(hits[0]) > len(cen)  # most polygons meet several cells
+
+
 def test_enclosure_is_not_the_whole_ball_far_from_the_obstacle():
     """Tightness: far from the diamond the polytope is a thin wedge around the attraction (not `|u| <= u_max`)."""
     law = HybridController(SCENE)

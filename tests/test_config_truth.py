@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 
@@ -589,7 +590,8 @@ def test_a_name_means_the_current_config_never_the_newest_folder(tmp_path):
 
 def test_paper_keeps_its_maps_when_a_quick_experiment_trains_another(tmp_path):
     """Issue 9, item 1, end to end on a tiny config: `make paper`, a quick 1-epoch training on the side, then
-    `make paper` again: every figure and the lock file keep the paper's own map id."""
+    `make paper` again: every figure and the lock file keep the paper's own map id. (And issue 46: the paper
+    folder's index.md links every file the run wrote.)"""
     root = tmp_path / "root"
     data = ["data.splits.train=256", "data.splits.val=32", "data.splits.test=32"]
     q = lambda xs: "[" + ",".join(f"'{x}'" for x in xs) + "]"  # noqa: E731 - quoted override list
@@ -639,6 +641,12 @@ def test_paper_keeps_its_maps_when_a_quick_experiment_trains_another(tmp_path):
     assert "| imitated | near K, pixel attack κ=1 | 2 |" in table
     index = (root / "outputs" / "paper" / "index.md").read_text()
     assert map_folder in index and "paper.lock.yaml" in index
+    # index.md is written last and links every file of the folder (the profile used to be written after it)
+    paper = root / "outputs" / "paper"
+    files = {str(p.relative_to(paper)) for p in paper.rglob("*") if p.is_file()} - {"index.md"}
+    assert {"paper.profile.md", "paper.profile.json", "tab_learned.md", "tab_bracket_wide_barrier.md"} <= files
+    links = set(re.findall(r"\]\(([^)]+)\)", index))
+    assert files <= links, sorted(files - links)
 
 
 def test_schema_rejects_wrong_types_in_instantiated_scenarios():

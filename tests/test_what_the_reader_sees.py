@@ -6,8 +6,6 @@ from __future__ import annotations
 
 import json
 import re
-import subprocess
-import sys
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -15,7 +13,6 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.cli import REPO_ROOT
 from pipeline.experiments.report import Outputs, publish, write_index
 
 
@@ -69,21 +66,6 @@ def test_index_explains_a_gap_in_the_figure_numbers(tmp_path):
     whole = tmp_path / "whole"
     _fill(whole, {"perception_closeness": "fig1_perception_closeness", "sensitive_set": "fig2_sensitive_set"})
     assert "not in this folder" not in write_index(whole).read_text()  # contiguous: nothing to explain
-
-
-def test_a_paper_run_indexes_every_file_it_writes(tmp_path):
-    """End to end on a small `make paper` (seconds: one tiny dataset, one experiment): index.md is written last and
-    links every file of the folder (the profile used to be written after it)."""
-    root = tmp_path / "root"
-    proc = subprocess.run([sys.executable, "-m", "pipeline.paper", "debug=tiny", f"paths.root_dir={root}",
-                           "datasets=[clean]", "maps=[]", "errormaps=[]", "certify=[]", "bracket=[]", "bracket_map=null", "experiments=[coverings]", "learned=[]",
-                           f"hydra.run.dir={tmp_path / 'run'}"],
-                          cwd=REPO_ROOT, capture_output=True, text=True, timeout=900)
-    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    paper = root / "outputs" / "debug" / "paper"
-    files = {str(p.relative_to(paper)) for p in paper.rglob("*") if p.is_file()} - {"index.md"}
-    assert {"paper.profile.md", "paper.profile.json", "paper.lock.yaml", "fig3_coverings.png"} <= files
-    assert files <= _links(paper / "index.md"), sorted(files - _links(paper / "index.md"))
 
 
 # ---------------------------------------------------------------------------------------- fig14's caption

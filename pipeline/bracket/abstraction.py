@@ -29,6 +29,7 @@ from pipeline.bracket.enclosures import DIRS, dist_range
 from pipeline.bracket.modes import Modes
 
 TOUCH = 1e-9  # world units: a set reaching a cell by less than this does not meet it (rounding of exact zeros)
+HITS_CHUNK = 2048  # candidate (set, cell) pairs per block of `cell_hits` (a few hundred kB: in the cache)
 
 
 @dataclass(frozen=True)
@@ -95,18 +96,23 @@ def cell_hits(grid: Grid, H: np.ndarray, window: int):
     overflow = (ixl < 0) | (iyl < 0) | (ixh >= grid.nx) | (iyh >= grid.ny)
     overflow |= (ixh - ixl >= window) | (iyh - iyl >= window) | ~np.isfinite(H).all(axis=1)
     ok = np.flatnonzero(~overflow)
-    ox, oy = np.meshgrid(np.arange(window), np.arange(window), indexing="ij")
-    ix = ixl[ok, None] + ox.ravel()[None]
-    iy = iyl[ok, None] + oy.ravel()[None]
-    r, w = np.nonzero((ix <= ixh[ok, None]) & (iy <= iyh[ok, None]))  # the cells of each set's bounding box
-    ix, iy = ix[r, w], iy[r, w]
+    steps = np.arange(window)  # the cells of each set's bounding box: offsets (w // window, w % window)
+    inside = (steps <= (ixh - ixl)[ok, None])[:, :, None] & (steps <= (iyh - iyl)[ok, None])[:, None, :]
+    r, w = np.nonzero(inside.reshape(len(ok), window * window))
+    ix, iy = ixl[ok][r] + w // window, iyl[ok][r] + w % window
     cx, cy = grid.x0 + (ix + 0.5) * grid.h, grid.y0 + (iy + 0.5) * grid.h
     rad = 0.5 * grid.h * (np.abs(DIRS[:, 0]) + np.abs(DIRS[:, 1]))
-    lo = cx[:, None] * DIRS[:, 0] + cy[:, None] * DIRS[:, 1] - rad  # min over the closed cell of d_j·x
     # half-open cells [x0, x1) x [y0, y1) and sets P + T_s U of half-open P: in every direction either the
     # cell's minimum or the set's maximum lies on an open side (see docs/bracket.md), so they meet only if
     # lo < H strictly (to TOUCH in floating point)
-    meets = (lo < H[ok[r]] - TOUCH).all(axis=-1)
+    H_touch = H[ok] - TOUCH
+    meets = np.empty(len(r), bool)
+    for a in range(0, len(r), HITS_CHUNK):  # in chunks that stay in the cache: 2x faster, the same bits
+        s = slice(a, a + HITS_CHUNK)
+        lo = cx[s, None] * DIRS[:, 0]  # min over the closed cell of d_j·x: cx d_x + cy d_y - rad
+        lo += cy[s, None] * DIRS[:, 1]
+        lo -= rad
+        meets[s] = (lo < H_touch[r[s]]).all(axis=-1)
     return ok[r[meets]], ix[meets] * grid.ny + iy[meets], overflow
 
 

@@ -29,6 +29,8 @@ from pipeline.bracket.enclosures import (
 from pipeline.bracket.pieces import MONOTONE_RHO, guard_floor, one_face, projected
 from pipeline.control import CBFController, HybridController, SmoothController
 
+SUPPORT_CHUNK = 4096  # point sets per block of `saturated_support` (a few MB of temporaries: in the cache)
+
 
 def law_kind(law) -> str:
     for cls, name in ((HybridController, "hybrid"), (SmoothController, "smooth"), (CBFController, "cbf")):
@@ -53,13 +55,38 @@ def raw_gap(X: np.ndarray, angles: bool = False):
     return (pointed, gap, mdir, lo, hi) if angles else (pointed, gap)
 
 
+def points_support(X: np.ndarray) -> np.ndarray:
+    """`max_p d_j·X_p` `(..., J)` of point sets `X` `(..., P, 2)`: one matrix product per point, folded by `maximum`
+    (the `(..., P, J)` products of `X @ DIRS.T` are never held: 2-6x faster, the same bits)."""
+    D = DIRS.T
+    flat = np.ascontiguousarray(X).reshape(-1, *X.shape[-2:])
+    if len(flat) < 2 or flat.shape[1] < 2:  # a one-row product takes BLAS's vector path (other bits): as it was
+        return (X @ D).max(axis=-2)
+    h = np.ascontiguousarray(flat[:, 0]) @ D
+    for p in range(1, flat.shape[1]):
+        np.maximum(h, np.ascontiguousarray(flat[:, p]) @ D, out=h)
+    return h.reshape(*X.shape[:-2], D.shape[1])
+
+
 def saturated_support(X: np.ndarray, u_max: float | None, rays: np.ndarray | None = None) -> np.ndarray:
     """Support values `(..., J)` of a polytope containing `sat(hull X)` (`X` `(..., P, 2)`): the hull's own part
-    inside the ball and the arc of the ball the hull's cone spans (`rays`: rows with an unbounded direction)."""
-    hX = X @ DIRS.T  # (..., P, J)
-    hX = hX.max(axis=-2)
+    inside the ball and the arc of the ball the hull's cone spans (`rays`: rows with an unbounded direction).
+    Computed in blocks of `SUPPORT_CHUNK` point sets that stay in the cache (row by row the same: 2x faster)."""
     if u_max is None:
-        return hX
+        return points_support(X)
+    lead = X.shape[:-2]
+    flat = X.reshape(-1, *X.shape[-2:])
+    flat_rays = None if rays is None else np.broadcast_to(rays, lead).reshape(-1)
+    out = np.empty((len(flat), len(DIRS)))
+    for a in range(0, len(flat), SUPPORT_CHUNK):
+        s = slice(a, a + SUPPORT_CHUNK)
+        out[s] = _saturated_block(flat[s], u_max, None if flat_rays is None else flat_rays[s])
+    return out.reshape(*lead, len(DIRS))
+
+
+def _saturated_block(X: np.ndarray, u_max: float, rays: np.ndarray | None) -> np.ndarray:
+    """:func:`saturated_support` of a block of point sets `(n, P, 2)`."""
+    hX = points_support(X)
     norm = np.hypot(X[..., 0], X[..., 1])
     pointed, gap, mdir, lo, hi = raw_gap(X, angles=True)
     meets_ball = ~pointed | (gap <= u_max)
