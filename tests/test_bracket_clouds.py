@@ -16,7 +16,8 @@ from pipeline.errors import ConfigError
 
 TINY = ["bracket.cell=2.0", "bracket.start_cell=20", "bracket.eps=[0.1]", "bracket.n_bisect=0", "bracket.n_dirs=8",
         "bracket.tail=4", "bracket.lookahead=4", "bracket.commit=4", "bracket.refine=0", "bracket.map_bisect=1",
-        "bracket.controllers=[hybrid]", "bracket.trap_dirs=8", "bracket.n_random=0"]
+        "bracket.controllers=[hybrid]", "bracket.trap_dirs=8", "bracket.n_random=0", "bracket.funnel_split=0",
+        "sim.horizon=12"]
 
 
 def clouds_output(root, eps, delta=0.01, model="m1", cell=2.0, name="occluded_keypoint_heavy", gate=None):
