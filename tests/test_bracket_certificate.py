@@ -56,7 +56,7 @@ def test_blocks_of_the_supports_and_of_the_cell_hits_change_no_bit(law_cls, monk
     the bits of one block over every row (a block that loses its rows' alignment, or whose one-row product takes
     BLAS's vector path, would differ), and the supports are those of one product over all points."""
     import pipeline.bracket.abstraction as abstraction
-    import pipeline.bracket.inputs as inputs
+    import pipeline.bracket.enclosures as enclosures
 
     rng = np.random.default_rng(4)
     law = law_cls(SCENE)
@@ -67,9 +67,9 @@ def test_blocks_of_the_supports_and_of_the_cell_hits_change_no_bit(law_cls, monk
     polys = cen @ DIRS.T + rng.uniform(0.1, 3.0, (len(cen), 1))  # a polygon around each box's centre
     hits = abstraction.cell_hits(grid, polys, 12)
     X = rng.normal(size=(50, 16, 2)) * 3 + rng.normal(size=(50, 1, 2))
-    assert np.array_equal(inputs.points_support(X), (X @ DIRS.T).max(axis=-2))
+    assert np.array_equal(enclosures.points_support(X), (X @ DIRS.T).max(axis=-2))
     for rows in (1, 3, 7):
-        monkeypatch.setattr(inputs, "SUPPORT_CHUNK", rows)
+        monkeypatch.setattr(enclosures, "SUPPORT_CHUNK", rows)
         monkeypatch.setattr(abstraction, "HITS_CHUNK", rows)
         for q in _modes(law):
             assert np.array_equal(support(law, boxes, q, 0.05), whole[q])

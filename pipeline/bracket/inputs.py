@@ -19,6 +19,8 @@ from pipeline.bracket.enclosures import (
     bp_barrier_g,
     dist_range,
     minkowski,
+    raw_gap,
+    saturated_support,
     sector_points,
     split,
     sq_dist_range,
@@ -29,79 +31,12 @@ from pipeline.bracket.enclosures import (
 from pipeline.bracket.pieces import MONOTONE_RHO, guard_floor, one_face, projected
 from pipeline.control import CBFController, HybridController, SmoothController
 
-SUPPORT_CHUNK = 4096  # point sets per block of `saturated_support` (a few MB of temporaries: in the cache)
-
 
 def law_kind(law) -> str:
     for cls, name in ((HybridController, "hybrid"), (SmoothController, "smooth"), (CBFController, "cbf")):
         if isinstance(law, cls):
             return name
     raise ValueError(f"no enclosure for {type(law).__name__}")
-
-
-def raw_gap(X: np.ndarray, angles: bool = False):
-    """`(pointed, gap)` of the hulls of point sets `X` `(..., P, 2)`: whether the points lie within an open half-plane
-    through the origin, and then a lower bound `gap` of the hull's distance to the origin (the least projection on
-    the bisector of their directions); with `angles`, also the mean direction and the points' angular range about it."""
-    norm = np.hypot(X[..., 0], X[..., 1])
-    mean = X.mean(axis=-2)
-    mdir = np.arctan2(mean[..., 1], mean[..., 0])
-    rel = wrap(np.arctan2(X[..., 1], X[..., 0]) - mdir[..., None])
-    lo, hi = rel.min(-1), rel.max(-1)
-    pointed = (hi - lo < np.pi - 1e-6) & (norm.min(-1) > 1e-12) & (np.hypot(mean[..., 0], mean[..., 1]) > 1e-12)
-    bis = mdir + 0.5 * (lo + hi)
-    w = np.stack([np.cos(bis), np.sin(bis)], -1)
-    gap = np.einsum("...pk,...k->...p", X, w).min(-1)  # a lower bound of dist(0, hull X) when pointed
-    return (pointed, gap, mdir, lo, hi) if angles else (pointed, gap)
-
-
-def points_support(X: np.ndarray) -> np.ndarray:
-    """`max_p d_j·X_p` `(..., J)` of point sets `X` `(..., P, 2)`: one matrix product per point, folded by `maximum`
-    (the `(..., P, J)` products of `X @ DIRS.T` are never held: 2-6x faster, the same bits)."""
-    D = DIRS.T
-    flat = np.ascontiguousarray(X).reshape(-1, *X.shape[-2:])
-    if len(flat) < 2 or flat.shape[1] < 2:  # a one-row product takes BLAS's vector path (other bits): as it was
-        return (X @ D).max(axis=-2)
-    h = np.ascontiguousarray(flat[:, 0]) @ D
-    for p in range(1, flat.shape[1]):
-        np.maximum(h, np.ascontiguousarray(flat[:, p]) @ D, out=h)
-    return h.reshape(*X.shape[:-2], D.shape[1])
-
-
-def saturated_support(X: np.ndarray, u_max: float | None, rays: np.ndarray | None = None) -> np.ndarray:
-    """Support values `(..., J)` of a polytope containing `sat(hull X)` (`X` `(..., P, 2)`): the hull's own part
-    inside the ball and the arc of the ball the hull's cone spans (`rays`: rows with an unbounded direction).
-    Computed in blocks of `SUPPORT_CHUNK` point sets that stay in the cache (row by row the same: 2x faster)."""
-    if u_max is None:
-        return points_support(X)
-    lead = X.shape[:-2]
-    flat = X.reshape(-1, *X.shape[-2:])
-    flat_rays = None if rays is None else np.broadcast_to(rays, lead).reshape(-1)
-    out = np.empty((len(flat), len(DIRS)))
-    for a in range(0, len(flat), SUPPORT_CHUNK):
-        s = slice(a, a + SUPPORT_CHUNK)
-        out[s] = _saturated_block(flat[s], u_max, None if flat_rays is None else flat_rays[s])
-    return out.reshape(*lead, len(DIRS))
-
-
-def _saturated_block(X: np.ndarray, u_max: float, rays: np.ndarray | None) -> np.ndarray:
-    """:func:`saturated_support` of a block of point sets `(n, P, 2)`."""
-    hX = points_support(X)
-    norm = np.hypot(X[..., 0], X[..., 1])
-    pointed, gap, mdir, lo, hi = raw_gap(X, angles=True)
-    meets_ball = ~pointed | (gap <= u_max)
-    leaves_ball = norm.max(-1) > u_max
-    theta_d = np.arctan2(DIRS[:, 1], DIRS[:, 0])
-    a1, a2 = (mdir + lo)[..., None], (mdir + hi)[..., None]
-    rel_d = wrap(theta_d - (mdir + 0.5 * (lo + hi))[..., None])
-    within = np.abs(rel_d) <= 0.5 * (hi - lo)[..., None]
-    arc = np.where(within, 1.0, np.maximum(np.cos(theta_d - a1), np.cos(theta_d - a2))) * u_max
-    inner = np.minimum(hX, u_max)
-    if rays is not None:  # an unbounded direction: the hull's support is unbounded where the cone faces d
-        inner = np.where(rays[..., None] & within, u_max, inner)
-    h = np.maximum(np.where(meets_ball[..., None], inner, -np.inf), np.where(leaves_ball[..., None], arc, -np.inf))
-    loose = np.minimum(u_max, np.maximum(0.0, hX))  # not pointed: sat(U) ⊂ conv(U ∪ {0}) ∩ ball
-    return np.where(pointed[..., None], h, loose)
 
 
 def _arc_support(centre, half, radius) -> np.ndarray:
