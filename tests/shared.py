@@ -1,10 +1,12 @@
-"""A value the xdist workers of one `make test` compute once: the first worker to ask computes and pickles it under
+"""Helpers several test modules share. `computed_once`: a value the xdist workers of one `make test` compute once: the first worker to ask computes and pickles it under
 the session's shared temporary folder (a file lock keeps the others waiting), the others read it. Without xdist
 (`worker_id == "master"`) it is computed in place: there is no session folder shared with nobody else."""
 
 from __future__ import annotations
 
 import pickle
+import re
+from pathlib import Path
 
 from filelock import FileLock
 
@@ -19,3 +21,8 @@ def computed_once(tmp_path_factory, worker_id: str, name: str, make):
         value = make()
         path.write_bytes(pickle.dumps(value))
         return value
+
+
+def index_links(index: Path) -> set[str]:
+    """The targets of the markdown links of a paper folder's `index.md`."""
+    return set(re.findall(r"\]\(([^)]+)\)", index.read_text()))

@@ -9,13 +9,13 @@ from __future__ import annotations
 
 import json
 import os
-import re
 import subprocess
 import sys
 
 import numpy as np
 import pytest
 import yaml
+from shared import index_links  # tests/shared.py
 
 from pipeline.cli import CONF_DIR, REPO_ROOT, compose
 from pipeline.errors import ConfigError
@@ -645,7 +645,7 @@ def test_paper_keeps_its_maps_when_a_quick_experiment_trains_another(tmp_path):
     paper = root / "outputs" / "paper"
     files = {str(p.relative_to(paper)) for p in paper.rglob("*") if p.is_file()} - {"index.md"}
     assert {"paper.profile.md", "paper.profile.json", "tab_learned.md", "tab_bracket_wide_barrier.md"} <= files
-    links = set(re.findall(r"\]\(([^)]+)\)", index))
+    links = index_links(paper / "index.md")
     assert files <= links, sorted(files - links)
 
 

@@ -5,19 +5,15 @@ and shows the strict and the practical success criterion."""
 from __future__ import annotations
 
 import json
-import re
 from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pandas as pd
 import pytest
+from shared import index_links  # tests/shared.py
 
 from pipeline.experiments.report import Outputs, publish, write_index
-
-
-def _links(index: Path) -> set[str]:
-    return set(re.findall(r"\]\(([^)]+)\)", index.read_text()))
 
 
 def _entry(exp: str, files: list[str]) -> dict:
@@ -45,7 +41,7 @@ def test_index_links_every_file_of_the_paper_folder(tmp_path):
     paper = tmp_path / "paper"
     _fill(paper, {"sample_and_hold": "fig12_sample_and_hold", "camera_attack": "fig14_camera_attack"})
     index = write_index(paper)
-    links = _links(index)
+    links = index_links(index)
     files = {str(p.relative_to(paper)) for p in paper.rglob("*") if p.is_file()} - {"index.md"}
     assert files <= links, f"not linked from index.md: {sorted(files - links)}"
     assert all((paper / link).is_file() for link in links), "a link to nothing"
