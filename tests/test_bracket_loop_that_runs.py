@@ -381,3 +381,21 @@ def test_funnels_hand_off_to_the_refined_window_and_those_starts_survive_the_sim
     cells = np.repeat(np.flatnonzero(new), 6)
     run_certified_points(scene, law, starts, cells, bound, horizon=sim_cfg.horizon, delta=bs.goal_radius,
                          period=camera.period, eps=1.0, rng=np.random.default_rng(5), seed=13)
+
+
+def test_polytopes_certify_start_cells_the_balls_do_not_and_those_starts_arrive_by_them(default_eps1):
+    """At ε = 1 (cells of 1, the back vertex refined) the start sub-squares' funnels that end within the guard's range
+    of a back face, gone on as polytopes, certify start cells behind the obstacle that the balls alone do not (none
+    lost), and 6 random accepted points of each, run by `pipeline.sim.simulate` under the suite's error signals
+    within ε, reach the goal disc by their certified bound without a collision."""
+    from pipeline.bracket.certify_loop import funnel_starts
+
+    scene, law, bs, sim_cfg, camera, starts, n_frames, certs = default_eps1
+    fw = (bs.funnel_split, camera.period, n_frames)
+    balls = funnel_starts(certs[True], law, starts, *fw)[0]
+    ok, bound, _, _ = funnel_starts(certs[True], law, starts, *fw, polytope_split=bs.polytope_split)
+    new = ok & ~balls
+    assert ok[balls].all() and new.sum() >= 2, new.sum()
+    cells = np.repeat(np.flatnonzero(new), 6)
+    run_certified_points(scene, law, starts, cells, bound, horizon=sim_cfg.horizon, delta=bs.goal_radius,
+                         period=camera.period, eps=1.0, rng=np.random.default_rng(41), seed=43)

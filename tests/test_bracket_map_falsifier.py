@@ -208,8 +208,8 @@ def test_a_start_where_the_maps_bound_is_largest_falsifies_the_cell():
 def test_a_start_nearest_K_falsifies_a_cell_whose_centre_arrives():
     """The hybrid law's trap lives on `K` (the axis behind the obstacle): make bracket's scene and law, a map whose
     bound is 1.75 everywhere, the start cell `[-47.5, -42.5] x [2.5, 7.5]` beside `K`. From its centre (2.5 units
-    farther from the axis) every adversary lets the run arrive; `axis_starts` gives the cell's accepted lattice point
-    nearest `K`, and from there the trap adversary holds the run at the vertex within the map's bound."""
+    farther from the axis) every adversary lets the run arrive; `axis_starts` gives the closed cell's accepted lattice
+    point nearest `K` (on its edge), and from there the trap adversary holds the run at the vertex within the map's bound."""
     from pipeline.bracket.stage import map_rows, objects
     from pipeline.bracket.starts import axis_starts
     from pipeline.config import compose
@@ -218,7 +218,7 @@ def test_a_start_nearest_K_falsifies_a_cell_whose_centre_arrives():
     loop = FrameLoop(scene, laws["hybrid"], period=camera.period, horizon=sim.horizon, delta=bs.goal_radius)
     cells = np.array([[-47.5, -42.5, 2.5, 7.5], [20.0, 25.0, 2.5, 7.5]])  # the second lies in front of the obstacle
     near, d = axis_starts(scene, cells)
-    assert np.isclose(near[0, 1], 2.5 + 5 / 18) and np.isclose(d[0], near[0, 1]) and -47.5 < near[0, 0] < -42.5
+    assert near[0, 1] == 2.5 and np.isclose(d[0], near[0, 1]) and -47.5 <= near[0, 0] <= -42.5  # the closed cell's edge
     assert np.isinf(d[1])  # no point of it behind an obstacle
     wide = _table([(-60.0, 60.0, -40.0, 40.0, 1.75)])
     fast = Search(n_dirs=8, lookahead=4, commit=4, tail=8, n_random=1, trap_dirs=16)
@@ -261,13 +261,13 @@ def test_the_uniform_falsifier_from_the_point_nearest_K_lowers_eps_hi_and_its_co
     assert info["starts"] == 1 and info["lowered"] == 1  # the cell in front of the obstacle is not tried
     assert hi["eps_hi"][0] == 2.0 and hi["adversary"][0] == "trap" and hi["eps_hi"][1] == br.eps_hi[1]
     start = hi["start"][0]
-    assert np.isclose(start[1], 2.5 + 5 / 18) and -47.5 < start[0] < -42.5  # the lattice point nearest K
+    assert start[1] == 2.5 and -47.5 <= start[0] <= -42.5  # the closed cell's lattice point nearest K (its edge)
     np.testing.assert_array_equal(hi["paths"][0, 0], start)  # the counterexample's path starts there
     again = run_adversary(loop, start[None], np.array([2.0]), "trap", fast)
     assert again["outcome"][0] != REACHED
     np.testing.assert_allclose(again["path"][-1, 0], hi["paths"][-1, 0])
     assert np.hypot(*(again["path"][-1, 0] - scene.p_T)) > bs.goal_radius
     quiet = columns()
-    settings_.axis_start = 2.5  # the point is 2.78 from K: beyond it
+    settings_.axis_start = 2.25  # the point is 2.5 from K: beyond it
     assert axis_falsifier(loop, scene, cells, centres, np.array([True, True]), settings_, fast, quiet)["starts"] == 0
     assert quiet["eps_hi"][0] == 4.0

@@ -15,9 +15,12 @@ from pipeline.bracket.frame import Frame
 from pipeline.bracket.funnel import ball_max, node_funnels, run_funnels
 from pipeline.bracket.lost import LostFrames
 from pipeline.bracket.modes import initial_modes
-from pipeline.bracket.refine import FineWin, Refinement, refine
+from pipeline.bracket.polytope import polytope_funnels
+from pipeline.bracket.refine import FineWin, Refinement, back_vertex, refine
 from pipeline.bracket.winning import arrival_frames, certified_cells, relax_frames, win
 from pipeline.control import HybridController, in_diamond
+
+POLYTOPE_BATCH = 64  # a start cell's polytope funnels run in batches of this many (its first failure ends the cell)
 
 
 @dataclass
@@ -125,10 +128,14 @@ def certified_starts(cert: Certificate, starts: np.ndarray) -> tuple[np.ndarray,
 
 
 def funnel_starts(cert: Certificate, law, starts: np.ndarray, split: int, period: float, horizon: float,
-                  lost: LostFrames | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                  lost: LostFrames | None = None,
+                  polytope_split: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """World start cells `(N, 4)`: `(certified, arrival frames, no_start, by_funnel)`: by the abstraction
     (:func:`certified_starts`, its verdict and bound kept) or, where it does not certify, sub-square by sub-square
-    by funnels or the abstraction (module docstring; `by_funnel` marks those). `split = 0`: the abstraction alone."""
+    by funnels or the abstraction (module docstring; `by_funnel` marks those). `split = 0`: the abstraction alone.
+    `polytope_split > 0`: a sub-square's funnel that ends without a hand-off goes on as a polytope
+    (:mod:`pipeline.bracket.polytope`, perceived sets cut into `polytope_split²` sub-boxes), start cell by start cell
+    where every other sub-square is certified."""
     ok, arrival, no_start = certified_starts(cert, starts)
     by_funnel = np.zeros(len(starts), bool)
     hybrid = isinstance(law, HybridController)
@@ -149,12 +156,54 @@ def funnel_starts(cert: Certificate, law, starts: np.ndarray, split: int, period
     reach = np.where(np.isfinite(eps0), rad0 + eps0, 1e9)  # the perceived box of frame 0
     boxes = np.stack([centres[:, 0] - reach, centres[:, 0] + reach, centres[:, 1] - reach, centres[:, 1] + reach], 1)
     modes = initial_modes(law, boxes) if hybrid else np.ones((len(centres), 1), bool)
-    funnel = np.where(modes.any(axis=1), -np.inf, np.inf)
+    per_mode = np.full(modes.shape, -np.inf)
+    ends = []
     for q in range(1, modes.shape[1] + 1):
         rows = np.flatnonzero(modes[:, q - 1] & ~sub_none & ~sub_ok)
-        funnel[rows] = np.maximum(funnel[rows], run_funnels(cert, law, centres[rows], rad0, q, period, horizon))
+        per_mode[rows, q - 1], (c, r, k) = run_funnels(cert, law, centres[rows], rad0, q, period, horizon, tails=True)
+        ends.append((rows, c, r, k))
+    if polytope_split > 0 and cert.frame.view_bounds(law.scene.bounds) is not None:
+        per_mode = _polytope_tails(cert, law, per_mode, ends, len(todo), sub_none | sub_ok, period, horizon,
+                                   polytope_split)
+    funnel = np.where(modes.any(axis=1), per_mode.max(axis=1), np.inf)
     per_sub = np.where(sub_none, -np.inf, np.where(sub_ok, sub_arr, funnel)).reshape(len(todo), -1)
     bound = per_sub.max(axis=1)
     won = np.isfinite(bound)
     ok[todo[won]], arrival[todo[won]], by_funnel[todo[won]] = True, bound[won], True
     return ok, arrival, no_start, by_funnel
+
+
+def _polytope_tails(cert, law, per_mode, ends, n_cells, settled, period, horizon, n_split):
+    """`per_mode` `(subs, modes)` with the funnels that ended without a hand-off gone on as polytopes
+    (:func:`pipeline.bracket.polytope.polytope_funnels`), start cell by start cell (`n_cells` blocks of sub-squares),
+    stopping at a cell's first polytope that fails (the cell needs them all)."""
+    per_mode = per_mode.copy()
+    subs = len(per_mode) // n_cells
+    vertex = cert.frame.to_world(back_vertex(cert.frame.scene(law.scene)))
+    tail = np.full((*per_mode.shape, 4), np.nan)  # per sub-square and mode: the ball (c, ρ) and its frame k
+    for q, (rows, c, r, k) in enumerate(ends):
+        tail[rows, q] = np.column_stack([c, r, k])
+    for i in range(n_cells):
+        block = slice(i * subs, (i + 1) * subs)
+        failed = (per_mode[block] == np.inf) & ~settled[block, None]
+        todo = [(q, np.flatnonzero(failed[:, q])) for q in range(per_mode.shape[1]) if failed[:, q].any()]
+        if not todo or any(np.isnan(tail[block][j, q, 3]).any() for q, j in todo):
+            continue  # certified already, or a funnel ended where no polytope goes on (the horizon)
+        got = []
+        for q, j in todo:  # in batches, nearest the back vertex first (where they fail): a failing cell stops early
+            t = tail[block][j, q]
+            order = np.argsort(np.hypot(*(t[:, :2] - vertex).T))
+            b = np.full(len(j), np.inf)
+            for s in range(0, len(j), POLYTOPE_BATCH):
+                r = order[s:s + POLYTOPE_BATCH]
+                b[r] = polytope_funnels(cert, law, t[r, :2], t[r, 2], t[r, 3], q + 1, period, horizon, n_split,
+                                        all_or_nothing=True)
+                if not np.isfinite(b[r]).all():
+                    break
+            got.append(b)
+            if not np.isfinite(b).all():
+                break
+        else:
+            for (q, j), b in zip(todo, got):
+                per_mode[i * subs + j, q] = b
+    return per_mode

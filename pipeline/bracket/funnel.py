@@ -118,15 +118,18 @@ def step_ball(c: np.ndarray, rad: np.ndarray, eps: np.ndarray, p_T: np.ndarray, 
 
 
 def run_funnels(cert, law, centres: np.ndarray, rad0: float, q: int, period: float,
-                horizon: float) -> np.ndarray:
+                horizon: float, tails: bool = False):
     """Per ball `B(centres_i, rad0)` (world) in mode `q`: the arrival bound in frames through its funnel (inf: none
-    hands off within the horizon)."""
+    hands off within the horizon). `tails`: also, per ball, where its funnel ended without a hand-off (the ball
+    `(c, ρ)` holding the runs at frame `k` in mode `q` before that frame's decision; `k` NaN where it handed off or
+    ran out of the horizon), for :mod:`pipeline.bracket.polytope` to go on from."""
     p_T, s = law.scene.p_T, law.u_max * period
     (ax0, ax1), (ay0, ay1) = law.scene.bounds
     arr = law.scene.arrays
     c, rad = np.array(centres, float), np.full(len(centres), float(rad0))
     best = np.full(len(c), np.inf)
     alive = np.ones(len(c), bool)
+    end_c, end_r, end_k = c.copy(), rad.copy(), np.full(len(c), np.nan)
     modes = cert.abstraction.modes
     node_frames = np.where(cert.won, cert.node_frames, np.inf).reshape(-1, modes)[:, q - 1]
     window = cert.fine
@@ -147,9 +150,15 @@ def run_funnels(cert, law, centres: np.ndarray, rad0: float, q: int, period: flo
         clear = np.min([np.hypot(*(cr - ctr).T) - seg - r for ctr, r in zip(arr["center"], arr["radius"])], axis=0)
         ok &= (clear > TOL) & (nxt[:, 0] - rn > ax0) & (nxt[:, 0] + rn < ax1) & (nxt[:, 1] - rn > ay0) & \
             (nxt[:, 1] + rn < ay1) & (k < horizon)
+        died = rows[~ok]
+        end_c[died], end_r[died], end_k[died] = cr[~ok], rr[~ok], k
         c[rows], rad[rows] = nxt, rn
         alive[rows[~ok]] = False
-    return np.where(best <= horizon, best, np.inf)
+    best = np.where(best <= horizon, best, np.inf)
+    if tails:
+        end_k[np.isfinite(best) | (end_k >= horizon)] = np.nan
+        return best, (end_c, end_r, end_k)
+    return best
 
 
 def ball_max(cert, c: np.ndarray, rad: np.ndarray, *per_cell: np.ndarray, grid=None) -> list[np.ndarray]:

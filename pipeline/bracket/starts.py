@@ -50,10 +50,11 @@ def falsifier_starts(scene, starts: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return p0, ok
 
 
-def _interior(scene, starts: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+def _interior(scene, starts: np.ndarray, n: int, edges: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """`n x n` points per start cell `(N, n², 2)`, centred in its sub-squares (never on its edges; odd `n`: the
-    centre among them), and whether the simulator accepts each `(N, n²)`."""
-    t = (np.arange(n) + 0.5) / n
+    centre among them; `edges`: a lattice from edge to edge instead, the closed cell's), and whether the simulator
+    accepts each `(N, n²)`."""
+    t = np.linspace(0.0, 1.0, n) if edges else (np.arange(n) + 0.5) / n
     tx, ty = (g.ravel() for g in np.meshgrid(t, t, indexing="ij"))
     P = np.stack([starts[:, :1] + tx * (starts[:, 1:2] - starts[:, :1]),
                   starts[:, 2:3] + ty * (starts[:, 3:4] - starts[:, 2:3])], axis=-1)
@@ -74,11 +75,12 @@ def worst_starts(scene, starts: np.ndarray, bound, n: int = 9) -> tuple[np.ndarr
 
 def axis_starts(scene, starts: np.ndarray, n: int = 9) -> tuple[np.ndarray, np.ndarray]:
     """Per start cell `(N, 4)` the start the simulator accepts nearest `K` (an obstacle's axis behind it: its frame's
-    `a < -c`, `b = 0`) among the cell's `n x n` interior points, and its distance `|b|` to that axis (`inf`: no point
-    of the cell behind an obstacle). The hybrid law's trap lives on `K` (docs/bracket.md, "The falsifier aimed at
-    the vertex"): a run from a cell's edge nearest the axis needs less error to be held there than one from its
-    centre (measured from 2.55 units off the axis: `ε_hi` 1.25–2.5 against 2.25–inf from the centres, 5 off it)."""
-    P, ok = _interior(scene, starts, n)
+    `a < -c`, `b = 0`) among the closed cell's `n x n` lattice points, edges included (a certificate claims the
+    closed cell: its sub-squares and grid cells cover the edges), and its distance `|b|` to that axis (`inf`: no
+    point of the cell behind an obstacle). The hybrid law's trap lives on `K` (docs/bracket.md, "The falsifier
+    aimed at the vertex"): a run from a cell's edge nearest the axis needs less error to be held there than one from
+    its centre (measured from 2.55 units off the axis: `ε_hi` 1.25–2.5 against 2.25–inf from the centres, 5 off it)."""
+    P, ok = _interior(scene, starts, n, edges=True)
     d = np.where(ok, axis_distance(scene, P.reshape(-1, 2)).reshape(ok.shape), np.inf)
     k = np.argmin(d, axis=1)
     return P[np.arange(len(P)), k], d[np.arange(len(P)), k]
