@@ -134,13 +134,13 @@ def polytope_funnels(cert, law, centres: np.ndarray, rads: np.ndarray, start: np
             hand = np.minimum(hand, cells_max(fine.grid, ha, fine.frames[:, q - 1]))
         known = np.isfinite(eps)
         nxt, swept, jump, unheld = step(rlaw, ha, np.where(known, eps, 0.0), q, period, n_split, hybrid)
-        bad = ~known | jump
+        bad = ~known | jump | unheld  # the mode after this frame's decision might not be q: no hand-off either
         won = ~bad & np.isfinite(hand) & (ka + hand <= horizon)
         best[alive[won]] = ka[won] + hand[won]
         clear = (disc > swept + TOL).any(axis=1) & (swept <= view + TOL).all(axis=1)
         B = bbox(nxt)
         narrow = np.isfinite(nxt).all(axis=1) & ((B[:, [1, 3]] - B[:, [0, 2]]).max(axis=1) <= MAX_SIDE)
-        keep = ~bad & ~won & ~unheld & clear & narrow & (ka + 1 < np.minimum(horizon, last[alive]))
+        keep = ~bad & ~won & clear & narrow & (ka + 1 < np.minimum(horizon, last[alive]))
         if all_or_nothing and (~won & ~keep).any():
             return np.full(n, np.inf)
         h[alive[keep]], k[alive[keep]] = nxt[keep], ka[keep] + 1
