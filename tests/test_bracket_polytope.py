@@ -7,16 +7,15 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from test_bracket_refine import PERIOD, SCENE  # the scene and frame period of the window's own sampling tests
 
 import pipeline.bracket.polytope as polytope
 from pipeline.bracket.enclosures import DIRS
 from pipeline.bracket.frame import Frame
 from pipeline.bracket.loop import FrameLoop
 from pipeline.bracket.refine import box_support
-from pipeline.control import HybridController, Scene
+from pipeline.control import HybridController
 
-SCENE = Scene(target=[40.0, 0.0], obstacles=[{"center": [0.0, 0.0], "radius": 4.0}])
-PERIOD = 0.05
 EPS = 0.8
 
 

@@ -59,7 +59,8 @@ def cells_max(grid, h: np.ndarray, vals: np.ndarray, cells: int = 200_000) -> np
     """Per polytope `(N, J)` (grid frame), the largest of `vals` over the cells of `grid` meeting it (inf where its
     bounding box leaves the grid); `cells`: candidate cells per block of polytopes."""
     out = np.full(len(h), np.inf)
-    side = (bbox(h)[:, [1, 3]] - bbox(h)[:, [0, 2]]).max() if len(h) else 0.0
+    B = bbox(h)
+    side = (B[:, [1, 3]] - B[:, [0, 2]]).max() if len(h) else 0.0
     chunk = max(1, cells // int((side / grid.h + 2) ** 2))
     for s in range(0, len(h), chunk):
         hb = h[s:s + chunk]
