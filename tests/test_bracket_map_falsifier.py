@@ -116,11 +116,12 @@ def test_table_counts_what_the_maps_bound_decides():
     assert row["soundness: map certified and falsified"] == 1
 
 
-def test_the_stage_decides_start_cells_with_the_maps_bound(tmp_path):
+def test_the_stage_decides_start_cells_with_the_maps_bound(tmp_path, capfd):
     """`python -m pipeline.bracket bracket.error_map=...` on a tiny grid: a map whose bound is 2 on the band behind
     the obstacle and 0.05 elsewhere up to x = 30 (none beyond); the csv says per start cell whether it is certified or falsified with the map,
     never both, each falsified cell with its path (`<law>_map`) and an adversary; the falsified ones lie where the
-    map's bound is large (the runs through the band)."""
+    map's bound is large (the runs through the band). Each law's phases print a progress line with the counts the
+    csv holds (the laws run in processes of their own: read at the file descriptor)."""
     from pipeline.bracket.stage import run
     from pipeline.config import compose
 
@@ -133,6 +134,14 @@ def test_the_stage_decides_start_cells_with_the_maps_bound(tmp_path):
     out = run(compose("bracket", [*tiny, f"bracket.error_map={tmp_path / 'map.csv'}",
                                   f"paths.outputs_dir={tmp_path}", f"paths.output_dir={tmp_path / 'run'}"]))
     df = pd.read_csv(out["path"] / "bracket.csv")
+    printed = capfd.readouterr().out
+    for name in ("hybrid", "smooth"):
+        law = df[df.controller == name]
+        assert (f"bracket: {name}: ε = 0.1: certified {int((law.eps_lo == 0.1).sum())}/{int(law.start.sum())} "
+                f"start cells (") in printed
+        assert f"bracket: {name}: the map's ε̄: certified {int(law.certified_map.sum())} start cells (" in printed
+        assert (f"bracket: {name}: falsifier: {int(np.isfinite(law.eps_hi).sum())}/{int(law.eps_hi.notna().sum())} start "
+                "cells broken (") in printed
     assert not (df.certified_map & df.falsified_map).any()
     assert df.falsified_map.any() and (df.map_adversary[df.falsified_map].isin(ADVERSARIES)).all()
     # the failing scale of the map's bound, bisected twice on (0, 1]: finite exactly where falsified

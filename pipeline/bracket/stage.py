@@ -86,6 +86,12 @@ def nominal_arrival(loop: FrameLoop, p0: np.ndarray) -> np.ndarray:
     return np.where(st["outcome"] == REACHED, st["t_end"], np.nan)
 
 
+def progress(name: str, what: str, t0: float) -> None:
+    """One line per finished phase of a law (a certificate at one ε, the falsifier), so that a run of several minutes
+    shows where it is (flushed: the laws' processes share the terminal)."""
+    print(f"bracket: {name}: {what} ({time.perf_counter() - t0:.0f} s)", flush=True)
+
+
 def bracket_rows(name, law, scene, bs, sim, camera, emap, starts, pmap=None, lost: LostFrames | None = None):
     """One controller: the certificate at each ε (and the map's ε̄) within the horizon and with the lost frames of
     `lost`, the falsifier (and through the camera of `pmap`, a loaded perception map); rows, stats, paths, camera
@@ -95,8 +101,7 @@ def bracket_rows(name, law, scene, bs, sim, camera, emap, starts, pmap=None, los
     kw = dict(h=bs.cell, angle=bs.angle, period=camera.period, goal_radius=bs.goal_radius, n_split=bs.n_split,
               window=bs.window, frames=bs.frames, horizon=loop.n_frames, lost=lost, funnels=bs.funnel_split > 0,
               refine_half=bs.refine, refine_factor=bs.refine_factor, directional=bs.directional)
-    eps_lo = np.full(len(starts), np.nan)
-    arrival = np.full(len(starts), np.nan)
+    eps_lo, arrival = np.full(len(starts), np.nan), np.full(len(starts), np.nan)
     stats = {}
     funnel = np.full(len(starts), False)
     fw = dict(split=bs.funnel_split, period=camera.period, horizon=loop.n_frames, lost=lost,
@@ -109,10 +114,13 @@ def bracket_rows(name, law, scene, bs, sim, camera, emap, starts, pmap=None, los
         funnel[ok] = by_funnel[ok]
         stats[f"eps={eps:g}"] = {**cert.stats, "certified_starts": int(ok.sum()), "by_funnel": int(by_funnel.sum()),
                                  "seconds": time.perf_counter() - t0}
+        progress(name, f"ε = {eps:g}: certified {int(ok.sum())}/{int((~no_start).sum())} start cells", t0)
     by_map, map_frames = np.full(len(starts), False), None
     if emap is not None:
+        t0 = time.perf_counter()
         cert = certify(law, emap, **kw)
         by_map, map_frames, _, by_funnel = funnel_starts(cert, law, starts, **fw)
+        progress(name, f"the map's ε̄: certified {int(by_map.sum())} start cells", t0)
         stats["error_map"] = {**cert.stats, "certified_starts": int(by_map.sum()), "by_funnel": int(by_funnel.sum()),
                               **({"clouds": emap.clouds.summary()} if hasattr(emap, "clouds") else {})}
     if lost is not None and lost.max_lost > 0:
@@ -126,6 +134,7 @@ def bracket_rows(name, law, scene, bs, sim, camera, emap, starts, pmap=None, los
     t0 = time.perf_counter()
     br = falsify(loop, centres[inside], bs.eps_max, bs.n_bisect, search)
     stats["falsifier_seconds"] = time.perf_counter() - t0
+    progress(name, f"falsifier: {int(np.isfinite(br.eps_hi).sum())}/{int(inside.sum())} start cells broken", t0)
     t_sim = np.full(len(starts), np.nan)
     t_sim[inside] = nominal_arrival(loop, centres[inside])
     eps_hi = np.full(len(starts), np.nan)  # no falsifier run: the cell holds no start the simulator accepts
