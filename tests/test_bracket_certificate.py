@@ -14,7 +14,7 @@ from pipeline.bracket.enclosures import DIRS, support_at
 from pipeline.bracket.falsifier import Search, attack
 from pipeline.bracket.inputs import support
 from pipeline.bracket.loop import FrameLoop
-from pipeline.bracket.modes import decisions
+from pipeline.bracket.modes import decisions, initial_modes
 from pipeline.bracket.winning import certified_cells, win
 from pipeline.control import CBFController, HybridController, Scene, SmoothController
 
@@ -99,6 +99,26 @@ def test_decisions_cover_the_laws_jump_set(law_cls):
             xd = {"q": np.full(len(m), q, np.int8), "i": np.zeros(len(m), np.int64)}
             j = law.jump_set(m, xd)
             assert jump[j, q - 1].all() and stay[~j, q - 1].all()
+
+
+@pytest.mark.parametrize("n_split", [1, 8])
+def test_initial_modes_cover_the_mode_after_frame_0(n_split):
+    """`initial_modes` on perceived boxes (whole, or decided on 8 x 8 sub-boxes) holds the mode every sampled
+    perceived point leaves frame 0 in (:meth:`HybridController.initial_state`, then the frame's jump); the split
+    never allows a mode the whole box does not, and rules one out on some boxes near the wedges."""
+    rng = np.random.default_rng(5)
+    law = HybridController(SCENE)
+    boxes = _boxes(rng, 1500, near=14.0)
+    modes = initial_modes(law, boxes, n_split=n_split)
+    for _ in range(8):
+        m = boxes[:, [0, 2]] + rng.uniform(0, 1, (len(boxes), 2)) * (boxes[:, [1, 3]] - boxes[:, [0, 2]])
+        x0 = law.initial_state(m)
+        q = np.where(law.jump_set(m, x0), 3 - x0["q"], x0["q"])
+        assert modes[np.arange(len(m)), q - 1].all()
+    whole = initial_modes(law, boxes)
+    assert not (modes & ~whole).any()
+    if n_split > 1:
+        assert (whole & ~modes).any()
 
 
 @settings(max_examples=examples(60), deadline=None)

@@ -20,6 +20,7 @@ from pipeline.bracket.refine import FineWin, Refinement, back_vertex, refine
 from pipeline.bracket.winning import arrival_frames, certified_cells, relax_frames, win
 from pipeline.control import HybridController, in_diamond
 
+MODE_SPLIT = 8  # a start sub-square's perceived box: its initial modes decided on 8 x 8 sub-boxes
 POLYTOPE_BATCH = 64  # a start cell's polytope funnels run in batches of this many (its first failure ends the cell)
 
 
@@ -155,7 +156,7 @@ def funnel_starts(cert: Certificate, law, starts: np.ndarray, split: int, period
     eps0 = ball_max(cert, centres, rad0, cert.eps_cells)[0]
     reach = np.where(np.isfinite(eps0), rad0 + eps0, 1e9)  # the perceived box of frame 0
     boxes = np.stack([centres[:, 0] - reach, centres[:, 0] + reach, centres[:, 1] - reach, centres[:, 1] + reach], 1)
-    modes = initial_modes(law, boxes) if hybrid else np.ones((len(centres), 1), bool)
+    modes = initial_modes(law, boxes, n_split=MODE_SPLIT) if hybrid else np.ones((len(centres), 1), bool)
     per_mode = np.full(modes.shape, -np.inf)
     ends = []
     for q in range(1, modes.shape[1] + 1):

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.bracket.enclosures import DIRS, affine_range, barrier_range, dist_range
+from pipeline.bracket.enclosures import DIRS, affine_range, barrier_range, dist_range, split
 from pipeline.bracket.inputs import law_kind, support
 
 
@@ -58,16 +58,21 @@ def decisions(law, boxes: np.ndarray, obstacle: int = 0) -> tuple[np.ndarray, np
     return stay, jump
 
 
-def initial_modes(law, boxes: np.ndarray, obstacle: int = 0) -> np.ndarray:
+def initial_modes(law, boxes: np.ndarray, obstacle: int = 0, n_split: int = 1) -> np.ndarray:
     """`(N, 2)`: modes a run can hold after frame 0 from a perceived box: the smaller `V_q` (the smaller barrier:
     `φ` is common), ties to `q = 1` below `b = 0` (SPEC §3.3, :meth:`HybridController.initial_state`), then frame
-    0's jump (of the active obstacle `obstacle`)."""
+    0's jump (of the active obstacle `obstacle`). `n_split > 1`: the tests on `n_split²` sub-boxes of each box, a
+    mode possible where it is on one of them (the interval bounds of one perceived point's choice, tighter than
+    the whole box's, which pair one point's `B_1` with another's `B_2`)."""
+    n = len(boxes)
+    if n_split > 1:
+        boxes = split(boxes, n_split).reshape(-1, 4)
     q0 = first_modes(law, boxes, obstacle)
     stay, jump = decisions(law, boxes, obstacle)
     out = q0 & stay
     out[:, 0] |= q0[:, 1] & jump[:, 1]
     out[:, 1] |= q0[:, 0] & jump[:, 0]
-    return out
+    return out.reshape(n, -1, 2).any(axis=1)
 
 
 def cell_ranges(law, boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
