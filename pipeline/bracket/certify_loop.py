@@ -20,7 +20,6 @@ from pipeline.bracket.refine import FineWin, Refinement, back_vertex, refine
 from pipeline.bracket.winning import arrival_frames, certified_cells, relax_frames, win
 from pipeline.control import HybridController, in_diamond
 
-MODE_SPLIT = 8  # a start sub-square's perceived box: its initial modes decided on 8 x 8 sub-boxes
 POLYTOPE_BATCH = 64  # a start cell's polytope funnels run in batches of this many (its first failure ends the cell)
 
 
@@ -130,13 +129,14 @@ def certified_starts(cert: Certificate, starts: np.ndarray) -> tuple[np.ndarray,
 
 def funnel_starts(cert: Certificate, law, starts: np.ndarray, split: int, period: float, horizon: float,
                   lost: LostFrames | None = None,
-                  polytope_split: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                  polytope_split: int = 0, mode_split: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """World start cells `(N, 4)`: `(certified, arrival frames, no_start, by_funnel)`: by the abstraction
     (:func:`certified_starts`, its verdict and bound kept) or, where it does not certify, sub-square by sub-square
     by funnels or the abstraction (module docstring; `by_funnel` marks those). `split = 0`: the abstraction alone.
     `polytope_split > 0`: a sub-square's funnel that ends without a hand-off goes on as a polytope
     (:mod:`pipeline.bracket.polytope`, perceived sets cut into `polytope_split²` sub-boxes), start cell by start cell
-    where every other sub-square is certified."""
+    where every other sub-square is certified. `mode_split`: a sub-square's initial modes decided on `mode_split²`
+    sub-boxes of its perceived box (:func:`pipeline.bracket.modes.initial_modes`)."""
     ok, arrival, no_start = certified_starts(cert, starts)
     by_funnel = np.zeros(len(starts), bool)
     hybrid = isinstance(law, HybridController)
@@ -156,7 +156,7 @@ def funnel_starts(cert: Certificate, law, starts: np.ndarray, split: int, period
     eps0 = ball_max(cert, centres, rad0, cert.eps_cells)[0]
     reach = np.where(np.isfinite(eps0), rad0 + eps0, 1e9)  # the perceived box of frame 0
     boxes = np.stack([centres[:, 0] - reach, centres[:, 0] + reach, centres[:, 1] - reach, centres[:, 1] + reach], 1)
-    modes = initial_modes(law, boxes, n_split=MODE_SPLIT) if hybrid else np.ones((len(centres), 1), bool)
+    modes = initial_modes(law, boxes, n_split=mode_split) if hybrid else np.ones((len(centres), 1), bool)
     per_mode = np.full(modes.shape, -np.inf)
     ends = []
     for q in range(1, modes.shape[1] + 1):

@@ -44,7 +44,8 @@ class BracketSettings:
     (:mod:`pipeline.bracket.refine`); 0: off. `directional`: the window's arrival bounds also through sets of nodes
     along which a direction decreases (:func:`pipeline.bracket.winning.directional_frames`). `polytope_split`: a
     start sub-square's funnel that ends without a hand-off goes on as a polytope, its perceived sets cut into
-    `polytope_split²` sub-boxes (:mod:`pipeline.bracket.polytope`); 0: off. `axis_start`: the
+    `polytope_split²` sub-boxes (:mod:`pipeline.bracket.polytope`); 0: off. `mode_split`: a start sub-square's
+    initial modes decided on `mode_split²` sub-boxes of its perceived box (1: the whole box). `axis_start`: the
     uniform falsifier also from each start cell's point nearest `K` where that point is within this distance of `K`
     and nearer to it than the centre (the smaller `ε_hi` kept, its start in `hi_x, hi_y`); 0: off."""
 
@@ -85,6 +86,7 @@ class BracketSettings:
     refine_factor: Annotated[int, Range(ge=2, le=64)] = 8
     directional: bool = True
     polytope_split: NonNegativeInt = 16
+    mode_split: PositiveInt = 8
     axis_start: NonNegative = 0.0
 
     def __post_init__(self):

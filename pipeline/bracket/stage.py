@@ -105,7 +105,7 @@ def bracket_rows(name, law, scene, bs, sim, camera, emap, starts, pmap=None, los
     stats = {}
     funnel = np.full(len(starts), False)
     fw = dict(split=bs.funnel_split, period=camera.period, horizon=loop.n_frames, lost=lost,
-              polytope_split=bs.polytope_split)
+              polytope_split=bs.polytope_split, mode_split=bs.mode_split)
     for eps in bs.eps:
         t0 = time.perf_counter()
         cert = certify(law, Uniform(eps), **kw)
