@@ -102,8 +102,7 @@ def bracket_rows(name, law, scene, bs, sim, camera, emap, starts, pmap=None, los
               window=bs.window, frames=bs.frames, horizon=loop.n_frames, lost=lost, funnels=bs.funnel_split > 0,
               refine_half=bs.refine, refine_factor=bs.refine_factor, directional=bs.directional)
     eps_lo, arrival = np.full(len(starts), np.nan), np.full(len(starts), np.nan)
-    stats = {}
-    funnel = np.full(len(starts), False)
+    stats, funnel = {}, np.full(len(starts), False)
     fw = dict(split=bs.funnel_split, period=camera.period, horizon=loop.n_frames, lost=lost,
               polytope_split=bs.polytope_split, mode_split=bs.mode_split)
     for eps in bs.eps:
@@ -145,8 +144,9 @@ def bracket_rows(name, law, scene, bs, sim, camera, emap, starts, pmap=None, los
     paths[:, inside] = br.path
     hi_start = np.where(inside[:, None], centres, np.nan)
     if bs.axis_start > 0:  # the falsifier again from the points nearest K: the smaller ε_hi kept
-        stats["axis_falsifier"] = axis_falsifier(loop, scene, starts, centres, inside, bs, search, {
+        stats["axis_falsifier"] = ax = axis_falsifier(loop, scene, starts, centres, inside, bs, search, {
             "eps_hi": eps_hi, "adversary": adv, "outcome": out, "paths": paths, "start": hi_start})
+        progress(name, f"nearest K: ε_hi lowered on {ax['lowered']}/{ax['starts']}", time.perf_counter() - ax["seconds"])
     rows = pd.DataFrame({"controller": name, "x0": starts[:, 0], "x1": starts[:, 1], "y0": starts[:, 2],
                          "y1": starts[:, 3], "start": ~no_start, "eps_lo": eps_lo, "funnel": funnel,
                          "arrival_bound": arrival,
