@@ -17,6 +17,7 @@ from pipeline.certify.clouds import (
     apply_table,
     cloud_window,
     cp_upper,
+    draw_seed,
     eps_delta,
     layout_bounds,
     layout_maps,
@@ -279,16 +280,45 @@ def test_the_clouds_app_checks_its_settings_and_runs_tiny(tiny_maps, tmp_path):
             check(compose("certify_clouds", [*base, bad]))
     with pytest.raises(DatasetError, match="unknown perception map 'nope'"):
         check(compose("certify_clouds", [*base, "clouds.maps=nope"]))
-    cfg = compose("certify_clouds", [*base, "clouds.limit=2", "clouds.layouts=3", "clouds.samples=1",
-                                     "clouds.fresh=4", f"hydra.run.dir={tmp_path}"])
+    tiny = ["clouds.limit=2", "clouds.layouts=3", "clouds.delta=0.7", "clouds.samples=1", "clouds.fresh=4"]
+    cfg = compose("certify_clouds", [*base, *tiny, f"hydra.run.dir={tmp_path}"])
     with open_dict(cfg):
         cfg.paths.output_dir = str(tmp_path)
     summary = run(cfg)
     assert summary["cells"] == 2 and summary["layouts"] == 3 and summary["sampled"]["violations"] == 0
     table = np.loadtxt(summary["path"] / "table.csv", delimiter=",", skiprows=1)
-    assert table.shape == (2, 9) and (table[:, 4] > 0).all()
+    assert table.shape == (2, 9) and (table[:, 4] > 0).all() and np.isfinite(table[:, 4]).all()  # k* = 0 of 3
     emap = error_map(SimpleNamespace(paths=SimpleNamespace(certified_dir=str(tmp_path / "certified"))),
                      SimpleNamespace(error_map=summary["path"].name, error_map_kappa=0.0))
     np.testing.assert_array_equal(emap.cells, table[:, :5])
     assert (emap.clouds.delta, emap.clouds.layouts, emap.clouds.cells) == (summary["delta"], 3, 2)
     assert emap.clouds.map_id == ids["occluded"].rsplit("-", 1)[-1]
+    # each chunk of cells draws its own layouts (clouds.draw=per_chunk): with chunks of one cell, the first cell keeps
+    # its draw (chunk 0's) and the second gets chunk 1's, other layouts, so another bound
+    one = run(compose("certify_clouds", [*base, *tiny, "clouds.chunk=1", f"hydra.run.dir={tmp_path}"]))
+    split = np.loadtxt(one["path"] / "table.csv", delimiter=",", skiprows=1)
+    np.testing.assert_allclose(split[0, 4], table[0, 4], rtol=1e-5)
+    assert abs(split[1, 4] - table[1, 4]) > 1e-4 * table[1, 4], (split[1, 4], table[1, 4])
+
+
+def test_per_chunk_draws_are_independent_and_pool_to_the_expected_rate():
+    """`draw_seed`: a shared draw is one event for every chunk (the pooled rate above eps_delta is that draw's,
+    whatever the number of chunks); per-chunk draws are independent, so the pooled rate over many chunks sits at
+    its expectation `1 / (N + 1)` for bounds drawn from U(0, 1) (Pr(X > e) = 1 - e; eps_delta the max of N)."""
+    n, chunks = 299, 400
+    def draw(seed):  # one draw of N layouts' bounds
+        return np.random.default_rng(seed).uniform(size=n)
+
+    def rates(how, seed):  # per chunk Pr(X > eps_delta) (eps_delta on a batch: its rows are the chunks' draws)
+        return 1 - eps_delta(np.stack([draw(draw_seed(seed, how, c)) for c in range(chunks)]))
+
+    assert draw_seed(5, "shared", 3) == draw_seed(5, "shared", 0) == 5
+    assert draw_seed(5, "per_chunk", 3) != draw_seed(5, "per_chunk", 0)
+    expected, sd = 1 / (n + 1), 1 / (n + 1) / np.sqrt(chunks)  # the max of N uniforms: 1 - max ~ Beta(1, N)
+    for seed in range(5):
+        shared, own = rates("shared", seed), rates("per_chunk", seed)
+        assert np.ptp(shared) == 0  # one draw, every chunk the same
+        assert np.ptp(own) > 0 and abs(own.mean() - expected) < 4 * sd, (seed, own.mean(), expected)
+    # the shared draw's pooled rate is one Beta(1, N) sample: over seeds it spreads as one chunk's own rate does
+    pooled = 1 - eps_delta(np.stack([draw(draw_seed(seed, "shared", 0)) for seed in range(200)]))
+    assert pooled.std() > 10 * sd

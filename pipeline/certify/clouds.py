@@ -209,6 +209,13 @@ def certified_share(eps: np.ndarray, at: float, confidence: float = 0.95) -> dic
     return {"share": 1 - k / eps.shape[1], "violation_cp": cp_upper(k, eps.shape[1], confidence)}
 
 
+def draw_seed(seed: int, draw: str, stream: int) -> int | list[int]:
+    """The layouts' seed of chunk `stream`: `seed` itself when every chunk shares one draw (`draw="shared"`), the
+    chunk's own stream `[seed, 4407, stream]` otherwise (`"per_chunk"`: the chunks' draws are independent, so one
+    unlucky draw is one chunk's, not every cell's; docs/certify.md "Under clouds")."""
+    return int(seed) if draw == "shared" else [int(seed), 4407, int(stream)]
+
+
 def cell_points(rng: np.random.Generator, cells: np.ndarray, k: int) -> np.ndarray:
     """`k` uniform positions in each cell `(C, 4)` (`x0, x1, y0, y1`), cell by cell: `(C * k, 2)`."""
     t = rng.uniform(size=(len(cells), k, 2))
@@ -234,11 +241,12 @@ def sampled_check(predict, camera, occ: Occlusion, cells: np.ndarray, lower, upp
 
 
 def certify_clouds(model, camera, cells: np.ndarray, occ: Occlusion, layouts: int = 299, delta: float = 0.01,
-                   confidence: float = 0.95, seed: int = 0, mode: str = "crown", tolerance: float = np.inf,
+                   confidence: float = 0.95, seed: int | list[int] = 0, mode: str = "crown", tolerance: float = np.inf,
                    max_depth: int = 0, batch: int = 1024, at: float | None = None, dtype=torch.float32,
                    tick=None) -> dict:
     """The table under clouds (Hydra-free): per cell `eps_bar_delta`, the layouts, the certified share at `at`
-    (`c - r`, say), the clean bound; and the cost. Layouts: `occ.sample(layouts, default_rng(seed))`. The gate's
+    (`c - r`, say), the clean bound; and the cost. Layouts: `occ.sample(layouts, default_rng(seed))` (`seed` an int
+or a seed sequence: the app draws per chunk of cells, `[clouds.seed, 4407, chunk]`, `draw_seed`). The gate's
     columns: :func:`pipeline.certify.clouds_run.certify_gated`. `tick()` after each layout's bounds."""
     t0 = time.perf_counter()
     prep = prepare(model, camera, 0.0, dtype)

@@ -43,6 +43,7 @@ class CloudsSettings:
     delta: OpenShare = 0.01
     confidence: OpenShare = 0.95
     seed: NonNegativeInt = 0
+    draw: Literal["per_chunk", "shared"] = "per_chunk"
     cell: Positive = 0.25
     region: list[list[float]] = dataclasses.field(default_factory=lambda: [[-30.0, -11.5], [-2.0, 2.0]])
     limit: PositiveInt | None = None

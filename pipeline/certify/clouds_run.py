@@ -18,7 +18,7 @@ from pipeline import tracking
 from pipeline.certify import gate as g
 from pipeline.certify import shards
 from pipeline.certify.bounds import prepare
-from pipeline.certify.clouds import cell_points, certify_clouds, max_exceedances, sampled_check
+from pipeline.certify.clouds import cell_points, certify_clouds, draw_seed, max_exceedances, sampled_check
 from pipeline.certify.clouds_cli import F, check
 from pipeline.certify.stage import cells_of
 from pipeline.config import build
@@ -81,10 +81,10 @@ def region_cells(s, camera, scene) -> np.ndarray:
 
 
 def chunk_part(pmap, camera, occ, cells, s, margin: float, stream: int, tick=None) -> shards.Part:
-    """One chunk of cells: its table columns and its checks' counts (the random streams `(seed, stream)`); `tick()`
-    after each layout's bounds (and gate bounds)."""
-    r = certify_gated(pmap.model, camera, cells, occ, s.layouts, s.delta, s.confidence, s.seed, s.mode, s.tolerance,
-                      s.max_depth, at=margin, gate=s.gate,
+    """One chunk of cells: its table columns and its checks' counts (the random streams `(seed, stream)`; its
+    layouts' draw :func:`.clouds.draw_seed`); `tick()` after each layout's bounds (and gate bounds)."""
+    r = certify_gated(pmap.model, camera, cells, occ, s.layouts, s.delta, s.confidence,
+                      draw_seed(s.seed, s.draw, stream), s.mode, s.tolerance, s.max_depth, at=margin, gate=s.gate,
                       dtype=torch.float64 if s.dtype == "float64" else torch.float32, tick=tick)
     t0 = time.perf_counter()
     bad, worst = sampled_check(pmap.predict, camera, occ, cells, r["lower"], r["upper"], r["layouts"], s.samples,
