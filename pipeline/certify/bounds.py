@@ -29,14 +29,23 @@ class Prepared:
     # a map of the renderer's pixel window (its forms in float64) before the network reads it, e.g. one cloud
     # layout over the image (:mod:`.clouds`; `static` then the static image under that layout); None: as rendered
     pixels: Callable | None = None
+    # world units added to every bound on each side (:func:`certified_error_bound`, the gate's `gate_range`): the
+    # deployed float32 network's own rounding and the bound's float arithmetic, which the relaxation (exact
+    # arithmetic on the weights) does not see; the stages pass their `float_margin` (docs/certify.md, "Float32")
+    float_margin: float = 0.0
 
 
-def prepare(model, camera, kappa: float = 0.0, dtype: torch.dtype = torch.float32) -> Prepared:
+def prepare(model, camera, kappa: float = 0.0, dtype: torch.dtype = torch.float32,
+            float_margin: float = 0.0) -> Prepared:
     """The deployed form of `model` (differentiable in its parameters) and its static pass on `camera`'s
-    static image. Rebuild it after the weights change."""
+    static image. Rebuild it after the weights change. `float_margin`: :attr:`Prepared.float_margin` (0: the bound
+    of the network in exact arithmetic)."""
+    if not float_margin >= 0:
+        raise ValueError(f"float_margin must be >= 0 (world units), got {float_margin!r}")
     net = model if isinstance(model, Deployed) else deployed(model, dtype)
     background = torch.as_tensor(camera.background, device=net.head_w.device)
-    return Prepared(net, static_pass(net, background, float(kappa)), camera, float(kappa))
+    return Prepared(net, static_pass(net, background, float(kappa)), camera, float(kappa),
+                    float_margin=float(float_margin))
 
 
 @dataclass
@@ -107,7 +116,7 @@ def certified_error_bound(prep: Prepared, cells: torch.Tensor, mode: str = "crow
     `kappa` levels of it). `mode`: `ibp` (intervals), `forward` (linear forms in the position, forward only),
     `crown` (forward, then the backward pass; the tightest). A keypoint head (:mod:`.keypoint`) is bounded from
     the intervals of its outputs on the last block's window (`crown`: the tighter of the forward and the backward
-    bounds of each)."""
+    bounds of each). Each side moved out by `prep.float_margin`."""
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
     net = prep.net
@@ -130,7 +139,8 @@ def certified_error_bound(prep: Prepared, cells: torch.Tensor, mode: str = "crow
         if net.heading is not None:
             box = heading_box(net, prep.static, cone, scores, (lo, hi) if mode == "crown" else None)
             heading = heading_error(*box, cells[:, 4], cells[:, 5])
-        return ErrorBound(*_error_range(prep, cells.to(z_lo.dtype), z_lo[..., None], z_hi[..., None]), heading)
+        lower, upper = _error_range(prep, cells.to(z_lo.dtype), z_lo[..., None], z_hi[..., None])
+        return ErrorBound(lower - prep.float_margin, upper + prep.float_margin, heading)
     win, out_lo, out_hi = _head(prep, cone)
     wp, wn = win.clamp(min=0)[:, :, None], win.clamp(max=0)[:, :, None]  # (N, 2, 1, C, pr, pc)
     z_lo = (wp * cone.lo[:, None] + wn * cone.hi[:, None]).flatten(3).sum(-1)  # (N, 2, S)
@@ -143,4 +153,4 @@ def certified_error_bound(prep: Prepared, cells: torch.Tensor, mode: str = "crow
         forms = backward(net, cone, torch.cat([win, -win], 1), torch.cat([out_lo, -out_hi], 1), lo, hi)
         c_lo, c_hi = _error_range(prep, cells, forms[:, :2], -forms[:, 2:])
         lower, upper = torch.maximum(lower, c_lo), torch.minimum(upper, c_hi)
-    return ErrorBound(lower, upper)
+    return ErrorBound(lower - prep.float_margin, upper + prep.float_margin)

@@ -127,7 +127,7 @@ def layout_prep(prep: Prepared, layouts: Layouts, j: int, table: torch.Tensor | 
     win = lambda pw: cloud_window(pw, alpha.expand(len(pw.origin), *alpha.shape),  # noqa: E731
                                   tint.expand(len(pw.origin), *tint.shape), table)
     bg = torch.as_tensor(layouts.static[j], device=prep.net.head_w.device)
-    return Prepared(prep.net, static_pass(prep.net, bg), prep.camera, 0.0, win)
+    return Prepared(prep.net, static_pass(prep.net, bg), prep.camera, 0.0, win, prep.float_margin)
 
 
 def over_layouts(prep: Prepared, layouts: Layouts, bound, shape: tuple[int, ...], tick=None):
@@ -243,13 +243,14 @@ def sampled_check(predict, camera, occ: Occlusion, cells: np.ndarray, lower, upp
 def certify_clouds(model, camera, cells: np.ndarray, occ: Occlusion, layouts: int = 299, delta: float = 0.01,
                    confidence: float = 0.95, seed: int | list[int] = 0, mode: str = "crown", tolerance: float = np.inf,
                    max_depth: int = 0, batch: int = 1024, at: float | None = None, dtype=torch.float32,
-                   tick=None) -> dict:
+                   tick=None, float_margin: float = 0.0) -> dict:
     """The table under clouds (Hydra-free): per cell `eps_bar_delta`, the layouts, the certified share at `at`
     (`c - r`, say), the clean bound; and the cost. Layouts: `occ.sample(layouts, default_rng(seed))` (`seed` an int
 or a seed sequence: the app draws per chunk of cells, `[clouds.seed, 4407, chunk]`, `draw_seed`). The gate's
-    columns: :func:`pipeline.certify.clouds_run.certify_gated`. `tick()` after each layout's bounds."""
+    columns: :func:`pipeline.certify.clouds_run.certify_gated`. `tick()` after each layout's bounds;
+    `float_margin`: :attr:`.bounds.Prepared.float_margin`."""
     t0 = time.perf_counter()
-    prep = prepare(model, camera, 0.0, dtype)
+    prep = prepare(model, camera, 0.0, dtype, float_margin)
     draws = layout_maps(occ, occ.sample(layouts, np.random.default_rng(seed), camera.shape), camera.background)
     eps, lower, upper = layout_bounds(prep, np.asarray(cells, np.float64), draws, mode, tolerance, max_depth, batch,
                                       tick)

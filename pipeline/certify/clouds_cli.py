@@ -27,7 +27,7 @@ from pipeline.cli import stage_main
 from pipeline.errors import ConfigError
 from pipeline.lineage import resolve_map
 from pipeline.render.occlusion import load_occlusion
-from pipeline.schema import NonNegativeInt, OpenShare, Positive, PositiveInt, checked
+from pipeline.schema import NonNegative, NonNegativeInt, OpenShare, Positive, PositiveInt, checked
 
 F = "clouds"
 
@@ -55,6 +55,7 @@ class CloudsSettings:
     threads: PositiveInt = 1
     gate: Literal["clean"] | Positive | None = None
     dtype: Literal["float32", "float64"] = "float32"
+    float_margin: NonNegative = 0.002
     chunk: PositiveInt = 64
     shards: PositiveInt = 1
     shard: NonNegativeInt | None = None

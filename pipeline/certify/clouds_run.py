@@ -38,16 +38,16 @@ REDUCE.update({k: "max" for k in ("sampled_worst", "fresh_worst_cell_rate", "gat
 
 
 def certify_gated(model, camera, cells, occ, layouts, delta, confidence, seed, mode, tolerance, max_depth,
-                  at=None, gate: float | None = None, dtype=torch.float32, tick=None) -> dict:
+                  at=None, gate: float | None = None, dtype=torch.float32, tick=None, float_margin: float = 0.0) -> dict:
     """:func:`.clouds.certify_clouds`, and with a `gate` (a map with an uncertainty head): the gate statistic's
     bounds `gate_lower, gate_upper (C, L)`, `eps_bar_delta_gated` and (with `at`) the flagged and undecided shares."""
     t0 = time.perf_counter()
     out = certify_clouds(model, camera, cells, occ, layouts, delta, confidence, seed, mode, tolerance, max_depth,
-                         at=at, dtype=dtype, tick=tick)
+                         at=at, dtype=dtype, tick=tick, float_margin=float_margin)
     if gate is None:
         return out
     t1 = time.perf_counter()
-    prep, eps, draws = prepare(model, camera, 0.0, dtype), out["eps"], out["layouts"]
+    prep, eps, draws = prepare(model, camera, 0.0, dtype, float_margin), out["eps"], out["layouts"]
     glo, ghi = g.layout_gate(model, prep, np.asarray(cells, np.float64), draws, mode, tick)
     eg = g.eps_delta_gated(eps, glo, gate, delta, confidence)
     out.update(gate=gate, gate_lower=glo, gate_upper=ghi, eps_bar_delta_gated=eg, gate_seconds=time.perf_counter() - t1)
@@ -85,7 +85,8 @@ def chunk_part(pmap, camera, occ, cells, s, margin: float, stream: int, tick=Non
     layouts' draw :func:`.clouds.draw_seed`); `tick()` after each layout's bounds (and gate bounds)."""
     r = certify_gated(pmap.model, camera, cells, occ, s.layouts, s.delta, s.confidence,
                       draw_seed(s.seed, s.draw, stream), s.mode, s.tolerance, s.max_depth, at=margin, gate=s.gate,
-                      dtype=torch.float64 if s.dtype == "float64" else torch.float32, tick=tick)
+                      dtype=torch.float64 if s.dtype == "float64" else torch.float32, tick=tick,
+                      float_margin=s.float_margin)
     t0 = time.perf_counter()
     bad, worst = sampled_check(pmap.predict, camera, occ, cells, r["lower"], r["upper"], r["layouts"], s.samples,
                                s.seed, stream) if s.samples else (0, None)

@@ -27,6 +27,7 @@ class CertifySettings:
     region: list[list[float]] | None = None
     batch: PositiveInt = 1024
     dtype: Literal["float32", "float64"] = "float32"
+    float_margin: NonNegative = 0.002
     threads: PositiveInt = 1
     seed: NonNegativeInt = 0
     formats: Annotated[list[Literal["png", "pdf", "svg"]], NonEmpty()] = field(default_factory=lambda: ["png"])

@@ -176,7 +176,7 @@ def run(cfg: DictConfig, *, perception_map=None, camera=None) -> dict:
     levels, tables, fields = {}, {}, {"x": xs, "y": ys, "operational": op.reshape(shape)}
     shards_dir = root / shards.SHARDS_DIR / final.name
     for kappa in s.kappas:
-        prep = prepare(pmap.model, camera, float(kappa), dtype)
+        prep = prepare(pmap.model, camera, float(kappa), dtype, s.float_margin)
         r, arrays = _per_kappa(prep, pmap, camera, cells[op], s, margin_cr, shards_dir)
         if r is None:
             continue
@@ -199,6 +199,7 @@ def run(cfg: DictConfig, *, perception_map=None, camera=None) -> dict:
                "cell": float(s.cell), "n_cells": int(op.sum()), "region": tracking.to_plain(s.region),
                "operational_margin": margin, "diamond": s.diamond,
                "mode": s.mode, "tolerance": s.tolerance, "max_depth": s.max_depth, "samples": s.samples,
+               "float_margin": s.float_margin,
                "margin_c_minus_r": margin_cr, "torch_threads": int(s.threads), "kappas": levels}
     meta = {"recipe": tracking.strip_keys(plain, identity.CERTIFY_VOLATILE), "inputs": {"model": str(pmap.id)},
             "model_name": pmap.name, "code_version": tracking.code_version(*identity.CERTIFY_CODE)}

@@ -344,7 +344,7 @@ class FoldedPerceptionNet(nn.Module):
         self.to(memory_format=torch.channels_last).requires_grad_(False).eval()
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
-        img = images.permute(0, 3, 1, 2).to(torch.float32)  # NHWC uint8 -> NCHW float in channels_last memory
+        img = images.permute(0, 3, 1, 2).to(self.w0.dtype)  # NHWC uint8 -> NCHW float, channels_last
         g = nn.functional.relu_(nn.functional.conv2d(img, self.w0, None, padding=1).add_(self.bias_map))
         for conv in self.convs:
             g = nn.functional.relu_(conv(nn.functional.max_pool2d(g, 2)))
