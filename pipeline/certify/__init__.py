@@ -22,7 +22,9 @@ so that a training loss can use the bound::
   exactly over their intervals); pose maps with the keypoint head and the attention heading head, over cells of
   poses `(N, 6) = (x0, x1, y0, y1, th0, th1)` (the triangle marker, :func:`.renderer.marker_coverage`; the heading
   error `b.heading (N,)`, :mod:`.heading`). Float32 by default; pass `dtype=torch.float64` to `prepare` for
-  bounds free of the bound computation's own float32 rounding (the deployed network itself runs in float32).
+  bounds free of the bound computation's own float32 rounding (the deployed network itself runs in float32:
+  `prepare(..., float_margin=m)` moves every bound out by `m` world units for its rounding, as the stages do with
+  their `float_margin`, docs/certify.md "Float32"; 0 by default: the network in exact arithmetic).
 - Cost: one static pass per `prepare`; per cell only the cone of activations the robot's pixels reach
   (:mod:`.cone`), batched over cells (no per-cell Python).
 
