@@ -245,8 +245,8 @@ def certify_clouds(model, camera, cells: np.ndarray, occ: Occlusion, layouts: in
                    max_depth: int = 0, batch: int = 1024, at: float | None = None, dtype=torch.float32,
                    tick=None, float_margin: float = 0.0) -> dict:
     """The table under clouds (Hydra-free): per cell `eps_bar_delta`, the layouts, the certified share at `at`
-    (`c - r`, say), the clean bound; and the cost. Layouts: `occ.sample(layouts, default_rng(seed))` (`seed` an int
-or a seed sequence: the app draws per chunk of cells, `[clouds.seed, 4407, chunk]`, `draw_seed`). The gate's
+    (`c - r`, say), the clean bound; and the cost. Layouts: `occ.sample(layouts, default_rng(seed))` (`seed` an
+    int or a seed sequence: the app draws per chunk of cells, `[clouds.seed, 4407, chunk]`, `draw_seed`). The gate's
     columns: :func:`pipeline.certify.clouds_run.certify_gated`. `tick()` after each layout's bounds;
     `float_margin`: :attr:`.bounds.Prepared.float_margin`."""
     t0 = time.perf_counter()
