@@ -184,7 +184,7 @@ def test_bad_camera_map_exits_2_in_one_line(tmp_path):
 
 TINY = ["bracket.cell=4.0", "bracket.start_cell=20", "bracket.eps=[0.1]", "bracket.n_bisect=0", "bracket.n_dirs=4",
         "bracket.tail=4", "bracket.lookahead=4", "bracket.commit=4", "sim.horizon=4", "bracket.controllers=[smooth]",
-        "bracket.kappa_max=2", "bracket.pgd_steps=1"]
+        "bracket.kappa_max=2", "bracket.pgd_steps=1", "bracket.polytope_split=0"]
 
 
 def test_camera_map_of_another_scene_is_rejected(tmp_path, tiny_maps):

@@ -130,7 +130,7 @@ def test_the_stage_decides_start_cells_with_the_maps_bound(tmp_path, capfd):
     pd.DataFrame(rows, columns=["x0", "x1", "y0", "y1", "eps_bar"]).to_csv(tmp_path / "map.csv", index=False)
     tiny = ["bracket.cell=4.0", "bracket.start_cell=20", "bracket.eps=[0.1]", "bracket.n_bisect=0",
             "bracket.n_dirs=8", "bracket.tail=4", "bracket.lookahead=4", "bracket.commit=4", "bracket.trap_dirs=16",
-            "sim.horizon=8", "bracket.controllers=[hybrid,smooth]"]
+            "sim.horizon=8", "bracket.controllers=[hybrid,smooth]", "bracket.polytope_split=0"]
     out = run(compose("bracket", [*tiny, f"bracket.error_map={tmp_path / 'map.csv'}",
                                   f"paths.outputs_dir={tmp_path}", f"paths.output_dir={tmp_path / 'run'}"]))
     df = pd.read_csv(out["path"] / "bracket.csv")

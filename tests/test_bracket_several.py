@@ -188,6 +188,7 @@ def test_the_stage_brackets_a_field_end_to_end(tmp_path):
 
     tiny = ["tuning=field", "bracket.cell=2.0", "bracket.start_cell=10", "bracket.eps=[0.25]", "bracket.n_bisect=0",
             "bracket.n_dirs=8", "bracket.tail=4", "bracket.lookahead=8", "bracket.commit=8", "sim.horizon=12",
+            "bracket.n_random=0", "bracket.trap_dirs=8",  # the falsifier's cheaper search (23.9 -> 21.7 s)
             f"paths.outputs_dir={tmp_path}", f"paths.output_dir={tmp_path / 'run'}"]
     cfg = compose("bracket", tiny)
     out = run(cfg)

@@ -198,7 +198,7 @@ def test_margin_map_cell_against_a_direct_simulation(tmp_path):
 
     cfg = _cfg(tmp_path, "experiment=hysteresis_margin", "perception=oracle")
     ctx = Context(cfg)
-    scen = HysteresisMargin(id="m", title="m", chi=[1.1], lam=[0.09], disturbances=["adversarial"], n_agents=30,
+    scen = HysteresisMargin(id="m", title="m", chi=[1.1], lam=[0.09], disturbances=["adversarial"], n_agents=12,
                             tol=0.25, success=0.99)
     res = scen.compute(ctx)
     row = res.tables["margin"].iloc[0]
