@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from test_bracket_refine import PERIOD, SCENE  # the scene and frame period of the window's own sampling tests
 
 import pipeline.bracket.polytope as polytope
@@ -76,3 +78,20 @@ def test_the_step_check_catches_a_loosened_rule(mutation, monkeypatch):
     outside, unflagged = _escapes(HybridController(SCENE), np.random.default_rng(3))
     assert outside + unflagged > 0
 
+
+
+@given(st.lists(st.integers(0, 7), max_size=40), st.integers(0, 2**32 - 1))
+@settings(max_examples=60, deadline=None)
+def test_group_max_is_maximum_at_bit_for_bit(rows, seed):
+    """The polytope step's scatter-max (`reduceat` over runs of ascending rows) gives `np.maximum.at`'s bits, rows
+    that take no value kept, `-inf` and NaN entries included."""
+    rows = np.sort(np.array(rows, dtype=np.int64))
+    rng = np.random.default_rng(seed)
+    vals = rng.normal(size=(len(rows), 5))
+    vals[rng.random(vals.shape) < 0.1] = -np.inf
+    vals[rng.random(vals.shape) < 0.05] = np.nan
+    base = np.where(rng.random((8, 5)) < 0.5, -np.inf, rng.normal(size=(8, 5)))
+    want, got = base.copy(), base.copy()
+    np.maximum.at(want, rows, vals)
+    polytope.group_max(got, rows, vals)
+    np.testing.assert_array_equal(got, want)
