@@ -181,7 +181,12 @@ def test_worst_cloud_at_debug_tiny_with_animation(tmp_path, tiny_maps):
     # the recorded runs keep one chosen cloud per attacked image, re-rendered for the animation
     rows, clouds = res.arrays["rec_smooth_rows"], res.arrays["rec_smooth_clouds"]
     assert len(rows) == len(clouds) > 0 and clouds[:, 0].all()  # `always`: every chosen layout has clouds
-    assert _written(out, "anim15_worst_cloud.gif").stat().st_size > 10_000
+    gif = _written(out, "anim15_worst_cloud.gif")
+    assert gif.stat().st_size > 10_000
+    from PIL import Image
+
+    with Image.open(gif) as im:  # debug=tiny's scale draws 8 frames as the paper's other animations do (40 at scale 1)
+        assert im.n_frames == 8
 
 
 # ------------------------------------------------------------------------------- geometry margin

@@ -118,7 +118,7 @@ def draw_worst_cloud(scen, ctx, res, out) -> None:
            f"flag rate of the uncertainty head at gate {_gate(res)} and {gated_words(res)[1]}"
            f"{_reckoning_words(res)}.")
     if res.info.get("record") is not None and "rec_smooth_p" in res.arrays and "rec_hybrid_p" in res.arrays:
-        _worst_cloud_gif(scen, ctx, res, out)
+        _worst_cloud_gif(scen, ctx, res, out, max_frames=max(8, round(40 * min(1.0, ctx.scale))))  # debug=tiny: 8
 
 
 def pick_agent(metrics, level) -> tuple[int, str]:
