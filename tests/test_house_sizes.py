@@ -36,3 +36,35 @@ def test_the_config_layer_is_at_most_600_lines():
              for name in ("schema.py", "config.py", "preflight.py")}
     assert not (REPO_ROOT / "pipeline" / "signatures.py").exists()
     assert sum(layer.values()) <= 600, f"the config layer is {sum(layer.values())} lines: {layer}"
+
+
+IN_FUNCTION_IMPORTS = 10  # issue 47: 51 at filing
+
+
+def in_function_pipeline_imports(source: str) -> list[tuple[int, str]]:
+    """`(line, text)` of each `import pipeline...` / `from pipeline... import` statement inside a function body."""
+    lines, found = source.splitlines(), []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+            for sub in ast.walk(node):
+                names = [a.name for a in sub.names] if isinstance(sub, ast.Import) else \
+                    [sub.module or ""] if isinstance(sub, ast.ImportFrom) and sub.level == 0 else []
+                if any(n == "pipeline" or n.startswith("pipeline.") for n in names):
+                    found.append((sub.lineno, lines[sub.lineno - 1]))
+    return sorted(set(found))
+
+
+def test_in_function_pipeline_imports_are_few_and_each_says_why():
+    """Issue 47: a dependency hidden in a function is one a reader of the imports does not see; at most 10 in
+    `pipeline/`, each with a comment on its line saying why it waits (torch, matplotlib: not in the preflight)."""
+    found = {f"{p.relative_to(REPO_ROOT)}:{n}": text for p in _modules()
+             for n, text in in_function_pipeline_imports(p.read_text())}
+    assert len(found) <= IN_FUNCTION_IMPORTS, sorted(found)
+    bare = [k for k, text in found.items() if "#" not in text]
+    assert not bare, f"in-function imports without a comment saying why: {bare}"
+
+
+def test_the_import_count_sees_nested_and_multi_line_imports():
+    src = "import pipeline.a\ndef f():\n    if x:\n        from pipeline.b import (  # why\n            c)\n" \
+          "    import os\n    from . import d\n    import pipeline\n"
+    assert [n for n, _ in in_function_pipeline_imports(src)] == [4, 8]

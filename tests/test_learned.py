@@ -207,7 +207,8 @@ def test_one_evaluation_code_runs_the_architecture_and_the_learned_policies():
 
 def test_imitation_stage_writes_a_tracked_policy_that_reloads(tmp_path):
     from pipeline.cli import compose
-    from pipeline.learned.imitate import load_policy_model, run
+    from pipeline.learned.comparison import load_policy_model
+    from pipeline.learned.imitate import run
 
     cfg = compose("imitate", ["imitation.agents=4", "imitation.rounds=1", "imitation.epochs=1",
                               "imitation.round_epochs=1", "imitation.max_frames=6", "model.filters=[4,8,8]",

@@ -40,7 +40,7 @@ def __getattr__(name: str):
     """The API from :mod:`.bounds`, imported on first use: the stage's checks (`pipeline.certify.checks`) answer bad
     input without importing torch and lightning (1 s instead of 4.5 s)."""
     if name in __all__:
-        from pipeline.certify import bounds
+        from pipeline.certify import bounds  # torch and lightning: not for the checks
 
         return getattr(bounds, name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -17,7 +17,8 @@ from omegaconf import DictConfig
 from pipeline import tracking
 from pipeline.envs.policies import ArchitecturePolicy
 from pipeline.learned.evaluate import Prepared, check, learned_id
-from pipeline.learned.imitate import load_policy_model
+from pipeline.learned.imitate import policy_folder
+from pipeline.learned.network import VelocityPolicy
 from pipeline.learned.policies import ImitatedPolicy, LearnedHybridPolicy, load_map
 from pipeline.learned.ppo import PPOPolicy, load_ppo
 from pipeline.learned.report import switching_figure, write_tables
@@ -26,6 +27,19 @@ from pipeline.perception.adversary import proposition1_direction
 from pipeline.preflight import prepared
 from pipeline.sim import starts as st
 from pipeline.sim.metrics import wilson
+
+
+def load_policy_model(ref, models_dir, field: str = "policies.imitation"):
+    """The trained imitation network :func:`pipeline.learned.imitate.policy_folder` finds, in eval mode."""
+    folder = policy_folder(ref, models_dir, field)
+    m = tracking.read_manifest(folder)
+    hp = dict(m["hparams"])
+    hp["image_shape"] = tuple(hp["image_shape"])
+    model = VelocityPolicy.of(**hp)
+    model.load_state_dict(torch.load(folder / "model.pt", map_location="cpu"))
+    model.eval()
+    model.tracked_name = folder.name
+    return model
 
 
 def _policies(obj, laws, pm, model, names, ppo=None):

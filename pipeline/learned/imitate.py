@@ -207,22 +207,6 @@ def policy_folder(ref, models_dir, field: str = "policies.imitation") -> Path:
                             expected=expected)
 
 
-def load_policy_model(ref, models_dir, field: str = "policies.imitation"):
-    """The trained imitation network :func:`policy_folder` finds, in eval mode."""
-    import torch  # not in the preflight (this module is the stage's entry)
-
-    from pipeline.learned.network import VelocityPolicy  # torch, Lightning
-
-    folder = policy_folder(ref, models_dir, field)
-    m = tracking.read_manifest(folder)
-    hp = dict(m["hparams"])
-    hp["image_shape"] = tuple(hp["image_shape"])
-    model = VelocityPolicy.of(**hp)
-    model.load_state_dict(torch.load(folder / "model.pt", map_location="cpu"))
-    model.eval()
-    model.tracked_name = folder.name
-    return model
-
 
 main = stage_main("imitate", run="pipeline.learned.imitate:run", check="pipeline.learned.imitate:check")
 
