@@ -4,8 +4,14 @@ the session's shared temporary folder (a file lock keeps the others waiting), th
 
 from __future__ import annotations
 
+import contextlib
+import io
 import pickle
 import re
+import runpy
+import subprocess
+import sys
+import warnings
 from pathlib import Path
 
 from filelock import FileLock
@@ -26,3 +32,22 @@ def computed_once(tmp_path_factory, worker_id: str, name: str, make):
 def index_links(index: Path) -> set[str]:
     """The targets of the markdown links of a paper folder's `index.md`."""
     return set(re.findall(r"\]\(([^)]+)\)", index.read_text()))
+
+
+def run_cli(module: str, *args: str) -> subprocess.CompletedProcess:
+    """`python -m <module> <args>` in this process (`runpy`, as `-m` runs it): its exit code, stdout and stderr, for
+    checks that end before any work (a bad input: one line, exit 2). A fresh interpreter costs about a second of
+    imports per case; what only a fresh process shows (what it imports, start-up warnings, signals) keeps
+    `subprocess` (tests/test_first_hour.py, and one subprocess case per stage in tests/test_config_truth.py)."""
+    out, err, argv, code = io.StringIO(), io.StringIO(), sys.argv, 0
+    sys.argv = [module, *args]
+    try:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err), warnings.catch_warnings():
+            # runpy's note that a module imported before runs again as `__main__` (what `-m` does in a fresh process)
+            warnings.filterwarnings("ignore", "'pipeline.*' found in sys.modules", RuntimeWarning)
+            runpy.run_module(module, run_name="__main__", alter_sys=True)
+    except SystemExit as done:
+        code = done.code if isinstance(done.code, int) else 0 if done.code is None else 1
+    finally:
+        sys.argv = argv
+    return subprocess.CompletedProcess([module, *args], code, out.getvalue(), err.getvalue())

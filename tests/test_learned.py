@@ -6,6 +6,7 @@ import sys
 import numpy as np
 import pytest
 import torch
+from shared import run_cli  # tests/shared.py
 
 import pipeline.envs as envs
 from pipeline.learned.expert import Expert, mode_flows
@@ -237,7 +238,10 @@ def test_imitation_stage_writes_a_tracked_policy_that_reloads(tmp_path):
                                                 ("pipeline.paper", "learned=[bogus]", "learned"),
                                                 ("pipeline.paper", "learned=[imitate_nope]", "learned")])
 def test_bad_keys_are_one_line_and_exit_2(module, arg, field):
-    out = subprocess.run([sys.executable, "-m", module, arg], capture_output=True, text=True, timeout=120)
+    if arg in ("imitation.agents=0", "learned.kappas=[-1]"):  # each stage's first case in a fresh interpreter
+        out = subprocess.run([sys.executable, "-m", module, arg], capture_output=True, text=True, timeout=120)
+    else:  # the same entry in this process (tests/shared.py)
+        out = run_cli(module, arg)
     assert out.returncode == 2, out.stderr
     lines = [ln for ln in out.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and field in lines[0], out.stderr

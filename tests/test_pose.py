@@ -9,6 +9,7 @@ import sys
 
 import numpy as np
 import pytest
+from shared import run_cli  # tests/shared.py
 
 from pipeline import tracking
 from pipeline.cli import REPO_ROOT, compose
@@ -187,7 +188,7 @@ def _stage(module, *args):
     ("pipeline.data", ["data=unicycle", "data.vehicle.heading0=north"], "data.vehicle.heading0"),
 ])
 def test_bad_new_keys_one_line_exit_2(module, args, field, tmp_path):
-    r = _stage(module, *args, f"paths.root_dir={tmp_path}")
+    r = run_cli(module, *args, f"paths.root_dir={tmp_path}")  # the entry in this process (tests/shared.py)
     lines = [ln for ln in r.stderr.strip().splitlines() if ln.strip()]
     assert r.returncode == 2, r.stderr
     assert len(lines) == 1 and field in lines[0], r.stderr

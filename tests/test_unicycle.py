@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from test_pose import MomentsMap, _map_folder, _stage
+from shared import run_cli  # tests/shared.py
+from test_pose import MomentsMap, _map_folder
 
 from pipeline.cli import compose
 from pipeline.control.fields import random_scene
@@ -113,7 +114,7 @@ def test_unicycle_field_bundle_through_the_stage(tmp_path):
     (["experiment=unicycle_field", "scene.inflation=-0.5"], "scene.inflation"),
 ])
 def test_unicycle_bad_input_one_line_exit_2(args, field, tmp_path):
-    r = _stage("pipeline.experiments", *args, "perception=oracle", f"paths.root_dir={tmp_path}")
+    r = run_cli("pipeline.experiments", *args, "perception=oracle", f"paths.root_dir={tmp_path}")  # tests/shared.py
     lines = [ln for ln in r.stderr.strip().splitlines() if ln.strip()]
     assert r.returncode == 2, r.stderr
     assert len(lines) == 1 and field in lines[0], r.stderr
