@@ -11,6 +11,7 @@ import sys
 import numpy as np
 import pandas as pd
 import pytest
+from shared import run_cli  # tests/shared.py
 
 from pipeline import tracking
 from pipeline.cli import REPO_ROOT, compose
@@ -176,8 +177,9 @@ def test_bad_input_is_one_line_exit_2(tmp_path):
              ("experiment.levels=[none,cloudy]", "error: experiment.levels: unknown occlusion level 'cloudy'"),
              ("experiment.maps=[clean,mine]", "error: experiment.maps: 'mine' is not in the composed `maps` node"),
              ("experiment.maps=[clean_paper]", "run `python -m pipeline.train data=clean model=paper`")]
-    for override, message in cases:
-        proc = subprocess.run([*base, override], cwd=REPO_ROOT, capture_output=True, text=True, timeout=300)
+    for i, (override, message) in enumerate(cases):  # the first in a fresh interpreter, the others in this process
+        proc = subprocess.run([*base, override], cwd=REPO_ROOT, capture_output=True, text=True, timeout=300) if i == 0 \
+            else run_cli(*base[2:], override)
         assert proc.returncode == 2, (override, proc.stderr[-2000:])
         assert len(proc.stderr.strip().splitlines()) == 1 and message in proc.stderr, (override, proc.stderr)
 

@@ -8,6 +8,7 @@ import sys
 
 import numpy as np
 import pytest
+from shared import run_cli  # tests/shared.py
 
 from pipeline.cli import REPO_ROOT, compose
 from pipeline.errors import ConfigError, DatasetError, ModelError
@@ -243,11 +244,13 @@ def test_cli_bad_input_one_line_exit_2(request, tmp_path, override):
         # has found the dataset, so this case needs one (the DataModule's values are its signature's, checked at
         # composition: `batch_size=-4` is rejected before the dataset is looked for)
         datasets, extra = request.getfixturevalue("tiny")["datasets"], SMALL
-    proc = subprocess.run(
-        [sys.executable, "-m", "pipeline.train", override, f"paths.datasets_dir={datasets}", *extra,
-         f"paths.models_dir={tmp_path / 'm'}", f"hydra.run.dir={tmp_path / 'run'}"],
-        cwd=REPO_ROOT, capture_output=True, text=True, timeout=300,
-    )
+    args = [override, f"paths.datasets_dir={datasets}", *extra, f"paths.models_dir={tmp_path / 'm'}",
+            f"hydra.run.dir={tmp_path / 'run'}"]
+    if override in ("model.lr=abc", "datamodule.batch_size=-4"):  # refused by the preflight: the entry in this process
+        proc = run_cli("pipeline.train", *args)
+    else:  # a fresh interpreter (and the GPU case, refused in the job: Hydra's logging stays out of this process)
+        proc = subprocess.run([sys.executable, "-m", "pipeline.train", *args], cwd=REPO_ROOT, capture_output=True,
+                              text=True, timeout=300)
     assert proc.returncode == 2, proc.stderr
     assert "Traceback" not in proc.stderr
     lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
