@@ -207,7 +207,6 @@ def policy_folder(ref, models_dir, field: str = "policies.imitation") -> Path:
                             expected=expected)
 
 
-
 main = stage_main("imitate", run="pipeline.learned.imitate:run", check="pipeline.learned.imitate:check")
 
 if __name__ == "__main__":
