@@ -223,7 +223,8 @@ def test_dagger_two_rounds_parent_chain_and_rerun_is_a_no_op(tmp_path):
 def test_bad_keys_are_one_line_exit_2(tmp_path, args, field):
     rest = (*args[1:], f"paths.root_dir={tmp_path / 'root'}", f"hydra.run.dir={tmp_path / 'run'}")
     # each stage's first case in a fresh interpreter, the others through the same entry in this process
-    fresh = args in (["pipeline.dagger", "dagger.rounds=0"], ["pipeline.data", "data=dagger", "+data.sampling.closed_loop.mapp=x"])
+    fresh = args in (["pipeline.dagger", "dagger.rounds=0"],
+                     ["pipeline.data", "data=dagger", "+data.sampling.closed_loop.mapp=x"])
     res = _cli(args[0], *rest, timeout=120) if fresh else run_cli(args[0], *rest)
     assert res.returncode == 2, res.stderr
     lines = res.stderr.strip().splitlines()
