@@ -7,12 +7,12 @@ from __future__ import annotations
 
 import ast
 import contextlib
-import copy
 import dataclasses
 import functools
 import importlib
 import importlib.util
 import inspect
+import pickle
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -153,7 +153,8 @@ def build(node, path: str, /, **kwargs):
 
 def compose(config_name: str, overrides: list[str] | None = None, *, check: bool = True) -> DictConfig:
     """Hydra's compose (also in a running app), errors as one line, no `hydra:` interpolations. The group choices
-    compose once per process (0.15 s); a call gets a deep copy (20x less) with its values set by Hydra's last step."""
+    compose once per process (0.15 s); a call gets its own copy (unpickled: 1.4 ms, 7x less than a deep copy) with its
+    values set by Hydra's last step."""
     from hydra._internal.config_loader_impl import ConfigLoaderImpl
     from hydra.core.global_hydra import GlobalHydra
     from hydra.core.override_parser.overrides_parser import OverridesParser
@@ -163,7 +164,7 @@ def compose(config_name: str, overrides: list[str] | None = None, *, check: bool
         kinds = [_kind(o) for o in parsed]
         late = [o for o, k in zip(parsed, kinds) if k == "value" and None not in kinds]  # else all as Hydra, in order
         early = tuple(o.input_line for o in parsed if o not in late)
-        cfg = copy.deepcopy(_composed(config_name, early, GlobalHydra.instance().is_initialized()))
+        cfg = pickle.loads(_composed(config_name, early, GlobalHydra.instance().is_initialized()))
         ConfigLoaderImpl._apply_overrides_to_config(late, cfg)
     except Exception as err:  # noqa: BLE001 - Hydra's errors (no stage code runs here), as one line
         raise hydra_error(err) from None
@@ -178,11 +179,12 @@ def _kind(o) -> str | None:
     return "group" if group else None if o.package or o.is_delete() or isinstance(o.value(), dict) else "value"
 
 
-@functools.lru_cache(maxsize=64)
-def _composed(config_name: str, overrides: tuple[str, ...], inside_app: bool) -> DictConfig:
-    """One composition (an error is raised, never kept), with a running app's Hydra or one for this call only."""
+@functools.lru_cache(maxsize=256)
+def _composed(config_name: str, overrides: tuple[str, ...], inside_app: bool) -> bytes:
+    """One composition, pickled (an error is raised, never kept), with a running app's Hydra or one for this call
+    only."""
     import hydra
 
     with contextlib.nullcontext() if inside_app else \
             hydra.initialize_config_dir(version_base="1.3", config_dir=str(CONF_DIR)):
-        return hydra.compose(config_name=config_name, overrides=list(overrides))
+        return pickle.dumps(hydra.compose(config_name=config_name, overrides=list(overrides)))

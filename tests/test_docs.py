@@ -123,7 +123,7 @@ def _without_missing_plugins(args: list[str]) -> tuple[list[str], list[str]]:
 def composed_once():
     """`pipeline.config.compose` memoised for this module's dry checks: the commands compose the same configs
     again and again (each stage's check recomputes the ids of its inputs); a copy of the cached config each time."""
-    import copy
+    import pickle
     import sys
 
     from pipeline import config
@@ -134,12 +134,12 @@ def composed_once():
         key = (config_name, tuple(overrides or ()), check)
         if key not in cache:
             try:
-                cache[key] = real(config_name, overrides, check=check)
+                cache[key] = pickle.dumps(real(config_name, overrides, check=check))
             except Exception as err:  # noqa: BLE001 - the same error each time
                 cache[key] = err
         if isinstance(cache[key], Exception):
             raise cache[key]
-        return copy.deepcopy(cache[key])
+        return pickle.loads(cache[key])
 
     patched = [m for m in list(sys.modules.values()) if getattr(m, "compose", None) is real]
     for m in patched:
