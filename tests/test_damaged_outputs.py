@@ -12,6 +12,7 @@ import sys
 from types import SimpleNamespace
 
 import pytest
+from shared import run_cli  # tests/shared.py
 
 from pipeline import tracking
 from pipeline.cli import REPO_ROOT, compose
@@ -192,7 +193,7 @@ def test_a_file_where_the_dataset_folder_should_be_is_one_line_in_the_data_stage
     blocker.parent.mkdir(parents=True)
     blocker.write_text("not a folder")
     _one_line(_cli("pipeline.data", "debug=tiny", f"paths.root_dir={tmp_path}"), str(blocker), "a file where")
-    _one_line(_cli("pipeline.data", "debug=tiny", "force=true", f"paths.root_dir={tmp_path}"), "a file where")
+    _one_line(run_cli("pipeline.data", "debug=tiny", "force=true", f"paths.root_dir={tmp_path}"), "a file where")
     assert blocker.read_text() == "not a folder"  # not ours to replace
 
 
