@@ -68,3 +68,19 @@ def test_the_import_count_sees_nested_and_multi_line_imports():
     src = "import pipeline.a\ndef f():\n    if x:\n        from pipeline.b import (  # why\n            c)\n" \
           "    import os\n    from . import d\n    import pipeline\n"
     assert [n for n, _ in in_function_pipeline_imports(src)] == [4, 8]
+
+
+def test_the_longest_first_modules_exist_and_the_order_keeps_every_test_once(request):
+    """tests/conftest.py's `LONGEST_FIRST` names test modules that exist (a renamed one would silently fall back to
+    file order and its long test could run last again), and its reordering moves modules, never drops or repeats a
+    test: this session's collection holds each collected test id once, the listed modules first."""
+    import conftest  # tests/conftest.py
+
+    names = {p.name for p in (REPO_ROOT / "tests").glob("test_*.py")}
+    assert set(conftest.LONGEST_FIRST) <= names, sorted(set(conftest.LONGEST_FIRST) - names)
+    items = request.session.items
+    ids = [i.nodeid for i in items]
+    assert len(ids) == len(set(ids))
+    ranks = [conftest.LONGEST_FIRST.index(i.path.name) if i.path.name in conftest.LONGEST_FIRST else
+             len(conftest.LONGEST_FIRST) for i in items]
+    assert ranks == sorted(ranks)

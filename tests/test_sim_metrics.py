@@ -275,3 +275,23 @@ def test_grazing_chord_is_a_collision(scene, model):
     # the collision is located where the line enters the disc
     x_in = -np.sqrt(r**2 - (r - 0.05) ** 2)
     np.testing.assert_allclose(res.p[-1, [0, 2], 0], x_in, atol=0.1 if model == "sampled" else 1e-6)
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.lists(st.tuples(st.floats(-60, 60), st.floats(-40, 40)), min_size=1, max_size=12),
+       st.lists(st.tuples(st.floats(-50, 50), st.floats(-30, 30), st.floats(0.5, 6)), min_size=1, max_size=6))
+def test_the_monitor_s_distances_to_every_obstacle_are_each_centre_s_bit_for_bit(points, discs):
+    """The monitor's squared distances to all obstacle centres at once (one broadcast) are those of each centre
+    alone, bit for bit: the collision test and the clearance the tables report do not move by a rounding."""
+    from types import SimpleNamespace
+
+    from pipeline.plants import SingleIntegrator
+    from pipeline.sim.monitor import ArrivalCollision, _sq
+
+    d = np.array(discs, dtype=float)  # what the monitor reads of a scene (any field, valid for a law or not)
+    scene = SimpleNamespace(arrays={"center": d[:, :2], "radius": d[:, 2]}, p_T=np.array([40.0, 0.0]))
+    p = np.array(points, dtype=float)
+    mon = ArrivalCollision(scene, SingleIntegrator(), len(p), delta=1.0, stop_on_success=True,
+                           stall=StallMonitor(len(p), 0.25, 5.0, 0.01))
+    each = np.stack([_sq(p, c) for c in scene.arrays["center"]], axis=1)
+    assert mon._d2(p).tobytes() == each.tobytes()
