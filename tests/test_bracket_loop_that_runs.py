@@ -65,6 +65,32 @@ def slowest_frames(n: int, step: float) -> int:
 
 
 @settings(max_examples=examples(40), deadline=None)
+@given(n=st.integers(2, 30), seed=st.integers(0, 2**31), multi=st.booleans())
+def test_win_decides_single_nodes_as_its_general_step_does(n, seed, multi):
+    """`win` decides a component of one node without a self-loop in plain Python (`winning._single`): on random graphs
+    (self-loops, cycles, dead ends, unsafe nodes, edges over several frames) `Win`, the counts and every arrival bound
+    are the bytes of the general step's. Fails if the shortcut drops `f(v)`, wins a node with a successor outside
+    `Win`, or takes a self-loop for a single node."""
+    from unittest import mock
+
+    from pipeline.bracket import winning
+
+    rng = np.random.default_rng(seed)
+    ab = corridor(n, 1.0, PERIOD)
+    succ = [rng.choice(n, rng.integers(0, min(n, 4) + 1), replace=False) for _ in range(1, n)]
+    ab.indptr = np.concatenate([[0, 0], np.cumsum([len(s) for s in succ])])
+    ab.succ = np.concatenate([*succ, np.zeros(0, np.int64)]).astype(np.int64)
+    ab.safe = rng.uniform(size=n) < 0.9
+    if multi:
+        ab.multi, ab.frames = rng.uniform(size=n) < 0.3, 3
+    fast = winning.win(ab, PERIOD, np.array([0.5, 0.5]))
+    with mock.patch.object(winning, "_single", return_value=None):
+        general = winning.win(ab, PERIOD, np.array([0.5, 0.5]))
+    assert fast[0].tobytes() == general[0].tobytes() and fast[1] == general[1]
+    assert fast[2].tobytes() == general[2].tobytes()
+
+
+@settings(max_examples=examples(40), deadline=None)
 @given(n=st.integers(3, 40), step=st.floats(1.05, 1.95))
 def test_the_directional_bound_covers_the_slowest_run_and_beats_the_longest_path(n, step):
     """On the chain (period 1) the longest path charges a frame per cell, `n - 1` from the last one; the bound through

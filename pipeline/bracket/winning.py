@@ -140,6 +140,20 @@ def _inner_frames(ab: Abstraction, comp: np.ndarray, leaves: np.ndarray, period:
     return best, rule
 
 
+def _single(v: int, ptr: list, succ: list, f: list, W: np.ndarray, frames: np.ndarray) -> bool | None:
+    """:func:`win`'s step for a single node `v` without a self-loop, in plain Python (most components are one node;
+    numpy's per-call cost was most of `win`): in `Win` (True) when every successor is, with `f(v)` plus their largest
+    bound (the same float operations), else False. None where it has a self-loop (decided by the general step)."""
+    outs = succ[ptr[v]:ptr[v + 1]]
+    if v in outs:
+        return None
+    if not all(W[s] for s in outs):
+        return False
+    W[v] = True
+    frames[v] = max(f[v] + frames[s] for s in outs) if outs else 0.0
+    return True
+
+
 def win(ab: Abstraction, period: float, p_T: np.ndarray,
         seeds: np.ndarray | None = None) -> tuple[np.ndarray, dict, np.ndarray]:
     """`Win` `(nodes,)`, counts (components, transient ones and by which rule) and the arrival bound `frames`
@@ -160,13 +174,17 @@ def win(ab: Abstraction, period: float, p_T: np.ndarray,
     comps = tarjan(n, ab.indptr, ab.succ, active)
     stats = {"components": len(comps), "transient_direction": 0, "transient_distance": 0, "won_components": 0}
     member = np.full(n, -1, np.int64)
+    ptr, succ_l, f_l = ab.indptr.tolist(), ab.succ.tolist(), f.tolist()
     for ci, comp in enumerate(comps):
         member[comp] = ci
+        if len(comp) == 1 and (won := _single(int(comp[0]), ptr, succ_l, f_l, W, frames)) is not None:
+            stats["won_components"] += won
+            continue
         deg = ab.indptr[comp + 1] - ab.indptr[comp]
         outs = np.concatenate([ab.succ[ab.indptr[v]:ab.indptr[v + 1]] for v in comp])
         internal = member[outs] == ci
-        if not W[outs[~internal]].all():
-            continue
+        if internal.all() and internal.any() or not W[outs[~internal]].all():
+            continue  # (a component without an exit edge is never left: not in `Win`)
         src = np.repeat(comp, deg)[~internal]
         inner = 0.0
         if internal.any():
