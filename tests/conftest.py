@@ -78,8 +78,9 @@ def production():
 
     import torch
 
-    from pipeline.perception.network import FoldedPerceptionNet, PerceptionMap
+    from pipeline.perception.network import FoldedPerceptionNet
     from pipeline.render import Camera
+    from pipeline.train.module import PerceptionMap
 
     blob = torch.load(Path(__file__).parent / "fixtures" / "occluded_keypoint.pt", weights_only=True)
     model = PerceptionMap.of(**blob["hparams"])

@@ -16,7 +16,7 @@ import hashlib, json, resource, sys
 import torch
 from pipeline.allocator import keep_freed_memory
 from pipeline.config import build, compose
-from pipeline.perception.network import PerceptionMap
+from pipeline.train.module import PerceptionMap
 from pipeline.train.bench import _data
 kept = keep_freed_memory()
 torch.set_num_threads(1)

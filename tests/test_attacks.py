@@ -138,7 +138,8 @@ def test_pixel_attack_never_helps_the_controller(camera, positions):
 
 
 def test_pixel_attack_through_the_folded_perception_net(camera, positions):
-    from pipeline.perception.network import FoldedPerceptionNet, PerceptionMap
+    from pipeline.perception.network import FoldedPerceptionNet
+    from pipeline.train.module import PerceptionMap
 
     torch.manual_seed(0)
     model = PerceptionMap.of(filters=[4, 8], batch_norm=True, coord_channels=True)

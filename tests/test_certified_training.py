@@ -18,9 +18,9 @@ from hypothesis import strategies as st
 from pipeline.certify import certified_error_bound, prepare
 from pipeline.cli import REPO_ROOT, compose
 from pipeline.errors import ConfigError
-from pipeline.perception.network import PerceptionMap
 from pipeline.render import Camera
 from pipeline.train.certified import CertifiedTerm
+from pipeline.train.module import PerceptionMap
 from pipeline.train.settings import CertifiedTraining
 
 SCENE = SimpleNamespace(obstacle_center=(0.0, 0.0), obstacle_radius=4.0, target=(40.0, 0.0))

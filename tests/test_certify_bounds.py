@@ -20,8 +20,9 @@ from hypothesis import strategies as st
 from pipeline.certify import certified_error_bound, prepare
 from pipeline.certify.deployed import Deployed
 from pipeline.certify.renderer import pixel_window
-from pipeline.perception.network import FoldedPerceptionNet, PerceptionMap
+from pipeline.perception.network import FoldedPerceptionNet
 from pipeline.render import Camera
+from pipeline.train.module import PerceptionMap
 
 SCENE = SimpleNamespace(obstacle_center=(0.0, 0.0), obstacle_radius=4.0, target=(40.0, 0.0))
 SLACK = 1e-4  # float32 networks: the deployed net's own rounding (world units)

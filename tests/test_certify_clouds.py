@@ -26,9 +26,10 @@ from pipeline.certify.clouds import (
 )
 from pipeline.certify.renderer import pixel_window
 from pipeline.errors import ConfigError, DatasetError
-from pipeline.perception.network import FoldedPerceptionNet, PerceptionMap
+from pipeline.perception.network import FoldedPerceptionNet
 from pipeline.render import Camera
 from pipeline.render.occlusion import CloudSample, Occlusion, load_occlusion
+from pipeline.train.module import PerceptionMap
 
 SCENE = SimpleNamespace(obstacle_center=(0.0, 0.0), obstacle_radius=4.0, target=(40.0, 0.0))
 SLACK = 1e-4  # float32 networks: the deployed net's own rounding (world units)

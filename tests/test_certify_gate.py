@@ -27,8 +27,8 @@ from pipeline.certify.gate import (
     verdicts,
 )
 from pipeline.errors import ConfigError
-from pipeline.perception.network import PerceptionMap
 from pipeline.render.occlusion import CloudSample, Occlusion, load_occlusion
+from pipeline.train.module import PerceptionMap
 
 REL = 1e-4  # float32: the deployed network's own rounding, relative to the predicted error
 GATE = 0.5626522205725629  # the map's clean-image gate (its manifest's calibration.clean_gate_px; 1 px = 1 unit)

@@ -18,8 +18,9 @@ from pipeline.certify.heading import heading_error
 from pipeline.certify.renderer import pixel_window
 from pipeline.certify.split import certify_cells, pose_cells, sampled_errors
 from pipeline.errors import ConfigError
-from pipeline.perception.network import FoldedPerceptionNet, PerceptionMap
+from pipeline.perception.network import FoldedPerceptionNet
 from pipeline.render import Camera
+from pipeline.train.module import PerceptionMap
 
 SCENE = SimpleNamespace(obstacle_center=(0.0, 0.0), obstacle_radius=4.0, target=(40.0, 0.0))
 PHASES = (Phase.explicit, Phase.reuse, Phase.generate, Phase.shrink)

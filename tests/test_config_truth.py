@@ -322,8 +322,8 @@ def test_a_torch_class_takes_its_spec_and_saves_its_fields():
 
     from pipeline.learned.network import VelocityPolicy
     from pipeline.learned.spec import PolicySpec
-    from pipeline.perception.network import PerceptionMap
     from pipeline.perception.spec import MapSpec
+    from pipeline.train.module import PerceptionMap
 
     for cls, spec in ((PerceptionMap, MapSpec(filters=(4, 8), position_head="keypoint")),
                       (VelocityPolicy, PolicySpec(filters=(4, 8), hidden=8))):

@@ -7,7 +7,8 @@ from torch import nn
 from torch.nn import functional as F
 
 from pipeline.certify.deployed import deployed
-from pipeline.perception.network import FoldedPerceptionNet, PerceptionMap, fold
+from pipeline.perception.network import FoldedPerceptionNet, fold
+from pipeline.train.module import PerceptionMap
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # tests/conftest.py
 

@@ -438,7 +438,7 @@ def test_the_error_map_bench_uses_the_trained_map_beside_a_newer_policy(tiny_map
     images = camera.render(p)
     np.testing.assert_array_equal(predict(images), load_perception_map(ids["clean"], models_dir=models).predict(images))
     _, _, label = bench._predictor(tmp_path / "nothing")
-    assert label == "no trained model; untrained PerceptionMap (same cost)"
+    assert label == "no trained model; untrained PerceptionNet (same cost)"
 
 
 def test_the_closed_loop_bench_times_the_trained_map_and_bounds_its_ratio(tiny_maps, tmp_path, monkeypatch):

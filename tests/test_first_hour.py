@@ -118,8 +118,8 @@ def test_every_bench_module_imports_and_the_error_map_predictor_gives_positions(
 def test_bench_trains_the_default_map_with_its_uncertainty_head():
     """`make bench` crashed: the default map has four outputs (position + variance), the loss took them all."""
     from pipeline.config import build
-    from pipeline.perception.network import PerceptionMap
     from pipeline.train.bench import _data, raw_loop
+    from pipeline.train.module import PerceptionMap
 
     images, pos = _data(16)
     assert raw_loop(PerceptionMap(build(compose("train").model, "model")), images, pos, batch=8, steps=1) > 0

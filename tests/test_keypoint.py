@@ -43,7 +43,7 @@ def test_a_peaked_attention_reads_its_cells_centre_plus_the_offset_in_arena_coor
 
 
 def _model(**kw):
-    from pipeline.perception.network import PerceptionMap
+    from pipeline.train.module import PerceptionMap
 
     torch.manual_seed(0)
     model = PerceptionMap.of(position_head="keypoint", filters=[4, 8, 8], **kw)
@@ -83,7 +83,7 @@ def test_keypoint_map_is_differentiable_for_the_pixel_attack():
 
 @pytest.mark.parametrize("position,heading", [("keypoint", "pooled"), ("keypoint", "flat"), ("flat", "attention")])
 def test_the_heading_head_must_match_the_position_head(position, heading):
-    from pipeline.perception.network import PerceptionMap
+    from pipeline.train.module import PerceptionMap
 
     with pytest.raises(ConfigError, match="model.heading_head"):
         PerceptionMap.of(outputs="pose", position_head=position, heading_head=heading, uncertainty="none")
@@ -92,7 +92,7 @@ def test_the_heading_head_must_match_the_position_head(position, heading):
 
 def test_the_pose_and_keypoint_configs_compose_to_keypoint_maps():
     from pipeline.config import build
-    from pipeline.perception.network import PerceptionMap
+    from pipeline.train.module import PerceptionMap
 
     for name, pose in (("keypoint", False), ("pose", True)):
         model = PerceptionMap(build(compose("train", ["data=unicycle", f"model={name}"]).model, "model"))
@@ -104,8 +104,8 @@ def test_the_keypoint_head_learns_sub_pixel_positions_where_the_flat_head_does_n
     """Same trunk, images, optimiser and steps (600 rendered clean frames, 6 epochs): the keypoint head reaches
     sub-pixel accuracy on held-out frames, the flat head is still pixels off (docs/train.md, "Keypoint head")."""
     from pipeline.control import Scene
-    from pipeline.perception.network import PerceptionMap
     from pipeline.render import Camera
+    from pipeline.train.module import PerceptionMap
 
     rng = np.random.default_rng(0)
     cam = Camera(Scene())

@@ -300,7 +300,7 @@ def test_ppo_runs_on_the_vector_environment_through_sb3(tmp_path, monkeypatch):
 
 def test_trunk_from_a_perception_map_is_copied_and_stays_frozen():
     """`load_trunk` copies the map's blocks; with `freeze_trunk` a training step changes the head only."""
-    from pipeline.perception.network import PerceptionMap
+    from pipeline.train.module import PerceptionMap
 
     pm = PerceptionMap.of(filters=(4, 8, 8), uncertainty="none")
     model = VelocityPolicy.of(filters=(4, 8, 8), hidden=8, freeze_trunk=True)
@@ -360,7 +360,7 @@ def test_a_policy_reading_the_keypoint_copies_the_maps_head_and_is_its_position_
     map's normalised position alone (two frames the map puts at the same place get the same velocity); a map
     without a keypoint head is one ConfigError naming `model.reads`."""
     from pipeline.errors import ConfigError
-    from pipeline.perception.network import PerceptionMap
+    from pipeline.train.module import PerceptionMap
 
     torch.manual_seed(0)
     pm = PerceptionMap.of(filters=(4, 8, 8), position_head="keypoint", uncertainty="none").eval()

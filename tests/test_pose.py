@@ -226,7 +226,7 @@ def test_experiment_cache_key_of_the_integrator_has_no_vehicle_nor_heading_keys(
 def _pose_map(**kw):
     import torch
 
-    from pipeline.perception.network import PerceptionMap
+    from pipeline.train.module import PerceptionMap
 
     torch.manual_seed(0)
     model = PerceptionMap.of(outputs="pose", uncertainty="none", **kw)
@@ -273,7 +273,7 @@ def test_pooled_heading_is_the_same_wherever_the_marker_lies():
 
 
 def test_pose_model_bad_keys():
-    from pipeline.perception.network import PerceptionMap
+    from pipeline.train.module import PerceptionMap
 
     for kw, field in (({"heading_head": "conv"}, "model.heading_head"), ({"heading_hidden": 0}, "model.heading_hidden"),
                       ({"heading_weight": 0.0}, "model.heading_weight")):

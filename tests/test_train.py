@@ -118,7 +118,7 @@ def test_overfits_128_images(tiny):
 
 def test_wrong_image_shape_is_a_model_error(tiny):
     from pipeline.perception.maps import PerceptionMapPredictor
-    from pipeline.perception.network import PerceptionMap
+    from pipeline.train.module import PerceptionMap
 
     pm = PerceptionMapPredictor(PerceptionMap.of())
     assert pm.predict(np.zeros((3, 60, 100, 3), np.uint8)).shape == (3, 2)

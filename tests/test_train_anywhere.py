@@ -86,7 +86,7 @@ def test_resolve_device():
 
 
 def _random_map(**kw):
-    from pipeline.perception.network import PerceptionMap
+    from pipeline.train.module import PerceptionMap
 
     torch.manual_seed(0)
     model = PerceptionMap.of(**kw)

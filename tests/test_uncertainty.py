@@ -13,8 +13,9 @@ from pipeline.control import HybridController, Obstacle, Scene
 from pipeline.errors import ConfigError
 from pipeline.perception.maps import PerceptionMapPredictor
 from pipeline.perception.measure import CameraMeasure
-from pipeline.perception.network import PerceptionMap, gaussian_nll
+from pipeline.perception.network import gaussian_nll
 from pipeline.sim import CameraSettings, SimSettings, simulate
+from pipeline.train.module import PerceptionMap
 from pipeline.train.uncertainty import (
     calibrate,
     clean_gate,

@@ -16,7 +16,7 @@ so that a training loss can use the bound::
 - What the bound covers: every image the camera renders for a position of the cell, the `uint8` rounding
   included (`±0.5` level on fractional-coverage pixels), and under `kappa > 0` every image within `kappa`
   levels of it per pixel and channel (clipped to `[0, 255]`: the pixel attack's set).
-- Models: position maps (`PerceptionMap`, any filters, BatchNorm and CoordConv or not, `clamp` or not) with the
+- Models: position maps (`PerceptionNet`, any filters, BatchNorm and CoordConv or not, `clamp` or not) with the
   flat head without a hidden layer, or the keypoint head (:mod:`.keypoint`: its outputs bounded on the last
   block's window, forward and, with `crown`, by a backward pass per output; the softmax-weighted mean bounded
   exactly over their intervals); pose maps with the keypoint head and the attention heading head, over cells of

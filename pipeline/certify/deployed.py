@@ -1,6 +1,6 @@
 """The perception map as deployed, in the form the bounds read (SPEC §5.2).
 
-:func:`deployed` rewrites a position map (`PerceptionMap`, eval-mode semantics) with the folding of the inference
+:func:`deployed` rewrites a position map (`PerceptionNet`, eval-mode semantics) with the folding of the inference
 network `pipeline.perception.network.FoldedPerceptionNet`, :func:`pipeline.perception.network.fold` (BatchNorm folded
 into the convolutions with its running statistics, the input scaling `x / 255 - 0.5` and the CoordConv channels
 folded into the first convolution's weights and a per-pixel bias map, dropout dropped), but **without detaching**:
@@ -57,7 +57,7 @@ class Deployed:
 
 
 def deployed(model, dtype: torch.dtype = torch.float32) -> Deployed:
-    """The map `model` (a `PerceptionMap`: a flat head without a hidden layer, or the keypoint head; a pose map
+    """The map `model` (a `PerceptionNet`: a flat head without a hidden layer, or the keypoint head; a pose map
     with the attention heading head) as :class:`Deployed`.
 
     Differentiable in the model's parameters; BatchNorm uses its running statistics (eval mode) whatever

@@ -70,7 +70,7 @@ def pool_matrix(n: int, m: int) -> torch.Tensor:
 
 
 def var_head(model) -> VarHead:
-    """The variance head of `model` (a `PerceptionMap` with `uncertainty: gaussian`); ValueError without one."""
+    """The variance head of `model` (a `PerceptionNet` with `uncertainty: gaussian`); ValueError without one."""
     if getattr(model, "var_head", None) is None:
         raise ValueError("the map has no uncertainty head (model.uncertainty=gaussian): there is no gate to bound")
     lin = [m for m in model.var_head if isinstance(m, nn.Linear)]

@@ -151,7 +151,7 @@ def _load(cfg: DictConfig, ref):
 
 def run(cfg: DictConfig, *, perception_map=None, camera=None) -> dict:
     """The certified error map of `cfg.maps`; returns `{"path", "summary", "skipped"}`. `perception_map` and
-    `camera` may be injected (`.model` a `PerceptionMap`, `.predict`, `.id`, `.name`, `.manifest`, `.camera()`)."""
+    `camera` may be injected (`.model` a `PerceptionNet`, `.predict`, `.id`, `.name`, `.manifest`, `.camera()`)."""
     plain = tracking.to_plain({k: cfg[k] for k in cfg.keys() if k not in ("paths", "hydra")})  # what the id hashes
     s = settings_(cfg, CertifySettings)
     pmap = perception_map if perception_map is not None else _load(cfg, cfg.maps)

@@ -1,7 +1,7 @@
 """Benchmark: error-map points/s (render + infer, batched) vs raw inference of the same model (issue 5).
 
 The model is the newest trained perception map under outputs/models (policies there are skipped), else a fresh
-untrained `PerceptionMap` (same architecture, same cost).
+untrained `PerceptionNet` (same architecture, same cost).
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import torch
 from pipeline.control import Scene
 from pipeline.errormap.estimates import arena_grid, error_field
 from pipeline.perception.maps import PerceptionMapPredictor, newest_perception_map
-from pipeline.perception.network import PerceptionMap
+from pipeline.perception.network import PerceptionNet
 from pipeline.render import Camera, load_occlusion
 
 
@@ -26,8 +26,8 @@ def _predictor(models_dir=None):
         return pmap.predict, pmap.camera(), note
     # the predictor, not the raw network: the default map has four outputs (position + its variance)
     torch.manual_seed(0)
-    pm = PerceptionMapPredictor(PerceptionMap.of())
-    return pm.predict, Camera(Scene(target=[40.0, 0.0])), note + "; untrained PerceptionMap (same cost)"
+    pm = PerceptionMapPredictor(PerceptionNet.of())
+    return pm.predict, Camera(Scene(target=[40.0, 0.0])), note + "; untrained PerceptionNet (same cost)"
 
 
 def _best(fn, repeat: int) -> float:

@@ -12,7 +12,7 @@ from pipeline.bench import ceiling_gflops
 from pipeline.control import HybridController, Scene
 from pipeline.perception.maps import PerceptionMapPredictor, newest_perception_map
 from pipeline.perception.measure import CameraMeasure
-from pipeline.perception.network import PerceptionMap
+from pipeline.perception.network import PerceptionNet
 from pipeline.render import Camera
 from pipeline.sim import CameraSettings, SimSettings, simulate
 from pipeline.sim.starts import Random
@@ -25,7 +25,7 @@ def _map():
     if pm is not None:
         return pm, note
     torch.manual_seed(0)
-    net = PerceptionMap.of(filters=(16, 32, 64), batch_norm=True, coord_channels=False, dropout=0.5, lr=1e-3,
+    net = PerceptionNet.of(filters=(16, 32, 64), batch_norm=True, coord_channels=False, dropout=0.5, lr=1e-3,
                         schedule="constant", uncertainty="none")
     return PerceptionMapPredictor(net), note + "; untrained 16/32/64 map"
 

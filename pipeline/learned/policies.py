@@ -22,7 +22,7 @@ from pipeline.envs.core import to_action
 from pipeline.envs.policies import ArchitecturePolicy, frames
 from pipeline.errors import ConfigError
 from pipeline.perception.maps import PerceptionMapPredictor, load_perception_map
-from pipeline.perception.network import PerceptionMap
+from pipeline.perception.network import PerceptionNet
 
 
 class ImitatedPolicy:
@@ -64,7 +64,7 @@ def load_map(ref, models_dir):
         if not path.is_file():
             raise ConfigError("maps.clean", f"no checkpoint {path}")
         blob = torch.load(path, map_location="cpu", weights_only=False)  # a Lightning checkpoint: the map's fields
-        model = PerceptionMap.of(**blob["hyper_parameters"])
+        model = PerceptionNet.of(**blob["hyper_parameters"])
         model.load_state_dict(blob["state_dict"])
         return PerceptionMapPredictor(model, manifest={"name": "checkpoint", "id": path.stem}, device="cpu")
     return load_perception_map(ref, models_dir, device="cpu")

@@ -26,7 +26,7 @@ differentiable w.r.t. the input.
   its weights and bias map), nothing in it is in-place on the input, and although its parameters have
   `requires_grad=False` the gradient w.r.t. the input flows (checked in the tests). A `torch.compile`d
   predictor net works too but recompiles for autograd: pass the eager `FoldedPerceptionNet`.
-- `pipeline.perception.network.PerceptionMap` does **not** satisfy it directly: its float input is read in `[0, 1]`
+- `pipeline.perception.network.PerceptionNet` does **not** satisfy it directly: its float input is read in `[0, 1]`
   (only uint8 input is divided by 255), so wrap it: `ScaledInput(model)` (multiplies by 1/255 first; this also
   avoids its in-place `sub_` on a view of a leaf tensor, which autograd refuses).
 - In eval mode both clamp the estimate to the arena (`model.clamp`), so the gradient of a coordinate vanishes
@@ -104,7 +104,7 @@ class AttackResult:
 
 # ----------------------------------------------------------------------------------------- helpers
 class ScaledInput(nn.Module):
-    """`module(x * scale)`: adapts a network that reads float images in `[0, 1]` (e.g. `PerceptionMap`) to
+    """`module(x * scale)`: adapts a network that reads float images in `[0, 1]` (e.g. `PerceptionNet`) to
     the `[0, 255]` contract of :func:`pixel_attack`."""
 
     def __init__(self, module: nn.Module, scale: float = 1.0 / 255.0):

@@ -16,14 +16,14 @@ import torch
 from pipeline.bench import ceiling_gflops, side_by_side
 from pipeline.config import build, compose
 from pipeline.perception.maps import PerceptionMapPredictor
-from pipeline.perception.network import PerceptionMap
+from pipeline.perception.network import PerceptionNet
 
 
-def default_map(overrides: tuple[str, ...] = ()) -> PerceptionMap:
+def default_map(overrides: tuple[str, ...] = ()) -> PerceptionNet:
     """The default config's map (conf/model/default.yaml; `overrides`: e.g. `model=keypoint`) on the default 60x100
     camera, random weights with non-trivial BatchNorm statistics (same cost as a trained one)."""
     torch.manual_seed(0)
-    model = PerceptionMap(build(compose("train", list(overrides)).model, "model"))
+    model = PerceptionNet(build(compose("train", list(overrides)).model, "model"))
     for m in model.modules():
         if isinstance(m, torch.nn.BatchNorm2d):
             m.running_mean.uniform_(-0.2, 0.2)

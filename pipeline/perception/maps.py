@@ -19,7 +19,7 @@ from pipeline import tracking
 from pipeline.config import build
 from pipeline.errors import ConfigError, DatasetError, ModelError, PipelineError
 from pipeline.lineage import resolve_map
-from pipeline.perception.network import FoldedPerceptionNet, PerceptionMap
+from pipeline.perception.network import FoldedPerceptionNet, PerceptionNet
 from pipeline.repo import REPO_ROOT
 from pipeline.schema import Device, check_value
 
@@ -58,7 +58,7 @@ def _compiler_present() -> bool:
 CHUNK_BYTES = 24 * 2**20
 
 
-def activation_bytes(model: PerceptionMap) -> int:
+def activation_bytes(model: PerceptionNet) -> int:
     """The largest convolution output of one image, fp32 bytes (what sizes an inference chunk on the CPU)."""
     h, w, _ = model.image_shape
     most = 0
@@ -70,7 +70,7 @@ def activation_bytes(model: PerceptionMap) -> int:
     return most
 
 
-def cpu_chunk(model: PerceptionMap) -> int:
+def cpu_chunk(model: PerceptionNet) -> int:
     """Images per inference call on the CPU: as many as keep the largest activation under `CHUNK_BYTES`. A larger
     one is mmap'ed and unmapped at every call, and its page faults cost more than the convolutions (measured
     2026-12-05, make paper's keypoint map, 2 threads: 1,019 img/s at 1,024 images a call, 7.2 s of system time in
@@ -88,7 +88,7 @@ class PerceptionMapPredictor:
     on PATH); a failed compilation falls back to eager with a warning.
     """
 
-    def __init__(self, model: PerceptionMap, manifest: dict | None = None, path: Path | None = None,
+    def __init__(self, model: PerceptionNet, manifest: dict | None = None, path: Path | None = None,
                  batch_size: int | None = None, device="cpu", fold: bool = True, compile=False):
         self.model = model.eval()
         self.device = resolve_device(device)
@@ -96,7 +96,7 @@ class PerceptionMapPredictor:
         self.path = Path(path) if path else None
         self.batch_size = int(batch_size) if batch_size else cpu_chunk(model) if self.device.type == "cpu" else 1024
         self.id = self.manifest.get("id")
-        self.name = self.manifest.get("name", model.hparams.get("name"))
+        self.name = self.manifest.get("name", model.spec.name)
         self.image_shape = model.image_shape
         self.px_per_unit = model.px_per_unit
         self.has_uncertainty = getattr(model, "uncertainty", "none") != "none"
@@ -222,7 +222,7 @@ def load_perception_map(ref, models_dir=None, *, verify: bool = False, device="a
     manifest = tracking.read_manifest(folder)
     blob = torch.load(folder / "model.pt", map_location="cpu", weights_only=True)
     hparams = dict(blob["hparams"])
-    model = PerceptionMap.of(**hparams)
+    model = PerceptionNet.of(**hparams)
     model.load_state_dict(blob["state_dict"])
     return PerceptionMapPredictor(model, manifest=manifest, path=folder, device=dev, compile=compile)
 

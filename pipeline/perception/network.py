@@ -1,4 +1,4 @@
-"""The perception map `l(theta) ≈ p` (SPEC §2): the paper's CNN as a LightningModule.
+"""The perception map `l(theta) ≈ p` (SPEC §2): the paper's CNN as a torch module (:class:`PerceptionNet`).
 
 Three Conv(3x3)-ReLU-MaxPool(2x2) blocks, flatten, Dropout(0.5), Linear -> 2 (the paper's block
 structure). Filter counts, an optional BatchNorm, an optional hidden layer and the input/target
@@ -6,22 +6,21 @@ normalisation are config values (`conf/model/`); `position_head: keypoint` repla
 by a soft-argmax over the last block's cells (:mod:`pipeline.perception.keypoint`, `conf/model/keypoint.yaml`).
 Inputs are uint8 images `(N, H, W, 3)` as stored in the datasets; the module converts them to float channels_last
 tensors itself. Outputs are world coordinates: the network predicts positions normalised to `[-1, 1]` over the
-arena and the module scales them back.
+arena and the module scales them back. Training adds Lightning's steps on top of it
+(`pipeline.train.module.PerceptionMap`); loading and running a map (inference, certificates) needs torch alone.
 """
 
 from __future__ import annotations
 
 import contextlib
 import copy
-import dataclasses
 from collections.abc import Sequence
 
-import lightning as L
 import torch
 from torch import nn
 
 from pipeline.errors import ModelError
-from pipeline.perception.heading import AttentionHeadingHead, HeadingHead, heading_deg
+from pipeline.perception.heading import AttentionHeadingHead, HeadingHead
 from pipeline.perception.keypoint import KeypointHead
 from pipeline.perception.spec import MapSpec
 
@@ -73,18 +72,18 @@ def variance_head(n_in: int) -> nn.Sequential:
     return head.requires_grad_(False)
 
 
-class PerceptionMap(L.LightningModule):
+class PerceptionNet(nn.Module):
     """CNN perception map; `forward(uint8 or float images NHWC) -> (N, 2)` world coordinates, built from its typed
-    spec (:class:`pipeline.perception.spec.MapSpec`, checked there); `hparams` are the spec's fields."""
+    spec (:class:`pipeline.perception.spec.MapSpec`, checked there; kept as `spec`)."""
 
     @classmethod
-    def of(cls, **fields) -> PerceptionMap:
+    def of(cls, **fields) -> PerceptionNet:
         """The map of `MapSpec(**fields)` (Python callers, a saved map's hyperparameters)."""
         return cls(MapSpec(**fields))
 
     def __init__(self, spec: MapSpec):
         super().__init__()
-        self.save_hyperparameters(dataclasses.asdict(spec))
+        self.spec = spec
         h, w, _ = (int(s) for s in spec.image_shape)
         self.image_shape = (h, w, 3)
         (x0, x1), (y0, y1) = spec.arena
@@ -111,7 +110,6 @@ class PerceptionMap(L.LightningModule):
         heading_cls = {"pooled": HeadingHead, "attention": AttentionHeadingHead}.get(spec.heading_head)
         self.heading_head = heading_cls(filters[-1], int(spec.heading_hidden)) \
             if self.pose and heading_cls is not None else None
-        self.heading_weight = float(spec.heading_weight)
         head = KeypointHead(filters[-1], (gh, gw)) if self.keypoint else \
             position_head_layers(flat, spec.hidden, spec.dropout, 4 if self.pose and self.heading_head is None else 2)
         # `uncertainty: gaussian`: a second head on the features predicts the log variance of each normalised
@@ -127,10 +125,6 @@ class PerceptionMap(L.LightningModule):
         # calibration of the predicted sigma on the validation split (set after training; 1 = raw NLL sigma)
         self.register_buffer("sigma_scale", torch.ones(()))
         self.head = head
-        # certified training (pipeline.train.certified): a bound-based term the train stage attaches; None: off
-        self.certified_term = None
-        self._loss = {"mse": nn.functional.mse_loss, "l1": nn.functional.l1_loss,
-                      "smooth_l1": nn.functional.smooth_l1_loss}[spec.loss]
         self.to(memory_format=torch.channels_last)
 
     # --------------------------------------------------------------------------------- forward
@@ -180,7 +174,7 @@ class PerceptionMap(L.LightningModule):
         """What the variance head reads: the (detached) features and the thumbnail of the prepared images `x`."""
         return torch.cat([f.detach().flatten(1), thumbnail(x, self.thumb_size)], 1)
 
-    # -------------------------------------------------------------------------------- training
+    # ------------------------------------------------------------------ what the training fits (pipeline.train.module)
     def targets(self, labels: torch.Tensor) -> torch.Tensor:
         """The head's targets: the position normalised to [-1, 1] over the arena; a pose map adds (cos θ, sin θ)."""
         target = (labels[:, :2] - self.center) / self.half_range
@@ -188,45 +182,6 @@ class PerceptionMap(L.LightningModule):
             th = labels[:, 2]
             target = torch.cat([target, torch.stack([torch.cos(th), torch.sin(th)], 1)], 1)
         return target
-
-    def _step(self, batch, stage: str):
-        images, labels = batch
-        target = self.targets(labels)
-        pred_n = self.head_outputs(*self.encode(self.prepare(images)))  # the variance head is fitted afterwards
-        if self.pose:  # position and heading, the heading's loss weighted (pipeline.perception.heading)
-            loss = self._loss(pred_n[:, :2], target[:, :2]) + self.heading_weight * self._loss(pred_n[:, 2:4],
-                                                                                               target[:, 2:])
-            self.log(f"{stage}_heading_deg", heading_deg(pred_n.detach()[:, 2:4], target[:, 2:]), prog_bar=True,
-                     on_epoch=True, on_step=False, batch_size=len(labels), sync_dist=stage != "train")
-        else:
-            loss = self._loss(pred_n, target)
-        err_px = (pred_n.detach()[:, :2] - target[:, :2]) * self.half_range * self.px_per_unit
-        sync = stage != "train"  # epoch metrics over every rank's share of the split (a no-op on one device)
-        self.log(f"{stage}_loss", loss, prog_bar=stage != "train", on_epoch=True, on_step=stage == "train",
-                 batch_size=len(labels), sync_dist=sync)
-        self.log(f"{stage}_mae", err_px.abs().mean(), prog_bar=True, on_epoch=True, on_step=False,
-                 batch_size=len(labels), sync_dist=sync)
-        return loss
-
-    def training_step(self, batch, batch_idx):
-        loss = self._step(batch, "train")
-        return loss if self.certified_term is None else self.certified_term.add_to(self, loss, batch, batch_idx)
-
-    def validation_step(self, batch, batch_idx):
-        return self._step(batch, "val")
-
-    def configure_optimizers(self):
-        hp = self.hparams
-        opt = torch.optim.Adam(self.parameters(), lr=hp.lr, weight_decay=hp.weight_decay)
-        if hp.schedule == "constant":
-            return opt
-        total = int(self.trainer.estimated_stepping_batches)
-        if hp.schedule == "cosine":
-            sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(1, total))
-        else:
-            sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=hp.lr, total_steps=max(2, total),
-                                                        pct_start=0.15)
-        return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
 
     def flops_per_image(self) -> float:
         """Forward multiply-adds x2 of the conv and linear layers (for GFLOP/s figures)."""
@@ -272,7 +227,7 @@ def _to_world(z: torch.Tensor, center, half_range, sigma_scale, clamp: bool, pos
 
 
 # -------------------------------------------------------------------------------------- inference
-def fold(model: PerceptionMap, dtype: torch.dtype = torch.float32,
+def fold(model: PerceptionNet, dtype: torch.dtype = torch.float32,
          grad: bool = False) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
     """The convolution blocks of `model` as deployed, `(weights, biases)`: block `k`'s 3x3 convolution (padding 1).
 
@@ -306,7 +261,7 @@ def fold(model: PerceptionMap, dtype: torch.dtype = torch.float32,
 
 
 class FoldedPerceptionNet(nn.Module):
-    """The eval-mode `PerceptionMap` rewritten for fast inference (same outputs up to float rounding); its
+    """The eval-mode `PerceptionNet` rewritten for fast inference (same outputs up to float rounding); its
     convolutions are :func:`fold`'s, the very ones the certificate bounds (`pipeline.certify.deployed`).
 
     - BatchNorm folded into the preceding convolution (one pass instead of three per block);
@@ -317,7 +272,7 @@ class FoldedPerceptionNet(nn.Module):
     `forward(uint8 or float NHWC images in [0, 255]) -> (N, 2)` world coordinates.
     """
 
-    def __init__(self, model: PerceptionMap):
+    def __init__(self, model: PerceptionNet):
         super().__init__()
         weights, biases = fold(model)
         self.register_buffer("w0", weights[0].contiguous(memory_format=torch.channels_last))

@@ -1,6 +1,7 @@
-"""The typed spec of a perception map (`conf/model/`): what :class:`pipeline.perception.network.PerceptionMap` is
+"""The typed spec of a perception map (`conf/model/`): what :class:`pipeline.perception.network.PerceptionNet` is
 built from. No torch here, so a config's `model` node is imported, checked and built in the preflight like every
-other node; the network takes the built spec (`PerceptionMap(spec)`, or `PerceptionMap.of(**fields)` from Python).
+other node; the network takes the built spec (`PerceptionNet(spec)`, or `PerceptionNet.of(**fields)` from Python;
+the training's `pipeline.train.module.PerceptionMap` alike).
 
 The defaults are conf/model/default.yaml's (the project's map); conf/model/paper.yaml is the paper's. Four variants
 share it: the flat or the keypoint position head, a position or a pose map (with its heading head), and the

@@ -19,8 +19,8 @@ from pipeline.allocator import ENV
 from pipeline.bench import ceiling_gflops, side_by_side
 from pipeline.config import build, compose
 from pipeline.perception import bench as infer_bench
-from pipeline.perception.network import PerceptionMap
 from pipeline.train.datamodule import BatchArrays
+from pipeline.train.module import PerceptionMap
 
 
 def _data(n: int, seed: int = 0):

@@ -36,7 +36,6 @@ from pipeline.data import open_dataset
 from pipeline.errors import ConfigError, ModelError, PipelineError
 from pipeline.lineage import debug_overrides, rerun_command, resolve_dataset, train_dataset_id
 from pipeline.perception.maps import PerceptionMapPredictor, resolve_device
-from pipeline.perception.network import PerceptionMap
 from pipeline.profiling import phase, record
 from pipeline.train.certified import CertifiedTerm
 from pipeline.train.checks import check
@@ -44,6 +43,7 @@ from pipeline.train.datamodule import PerceptionDataModule
 from pipeline.train.evaluate import evaluate, fit_clean_gate
 from pipeline.train.figures import curves as plot_curves
 from pipeline.train.figures import scatter
+from pipeline.train.module import PerceptionMap
 from pipeline.train.settings import UncertaintyEval
 from pipeline.train.uncertainty import calibrate, fit_variance_head
 
