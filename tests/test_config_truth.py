@@ -625,7 +625,8 @@ def test_paper_keeps_its_maps_when_a_quick_experiment_trains_another(tmp_path):
     assert len(list((root / "outputs" / "models").glob(f"{map_folder.rsplit('-', 1)[0]}-*"))) == 2
     figure = next((root / "outputs" / "paper").glob("fig*.png"))
     drawn = figure.stat().st_mtime_ns
-    again = _cli("pipeline.paper", *args[:-1], f"hydra.run.dir={tmp_path / 'run2'}", timeout=900)
+    # nothing to run: the orchestrator in this process (run_cli; a stage it started would be a fresh process)
+    again = run_cli("pipeline.paper", *args[:-1], f"hydra.run.dir={tmp_path / 'run2'}")
     assert again.returncode == 0, again.stderr[-3000:]
     # nothing changed for the paper (issue 32): no stage is started, no figure redrawn
     assert again.stdout.count("; not started") == 8, again.stdout[-3000:]  # the learned stage's two too

@@ -206,7 +206,7 @@ def test_dagger_two_rounds_parent_chain_and_rerun_is_a_no_op(tmp_path):
     assert lock["maps"]["round1"]["folder"] == rounds["map"][1] and "rounds.md" in json.dumps(
         tracking.read_manifest(reports[0])["files"])
     stamps = {p: p.stat().st_mtime_ns for p in (root / "data" / "datasets").iterdir()}
-    again = _cli(*_dagger_args(root, tmp_path / "run2"))
+    again = run_cli(*_dagger_args(root, tmp_path / "run2"))  # nothing to run: in this process
     assert again.returncode == 0, again.stderr[-3000:]
     assert "===" not in again.stdout and again.stdout.count("nothing to do") == 5  # 2 datasets, 2 maps, report
     assert {p: p.stat().st_mtime_ns for p in (root / "data" / "datasets").iterdir()} == stamps
