@@ -68,14 +68,15 @@ certify-clouds: $(STAMP) ## certified error maps under clouds: eps_bar_delta per
 experiments: $(STAMP) ## every scenario of make paper (figures under outputs/side/<experiment>-<id>/; ARGS=publish=true: outputs/paper/)
 	$(PY) -m pipeline.experiments -m 'experiment=glob(*,exclude=[perception_generalisation,multi_*,unicycle*,dense_*,camera_attack_sweep,worst_cloud_sweep,geometry_margin_grid])' $(ARGS)
 
+# The tests' ~120 short processes run without the huge pages (8 % of the suite's CPU, docs/speed.md §17).
 test: $(STAMP) ## fast test suite (< 10 min on 2 cores: one pytest-xdist worker per core)
-	$(PY) -m pytest -q -n auto --dist worksteal $(ARGS)
+	GLIBC_TUNABLES= $(PY) -m pytest -q -n auto --dist worksteal $(ARGS)
 
 test-explore: $(STAMP) ## property tests with fresh random examples each run (finds new counter-examples)
 	HYPOTHESIS_PROFILE=explore $(PY) -m pytest -q -m '' -k 'not slow' $(ARGS) $$(grep -l hypothesis tests/*.py)
 
 test-all: $(STAMP) ## every test, slow ones included
-	$(PY) -m pytest -q -n auto --dist worksteal -m '' $(ARGS)
+	GLIBC_TUNABLES= $(PY) -m pytest -q -n auto --dist worksteal -m '' $(ARGS)
 
 bench: $(STAMP) ## speed benchmarks, printed as a table
 	$(PY) -m pipeline.bench $(ARGS)
