@@ -68,7 +68,7 @@ certify-clouds: $(STAMP) ## certified error maps under clouds: eps_bar_delta per
 experiments: $(STAMP) ## every scenario of make paper (figures under outputs/side/<experiment>-<id>/; ARGS=publish=true: outputs/paper/)
 	$(PY) -m pipeline.experiments -m 'experiment=glob(*,exclude=[perception_generalisation,multi_*,unicycle*,dense_*,camera_attack_sweep,worst_cloud_sweep,geometry_margin_grid])' $(ARGS)
 
-# The tests' ~120 short processes run without the huge pages (8 % of the suite's CPU, docs/speed.md §17).
+# The tests' ~120 short processes run without the huge pages: none needs them (docs/speed.md §17).
 test: $(STAMP) ## fast test suite (< 10 min on 2 cores: one pytest-xdist worker per core)
 	GLIBC_TUNABLES= $(PY) -m pytest -q -n auto --dist worksteal $(ARGS)
 
