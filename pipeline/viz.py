@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from matplotlib.animation import PillowWriter  # noqa: E402
 from matplotlib.patches import Circle, Polygon  # noqa: E402
 
 from pipeline.control import Scene, diamond_vertices  # noqa: E402
@@ -51,6 +54,19 @@ def save(fig, path_stem, formats=("png",), dpi=150) -> list[str]:
         out.append(path)
     plt.close(fig)
     return out
+
+
+def save_gif(fig, update, frames: int, path, *, fps: int, dpi: float) -> Path:
+    """An animated GIF of `frames` frames, `update(j)` setting the artists of frame `j`, and the figure closed: the
+    bytes `FuncAnimation(fig, update, frames, blit=False).save(path, PillowWriter(fps), dpi)` writes, each frame drawn
+    once (that draws each twice: for the animation, then for the writer) and `update(0)` not called ahead of time."""
+    writer = PillowWriter(fps=fps)
+    with writer.saving(fig, str(path), dpi):
+        for j in range(frames):
+            update(j)
+            writer.grab_frame()
+    plt.close(fig)
+    return Path(path)
 
 
 def trajectory_figure(scene: Scene, p: np.ndarray, success: np.ndarray | None = None, title: str = "", arena=None):

@@ -66,3 +66,35 @@ def test_leader_follower_gif(tmp_path, callable_frames):
         assert set(calls) <= set(frame_indices(T, 7).tolist())  # only the frames drawn are rendered
     with pytest.raises(ValueError, match="foll_p"):
         leader_follower_gif(tmp_path / "x.gif", scene, ((-50, 50), (-30, 30)), t, lead, foll[:-1], seen, frames)
+
+
+def test_a_gif_is_the_bytes_funcanimation_writes_each_frame_drawn_once(tmp_path):
+    """`pipeline.viz.save_gif` (every GIF of the experiments) writes the bytes matplotlib's `FuncAnimation.save`
+    with the Pillow writer writes, drawing each frame once where that draws it twice."""
+    import matplotlib.pyplot as plt
+    from matplotlib.animation import FuncAnimation, PillowWriter
+
+    from pipeline.viz import save_gif
+
+    def figure():
+        fig, ax = plt.subplots(figsize=(3, 2))
+        line, = ax.plot([], [], "-o")
+        ax.set_xlim(0, 6)
+        ax.set_ylim(-1, 1)
+        title = ax.set_title("")
+        draws = []
+        fig.canvas.mpl_connect("draw_event", lambda _: draws.append(1))
+
+        def update(j):
+            x = np.linspace(0, j + 1, 20)
+            line.set_data(x, np.sin(3 * x))
+            title.set_text(f"frame {j}")
+        return fig, update, draws
+
+    fig, update, draws_before = figure()
+    FuncAnimation(fig, update, frames=5, blit=False).save(tmp_path / "a.gif", writer=PillowWriter(fps=4), dpi=50)
+    plt.close(fig)
+    fig, update, draws = figure()
+    assert save_gif(fig, update, 5, tmp_path / "b.gif", fps=4, dpi=50) == tmp_path / "b.gif"
+    assert (tmp_path / "b.gif").read_bytes() == (tmp_path / "a.gif").read_bytes()
+    assert len(draws) == 5 and len(draws_before) > 5

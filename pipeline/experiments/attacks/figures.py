@@ -8,12 +8,11 @@ import matplotlib
 matplotlib.use("Agg", force=False)
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from matplotlib.animation import FuncAnimation, PillowWriter  # noqa: E402
 
 from pipeline.experiments.paper.animation import frame_indices  # noqa: E402
 from pipeline.experiments.report import draw_frame  # noqa: E402
 from pipeline.render import CloudSample  # noqa: E402
-from pipeline.viz import legend_outside  # noqa: E402
+from pipeline.viz import legend_outside, save_gif  # noqa: E402
 
 TABLE = ["budget", "attack", "controller", "gated", "n", "success_rate", "success_lo", "success_hi", "stalled_rate",
          "stalled_lo", "stalled_hi", "collision_rate", "collision_lo", "collision_hi", "timed_out",
@@ -190,10 +189,7 @@ def _worst_cloud_gif(scen, ctx, res, out, max_frames: int = 40, fps: int = 6) ->
         head.set_text(f"worst {level} cloud, start {agent} ({what}); x: perceived  t = {t[k]:.2f} s")
         return [a for v in artists.values() for a in v] + list(ims.values()) + [head]
 
-    anim = FuncAnimation(fig, update, frames=len(idx), blit=False)
-    path = out.dir / f"anim15_{scen.id}.gif"
-    anim.save(path, writer=PillowWriter(fps=fps), dpi=70)
-    plt.close(fig)
+    path = save_gif(fig, update, len(idx), out.dir / f"anim15_{scen.id}.gif", fps=fps, dpi=70)
     out.items.append({"kind": "animation", "files": [path.name],
                       "caption": f"A smooth controller and the hybrid one from the same start near K under the worst "
                                  f"{level} cloud ({what}); right: what each camera delivered."})

@@ -7,11 +7,11 @@ import matplotlib
 matplotlib.use("Agg", force=False)
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from matplotlib.animation import FuncAnimation, PillowWriter  # noqa: E402
 
 from pipeline.config import build  # noqa: E402
 from pipeline.experiments.paper.animation import frame_indices  # noqa: E402
 from pipeline.experiments.report import draw_frame  # noqa: E402
+from pipeline.viz import save_gif  # noqa: E402
 
 STYLE = {"true_state": ("tab:blue", "-"), "camera": ("tab:red", "-"), "imu": ("tab:purple", "--"),
          "integrator": ("0.4", ":")}
@@ -109,7 +109,4 @@ def unicycle_gif(path, ctx, cam, t, p, th, m, thm, *, fps: int = 10, max_frames:
         head.set_text(f"t = {t[k]:.2f} s, heading error {abs(_wrap_deg(thm[k] - th[k])):.1f} deg")
         return trail, pose, seen, arrow, im, head
 
-    anim = FuncAnimation(fig, update, frames=len(idx), blit=False)
-    anim.save(path, writer=PillowWriter(fps=fps), dpi=dpi)
-    plt.close(fig)
-    return path
+    return save_gif(fig, update, len(idx), path, fps=fps, dpi=dpi)

@@ -14,10 +14,9 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from matplotlib.animation import FuncAnimation, PillowWriter  # noqa: E402
 
 from pipeline.control import Scene  # noqa: E402
-from pipeline.viz import draw_scene  # noqa: E402
+from pipeline.viz import draw_scene, save_gif  # noqa: E402
 
 Frames = np.ndarray | Callable[[int], np.ndarray]  # (T, H, W, 3) uint8, or k -> (H, W, 3) uint8
 
@@ -79,8 +78,4 @@ def leader_follower_gif(path, scene: Scene, arena, t: np.ndarray, lead_p: np.nda
         head.set_text(f"{title}  t = {t[k]:.2f} s".strip())
         return lead_trail, foll_trail, lead_dot, foll_dot, seen_dot, cam_seen, im, head
 
-    anim = FuncAnimation(fig, update, frames=len(idx), blit=False)
-    path = Path(path)
-    anim.save(path, writer=PillowWriter(fps=fps), dpi=dpi)
-    plt.close(fig)
-    return path
+    return save_gif(fig, update, len(idx), path, fps=fps, dpi=dpi)
