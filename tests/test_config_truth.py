@@ -619,8 +619,9 @@ def test_paper_keeps_its_maps_when_a_quick_experiment_trains_another(tmp_path):
     assert first.returncode == 0, first.stderr[-3000:]
     lock = yaml.safe_load((root / "outputs" / "paper" / "paper.lock.yaml").read_text())
     map_folder = lock["maps"]["clean_keypoint"]["folder"]
-    side = _cli("pipeline.train", "data=clean", "model=keypoint", "trainer=debug", "datamodule.limit_train_samples=64", "eval_levels=[none]",
-                *data, f"paths.root_dir={root}", f"hydra.run.dir={tmp_path / 'side'}", timeout=600)
+    side = run_cli("pipeline.train", "data=clean", "model=keypoint", "trainer=debug",  # in this process: no imports
+                   "datamodule.limit_train_samples=64", "eval_levels=[none]", *data, f"paths.root_dir={root}",
+                   f"hydra.run.dir={tmp_path / 'side'}")
     assert side.returncode == 0, side.stderr[-2000:]
     assert len(list((root / "outputs" / "models").glob(f"{map_folder.rsplit('-', 1)[0]}-*"))) == 2
     figure = next((root / "outputs" / "paper").glob("fig*.png"))
