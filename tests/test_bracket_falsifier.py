@@ -24,7 +24,7 @@ from pipeline.sim import CameraSettings, SimSettings, simulate
 from pipeline.sim.disturbances import Adversarial
 
 SCENE = Scene(target=[40.0, 0.0], obstacles=[{"center": [0.0, 0.0], "radius": 4.0}])
-FAST = Search(n_dirs=8, lookahead=4, commit=4, tail=8, n_random=1)
+FAST = Search(n_dirs=8, lookahead=8, commit=8, tail=8, n_random=1)
 
 
 @pytest.mark.parametrize("law", [HybridController, SmoothController, CBFController])
@@ -89,7 +89,7 @@ def test_the_trap_adversary_holds_the_hybrid_law_at_the_back_vertex():
     arrive, the trap adversary holds it at the back vertex for the whole horizon (a chattering orbit: the mode jumps
     every few frames, the run stays within a unit of the vertex, never collides); every error within the bound."""
     law = HybridController(SCENE)
-    loop = FrameLoop(SCENE, law, horizon=30.0, delta=5.0)
+    loop = FrameLoop(SCENE, law, horizon=20.0, delta=5.0)  # 20 s: held from frame 66 on, 177-192 jumps
     p0 = np.array([[-20.0, 0.0], [-45.0, 0.0]])
     eps = np.full(2, 0.5)
     for kind in ("fixed", "mode_aware"):
@@ -128,7 +128,7 @@ def test_the_vertex_trap_follows_the_frames_travel_not_the_hysteresis(chi, lam):
     `ε = 1` and not at 0.7, for the paper's hysteresis and a wide one alike (docs/bracket.md: the margin on `K` is
     of the order of one frame's travel; the jumps it plays are the perceived point entering a wedge)."""
     law = HybridController(SCENE, chi=chi, lam=lam)
-    loop = FrameLoop(SCENE, law, period=0.1, horizon=30.0, delta=5.0)
+    loop = FrameLoop(SCENE, law, period=0.1, horizon=15.0, delta=5.0)  # the free runs arrive by 11 s
     p0 = np.array([[-20.0, 0.0], [-30.0, 0.0]])
     held = run_adversary(loop, p0, np.full(2, 1.0), "trap", Search(), record=False)
     assert (held["outcome"] == STALLED).all(), [OUTCOMES[o] for o in held["outcome"]]

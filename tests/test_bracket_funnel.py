@@ -4,6 +4,7 @@ ordinary simulator (`pipeline.sim.simulate`) with this suite's own error signals
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import numpy as np
@@ -11,7 +12,7 @@ import pytest
 from budget import examples  # tests/budget.py: more examples under make test-explore
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from test_bracket_loop_that_runs import run_certified_points
+from test_bracket_loop_that_runs import default_certificate, run_certified_points
 
 from pipeline.bracket.bounds import Uniform
 from pipeline.bracket.certify_loop import certified_starts, certify, funnel_starts
@@ -111,15 +112,15 @@ def _funnel_cells(law, eps, funnels=True):
 
 
 @pytest.mark.parametrize("name", ["hybrid", "smooth"])
-def test_start_cells_certified_through_funnels_hold_in_the_simulator(name):
+def test_start_cells_certified_through_funnels_hold_in_the_simulator(name, tmp_path_factory, worker_id):
     """`make bracket`'s settings at ε = 0.5: the funnels (of the abstraction's nodes, then of start cells' sub-squares)
     certify start cells the abstraction alone does not (behind the obstacle for the hybrid law), and 6 random accepted
     points of each, run by `pipeline.sim.simulate` under this suite's error signals (random directions, a constant
     bias, §3.5's direction, a flipping bias), reach the goal disc by their certified bound without a collision."""
     eps = 0.5
-    alone = _funnel_cells(name, eps, funnels=False)
+    alone = default_certificate(tmp_path_factory, worker_id, name, eps)  # the same settings, funnels=False
     scene, law, bs, sim_cfg, camera, cert, starts, n_frames = _funnel_cells(name, eps)
-    before = certified_starts(alone[5], starts)[0]
+    before = certified_starts(alone, starts)[0]
     by_nodes = certified_starts(cert, starts)[0]
     ok, bound, _, by_funnel = funnel_starts(cert, law, starts, bs.funnel_split, camera.period, n_frames)
     assert by_nodes[before].all() and ok[by_nodes].all() and (by_funnel == (ok & ~by_nodes)).all()
@@ -155,7 +156,7 @@ def test_a_funnel_hands_off_only_to_winning_nodes():
     saturates only beyond it), so nothing more is certified; with the real `Win` it certifies cells."""
     _, law, bs, _, camera, cert, starts, n_frames = _funnel_cells("hybrid", 0.5)
     goal = np.repeat(cert.abstraction.goal, cert.abstraction.modes)
-    cert.won = cert.won & goal
+    cert = dataclasses.replace(cert, won=cert.won & goal)  # a copy: the cached certificate serves another test
     ok, _, _, by_funnel = funnel_starts(cert, law, starts, bs.funnel_split, camera.period, n_frames)
     assert not by_funnel.any()
 

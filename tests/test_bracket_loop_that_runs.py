@@ -20,7 +20,7 @@ from shared import (  # tests/shared.py: computed once per session, read by ever
 
 from pipeline.bracket.abstraction import Abstraction, Grid
 from pipeline.bracket.bounds import Uniform
-from pipeline.bracket.certify_loop import certified_starts, certify
+from pipeline.bracket.certify_loop import certified_starts, certify, funnel_starts
 from pipeline.bracket.enclosures import DIRS
 from pipeline.bracket.lost import LostFrames
 from pipeline.bracket.winning import directional_frames, win
@@ -196,36 +196,54 @@ def test_certified_starts_hold_in_the_simulator(law_cls, max_lost, predict, hori
         assert m["predicted_frames"].sum() > 0
 
 
-def test_a_certificate_without_lost_frames_is_broken_by_losing_them():
+STARTS = np.array([[x, x + 4, y, y + 4] for x in range(-48, 44, 4) for y in range(-28, 28, 4)], float)
+
+
+@pytest.fixture(scope="module")
+def coarse_600():
+    """The hybrid law's coarse certificate at ε = 0.25 (cells of 2 at 45°, every frame delivered, a horizon of 600
+    frames), shared by the two tests below that both need exactly it."""
+    return certify(HybridController(SCENE), Uniform(0.25), h=2.0, angle=45.0, period=PERIOD, goal_radius=5.0,
+                   window=12, horizon=600)
+
+
+@pytest.fixture(scope="module")
+def fine_600():
+    """The hybrid law's certificate at ε = 0.25 on cells of 1 (45°, a horizon of 600 frames), shared by the two
+    tests of start cells below that both need exactly it (neither changes it)."""
+    return certify(HybridController(SCENE), Uniform(0.25), h=1.0, angle=45.0, period=PERIOD, goal_radius=5.0,
+                   window=12, horizon=600)
+
+
+def test_a_certificate_without_lost_frames_is_broken_by_losing_them(coarse_600):
     """The loss model is needed: a start certified for a loop that delivers every frame, whose runs crash when
     frames are lost and held, is not certified once the losses are in the proof (held frames are looser)."""
     law = HybridController(SCENE)
     kw = dict(h=2.0, angle=45.0, period=PERIOD, goal_radius=5.0, window=12, horizon=600)
-    starts = np.array([[x, x + 4, y, y + 4] for x in range(-48, 44, 4) for y in range(-28, 28, 4)], float)
-    none = certified_starts(certify(law, Uniform(0.25), **kw), starts)[0]
+    starts = STARTS
+    none = certified_starts(coarse_600, starts)[0]
     held = certified_starts(certify(law, Uniform(0.25), lost=LostFrames(4, False, PERIOD, 10.0), **kw), starts)[0]
     predicted = certified_starts(certify(law, Uniform(0.25), lost=LostFrames(4, True, PERIOD, 10.0), **kw), starts)[0]
     assert held.sum() < none.sum() and not (held & ~none).any()
     assert predicted.sum() >= held.sum()
 
 
-def test_the_horizon_cuts_the_certified_starts():
+def test_the_horizon_cuts_the_certified_starts(coarse_600):
     """A start whose arrival bound exceeds the horizon is not certified: a short horizon certifies a subset, and
     every start it keeps has a bound within it."""
     law = HybridController(SCENE)
     kw = dict(h=2.0, angle=45.0, period=PERIOD, goal_radius=5.0, window=12)
-    starts = np.array([[x, x + 4, y, y + 4] for x in range(-48, 44, 4) for y in range(-28, 28, 4)], float)
-    long_ok, long_bound, _ = certified_starts(certify(law, Uniform(0.25), horizon=600, **kw), starts)
+    starts = STARTS
+    long_ok, long_bound, _ = certified_starts(coarse_600, starts)
     short_ok, short_bound, _ = certified_starts(certify(law, Uniform(0.25), horizon=60, **kw), starts)
     assert 0 < short_ok.sum() < long_ok.sum() and not (short_ok & ~long_ok).any()
     assert (short_bound[short_ok] <= 60).all() and (long_bound[long_ok & ~short_ok] > 60).all()
 
 
-def test_grid_cells_inside_the_diamond_are_not_starts():
+def test_grid_cells_inside_the_diamond_are_not_starts(fine_600):
     """A start cell is certified on the starts the simulator accepts: a cell wholly inside the closed diamond has
     none (`no_start`), and a certified cell's accepted points lie in certified grid cells only."""
-    law = HybridController(SCENE)
-    cert = certify(law, Uniform(0.25), h=1.0, angle=45.0, period=PERIOD, goal_radius=5.0, window=12, horizon=600)
+    cert = fine_600
     c = SCENE.c
     inner = np.array([[-c / 4, c / 4, -c / 4, c / 4], [20.0, 24.0, 10.0, 14.0]])
     _, _, no_start = certified_starts(cert, inner)
@@ -270,12 +288,11 @@ def test_the_probability_of_more_losses_is_a_union_bound():
     assert (longest > 3).mean() <= LostFrames(3, False, PERIOD, 10.0).p_more(0.5, 60)
 
 
-def test_a_start_cell_is_judged_alone_whatever_the_first_start_cell_is():
+def test_a_start_cell_is_judged_alone_whatever_the_first_start_cell_is(fine_600):
     """Regression: the cells a start cell meets were searched in a window sized by the first start cell, a clipped
     one at the arena's corner (2.5 units against 5), so a whole start cell overflowed it and counted as uncertified
     (a checkerboard of uncertified cells inside certified regions). A cell's verdict cannot depend on its neighbours."""
-    law = HybridController(SCENE)
-    cert = certify(law, Uniform(0.25), h=1.0, angle=45.0, period=PERIOD, goal_radius=5.0, window=12, horizon=600)
+    cert = fine_600
     cells = np.array([[x, x + 5, y, y + 5] for x in (-27.5, -22.5, 12.5, 17.5) for y in (12.5, 17.5)], float)
     alone = np.array([certified_starts(cert, c[None])[0][0] for c in cells])
     behind_a_narrow_one = certified_starts(cert, np.concatenate([[[-50.0, -47.5, -30.0, -27.5]], cells]))[0][1:]
@@ -296,10 +313,32 @@ def test_the_stop_joins_the_inputs_from_the_loss_streak_that_can_trigger_it():
     assert LostFrames(40, True, PERIOD, 10.0).may_stop or not drift > 2.0
 
 
-def test_the_default_bracket_certificate_holds_in_the_simulator():
-    """`make bracket`'s own settings (conf/bracket.yaml: 1-unit cells at 45°, edges over 4 frames, the 30 s horizon),
-    the hybrid law at its largest default ε: 3 random accepted points of each of 30 certified start cells, run by
-    `pipeline.sim.simulate` under this file's error signals, reach the goal disc by their certified bound."""
+_DEFAULT_CERTS: dict = {}
+
+
+def default_certificate(tmp_path_factory, worker_id: str, name: str, eps: float):
+    """`make bracket`'s own certificate of law `name` at `eps` (its defaults: cells, angle, frames, window, horizon
+    and lost frames; no funnels, no refined window): computed once per session and shared by the test modules that
+    need exactly it (this file, tests/test_bracket_funnel.py, tests/test_bracket_view.py). Read only."""
+    from pipeline.bracket.stage import objects
+    from pipeline.config import compose
+
+    key = (name, float(eps))
+    if key not in _DEFAULT_CERTS:
+        def make():
+            _, laws, bs, sim_cfg, camera, _, _, lost = objects(compose("bracket", []))
+            return certify(laws[name], Uniform(eps), h=bs.cell, angle=bs.angle, period=camera.period,
+                           goal_radius=bs.goal_radius, n_split=bs.n_split, window=bs.window, frames=bs.frames,
+                           horizon=int(round(sim_cfg.horizon / camera.period)), lost=lost[name])
+
+        _DEFAULT_CERTS[key] = computed_once(tmp_path_factory, worker_id, f"default_cert_{name}_{eps:g}", make)
+    return _DEFAULT_CERTS[key]
+
+
+def test_the_default_bracket_certificate_holds_in_the_simulator(tmp_path_factory, worker_id):
+    """`make bracket`'s own settings (conf/bracket.yaml: 0.75-unit cells at 45°, edges over 4 frames, the 30 s
+    horizon), the hybrid law at its largest default ε: 3 random accepted points of each of 30 certified start cells,
+    run by `pipeline.sim.simulate` under this file's error signals, reach the goal disc by their certified bound."""
     from pipeline.bracket.stage import objects
     from pipeline.bracket.starts import start_cells
     from pipeline.config import compose
@@ -307,8 +346,7 @@ def test_the_default_bracket_certificate_holds_in_the_simulator():
     scene, laws, bs, sim_cfg, camera, _, _, lost = objects(compose("bracket", []))
     law, eps = laws["hybrid"], max(bs.eps)
     n_frames = int(round(sim_cfg.horizon / camera.period))
-    cert = certify(law, Uniform(eps), h=bs.cell, angle=bs.angle, period=camera.period, goal_radius=bs.goal_radius,
-                   n_split=bs.n_split, window=bs.window, frames=bs.frames, horizon=n_frames, lost=lost["hybrid"])
+    cert = default_certificate(tmp_path_factory, worker_id, "hybrid", eps)
     starts = start_cells(scene, bs.start_cell)
     ok, bound, _ = certified_starts(cert, starts)
     assert ok.mean() > 0.3 and (bound[ok] <= n_frames).all()
@@ -350,9 +388,16 @@ def default_eps1(tmp_path_factory, worker_id):
     kw = dict(h=1.0, angle=bs.angle, period=camera.period, goal_radius=bs.goal_radius, n_split=bs.n_split,
               window=bs.window, frames=bs.frames, horizon=n_frames, lost=lost["hybrid"], funnels=True,
               refine_half=bs.refine, refine_factor=bs.refine_factor)
-    certs = computed_once(tmp_path_factory, worker_id, "default_eps1",  # about 40 s: once per session
-                          lambda: _with_and_without_directional(law, kw))
-    return scene, law, bs, sim_cfg, camera, start_cells(scene, bs.start_cell), n_frames, certs
+    starts = start_cells(scene, bs.start_cell)
+
+    def make():
+        certs = _with_and_without_directional(law, kw)
+        # the start cells the balls certify with `directional` (no polytopes): three tests below read them
+        certs["balls"] = funnel_starts(certs[True], law, starts, bs.funnel_split, camera.period, n_frames)
+        return certs
+
+    certs = computed_once(tmp_path_factory, worker_id, "default_eps1", make)  # about 40 s: once per session
+    return scene, law, bs, sim_cfg, camera, starts, n_frames, certs
 
 
 def _with_and_without_directional(law, kw) -> dict:
@@ -379,12 +424,10 @@ def test_bounds_through_sets_certify_more_within_the_horizon_and_those_starts_ar
     horizon that the longest path alone leaves above it, and 4 random accepted points of each, run by
     `pipeline.sim.simulate` under this file's error signals within ε, reach the goal disc by their (tighter) certified
     bound without a collision."""
-    from pipeline.bracket.certify_loop import funnel_starts
-
     scene, law, bs, sim_cfg, camera, starts, n_frames, certs = default_eps1
     fw = (bs.funnel_split, camera.period, n_frames)
     plain = funnel_starts(certs[False], law, starts, *fw)[0]
-    ok, bound, _, _ = funnel_starts(certs[True], law, starts, *fw)
+    ok, bound, _, _ = certs["balls"]  # funnel_starts(certs[True], law, starts, *fw), computed with the fixture
     new = ok & ~plain
     assert ok[plain].all() and new.sum() >= 3, new.sum()
     cells = np.repeat(np.flatnonzero(new), 4)
@@ -399,13 +442,11 @@ def test_funnels_hand_off_to_the_refined_window_and_those_starts_survive_the_sim
     error signals, reach the goal disc by their certified bound."""
     import dataclasses
 
-    from pipeline.bracket.certify_loop import funnel_starts
-
     scene, law, bs, sim_cfg, camera, starts, n_frames, certs = default_eps1
     cert = certs[True]
     assert cert.fine is not None and np.isfinite(cert.fine.frames).any()
     fw = (bs.funnel_split, camera.period, n_frames)
-    ok, bound, _, _ = funnel_starts(cert, law, starts, *fw)
+    ok, bound, _, _ = certs["balls"]  # funnel_starts(cert, law, starts, *fw), computed with the fixture
     coarse = funnel_starts(dataclasses.replace(cert, fine=None), law, starts, *fw)[0]
     near = (starts[:, :2].mean(1) < -12) & (np.abs(starts[:, 2:].mean(1)) <= 7.5)
     new = ok & ~coarse
@@ -419,12 +460,13 @@ def test_polytopes_certify_start_cells_the_balls_do_not_and_those_starts_arrive_
     """At ε = 1 (cells of 1, the back vertex refined) the start sub-squares' funnels that end within the guard's range
     of a back face, gone on as polytopes, certify start cells behind the obstacle that the balls alone do not (none
     lost), and 6 random accepted points of each, run by `pipeline.sim.simulate` under the suite's error signals
-    within ε, reach the goal disc by their certified bound without a collision."""
-    from pipeline.bracket.certify_loop import funnel_starts
-
+    within ε, reach the goal disc by their certified bound without a collision. On the two columns of start cells
+    centred at x = -30 and -25 (a start cell's verdict is its own: see the test of that above), where the polytopes
+    both certify cells and fail on others (on the axis); the other columns hold four fifths of the polytope work."""
     scene, law, bs, sim_cfg, camera, starts, n_frames, certs = default_eps1
     fw = (bs.funnel_split, camera.period, n_frames)
-    balls = funnel_starts(certs[True], law, starts, *fw)[0]
+    cols = np.flatnonzero((starts[:, :2].mean(1) > -32.5) & (starts[:, :2].mean(1) < -22.5))
+    starts, balls = starts[cols], certs["balls"][0][cols]  # funnel_starts(certs[True], law, starts, *fw)
     ok, bound, _, _ = funnel_starts(certs[True], law, starts, *fw, polytope_split=bs.polytope_split)
     new = ok & ~balls
     assert ok[balls].all() and new.sum() >= 2, new.sum()

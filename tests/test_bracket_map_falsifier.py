@@ -78,12 +78,12 @@ def test_the_map_bound_where_the_run_goes_decides_the_counterexample():
     near = MapBound(_table([(-16.0, -7.0, -4.0, 4.0, 0.5)]))
     far = MapBound(_table([(-60.0, -20.0, -8.0, 8.0, 0.5)]))
     p0 = np.array([[-20.0, 0.0]])
-    loop = FrameLoop(SCENE, HybridController(SCENE), horizon=30.0, delta=5.0)
+    loop = FrameLoop(SCENE, HybridController(SCENE), horizon=15.0, delta=5.0)  # 15 s: the runs that arrive take 7
     held = run_adversary(loop, p0, near, "trap", Search(trap_dirs=32), record=True)
     assert held["outcome"][0] != REACHED
     vertex = vertex_aims(SCENE, 0.0)[0]
     assert np.hypot(*(held["path"][-1, 0] - vertex)) < 1.0
-    fast = Search(n_dirs=8, lookahead=4, commit=4, tail=8, n_random=1, trap_dirs=16)
+    fast = Search(n_dirs=8, lookahead=8, commit=8, tail=8, n_random=1, trap_dirs=16)
     failed, _, _, _ = attack(loop, p0, far, fast)
     assert not failed.any()
     runs = [(near, held)] + [(b, run_adversary(loop, np.array([[-20.0, 0.3], [-14.0, 3.0]]), b, kind, fast))
@@ -129,8 +129,9 @@ def test_the_stage_decides_start_cells_with_the_maps_bound(tmp_path, capfd):
             for x in range(-60, 30, 2) for y in range(-40, 40, 2)]
     pd.DataFrame(rows, columns=["x0", "x1", "y0", "y1", "eps_bar"]).to_csv(tmp_path / "map.csv", index=False)
     tiny = ["bracket.cell=4.0", "bracket.start_cell=20", "bracket.eps=[0.1]", "bracket.n_bisect=0",
-            "bracket.n_dirs=8", "bracket.tail=4", "bracket.lookahead=4", "bracket.commit=4", "bracket.trap_dirs=16",
-            "sim.horizon=8", "bracket.controllers=[hybrid,smooth]", "bracket.polytope_split=0"]
+            "bracket.n_dirs=8", "bracket.tail=4", "bracket.lookahead=8", "bracket.commit=8", "bracket.trap_dirs=16",
+            "sim.horizon=8", "bracket.controllers=[hybrid,smooth]", "bracket.polytope_split=0",
+            "bracket.funnel_split=0", "bracket.refine=0"]  # cells of 4 certify no start cell: no funnels, no window
     out = run(compose("bracket", [*tiny, f"bracket.error_map={tmp_path / 'map.csv'}",
                                   f"paths.outputs_dir={tmp_path}", f"paths.output_dir={tmp_path / 'run'}"]))
     df = pd.read_csv(out["path"] / "bracket.csv")
@@ -173,8 +174,8 @@ def test_a_uniform_counterexample_inside_the_maps_bound_falsifies_with_the_map()
 
     loop = FrameLoop(SCENE, SmoothController(SCENE), horizon=30.0, delta=5.0)
     p0 = np.array([[-20.0, 0.4]])
-    fast = Search(n_dirs=8, lookahead=4, commit=4, tail=8, n_random=1, trap_dirs=16)
-    br = falsify(loop, p0, eps_max=2.0, n_bisect=3, search=fast)
+    fast = Search(n_dirs=8, lookahead=8, commit=8, tail=8, n_random=1, trap_dirs=16)
+    br = falsify(loop, p0, eps_max=2.0, n_bisect=1, search=fast)  # ε_hi = 1 (the fixed adversary's)
     assert 0 < br.eps_hi[0] <= 2.0
     wide = _table([(-60.0, 60.0, -40.0, 40.0, 2.0)])
     cols, _ = map_rows(loop, wide, fast, p0, np.array([True]), 0, (br.eps_hi, br.path))
@@ -202,7 +203,7 @@ def test_a_start_where_the_maps_bound_is_largest_falsifies_the_cell():
     worst, b = worst_starts(SCENE, cell, MapBound(band))  # 0 where the map has no bound: the falsifier's
     assert worst[0, 1] == 0.0 and b[0] == 0.2 and -25.0 < worst[0, 0] < -20.0
     centre = cell[:, [0, 2]] + (cell[:, [1, 3]] - cell[:, [0, 2]]) / 2
-    fast = Search(n_dirs=8, lookahead=4, commit=4, tail=8, n_random=1, trap_dirs=16)
+    fast = Search(n_dirs=8, lookahead=8, commit=8, tail=8, n_random=1, trap_dirs=16)
     alone, _ = map_rows(loop, band, fast, centre, np.array([True]), 0)
     assert not alone["falsified_map"][0]
     cols, paths = map_rows(loop, band, fast, centre, np.array([True]), 1, alts=(worst,))
@@ -224,13 +225,13 @@ def test_a_start_nearest_K_falsifies_a_cell_whose_centre_arrives():
     from pipeline.config import compose
 
     scene, laws, bs, sim, camera, *_ = objects(compose("bracket", []))
-    loop = FrameLoop(scene, laws["hybrid"], period=camera.period, horizon=sim.horizon, delta=bs.goal_radius)
+    loop = FrameLoop(scene, laws["hybrid"], period=camera.period, horizon=15.0, delta=bs.goal_radius)  # centre: 11 s
     cells = np.array([[-47.5, -42.5, 2.5, 7.5], [20.0, 25.0, 2.5, 7.5]])  # the second lies in front of the obstacle
     near, d = axis_starts(scene, cells)
     assert near[0, 1] == 2.5 and np.isclose(d[0], near[0, 1]) and -47.5 <= near[0, 0] <= -42.5  # the closed cell's edge
     assert np.isinf(d[1])  # no point of it behind an obstacle
     wide = _table([(-60.0, 60.0, -40.0, 40.0, 1.75)])
-    fast = Search(n_dirs=8, lookahead=4, commit=4, tail=8, n_random=1, trap_dirs=16)
+    fast = Search(n_dirs=8, lookahead=8, commit=8, tail=8, n_random=1, trap_dirs=16)
     centre = np.array([[-45.0, 5.0]])
     cols, paths = map_rows(loop, wide, fast, centre, np.array([True]), 0, alts=(near[:1],))
     assert cols["falsified_map"][0] and cols["map_adversary"][0] == "trap"
@@ -256,7 +257,7 @@ def test_the_uniform_falsifier_from_the_point_nearest_K_lowers_eps_hi_and_its_co
     loop = FrameLoop(scene, laws["hybrid"], period=camera.period, horizon=15.0, delta=bs.goal_radius)  # 15 s: cheaper
     cells = np.array([[-47.5, -42.5, 2.5, 7.5], [20.0, 25.0, 2.5, 7.5]])
     centres = cells.reshape(-1, 2, 2).mean(axis=2)
-    fast = Search(n_dirs=8, lookahead=4, commit=4, tail=8, n_random=1, trap_dirs=16)
+    fast = Search(n_dirs=8, lookahead=8, commit=8, tail=8, n_random=1, trap_dirs=16)
     br = falsify(loop, centres, 4.0, 1, fast)
     assert br.eps_hi[0] == 4.0, br.eps_hi  # from the centre: broken at 4, not at 2
     settings_ = SimpleNamespace(axis_start=5.0, eps_max=4.0, n_bisect=1)

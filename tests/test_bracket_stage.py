@@ -47,14 +47,15 @@ def test_tiny_bracket_run(tmp_path):
     again = run(cfg)
     assert again["skipped"] and again["path"] == folder
     pd.testing.assert_frame_equal(again["bracket"], df)
-    other = run(compose("bracket", [*TINY, "bracket.eps=[0.1]", "bracket.controllers=[cbf]",  # one law: cheaper
+    other = run(compose("bracket", [*TINY, "bracket.eps=[0.1]", "bracket.controllers=[cbf]", "sim.horizon=4",  # cheaper
                                     f"paths.outputs_dir={tmp_path}", f"paths.output_dir={tmp_path / 'run'}"]))
     assert other["path"] != folder and not other["skipped"]
 
 
 def test_laws_side_by_side_give_the_same_bytes(tmp_path, monkeypatch):
     """The laws run in spawned processes, one per core of the job's share (`OMP_NUM_THREADS`, as `make paper` sets
-    it), and the bracket's files are byte-identical to the run one law after another."""
+    it), and the bracket's files are byte-identical to the run one law after another. A 4 s horizon (the laws' rows
+    still differ: each law falsified from most start cells, adversaries and ε_hi per row) halves the two runs."""
     from pipeline.bracket import stage
 
     files = {}
@@ -63,7 +64,7 @@ def test_laws_side_by_side_give_the_same_bytes(tmp_path, monkeypatch):
         assert stage.law_workers(3) == int(cores)
         root = tmp_path / cores
         out = stage.run(compose("bracket", [*TINY, "bracket.refine=0", "bracket.funnel_split=0",  # the laws' workers
-                                            "bracket.eps=[0.1]", f"paths.outputs_dir={root}",
+                                            "bracket.eps=[0.1]", "sim.horizon=4", f"paths.outputs_dir={root}",
                                             f"paths.output_dir={root / 'run'}"]))
         files[cores] = {f: (out["path"] / f).read_bytes() for f in ("bracket.csv", "table.md")}
     assert files["1"] == files["2"]
@@ -103,20 +104,22 @@ def test_settings_defaults_are_the_yaml():
 
 
 def test_a_file_where_the_bracket_folder_should_be_is_one_line(tmp_path):
-    """The tracked output's folder taken by a file: one line naming it, exit 2 (issue 27's rule, in this stage)."""
-    import shutil
-    import subprocess
-    import sys
+    """The tracked output's folder taken by a file: one line naming it, exit 2 (issue 27's rule, in this stage).
+    The folder's path is the stage's own (`bracket_id` of the objects it builds; a wrong path would let the run go
+    through, exit 0); the command runs in this process (`run_cli`: it ends before any work)."""
+    from pathlib import Path
 
-    from pipeline.bracket.stage import run
-    from pipeline.cli import REPO_ROOT
+    from shared import run_cli
+
+    from pipeline.bracket.stage import bracket_id, objects
 
     args = [*TINY, "bracket.controllers=[cbf]", f"paths.outputs_dir={tmp_path}"]
-    folder = run(compose("bracket", [*args, f"paths.output_dir={tmp_path / 'run'}"]))["path"]
-    shutil.rmtree(folder)
+    cfg = compose("bracket", [*args, f"paths.output_dir={tmp_path / 'run'}"])
+    _, _, bs, _, _, emap, cam, _ = objects(cfg)
+    folder = Path(cfg.paths.bracket_dir) / f"bracket-{bracket_id(cfg, bs, emap, cam)[0]}"
+    folder.parent.mkdir(parents=True)
     folder.write_text("x")
-    proc = subprocess.run([sys.executable, "-m", "pipeline.bracket", *args, f"hydra.run.dir={tmp_path / 'cli'}"],
-                          cwd=REPO_ROOT, capture_output=True, text=True, timeout=300)
+    proc = run_cli("pipeline.bracket", *args, f"hydra.run.dir={tmp_path / 'cli'}")
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2 and len(lines) == 1 and "a file where" in lines[0] and str(folder) in lines[0], \
         proc.stderr[-2000:]
@@ -124,16 +127,13 @@ def test_a_file_where_the_bracket_folder_should_be_is_one_line(tmp_path):
 
 @pytest.mark.parametrize("arg, field", [("controller.saturation=tangent", "controller.saturation"),
                                         ("controller.noise_tolerance=0.3", "controller.noise_tolerance")])
-def test_a_hybrid_rule_the_abstraction_does_not_model_is_rejected(arg, field):
+def test_a_hybrid_rule_the_abstraction_does_not_model_is_rejected(tmp_path, arg, field):
     """The certificate's enclosures model §3.3's law; the dense design's rules (the tangent saturation, the side
-    hysteresis) would let the real loop leave the abstraction: rejected in one line, exit 2, before any work."""
-    import subprocess
-    import sys
+    hysteresis) would let the real loop leave the abstraction: rejected in one line, exit 2, before any work (run in
+    this process: `run_cli`)."""
+    from shared import run_cli
 
-    from pipeline.cli import REPO_ROOT
-
-    proc = subprocess.run([sys.executable, "-m", "pipeline.bracket", arg], cwd=REPO_ROOT, capture_output=True,
-                          text=True, timeout=120)
+    proc = run_cli("pipeline.bracket", arg, f"hydra.run.dir={tmp_path}")
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2 and len(lines) == 1 and lines[0].startswith(f"error: {field}:"), proc.stderr[-2000:]
 

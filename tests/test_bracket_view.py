@@ -84,7 +84,15 @@ def paper():
             "lost": lost, "starts": start_cells(scene, bs.start_cell)}
 
 
-def _certified(paper, name: str, eps: float) -> tuple[np.ndarray, np.ndarray]:
+def _certified(paper, name: str, eps: float, shared=None) -> tuple[np.ndarray, np.ndarray]:
+    """`name`'s certified start cells at `eps` and their bounds at the defaults; `shared`: `(tmp_path_factory,
+    worker_id)`, the unchanged certificate read from the session's (:func:`default_certificate`), else certified
+    here (under a mutation)."""
+    if shared is not None:
+        from test_bracket_loop_that_runs import default_certificate
+
+        ok, bound, _ = certified_starts(default_certificate(*shared, name, eps), paper["starts"])
+        return ok, bound
     bs, period = paper["bs"], paper["period"]
     cert = certify(paper["laws"][name], Uniform(eps), h=bs.cell, angle=bs.angle, period=period,
                    goal_radius=bs.goal_radius, n_split=bs.n_split, window=bs.window, frames=bs.frames,
@@ -124,14 +132,14 @@ def _falsified(paper, name: str, p0: np.ndarray, eps: float) -> list:
     return [(p0[i].round(3).tolist(), OUTCOMES[int(outcome[i])]) for i in np.flatnonzero(failed)]
 
 
-def test_start_cells_on_the_arena_edge_are_certified_and_their_runs_stay_in_view(paper):
+def test_start_cells_on_the_arena_edge_are_certified_and_their_runs_stay_in_view(paper, tmp_path_factory, worker_id):
     """The hybrid law at ε = 0.5: start cells on the arena's edge certified (none before), and from their points
     (the edge itself included) no run leaves the view, collides, or arrives after its bound, under the falsifier's
     adversaries and four error signals of `simulate` (whose runs are checked inside the arena at every frame)."""
     from test_bracket_loop_that_runs import _lossy_errors
 
     eps = 0.5
-    ok, bound = _certified(paper, "hybrid", eps)
+    ok, bound = _certified(paper, "hybrid", eps, shared=(tmp_path_factory, worker_id))
     ring = ok & _on_edge(paper)
     assert ring.sum() >= 30, int(ring.sum())  # 0 before straddling cells counted
     p0, cell = _points(paper, np.flatnonzero(ring))
@@ -149,13 +157,13 @@ def test_start_cells_on_the_arena_edge_are_certified_and_their_runs_stay_in_view
     assert ((P[:, 0] >= x0 - 1e-9) & (P[:, 0] <= x1 + 1e-9) & (P[:, 1] >= y0 - 1e-9) & (P[:, 1] <= y1 + 1e-9)).all()
 
 
-def test_view_rule_mutation_certifies_runs_that_leave_the_view(paper, monkeypatch):
+def test_view_rule_mutation_certifies_runs_that_leave_the_view(paper, monkeypatch, tmp_path_factory, worker_id):
     """The CBF law (which turns along the level sets of `h` far from the disc and leaves the view from the left
     corners, docs/bracket.md) at ε = 0.5: its certified edge cells' runs stay in view; with the swept sets no longer
     checked against the arena (`_frames` without `view`), more start cells are certified and runs from them leave
     the view."""
     eps = 0.5
-    ok, _ = _certified(paper, "cbf", eps)
+    ok, _ = _certified(paper, "cbf", eps, shared=(tmp_path_factory, worker_id))
     p0, _ = _points(paper, np.flatnonzero(ok & _on_edge(paper)))
     assert len(p0) and not _falsified(paper, "cbf", p0, eps)
 

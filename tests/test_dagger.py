@@ -185,9 +185,13 @@ def _dagger_args(root, run_dir):
             "dagger.collect.horizon=3"]
 
 
-def test_dagger_two_rounds_parent_chain_and_rerun_is_a_no_op(tmp_path):
+def test_dagger_two_rounds_parent_chain_and_rerun_is_a_no_op(tmp_path, monkeypatch):
     root = tmp_path / "root"
-    first = _cli(*_dagger_args(root, tmp_path / "run1"))
+    # the orchestrator in this process (its data and train jobs are fresh processes either way, `pipeline.jobs`),
+    # with `_cli`'s environment for them; `pipeline.dagger` in a fresh interpreter: test_bad_keys_are_one_line_exit_2
+    monkeypatch.setenv("HYDRA_FULL_ERROR", "0")
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    first = run_cli(*_dagger_args(root, tmp_path / "run1"))
     assert first.returncode == 0, first.stderr[-3000:]
     reports = list((root / "outputs" / "dagger").iterdir())
     assert len(reports) == 1

