@@ -3,16 +3,14 @@ attack scenarios at debug=tiny with trained (tiny) maps, and the margin map over
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
+from shared import run_cli  # tests/shared.py
 
-from pipeline.cli import REPO_ROOT, compose
+from pipeline.cli import compose
 from pipeline.errors import ConfigError
 
 
@@ -57,14 +55,12 @@ def test_bad_attack_keys_are_one_config_error(tmp_path, overrides, field):
 
 
 def test_bad_attack_input_on_the_command_line_is_one_line_exit_2(tmp_path):
-    env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"} | {"MPLBACKEND": "Agg"}
+    # the same entry in this process (tests/shared.py); each stage's fresh-interpreter case: test_config_truth.py
     for module, args, field in [
             ("pipeline.experiments", ["experiment=camera_attack", "disturbances.pixel_attack.kappa=300",
                                       "perception=oracle"], "disturbances.pixel_attack.kappa"),
             ("pipeline.simulate", ["disturbance=pixel_attack", "plot=false"], "disturbance")]:
-        proc = subprocess.run([sys.executable, "-m", module, *args, f"paths.root_dir={tmp_path / 'o'}",
-                               f"hydra.run.dir={tmp_path / 'run'}"], cwd=REPO_ROOT, env=env, capture_output=True,
-                              text=True, timeout=300)
+        proc = run_cli(module, *args, f"paths.root_dir={tmp_path / 'o'}", f"hydra.run.dir={tmp_path / 'run'}")
         lines = proc.stderr.strip().splitlines()
         assert proc.returncode == 2 and len(lines) == 1 and lines[0].startswith(f"error: {field}"), proc.stderr
         assert not (tmp_path / "o" / "experiments").exists()
@@ -145,7 +141,7 @@ def test_direction_with_several_obstacles_is_the_state_attack():
 def _tiny(tmp_path, tiny_maps, exp, *extra):
     root, ids = tiny_maps
     return _cfg(tmp_path, f"experiment={exp}", "debug=tiny", f"paths.models_dir={root / 'models'}",
-                f"maps.clean={ids['clean']}", f"maps.occluded={ids['occluded']}", "experiment.horizon=2.0", *extra)
+                f"maps.clean={ids['clean']}", f"maps.occluded={ids['occluded']}", "experiment.horizon=1.0", *extra)
 
 
 def _written(out, name: str):

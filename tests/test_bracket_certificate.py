@@ -60,7 +60,7 @@ def test_blocks_of_the_supports_and_of_the_cell_hits_change_no_bit(law_cls, monk
 
     rng = np.random.default_rng(4)
     law = law_cls(SCENE)
-    boxes = _boxes(rng, 301)
+    boxes = _boxes(rng, 101)
     grid = Grid.over([[-52.0, 52.0], [-32.0, 32.0]], 1.0)
     whole = {q: support(law, boxes, q, 0.05) for q in _modes(law)}
     cen = boxes.reshape(-1, 2, 2).mean(axis=2)

@@ -11,7 +11,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from test_bracket_loop_that_runs import run_certified_points
 
+import pipeline.bracket.certify_loop as certify_loop
 import pipeline.bracket.inputs as inputs
+from pipeline.bracket.abstraction import build
 from pipeline.bracket.bounds import Uniform
 from pipeline.bracket.certify_loop import certified_starts, certify
 from pipeline.bracket.enclosures import DIRS, bp_barrier_g, split
@@ -113,7 +115,7 @@ def test_the_barrier_term_on_one_face_decreases_with_the_distance(rho, d, ell):
     assert g[0] >= g[1] - 1e-9 * max(1.0, g[1])
 
 
-def test_the_window_certifies_the_vertex_and_its_starts_survive_the_simulator():
+def test_the_window_certifies_the_vertex_and_its_starts_survive_the_simulator(monkeypatch):
     """Without the window no start cell on the axis behind the obstacle is in `Win` (the vertex's component); with
     it (cells of 1/8 unit, ε = 0.1, no horizon) those within 7.5 units of the axis are, and 2 random accepted points
     of each, run by `pipeline.sim.simulate` under this suite's error signals for 100 s, and 2 more under the trap
@@ -122,6 +124,13 @@ def test_the_window_certifies_the_vertex_and_its_starts_survive_the_simulator():
     kw = dict(h=1.0, angle=45.0, period=PERIOD, goal_radius=5.0, window=12, frames=4, horizon=2000, funnels=False)
     starts = start_cells(SCENE, 5.0)
     centre = (starts[:, :2].mean(1) < -12) & (np.abs(starts[:, 2:].mean(1)) <= 7.5)
+    built = []  # both certificates build the same coarse abstraction (same law, cells, ε, settings): built once
+
+    def build_once(*args, **kwargs):
+        if not built:
+            built.append(build(*args, **kwargs))
+        return built[0]
+    monkeypatch.setattr(certify_loop, "build", build_once)
     before = certified_starts(certify(law, Uniform(0.1), **kw), starts)[0]
     cert = certify(law, Uniform(0.1), refine_half=3.0, refine_factor=8, **kw)
     ok, bound, _ = certified_starts(cert, starts)

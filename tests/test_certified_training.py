@@ -3,8 +3,6 @@ gradient, off by default, a tiny Lightning run whose certified bound the term lo
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from types import SimpleNamespace
 
 import lightning as L
@@ -14,9 +12,10 @@ import torch
 from budget import examples  # tests/budget.py: more examples under make test-explore
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
+from shared import run_cli
 
 from pipeline.certify import certified_error_bound, prepare
-from pipeline.cli import REPO_ROOT, compose
+from pipeline.cli import compose
 from pipeline.errors import ConfigError
 from pipeline.render import Camera
 from pipeline.train.certified import CertifiedTerm
@@ -132,9 +131,8 @@ def test_bad_keys_are_one_config_error(override, field):
 
 
 def test_cli_bad_key_one_line_exit_2(tmp_path):
-    proc = subprocess.run([sys.executable, "-m", "pipeline.train", "certified=on", "certified.ramp_epochs=-1",
-                           f"paths.models_dir={tmp_path / 'm'}", f"hydra.run.dir={tmp_path / 'run'}"],
-                          cwd=REPO_ROOT, capture_output=True, text=True, timeout=300)
+    proc = run_cli("pipeline.train", "certified=on", "certified.ramp_epochs=-1", f"paths.models_dir={tmp_path / 'm'}",
+                   f"hydra.run.dir={tmp_path / 'run'}")  # `python -m pipeline.train`, in this process (tests/shared.py)
     assert proc.returncode == 2, proc.stderr
     lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and "certified.ramp_epochs" in lines[0], proc.stderr

@@ -2,13 +2,12 @@
 
 import json
 import re
-import subprocess
-import sys
 
 import numpy as np
 import pytest
+from shared import run_cli  # tests/shared.py
 
-from pipeline.cli import REPO_ROOT, compose
+from pipeline.cli import compose
 from pipeline.errors import PipelineError
 from pipeline.preflight import preflight
 
@@ -17,6 +16,14 @@ def _cfg(tiny_maps, tmp_path, *extra):
     root, ids = tiny_maps
     return compose("certify", ["debug=tiny", f"maps={ids['clean']}", f"paths.models_dir={root / 'models'}",
                                f"paths.certified_dir={tmp_path / 'certified'}", "progress=false", *extra])
+
+
+def _no_figures(monkeypatch):
+    """The stage without its figures (matplotlib), where the claim is not about them: the figures are drawn and
+    checked in `test_certify_tiny_end_to_end`."""
+    import pipeline.certify.stage as stage
+
+    monkeypatch.setattr(stage, "write_figures", lambda *args, **kwargs: [])
 
 
 def test_certify_tiny_end_to_end(tiny_maps, tmp_path):
@@ -73,28 +80,27 @@ def test_bad_settings_are_one_line(override, field, tmp_path):
 
 
 def test_bad_key_on_the_command_line_is_one_line_exit_2(tmp_path):
-    proc = subprocess.run([sys.executable, "-m", "pipeline.certify", "tolerence=1", f"paths.root_dir={tmp_path}",
-                           f"hydra.run.dir={tmp_path / 'run'}"], cwd=REPO_ROOT, capture_output=True, text=True,
-                          timeout=300)
+    # in this process (tests/shared.py): a fresh interpreter's start-up is tests/test_config_truth.py's
+    proc = run_cli("pipeline.certify", "tolerence=1", f"paths.root_dir={tmp_path}", f"hydra.run.dir={tmp_path / 'run'}")
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2 and len(lines) == 1 and "tolerence" in lines[0], proc.stderr
     assert not (tmp_path / "outputs" / "certified").exists()
 
 
-def test_a_file_where_the_certified_folder_should_be_is_one_line(tiny_maps, tmp_path):
+def test_a_file_where_the_certified_folder_should_be_is_one_line(tiny_maps, tmp_path, monkeypatch):
     """The certified error map's folder taken by a file: one line naming it, exit 2 (issue 27's rule)."""
     import shutil
 
     from pipeline.certify.stage import run
 
     root, ids = tiny_maps
+    _no_figures(monkeypatch)  # both runs: the claim is the one line
     folder = run(_cfg(tiny_maps, tmp_path, "kappas=[0.0]"))["path"]
     shutil.rmtree(folder)
     folder.write_text("x")
-    proc = subprocess.run([sys.executable, "-m", "pipeline.certify", "debug=tiny", f"maps={ids['clean']}",
-                           f"paths.models_dir={root / 'models'}", f"paths.certified_dir={tmp_path / 'certified'}",
-                           "progress=false", "kappas=[0.0]", f"hydra.run.dir={tmp_path / 'cli'}"],
-                          cwd=REPO_ROOT, capture_output=True, text=True, timeout=300)
+    proc = run_cli("pipeline.certify", "debug=tiny", f"maps={ids['clean']}", f"paths.models_dir={root / 'models'}",
+                   f"paths.certified_dir={tmp_path / 'certified'}", "progress=false", "kappas=[0.0]",
+                   f"hydra.run.dir={tmp_path / 'cli'}")  # in this process (tests/shared.py)
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2 and len(lines) == 1 and "a file where" in lines[0], proc.stderr[-2000:]
 
@@ -105,6 +111,7 @@ def test_certify_reports_its_pgd_progress_and_names_the_region(tiny_maps, tmp_pa
     from pipeline import progress as pr
     from pipeline.certify.stage import run
 
+    _no_figures(monkeypatch)  # the claim: the progress lines and the region's wording
     monkeypatch.setattr(pr, "LINE_INTERVAL", 0.0)
     monkeypatch.setattr(pr, "DELAY", 0.0)
     root, ids = tiny_maps
@@ -166,6 +173,7 @@ def test_the_pgd_attacks_the_leaves_a_split_cell_was_bounded_on(tiny_maps, tmp_p
         return real(model, camera, cells, *a, **k)
 
     monkeypatch.setattr(attack, "pgd_worst", spy)
+    _no_figures(monkeypatch)  # the claim: the boxes the PGD attacks
     out = run(_cfg(tiny_maps, tmp_path, "kappas=[0.0]", "max_depth=1", "tolerance=1e-9"))
     s = out["summary"]
     assert s["kappas"]["0"]["depth"]["1"] == s["n_cells"]

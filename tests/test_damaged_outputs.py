@@ -7,15 +7,13 @@ from __future__ import annotations
 import hashlib
 import os
 import shutil
-import subprocess
-import sys
 from types import SimpleNamespace
 
 import pytest
 from shared import run_cli  # tests/shared.py
 
 from pipeline import tracking
-from pipeline.cli import REPO_ROOT, compose
+from pipeline.cli import compose
 from pipeline.errors import DatasetError, PipelineError
 
 SMALL = ["data=clean", "data.splits.train=128", "data.splits.val=32", "data.splits.test=32"]
@@ -40,12 +38,6 @@ def copy(built, tmp_path):
     shutil.copytree(root / "data", tmp_path / "data")
     shutil.copytree(root / "outputs" / "models", tmp_path / "outputs" / "models")
     return tmp_path, ds, model
-
-
-def _cli(module, *args, timeout=300):
-    env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
-    return subprocess.run([sys.executable, "-m", module, *args], cwd=REPO_ROOT, env=env, capture_output=True,
-                          text=True, timeout=timeout)
 
 
 def _one_line(proc, *needles):
@@ -75,8 +67,8 @@ def test_a_truncated_map_is_one_line_naming_model_pt_and_the_command_that_rebuil
     root, _, model = copy
     pt = root / "outputs" / "models" / model / "model.pt"
     pt.write_bytes(pt.read_bytes()[: pt.stat().st_size // 2])
-    line = _one_line(_cli("pipeline.errormap", f"maps={model}", "debug=tiny", "occlusion_levels=[none]",
-                          f"paths.root_dir={root}"), str(pt), "size", "force=true")
+    line = _one_line(run_cli("pipeline.errormap", f"maps={model}", "debug=tiny", "occlusion_levels=[none]",
+                             f"paths.root_dir={root}"), str(pt), "size", "force=true")
     assert "python -m pipeline.train data=clean" in line
 
 
@@ -192,7 +184,7 @@ def test_a_file_where_the_dataset_folder_should_be_is_one_line_in_the_data_stage
     blocker = tmp_path / "data" / "datasets" / f"{name}-{id_}"
     blocker.parent.mkdir(parents=True)
     blocker.write_text("not a folder")
-    _one_line(_cli("pipeline.data", "debug=tiny", f"paths.root_dir={tmp_path}"), str(blocker), "a file where")
+    _one_line(run_cli("pipeline.data", "debug=tiny", f"paths.root_dir={tmp_path}"), str(blocker), "a file where")
     _one_line(run_cli("pipeline.data", "debug=tiny", "force=true", f"paths.root_dir={tmp_path}"), "a file where")
     assert blocker.read_text() == "not a folder"  # not ours to replace
 
@@ -205,8 +197,8 @@ def test_a_file_where_an_output_folder_should_be_is_one_line_in_every_stage(copy
 
     root, ds, model = copy
     models = root / "outputs" / "models"
-    # train: its own output, then its input
-    shutil.rmtree(models / model)
+    # train: its own output, then its input (the built map moved aside meanwhile: no retraining to get it back)
+    shutil.move(models / model, root / "map-aside")
     (models / model).write_text("x")
     with pytest.raises(DatasetError, match="a file where"):
         train_run(compose("train", [*SMALL, *TRAIN, f"paths.root_dir={root}"]))
@@ -219,7 +211,7 @@ def test_a_file_where_an_output_folder_should_be_is_one_line_in_every_stage(copy
     dsf.unlink()
     shutil.move(root / "ds-aside", dsf)
     # errormap: its input map, then its own output
-    train_run(compose("train", [*SMALL, *TRAIN, f"paths.root_dir={root}"]))
+    shutil.move(root / "map-aside", models / model)
     em = ["debug=tiny", "occlusion_levels=[none]", "train_samples=64", f"paths.root_dir={root}"]
     name, eid = expected_errormap_id(models / model, em)
     out = root / "outputs" / "errormaps" / f"{name}-{eid}"
@@ -227,7 +219,7 @@ def test_a_file_where_an_output_folder_should_be_is_one_line_in_every_stage(copy
     out.write_text("x")
     with pytest.raises(DatasetError, match="a file where"):
         errormap_run(compose("errormap", [f"maps={model}", *em]))
-    _one_line(_cli("pipeline.errormap", f"maps={model}", *em), "a file where")
+    _one_line(run_cli("pipeline.errormap", f"maps={model}", *em), "a file where")
     # experiments: its cached results
     args = ["experiment=coverings", "debug=tiny", f"paths.root_dir={root}"]
     cache = exp_run(compose("experiments", args))["cache"]

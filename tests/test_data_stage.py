@@ -1,16 +1,14 @@
 """The data stage: tracked, content-addressed datasets, the reading API and verify (issue 3 §2-§4)."""
 
 import hashlib
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from shared import run_cli  # tests/shared.py
 
 from pipeline import tracking
-from pipeline.cli import REPO_ROOT, compose
+from pipeline.cli import compose
 from pipeline.data import open_dataset, resolve_dataset
 from pipeline.data.stage import run
 from pipeline.data.verify import verify_datasets
@@ -27,9 +25,10 @@ def file_hashes(folder: Path) -> dict:
     return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.iterdir()) if p.name != "manifest.json"}
 
 
-def cli(*args, cwd=REPO_ROOT):
-    env = {**os.environ, "HYDRA_FULL_ERROR": "0"}
-    return subprocess.run([sys.executable, "-m", *args], cwd=cwd, capture_output=True, text=True, env=env, timeout=120)
+def cli(module, *args):
+    """`python -m module args` in this process (tests/shared.py: the same entry; a Hydra `-m` multirun runs its jobs
+    in the launching process too); the data stage's fresh-interpreter case is in tests/test_config_truth.py."""
+    return run_cli(module, *args)
 
 
 @pytest.fixture(scope="module")

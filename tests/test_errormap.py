@@ -5,16 +5,15 @@ from __future__ import annotations
 import json
 import math
 import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from shared import run_cli  # tests/shared.py
 
 from pipeline import tracking
-from pipeline.cli import REPO_ROOT, compose
+from pipeline.cli import compose
 from pipeline.config import settings as stage_settings
 from pipeline.control import Scene, in_diamond
 from pipeline.errormap import estimates as core
@@ -242,13 +241,22 @@ def _cfg(tmp_path, *extra):
                                 "coverage.r_cov=3.0", *extra])
 
 
+@pytest.fixture
+def no_figures(monkeypatch):
+    """The stage without its figures (matplotlib), for tests whose claim is about the numbers: the figures are
+    drawn and checked in `test_stage_recovers_a_constant_bias_and_its_covered_set`."""
+    from pipeline.errormap import writers
+
+    monkeypatch.setattr(writers, "figures", lambda *args, **kwargs: [])
+
+
 def _grid_and_op(step=2.0, margin=0.0):
     pts, shape, _, _ = core.arena_grid(ARENA, step)
     inside = (np.abs(pts[:, 0]) <= 50 - margin) & (np.abs(pts[:, 1]) <= 30 - margin)
     return pts, shape, inside & ~in_diamond(Scene(target=[40.0, 0.0]), pts)
 
 
-def test_stage_recovers_a_constant_bias_and_its_covered_set(tmp_path):
+def test_stage_recovers_a_constant_bias_and_its_covered_set(tmp_path, monkeypatch):
     beta = np.array([0.3, -0.4])  # |beta| = 0.5, L = 0
     pmap = StubMap(lambda p: np.broadcast_to(beta, p.shape))
     rng = np.random.default_rng(0)
@@ -291,6 +299,9 @@ def test_stage_recovers_a_constant_bias_and_its_covered_set(tmp_path):
     calls = pmap.calls
     again = run(cfg, perception_map=pmap, occlusions=occ, dataset=StubDataset(samples))
     assert again["skipped"] and pmap.calls == calls
+    from pipeline.errormap import writers
+
+    monkeypatch.setattr(writers, "figures", lambda *args, **kwargs: [])  # drawn and checked above: force recomputes
     forced = run(compose("errormap", [*cfg_overrides(cfg), "force=true"]), perception_map=pmap,
                  occlusions=occ, dataset=StubDataset(samples))
     assert not forced["skipped"] and forced["path"] == path and pmap.calls > calls
@@ -302,7 +313,7 @@ def cfg_overrides(cfg):
             "occlusion_levels=[none,heavy]", "coverage.eps=[0.0,0.25,0.499999,0.500001,1.0,3.0]"]
 
 
-def test_stage_recovers_a_linear_field(tmp_path):
+def test_stage_recovers_a_linear_field(tmp_path, no_figures):
     A = np.array([[0.02, 0.0], [0.0, 0.005]])  # ||A||_2 = 0.02 along x: a sampled direction
     b = np.array([0.1, 0.05])
     pmap = StubMap(lambda p: p @ A.T + b)
@@ -326,7 +337,7 @@ def test_stage_recovers_a_linear_field(tmp_path):
     assert np.all(np.diff(fr) >= 0) and fr[-1] == 1.0
 
 
-def test_random_levels_use_k_draws_deterministically(tmp_path):
+def test_random_levels_use_k_draws_deterministically(tmp_path, no_figures):
     pmap = StubMap(lambda p: np.zeros_like(p))
     occ = {"none": None, "heavy": StubOcclusion(0.5)}
     samples = np.random.default_rng(2).uniform([-50, -30], [50, 30], (500, 2))
@@ -376,12 +387,8 @@ def test_load_error_map_unknown(tmp_path):
 
 @pytest.mark.parametrize("override", ["model=does_not_exist", "maps=[does_not_exist,clean]", "grid.step=0"])
 def test_cli_bad_input_is_one_line(tmp_path, override):
-    env = {**os.environ, "PYTHONPATH": str(REPO_ROOT)}
-    proc = subprocess.run(
-        [sys.executable, "-m", "pipeline.errormap", override, f"paths.models_dir={tmp_path}",
-         f"paths.errormaps_dir={tmp_path / 'em'}", f"paths.datasets_dir={tmp_path}", f"hydra.run.dir={tmp_path}"],
-        capture_output=True, text=True, cwd=REPO_ROOT, env=env, timeout=120,
-    )
+    proc = run_cli("pipeline.errormap", override, f"paths.models_dir={tmp_path}", f"paths.errormaps_dir={tmp_path / 'em'}",
+                   f"paths.datasets_dir={tmp_path}", f"hydra.run.dir={tmp_path}")  # in this process (tests/shared.py)
     assert proc.returncode != 0
     assert "Traceback" not in proc.stderr
     lines = [ln for ln in proc.stderr.splitlines() if ln.startswith("error:")]
@@ -389,7 +396,7 @@ def test_cli_bad_input_is_one_line(tmp_path, override):
     assert ("does_not_exist" in lines[0]) if "does_not_exist" in override else ("grid.step" in lines[0])
 
 
-def test_near_target_error_is_reported_next_to_the_operational_set(tmp_path):
+def test_near_target_error_is_reported_next_to_the_operational_set(tmp_path, no_figures):
     """A map that errs by 2 units within 4 of the target and is exact elsewhere: near_target sees the 2,
     the operational set's statistics dilute it (issue 11: accuracy where the closed loop spends its time)."""
     target = np.array([40.0, 0.0])

@@ -60,7 +60,7 @@ def test_output_paths_that_cannot_be_created_are_one_line_in_every_stage(tmp_pat
 
 
 def test_an_explicit_run_dir_that_cannot_be_created_is_one_line(tmp_path):
-    _one_line_exit_2(_cli("pipeline.simulate", f"paths.root_dir={tmp_path}", "hydra.run.dir=/proc/run_here"),
+    _one_line_exit_2(run_cli("pipeline.simulate", f"paths.root_dir={tmp_path}", "hydra.run.dir=/proc/run_here"),
                      "hydra.run.dir")
 
 
@@ -333,7 +333,7 @@ def test_the_missing_map_hint_of_the_experiments_stage_is_a_valid_override(tmp_p
     side = tmp_path / "outputs" / "models" / "clean_keypoint-aaaaaaaaaa"
     side.mkdir(parents=True)
     (side / "manifest.json").write_text('{"id": "aaaaaaaaaa", "created": "1"}')
-    proc = _cli("pipeline.experiments", "experiment=noise_failure", f"paths.root_dir={tmp_path}")
+    proc = run_cli("pipeline.experiments", "experiment=noise_failure", f"paths.root_dir={tmp_path}")
     assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
     assert "maps.clean=<name-id>" in proc.stderr and "maps=<" not in proc.stderr, proc.stderr
 
@@ -528,8 +528,8 @@ def test_the_experiments_stage_reports_each_bisection_step(tmp_path, monkeypatch
 # -------------------------------------------------------------------------------- sweep summary (item 5)
 def test_a_multirun_ends_with_one_table_of_overrides_and_headline_metrics(tmp_path):
     sweep = tmp_path / "sweep"
-    proc = _cli("pipeline.simulate", "-m", "controller=hybrid,smooth", "plot=false", "init=near_k", "init.n=4",
-                f"paths.root_dir={tmp_path}", f"hydra.sweep.dir={sweep}")
+    proc = run_cli("pipeline.simulate", "-m", "controller=hybrid,smooth", "plot=false", "init=near_k", "init.n=4",
+                   f"paths.root_dir={tmp_path}", f"hydra.sweep.dir={sweep}")
     assert proc.returncode == 0, proc.stderr[-2000:]
     import pandas as pd
 

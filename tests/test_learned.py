@@ -260,8 +260,8 @@ def test_the_imitation_id_follows_its_trunk_map_and_a_missing_one_is_one_line(tm
         ids.append(identity(compose("imitate", [f"imitation.trunk_from={tmp_path / f'{stem}.ckpt'}",
                                                 f"paths.models_dir={tmp_path}"])))
     assert ids[0] != ids[1]
-    out = subprocess.run([sys.executable, "-m", "pipeline.learned.imitate", f"paths.models_dir={tmp_path / 'none'}",
-                          f"paths.output_dir={tmp_path}"], capture_output=True, text=True, timeout=120)
+    # in this process (tests/shared.py): the stage's fresh-interpreter case is test_bad_keys_are_one_line_and_exit_2's
+    out = run_cli("pipeline.learned.imitate", f"paths.models_dir={tmp_path / 'none'}", f"paths.output_dir={tmp_path}")
     lines = [ln for ln in out.stderr.splitlines() if ln.strip()]
     assert out.returncode == 2 and len(lines) == 1 and "perception map 'clean_keypoint'" in lines[0], out.stderr
     assert "python -m pipeline.train data=clean model=keypoint" in lines[0]
@@ -470,8 +470,8 @@ def test_make_learned_end_to_end_on_tiny_maps_with_clouds_and_the_worst_cloud(ti
     manifest = json.loads((out["path"] / "manifest.json").read_text())
     assert manifest["inputs"]["model_clouds"] == heavy["path"].name
     assert manifest["inputs"]["map_clouds"] == ids["occluded"]
-    assert evaluate(compose("learned", args))["path"] == out["path"] and "table" not in \
-        evaluate(compose("learned", args))
+    again = evaluate(compose("learned", args))  # up to date: the same folder, nothing evaluated again
+    assert again["path"] == out["path"] and "table" not in again
     other = imitate(compose("imitate_heavy", [*tiny, f"imitation.trunk_from={ids['occluded']}", "imitation.seed=1",
                                               "model.reads=features"]))
     from pipeline.config import build

@@ -72,13 +72,21 @@ class Samples:
         return np.column_stack([self._pos, np.zeros(len(self._pos))])
 
 
+def _no_figures(monkeypatch):
+    """The error-map stage without its figures, where the claim is about its numbers, id or files other than the
+    figures (which `test_error_map_of_a_pose_map_reports_the_heading_error_beside_the_position_error` checks)."""
+    from pipeline.errormap import writers
+
+    monkeypatch.setattr(writers, "figures", lambda *args, **kwargs: [])
+
+
 def _em_cfg(tmp_path, *extra):
     return compose("errormap", ["maps=posemap", f"paths.errormaps_dir={tmp_path / 'em'}",
                                 f"paths.models_dir={tmp_path / 'models'}", "grid.step=4.0", "formats=[png]",
                                 "train_samples=null", "progress=false", "occlusion_levels=[none]", *extra])
 
 
-def test_error_map_of_a_pose_map_reports_the_heading_error_beside_the_position_error(tmp_path):
+def test_error_map_of_a_pose_map_reports_the_heading_error_beside_the_position_error(tmp_path, monkeypatch):
     from pipeline.errormap.read import load_error_map, summary_table
     from pipeline.errormap.stage import heading_grid, run
 
@@ -104,14 +112,16 @@ def test_error_map_of_a_pose_map_reports_the_heading_error_beside_the_position_e
     table = summary_table([path.name], tmp_path / "em")
     assert table["heading_mean_deg"].iloc[0] == pytest.approx(err.mean())
     # the heading grid is part of a pose map's error-map id
+    _no_figures(monkeypatch)
     other = run(_em_cfg(tmp_path, "headings=4"), perception_map=PoseMap(), camera=PoseCamera(),
                 occlusions={"none": None}, dataset=Samples())
     assert other["path"] != path
 
 
-def test_a_position_map_error_map_ignores_the_heading_grid(tmp_path):
+def test_a_position_map_error_map_ignores_the_heading_grid(tmp_path, monkeypatch):
     from pipeline.errormap.stage import run
 
+    _no_figures(monkeypatch)
     runs = [run(_em_cfg(tmp_path, f"headings={n}", "force=true"), perception_map=PoseMap(pose=False, name="posmap"),
                 camera=PoseCamera(), occlusions={"none": None}, dataset=Samples()) for n in (4, 8)]
     assert runs[0]["path"] == runs[1]["path"]  # not in its id
@@ -376,7 +386,7 @@ def test_heading_from_the_camera_needs_a_pose_map_before_any_work(tmp_path):
     check(compose("experiments", [*base, "vehicle=unicycle", "camera.heading=imu"]))
 
 
-def test_a_tiny_pose_map_through_data_train_errormap_and_the_context(tmp_path):
+def test_a_tiny_pose_map_through_data_train_errormap_and_the_context(tmp_path, monkeypatch):
     """The plumbing with a real (tiny, untrained) pose map: the unicycle recipe's dataset, the train stage's pose
     metrics, the error map's heading error, and the map's heading in the camera-in-the-loop measurement."""
     from pipeline.data.stage import run as data_run
@@ -399,6 +409,7 @@ def test_a_tiny_pose_map_through_data_train_errormap_and_the_context(tmp_path):
     assert pm.pose
     em_args = [f"paths.errormaps_dir={tmp_path / 'em'}", *paths, "grid.step=10.0", "headings=2",
                "occlusion_levels=[none]", "formats=[png]", "train_samples=64", "progress=false", "device=cpu"]
+    _no_figures(monkeypatch)  # the plumbing, not the figures
     em = errormap_run(compose("errormap", [f"maps={folder}", *em_args]))
     manifest = tracking.read_manifest(folder)
     assert {k: expected[k] for k in ("name", "id", "scene", "arena")} == \
@@ -414,8 +425,10 @@ def test_a_tiny_pose_map_through_data_train_errormap_and_the_context(tmp_path):
                        measure=ctx.camera_measure("clean"), record_every=1)
     m0 = ctx.perception_map("clean").predict(ctx.camera("clean").render(res.p[0], heading=res.heading[0]))
     assert np.allclose(res.heading_measured[0], m0[:, 2])  # the first frame's heading is the map's
+    import pipeline.certify.stage as certify_stage
     from pipeline.certify.stage import run as certify_run  # the certified error map of the pose map
 
+    monkeypatch.setattr(certify_stage, "write_figures", lambda *args, **kwargs: [])  # the plumbing (table.md stays)
     cert = certify_run(compose("certify", ["debug=tiny", f"maps={folder}", *paths, "region=[[40.0,44.0],[-2.0,2.0]]",
                                            f"paths.certified_dir={tmp_path / 'certified'}", "kappas=[0.0]",
                                            "headings=2", "progress=false"]))

@@ -133,8 +133,9 @@ def _stage(*args, timeout=120):
 
 
 def test_cli_run_writes_outputs(tmp_path):
-    proc = _stage(f"hydra.run.dir={tmp_path}", "controller=cbf", "disturbance=alternating", "sim.horizon=5",
-                  "plot=false")
+    # in this process (tests/shared.py): the outputs of a run, nothing only a fresh interpreter shows
+    proc = run_cli("pipeline.simulate", f"hydra.run.dir={tmp_path}", "controller=cbf",
+                   "disturbance=alternating", "sim.horizon=5", "plot=false")
     assert proc.returncode == 0, proc.stderr
     assert "Traceback" not in proc.stderr
     cfg = _compose(tmp_path, "controller=cbf", "disturbance=alternating", "sim.horizon=5")
@@ -172,8 +173,9 @@ def test_cli_invalid_config(tmp_path, override, field):
 
 def test_cli_multirun(tmp_path):
     sweep = tmp_path / "sweep"
-    proc = _stage("-m", "controller=hybrid,smooth", "disturbance=adversarial", f"hydra.sweep.dir={sweep}",
-                  "init=near_k", "init.n=20", "sim.horizon=20", "plot=false", timeout=300)
+    # in this process (tests/shared.py): a Hydra `-m` multirun runs its jobs in the launching process anyway
+    proc = run_cli("pipeline.simulate", "-m", "controller=hybrid,smooth", "disturbance=adversarial",
+                   f"hydra.sweep.dir={sweep}", "init=near_k", "init.n=20", "sim.horizon=20", "plot=false")
     assert proc.returncode == 0, proc.stderr
     assert "Traceback" not in proc.stderr
     csvs = sorted(sweep.glob("*/metrics.csv"))
