@@ -29,6 +29,19 @@ def computed_once(tmp_path_factory, worker_id: str, name: str, make):
         return value
 
 
+FIGURE_WRITERS = {"errormap": ("pipeline.errormap.writers", "figures"), "certify": ("pipeline.certify.stage", "write_figures")}
+
+
+def without_figures(monkeypatch, stage: str) -> None:
+    """`stage`'s run without its figures (matplotlib), for a test whose claim is its numbers, id or other files; each
+    stage's figures are still drawn and checked by one test (the error map's: `test_stage_recovers_a_constant_bias...`
+    and the pose map's; certify's: `test_certify_tiny_end_to_end`)."""
+    import importlib
+
+    module, name = FIGURE_WRITERS[stage]
+    monkeypatch.setattr(importlib.import_module(module), name, lambda *args, **kwargs: [])
+
+
 def index_links(index: Path) -> set[str]:
     """The targets of the markdown links of a paper folder's `index.md`."""
     return set(re.findall(r"\]\(([^)]+)\)", index.read_text()))

@@ -5,7 +5,7 @@ import re
 
 import numpy as np
 import pytest
-from shared import run_cli  # tests/shared.py
+from shared import run_cli, without_figures  # tests/shared.py
 
 from pipeline.cli import compose
 from pipeline.errors import PipelineError
@@ -16,14 +16,6 @@ def _cfg(tiny_maps, tmp_path, *extra):
     root, ids = tiny_maps
     return compose("certify", ["debug=tiny", f"maps={ids['clean']}", f"paths.models_dir={root / 'models'}",
                                f"paths.certified_dir={tmp_path / 'certified'}", "progress=false", *extra])
-
-
-def _no_figures(monkeypatch):
-    """The stage without its figures (matplotlib), where the claim is not about them: the figures are drawn and
-    checked in `test_certify_tiny_end_to_end`."""
-    import pipeline.certify.stage as stage
-
-    monkeypatch.setattr(stage, "write_figures", lambda *args, **kwargs: [])
 
 
 def test_certify_tiny_end_to_end(tiny_maps, tmp_path):
@@ -94,7 +86,7 @@ def test_a_file_where_the_certified_folder_should_be_is_one_line(tiny_maps, tmp_
     from pipeline.certify.stage import run
 
     root, ids = tiny_maps
-    _no_figures(monkeypatch)  # both runs: the claim is the one line
+    without_figures(monkeypatch, "certify")  # both runs: the claim is the one line
     folder = run(_cfg(tiny_maps, tmp_path, "kappas=[0.0]"))["path"]
     shutil.rmtree(folder)
     folder.write_text("x")
@@ -111,7 +103,7 @@ def test_certify_reports_its_pgd_progress_and_names_the_region(tiny_maps, tmp_pa
     from pipeline import progress as pr
     from pipeline.certify.stage import run
 
-    _no_figures(monkeypatch)  # the claim: the progress lines and the region's wording
+    without_figures(monkeypatch, "certify")  # the claim: the progress lines and the region's wording
     monkeypatch.setattr(pr, "LINE_INTERVAL", 0.0)
     monkeypatch.setattr(pr, "DELAY", 0.0)
     root, ids = tiny_maps
@@ -173,7 +165,7 @@ def test_the_pgd_attacks_the_leaves_a_split_cell_was_bounded_on(tiny_maps, tmp_p
         return real(model, camera, cells, *a, **k)
 
     monkeypatch.setattr(attack, "pgd_worst", spy)
-    _no_figures(monkeypatch)  # the claim: the boxes the PGD attacks
+    without_figures(monkeypatch, "certify")  # the claim: the boxes the PGD attacks
     out = run(_cfg(tiny_maps, tmp_path, "kappas=[0.0]", "max_depth=1", "tolerance=1e-9"))
     s = out["summary"]
     assert s["kappas"]["0"]["depth"]["1"] == s["n_cells"]

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from shared import run_cli  # tests/shared.py
+from shared import run_cli, without_figures  # tests/shared.py
 
 from pipeline import tracking
 from pipeline.cli import compose
@@ -243,11 +243,8 @@ def _cfg(tmp_path, *extra):
 
 @pytest.fixture
 def no_figures(monkeypatch):
-    """The stage without its figures (matplotlib), for tests whose claim is about the numbers: the figures are
-    drawn and checked in `test_stage_recovers_a_constant_bias_and_its_covered_set`."""
-    from pipeline.errormap import writers
-
-    monkeypatch.setattr(writers, "figures", lambda *args, **kwargs: [])
+    """The stage without its figures, for tests whose claim is about the numbers (tests/shared.py)."""
+    without_figures(monkeypatch, "errormap")
 
 
 def _grid_and_op(step=2.0, margin=0.0):
@@ -299,9 +296,7 @@ def test_stage_recovers_a_constant_bias_and_its_covered_set(tmp_path, monkeypatc
     calls = pmap.calls
     again = run(cfg, perception_map=pmap, occlusions=occ, dataset=StubDataset(samples))
     assert again["skipped"] and pmap.calls == calls
-    from pipeline.errormap import writers
-
-    monkeypatch.setattr(writers, "figures", lambda *args, **kwargs: [])  # drawn and checked above: force recomputes
+    without_figures(monkeypatch, "errormap")  # drawn and checked above: force recomputes
     forced = run(compose("errormap", [*cfg_overrides(cfg), "force=true"]), perception_map=pmap,
                  occlusions=occ, dataset=StubDataset(samples))
     assert not forced["skipped"] and forced["path"] == path and pmap.calls > calls

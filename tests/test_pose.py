@@ -9,7 +9,7 @@ import sys
 
 import numpy as np
 import pytest
-from shared import run_cli  # tests/shared.py
+from shared import run_cli, without_figures  # tests/shared.py
 
 from pipeline import tracking
 from pipeline.cli import REPO_ROOT, compose
@@ -72,14 +72,6 @@ class Samples:
         return np.column_stack([self._pos, np.zeros(len(self._pos))])
 
 
-def _no_figures(monkeypatch):
-    """The error-map stage without its figures, where the claim is about its numbers, id or files other than the
-    figures (which `test_error_map_of_a_pose_map_reports_the_heading_error_beside_the_position_error` checks)."""
-    from pipeline.errormap import writers
-
-    monkeypatch.setattr(writers, "figures", lambda *args, **kwargs: [])
-
-
 def _em_cfg(tmp_path, *extra):
     return compose("errormap", ["maps=posemap", f"paths.errormaps_dir={tmp_path / 'em'}",
                                 f"paths.models_dir={tmp_path / 'models'}", "grid.step=4.0", "formats=[png]",
@@ -112,7 +104,7 @@ def test_error_map_of_a_pose_map_reports_the_heading_error_beside_the_position_e
     table = summary_table([path.name], tmp_path / "em")
     assert table["heading_mean_deg"].iloc[0] == pytest.approx(err.mean())
     # the heading grid is part of a pose map's error-map id
-    _no_figures(monkeypatch)
+    without_figures(monkeypatch, "errormap")
     other = run(_em_cfg(tmp_path, "headings=4"), perception_map=PoseMap(), camera=PoseCamera(),
                 occlusions={"none": None}, dataset=Samples())
     assert other["path"] != path
@@ -121,7 +113,7 @@ def test_error_map_of_a_pose_map_reports_the_heading_error_beside_the_position_e
 def test_a_position_map_error_map_ignores_the_heading_grid(tmp_path, monkeypatch):
     from pipeline.errormap.stage import run
 
-    _no_figures(monkeypatch)
+    without_figures(monkeypatch, "errormap")
     runs = [run(_em_cfg(tmp_path, f"headings={n}", "force=true"), perception_map=PoseMap(pose=False, name="posmap"),
                 camera=PoseCamera(), occlusions={"none": None}, dataset=Samples()) for n in (4, 8)]
     assert runs[0]["path"] == runs[1]["path"]  # not in its id
@@ -409,7 +401,7 @@ def test_a_tiny_pose_map_through_data_train_errormap_and_the_context(tmp_path, m
     assert pm.pose
     em_args = [f"paths.errormaps_dir={tmp_path / 'em'}", *paths, "grid.step=10.0", "headings=2",
                "occlusion_levels=[none]", "formats=[png]", "train_samples=64", "progress=false", "device=cpu"]
-    _no_figures(monkeypatch)  # the plumbing, not the figures
+    without_figures(monkeypatch, "errormap")  # the plumbing, not the figures
     em = errormap_run(compose("errormap", [f"maps={folder}", *em_args]))
     manifest = tracking.read_manifest(folder)
     assert {k: expected[k] for k in ("name", "id", "scene", "arena")} == \
@@ -425,10 +417,9 @@ def test_a_tiny_pose_map_through_data_train_errormap_and_the_context(tmp_path, m
                        measure=ctx.camera_measure("clean"), record_every=1)
     m0 = ctx.perception_map("clean").predict(ctx.camera("clean").render(res.p[0], heading=res.heading[0]))
     assert np.allclose(res.heading_measured[0], m0[:, 2])  # the first frame's heading is the map's
-    import pipeline.certify.stage as certify_stage
     from pipeline.certify.stage import run as certify_run  # the certified error map of the pose map
 
-    monkeypatch.setattr(certify_stage, "write_figures", lambda *args, **kwargs: [])  # the plumbing (table.md stays)
+    without_figures(monkeypatch, "certify")  # the plumbing (table.md stays)
     cert = certify_run(compose("certify", ["debug=tiny", f"maps={folder}", *paths, "region=[[40.0,44.0],[-2.0,2.0]]",
                                            f"paths.certified_dir={tmp_path / 'certified'}", "kappas=[0.0]",
                                            "headings=2", "progress=false"]))
