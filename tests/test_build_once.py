@@ -28,11 +28,33 @@ def test_hysteresis_variant_is_the_rebuilt_controller(chi, share, seed):
     assert (BASE.chi, BASE.lam) == (1.1, 0.09)  # the built object is left as it was
 
 
+@settings(max_examples=20, deadline=None)
+@given(chis=st.lists(st.floats(1.05, 3.0), min_size=2, max_size=5), share=st.floats(0.05, 0.95),
+       seed=st.integers(0, 1000))
+def test_a_hysteresis_per_agent_is_each_agents_own_variant(chis, share, seed):
+    """A batch of several cells in one variant (arrays `(N,)`, the margin map's batched bisection) decides every
+    agent as its own cell's variant does, bit for bit; on a part of its batch it refuses."""
+    n = 40
+    m = np.random.default_rng(seed).uniform([-45, -25], [45, 25], (n * len(chis), 2))
+    lams = [share * (c - 1) for c in chis]
+    xd = BASE.initial_state(m)
+    rows = BASE.with_hysteresis(np.repeat(chis, n), np.repeat(lams, n))
+    for k, (chi, lam) in enumerate(zip(chis, lams)):
+        own, part = BASE.with_hysteresis(chi, lam), slice(k * n, (k + 1) * n)
+        xk = {key: v[part] for key, v in xd.items()}
+        np.testing.assert_array_equal(rows.jump_set(m, xd)[part], own.jump_set(m[part], xk))
+        np.testing.assert_array_equal(rows.flow_set(m, xd)[part], own.flow_set(m[part], xk))
+    with pytest.raises(ValueError, match="whole batch"):
+        rows.jump_set(m[:n], {key: v[:n] for key, v in xd.items()})
+
+
 @pytest.mark.parametrize(("chi", "lam", "field"), [(1.0, 0.05, "controller.chi"), (1.2, 0.2, "controller.lam"),
                                                    (1.2, 0.0, "controller.lam")])
 def test_a_bad_variant_is_one_error_naming_the_field(chi, lam, field):
     with pytest.raises(ConfigError, match=field.replace(".", r"\.")):
         BASE.with_hysteresis(chi, lam)
+    with pytest.raises(ConfigError, match=field.replace(".", r"\.")):  # one bad agent of a batch
+        BASE.with_hysteresis([1.1, chi], [0.09, lam])
 
 
 # ------------------------------------------------------------------------------- each value checked once per run

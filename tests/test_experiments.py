@@ -213,6 +213,36 @@ def test_margin_map_cell_against_a_direct_simulation(tmp_path):
         assert (rate >= 0.99) == robust, (eps, rate)
 
 
+def test_margin_map_cells_in_one_batch_are_each_cells_own_bisection(tmp_path):
+    """The margin map's cells bisect in one batch per step (a hysteresis and a disturbance per agent): every
+    cell's margin, failing ε and simulation count are those of its own bisection run alone, and every agent of a
+    batched run ends as in its own cell's run (its jumps, which the hysteresis sets, among the metrics)."""
+    from pipeline.experiments.context import Context
+    from pipeline.experiments.paper.theory import HysteresisMargin
+    from pipeline.sim.disturbances import PerAgent
+
+    ctx = Context(_cfg(tmp_path, "experiment=hysteresis_margin", "perception=oracle"))
+    scen = HysteresisMargin(id="m", title="m", chi=[1.05, 1.8], lam=[0.01, 0.4], disturbances=["alternating"],
+                            n_agents=8, tol=1.0, success=0.99, eps_max=8.0, time_model="sampled")
+    x0, hybrid = scen.starts(ctx), ctx.controller("hybrid")
+    cells, eps, n = scen.cells(), [2.0, 1.0, 2.0], len(x0)
+    batch = scen.margins(ctx, x0, hybrid, "alternating", cells)
+    alone = [scen.margins(ctx, x0, hybrid, "alternating", [cell])[0] for cell in cells]
+    np.testing.assert_array_equal(np.array(batch), np.array(alone))
+    chi, lam = (np.repeat([c[j] for c in cells], n) for j in (0, 1))
+    both = ctx.simulate(hybrid.with_hysteresis(chi, lam), np.tile(x0, (len(cells), 1)), record=False,
+                        disturbance=PerAgent([ctx.disturbance("alternating", eps=e) for e in eps], [n] * len(cells)),
+                        model="sampled")
+    jumps = []
+    for k, (cell, e) in enumerate(zip(cells, eps)):
+        own = ctx.simulate(hybrid.with_hysteresis(*cell), x0, disturbance=ctx.disturbance("alternating", eps=e),
+                           record=False, model="sampled")
+        for key, v in own.metrics.items():
+            np.testing.assert_array_equal(np.asarray(both.metrics[key])[k * n:(k + 1) * n], v, err_msg=key)
+        jumps.append(own.metrics["jumps"].sum())
+    assert len(set(jumps)) > 1  # the cells' runs differ: a batch that gave every agent one cell's law would show
+
+
 def test_camera_in_the_loop_is_the_same_on_every_device(tiny_maps):
     """The closed loop with the CNN on each device present (CPU here; CUDA too on a GPU machine) gives the CPU
     run's perceived positions and trajectory up to float tolerance."""

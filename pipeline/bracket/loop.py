@@ -11,8 +11,10 @@ instead of on a grid of `dt`. `start` takes the first frame (`m_0 = p_0 + e_0`: 
 initial state's, a stronger adversary than one measurement, covered by the certificate all the same).
 
 A batch is a dict of arrays: `p` `(N, 2)`, `m` the last measurement, `xd` the law's logic state, `t`, `outcome`
-(an :class:`pipeline.sim.metrics.Outcome`), `clearance` (the smallest distance to the obstacle so far) and a
-short position history for the stall test.
+(an :class:`pipeline.sim.metrics.Outcome`), `clearance` (the smallest distance to the obstacle so far) and
+`anchor`, the stall test's reference: the position `stall_time` before the horizon (the start until then). Only the
+horizon's frame reads it, so a batch carries one position per run, not a history (branching a batch of candidates,
+as the falsifier does every frame, copies `(N, 2)`, not `stall_time / T_s` frames of it).
 """
 
 from __future__ import annotations
@@ -133,10 +135,9 @@ class FrameLoop:
         self.error.e = np.broadcast_to(np.asarray(e0, float), p0.shape)
         x = self.system.initial(p0, self._rng)
         n = len(p0)
-        hist = np.repeat(p0[None], self.stall_frames + 1, axis=0)
         st = {"p": p0, "m": x.m, "xd": {k: x.d[k] for k in self.controller.logic}, "frame": 0,
               "outcome": np.zeros(n, np.int8), "t_end": np.full(n, np.nan),
-              "clearance": clearance(p0, self.scene), "hist": hist, "jumps": np.zeros(n, np.int64)}
+              "clearance": clearance(p0, self.scene), "anchor": p0, "jumps": np.zeros(n, np.int64)}
         st["outcome"][st["clearance"] < 0] = COLLIDED
         return st
 
@@ -152,16 +153,16 @@ class FrameLoop:
         out = np.where(ended > 0, ended, st["outcome"]).astype(np.int8)
         t = (st["frame"] + 1) * self.period
         t_end = np.where(run & (out != RUNNING), t, st["t_end"])
-        hist = np.concatenate([st["hist"][1:], p1[None]], axis=0)
         frame = st["frame"] + 1
+        anchor = np.array(p1, float) if frame == self.n_frames - self.stall_frames else st["anchor"]
         if frame >= self.n_frames:
             still = out == RUNNING
-            moved = np.hypot(*(hist[-1] - hist[0]).T)
+            moved = np.hypot(*(p1 - anchor).T)  # over the last stall_frames frames (from the start if fewer)
             out[still] = np.where(moved[still] < self.stall_dist, STALLED, TIMED_OUT)
             t_end = np.where(still, t, t_end)
         xd = {k: np.where(run, engine.x.d[k], st["xd"][k]).astype(st["xd"][k].dtype) for k in st["xd"]}
         return {"p": np.where(run[:, None], p1, st["p"]), "m": engine.x.m, "xd": xd, "frame": frame, "outcome": out,
-                "t_end": t_end, "clearance": np.minimum(st["clearance"], np.where(run, clear, np.inf)), "hist": hist,
+                "t_end": t_end, "clearance": np.minimum(st["clearance"], np.where(run, clear, np.inf)), "anchor": anchor,
                 "jumps": st["jumps"] + (engine.jumps.astype(bool) & run)}
 
     @staticmethod
@@ -171,8 +172,6 @@ class FrameLoop:
         for k, v in st.items():
             if k == "xd":
                 out[k] = {n: a[idx] for n, a in v.items()}
-            elif k == "hist":
-                out[k] = v[:, idx]
             elif k == "frame":
                 out[k] = v
             else:

@@ -130,16 +130,28 @@ class HybridController(Feedback):
         self._barrier = {"kind": b.kind, "rho": float(b.rho), "gain": float(b.gain),
                          "phi_weight": 0.5 if b.kind == "authors_code" else 1.0}
 
-    def with_hysteresis(self, chi: float, lam: float) -> HybridController:
+    def with_hysteresis(self, chi, lam) -> HybridController:
         """This controller with the hysteresis `(chi, lam)` (the margin sweeps' variants: derived from the built
-        object, not rebuilt from config); the rules of `__init__` hold."""
-        if not chi > 1:
+        object, not rebuilt from config); the rules of `__init__` hold. Arrays `(N,)`: a hysteresis per agent of a
+        batch of `N` (several cells of a margin map in one run, each agent's arc the one a run of its own cell
+        gives); such a variant is evaluated on its whole batch only (the sampled loop's frames, :meth:`_hysteresis`)."""
+        c, v = np.asarray(chi, float), np.asarray(lam, float)
+        if not (c > 1).all():
             raise ConfigError("controller.chi", f"must be > 1, got {chi!r}")
-        if not 0 < lam < chi - 1:
-            raise ConfigError("controller.lam", f"must be in (0, chi - 1) = (0, {chi - 1:.6g}), got {lam!r}")
+        if not ((0 < v) & (v < c - 1)).all():
+            raise ConfigError("controller.lam", f"must be in (0, chi - 1) = (0, {np.min(c) - 1:.6g}), got {lam!r}")
         variant = copy.copy(self)
-        variant.chi, variant.lam = float(chi), float(lam)
+        variant.chi, variant.lam = (float(c), float(v)) if c.ndim == v.ndim == 0 else np.broadcast_arrays(c, v)
         return variant
+
+    def _hysteresis(self, ev: Evaluation, n: int):
+        """`(chi, lam)` at the evaluated rows `ev.idx` of a batch of `n`: the scalars, or a per-agent variant's."""
+        if np.ndim(self.chi) == 0:
+            return self.chi, self.lam
+        if len(self.chi) != n:
+            raise ValueError(f"a hysteresis per agent of {len(self.chi)} agents evaluated on {n} points: such a "
+                             "variant runs on its whole batch (the sampled loop)")
+        return self.chi[ev.idx], self.lam[ev.idx]
 
     # ---- the cells (SPEC §3.6) --------------------------------------------------------------------------
     def cell_distance(self, m: np.ndarray) -> np.ndarray:
@@ -235,8 +247,9 @@ class HybridController(Feedback):
         jump = ev.due(xd)
         if ev.idx.size:
             _, Vq, Vo = self._modes(ev, xd["q"])
+            chi, lam = self._hysteresis(ev, len(jump))
             with np.errstate(invalid="ignore"):
-                mode = (Vq > 0) & np.isfinite(Vo) & (Vq >= (self.chi - self.lam) * Vo)
+                mode = (Vq > 0) & np.isfinite(Vo) & (Vq >= (chi - lam) * Vo)
             if self.theta is not None:
                 mode &= self._past_line(ev, xd["q"])
             jump[ev.idx] |= mode
@@ -261,8 +274,9 @@ class HybridController(Feedback):
         inside = ~ev.due(xd)
         if ev.idx.size:
             _, Vq, Vo = self._modes(ev, xd["q"])
+            chi, _ = self._hysteresis(ev, len(inside))
             with np.errstate(invalid="ignore"):
-                flow = np.isfinite(Vq) & (Vq <= self.chi * Vo)
+                flow = np.isfinite(Vq) & (Vq <= chi * Vo)
             if self.theta is not None:
                 flow |= ~self._past_line(ev, xd["q"])
             inside[ev.idx] &= flow

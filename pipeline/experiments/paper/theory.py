@@ -236,23 +236,48 @@ class HysteresisMargin(Scenario):
         res = ctx.simulate(ctrl, x0, scene=scene, disturbance=d, record=False, model=self.time_model)
         return float(np.mean(practical_success(res, ctx.delta, eps)))
 
-    def margin(self, ctx: Context, x0, ctrl, dist: str, scene=None) -> tuple[float, float, int]:
-        """(largest robust ε found, smallest failing ε found, simulations): bisection on [0, eps_max] of the
-        controller `ctrl` (a hysteresis variant of the run's hybrid controller, on `scene`)."""
-        lo, hi, sims = 0.0, self.eps_max, 1
-        if self.success_rate(ctx, x0, ctrl, dist, 0.0, scene) < self.success:
-            return float("nan"), 0.0, sims
-        sims += 1
-        if self.success_rate(ctx, x0, ctrl, dist, hi, scene) >= self.success:
-            return hi, float("inf"), sims
-        while hi - lo > self.tol:
-            mid = 0.5 * (lo + hi)
-            sims += 1
-            if self.success_rate(ctx, x0, ctrl, dist, mid, scene) >= self.success:
-                lo = mid
-            else:
-                hi = mid
-        return lo, hi, sims
+    def success_rates(self, ctx: Context, x0, ctrl, dist: str, cells: list, eps: list[float], scene=None):
+        """`success_rate` of each cell `(chi, lam)` of `cells` (variants of the hybrid controller `ctrl`) at its `ε`,
+        all in one batch: a hysteresis and a disturbance per agent (:meth:`HybridController.with_hysteresis` with
+        arrays, `PerAgent`), each agent's arc the one a run of its own cell gives. The continuous time model steps
+        its agents apart (a variant per agent needs the whole batch at every call): its cells run one by one."""
+        if self.time_model != "sampled" or len(cells) <= 1:
+            return [self.success_rate(ctx, x0, ctrl.with_hysteresis(c, v), dist, e, scene)
+                    for (c, v), e in zip(cells, eps)]
+        n, k = len(x0), len(cells)
+        chi, lam = (np.repeat([cell[j] for cell in cells], n) for j in (0, 1))
+        d = None if max(eps) == 0 else PerAgent([ctx.disturbance(dist, eps=e) for e in eps], [n] * k)
+        res = ctx.simulate(ctrl.with_hysteresis(chi, lam), np.tile(x0, (k, 1)), scene=scene, disturbance=d,
+                           record=False, model=self.time_model)
+        ctx.advance(k - 1)  # k simulations in one
+        ok = practical_success(res, ctx.delta, np.repeat(np.asarray(eps, float), n)).reshape(k, n)
+        return [float(np.mean(row)) for row in ok]
+
+    def margins(self, ctx: Context, x0, ctrl, dist: str, cells: list, scene=None) -> list[tuple[float, float, int]]:
+        """Per cell `(chi, lam)` of `cells`: (largest robust ε found, smallest failing ε found, simulations), by
+        bisection on [0, eps_max] of that hysteresis variant of the hybrid controller `ctrl` (on `scene`); every
+        step of the cells' bisections runs in one batch (:meth:`success_rates`)."""
+        k = len(cells)
+        lo, hi, sims, out = [0.0] * k, [self.eps_max] * k, [1] * k, [None] * k
+        for i, rate in enumerate(self.success_rates(ctx, x0, ctrl, dist, cells, [0.0] * k, scene)):
+            if rate < self.success:
+                out[i] = (float("nan"), 0.0, 1)
+        live = [i for i in range(k) if out[i] is None]
+        rates = self.success_rates(ctx, x0, ctrl, dist, [cells[i] for i in live], [hi[i] for i in live], scene)
+        for i, rate in zip(live, rates):
+            sims[i] += 1
+            if rate >= self.success:
+                out[i] = (hi[i], float("inf"), sims[i])
+        while live := [i for i in range(k) if out[i] is None and hi[i] - lo[i] > self.tol]:
+            mid = [0.5 * (lo[i] + hi[i]) for i in live]
+            for i, m, rate in zip(live, mid, self.success_rates(ctx, x0, ctrl, dist, [cells[i] for i in live], mid,
+                                                                scene)):
+                sims[i] += 1
+                if rate >= self.success:
+                    lo[i] = m
+                else:
+                    hi[i] = m
+        return [o if o is not None else (lo[i], hi[i], sims[i]) for i, o in enumerate(out)]
 
     def steps(self) -> int:
         """The most simulations one cell's bisection runs: eps = 0, eps_max, then halving down to `tol`."""
@@ -264,9 +289,8 @@ class HysteresisMargin(Scenario):
         ctx.expect(len(self.disturbances) * len(self.cells()) * self.steps())
         hybrid = ctx.controller("hybrid")  # built once: the cells are its hysteresis variants
         for dist in self.disturbances:
-            for chi, lam in self.cells():
-                ctx.label = f"{dist} chi={chi:g} lam={lam:g}"
-                lo, hi, sims = self.margin(ctx, x0, hybrid.with_hysteresis(chi, lam), dist)
+            ctx.label = f"{dist}, {len(self.cells())} (chi, lam) cells"
+            for (chi, lam), (lo, hi, sims) in zip(self.cells(), self.margins(ctx, x0, hybrid, dist, self.cells())):
                 ctx.advance(self.steps() - sims)  # a bisection that stopped early
                 rows.append({"disturbance": dist, "chi": chi, "lam": lam, "eps_margin": lo, "eps_fails": hi,
                              "n_starts": len(x0), "simulations": sims})
