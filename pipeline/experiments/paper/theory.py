@@ -257,19 +257,24 @@ class HysteresisMargin(Scenario):
         """Per cell `(chi, lam)` of `cells`: (largest robust ε found, smallest failing ε found, simulations), by
         bisection on [0, eps_max] of that hysteresis variant of the hybrid controller `ctrl` (on `scene`); every
         step of the cells' bisections runs in one batch (:meth:`success_rates`)."""
-        k = len(cells)
+        k, label = len(cells), ctx.label
+
+        def step(r: int, rows: list) -> list:  # the progress line: the bisections' step and how many cells run it
+            ctx.label = f"{label}, step {r}/{self.steps()} of {len(rows)} cell(s)"
+            return rows
         lo, hi, sims, out = [0.0] * k, [self.eps_max] * k, [1] * k, [None] * k
+        step(1, cells)
         for i, rate in enumerate(self.success_rates(ctx, x0, ctrl, dist, cells, [0.0] * k, scene)):
             if rate < self.success:
                 out[i] = (float("nan"), 0.0, 1)
-        live = [i for i in range(k) if out[i] is None]
+        live = step(2, [i for i in range(k) if out[i] is None])
         rates = self.success_rates(ctx, x0, ctrl, dist, [cells[i] for i in live], [hi[i] for i in live], scene)
         for i, rate in zip(live, rates):
             sims[i] += 1
             if rate >= self.success:
                 out[i] = (hi[i], float("inf"), sims[i])
         while live := [i for i in range(k) if out[i] is None and hi[i] - lo[i] > self.tol]:
-            mid = [0.5 * (lo[i] + hi[i]) for i in live]
+            mid = [0.5 * (lo[i] + hi[i]) for i in step(max(sims) + 1, live)]
             for i, m, rate in zip(live, mid, self.success_rates(ctx, x0, ctrl, dist, [cells[i] for i in live], mid,
                                                                 scene)):
                 sims[i] += 1
@@ -289,7 +294,7 @@ class HysteresisMargin(Scenario):
         ctx.expect(len(self.disturbances) * len(self.cells()) * self.steps())
         hybrid = ctx.controller("hybrid")  # built once: the cells are its hysteresis variants
         for dist in self.disturbances:
-            ctx.label = f"{dist}, {len(self.cells())} (chi, lam) cells"
+            ctx.label = f"{dist} chi={','.join(f'{c:g}' for c in self.chi)}"
             for (chi, lam), (lo, hi, sims) in zip(self.cells(), self.margins(ctx, x0, hybrid, dist, self.cells())):
                 ctx.advance(self.steps() - sims)  # a bisection that stopped early
                 rows.append({"disturbance": dist, "chi": chi, "lam": lam, "eps_margin": lo, "eps_fails": hi,
