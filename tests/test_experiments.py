@@ -216,9 +216,12 @@ def test_margin_map_cell_against_a_direct_simulation(tmp_path):
 def test_margin_map_cells_in_one_batch_are_each_cells_own_bisection(tmp_path):
     """The margin map's cells bisect in one batch per step (a hysteresis and a disturbance per agent): every
     cell's margin, failing ε and simulation count are those of its own bisection run alone, and every agent of a
-    batched run ends as in its own cell's run (its jumps, which the hysteresis sets, among the metrics)."""
+    batched run ends as in its own cell's run: outcome, arrival time, jumps (which the hysteresis sets) and the
+    practical success the bisection reads (docs/control.md: a batch's last agent to stop may end a few steps
+    earlier than it would in a larger batch, so its final position is not compared)."""
     from pipeline.experiments.context import Context
     from pipeline.experiments.paper.theory import HysteresisMargin
+    from pipeline.experiments.scenario import practical_success
     from pipeline.sim.disturbances import PerAgent
 
     ctx = Context(_cfg(tmp_path, "experiment=hysteresis_margin", "perception=oracle"))
@@ -237,8 +240,12 @@ def test_margin_map_cells_in_one_batch_are_each_cells_own_bisection(tmp_path):
     for k, (cell, e) in enumerate(zip(cells, eps)):
         own = ctx.simulate(hybrid.with_hysteresis(*cell), x0, disturbance=ctx.disturbance("alternating", eps=e),
                            record=False, model="sampled")
-        for key, v in own.metrics.items():
-            np.testing.assert_array_equal(np.asarray(both.metrics[key])[k * n:(k + 1) * n], v, err_msg=key)
+        for key in ("outcome", "termination", "success", "collision", "time_to_target", "jumps", "mode_jumps",
+                    "pushouts", "guard_frames"):
+            np.testing.assert_array_equal(np.asarray(both.metrics[key])[k * n:(k + 1) * n], own.metrics[key],
+                                          err_msg=key)
+        np.testing.assert_array_equal(practical_success(both, ctx.delta, e)[k * n:(k + 1) * n],
+                                      practical_success(own, ctx.delta, e))
         jumps.append(own.metrics["jumps"].sum())
     assert len(set(jumps)) > 1  # the cells' runs differ: a batch that gave every agent one cell's law would show
 

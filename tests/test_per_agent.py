@@ -66,22 +66,3 @@ def test_a_mismatched_batch_is_an_error(scene):
         PerAgent([Adversarial(1.0), Adversarial(2.0)], [3])
     with pytest.raises(ValueError, match="4 positions for 3 agents"):
         PerAgent([Adversarial(1.0)], [3])(np.zeros((4, 2)), 0, np.random.default_rng(0), scene)
-
-
-@pytest.mark.parametrize("cls", [HybridController, SmoothController])
-def test_an_agent_ends_as_alone_whatever_its_batch(scene, cls):
-    """Each agent's run is its own in a sampled batch: an agent that arrives mid-frame holds its input to the
-    frame's end whether or not others still run (the last agent of a run to arrive was stopped at its arrival step
-    while the others coasted on: its final error, path and closest approach depended on its batch-mates)."""
-    ctrl = cls(scene=scene)
-    near = np.array([[31.3, 0.4], [29.7, -1.1], [33.2, 2.0]])  # they arrive within a second, mid-frame
-    far = np.array([[10.0, 12.0]])
-    sim = SimSettings(dt=0.01, horizon=8.0, model="sampled")
-    alone = simulate(scene, ctrl, near, sim=sim, camera=CameraSettings(period=0.05), seed=0, record=False)
-    both = simulate(scene, ctrl, np.concatenate([near, far]), sim=sim, camera=CameraSettings(period=0.05), seed=0,
-                    record=False)
-    assert alone.metrics["success"].all() and both.metrics["success"].all()
-    assert np.ptp(alone.metrics["time_to_target"]) > 0 and (both.metrics["time_to_target"][-1]
-                                                             > alone.metrics["time_to_target"].max())
-    for key, v in alone.metrics.items():
-        np.testing.assert_array_equal(np.asarray(both.metrics[key])[:len(near)], np.asarray(v), err_msg=key)

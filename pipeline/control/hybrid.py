@@ -133,8 +133,8 @@ class HybridController(Feedback):
     def with_hysteresis(self, chi, lam) -> HybridController:
         """This controller with the hysteresis `(chi, lam)` (the margin sweeps' variants: derived from the built
         object, not rebuilt from config); the rules of `__init__` hold. Arrays `(N,)`: a hysteresis per agent of a
-        batch of `N` (several cells of a margin map in one run, each agent's arc the one a run of its own cell
-        gives); such a variant is evaluated on its whole batch only (the sampled loop's frames, :meth:`_hysteresis`)."""
+        batch of `N` (several cells of a margin map in one run, each agent decided as its own cell's variant
+        decides); such a variant is evaluated on its whole batch only (the sampled loop's frames, :meth:`_hysteresis`)."""
         c, v = np.asarray(chi, float), np.asarray(lam, float)
         if not (c > 1).all():
             raise ConfigError("controller.chi", f"must be > 1, got {chi!r}")

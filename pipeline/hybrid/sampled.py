@@ -97,11 +97,9 @@ class FrameRun:
         self.frame, self.steps, self.t = int(frame), 0, 0.0
 
     def advance(self, steps: int | None = None, on_step=None) -> np.ndarray:
-        """One frame: `steps` steps of `dt` (default `every`; fewer for the horizon's last, partial frame; one when
-        no agent runs). An agent whose run ends in this frame holds its input to the frame's end, as every agent
-        does, the last of a batch to end too: its arc is the one it has in any batch. `on_step(step, t, x)` after
-        each step (e.g. a recorder). Returns the codes of the agents whose run ended in this frame `(N,)` int8 (0
-        elsewhere)."""
+        """One frame: `steps` steps of `dt` (default `every`; fewer for the horizon's last, partial frame), or
+        fewer when every agent has stopped. `on_step(step, t, x)` after each step (e.g. a recorder). Returns the
+        codes of the agents whose run ended in this frame `(N,)` int8 (0 elsewhere)."""
         plant, dt, active = self.system.plant, self.dt, self.active
         x, self.w, jumped, out, frame_counts = frame_update(self.system, self.x, self.frame, self.rng, active)
         self.jumps += jumped
@@ -132,7 +130,7 @@ class FrameRun:
                 active &= ~bad
             if on_step is not None:
                 on_step(step, self.t, x)
-            if not active.any() and not ended.any():
+            if not active.any():
                 break
         self.x, self.frame = x, self.frame + 1
         self.term[ended > 0] = ended[ended > 0]

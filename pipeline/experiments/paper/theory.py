@@ -239,8 +239,10 @@ class HysteresisMargin(Scenario):
     def success_rates(self, ctx: Context, x0, ctrl, dist: str, cells: list, eps: list[float], scene=None):
         """`success_rate` of each cell `(chi, lam)` of `cells` (variants of the hybrid controller `ctrl`) at its `ε`,
         all in one batch: a hysteresis and a disturbance per agent (:meth:`HybridController.with_hysteresis` with
-        arrays, `PerAgent`), each agent's arc the one a run of its own cell gives. The continuous time model steps
-        its agents apart (a variant per agent needs the whole batch at every call): its cells run one by one."""
+        arrays, `PerAgent`), each agent's outcome, arrival time and jumps those of a run of its own cell (only the
+        final position of a batch's last agent to stop depends on the batch, docs/control.md, and the practical
+        success reads it only for runs that end at the horizon). The continuous time model steps its agents apart
+        (a variant per agent needs the whole batch at every call): its cells run one by one."""
         if self.time_model != "sampled" or len(cells) <= 1:
             return [self.success_rate(ctx, x0, ctrl.with_hysteresis(c, v), dist, e, scene)
                     for (c, v), e in zip(cells, eps)]
