@@ -319,6 +319,51 @@ def test_trunk_from_a_perception_map_is_copied_and_stays_frozen():
     assert any(not torch.equal(a, b) for a, b in zip(model.head.parameters(), head0))
 
 
+@pytest.mark.parametrize("n", [75, 20])
+def test_a_fit_on_the_frozen_keypoints_read_once_learns_the_same_bits(n, tmp_path):
+    """`reads: keypoint` with the map's trunk frozen: the imitation fit reads each frame's keypoint once
+    (`frozen_readings`, in batches of the loader's size; an epoch's smaller last batch reads its frames again), not
+    every epoch, and the head it learns is bit for bit the one the fit reading every frame each epoch learns. The
+    trunk at make paper's size (filters 16-32-64) on one thread, whose convolutions give other bits in a batch of 11
+    than in one of 32 here (75 frames: a last batch of 11; 20: one batch): every batch's keypoints reach the head
+    with the same bits, which fails when the last batch takes the readings of the full ones (tried)."""
+    import copy
+
+    from pipeline.config import compose
+    from pipeline.learned.imitate import fit
+    from pipeline.train.module import PerceptionMap
+
+    torch.manual_seed(0)
+    pm = PerceptionMap.of(filters=(16, 32, 64), position_head="keypoint", uncertainty="none").eval()
+    model = VelocityPolicy.of(filters=(16, 32, 64), hidden=8, freeze_trunk=True, reads="keypoint")
+    model.load_trunk(pm)
+    rng = np.random.default_rng(0)
+    data = (rng.integers(0, 255, (n, 60, 100, 3), dtype=np.uint8), rng.normal(size=(n, HEADS, 2)),
+            rng.random((n, HEADS)) < 0.7)
+    every_epoch = copy.deepcopy(model)
+    every_epoch.frozen_readings = lambda images, batch: None  # the fit before: the trunk on every batch
+    heard = ([], [])  # what each model's head is given, batch by batch
+    for m, got in zip((model, every_epoch), heard):
+        m.head.register_forward_pre_hook(lambda _, args, got=got: got.append(args[0].detach().clone()))
+    trainer = compose("imitate", [f"paths.output_dir={tmp_path}"]).trainer
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # a make paper job's (on two threads this trunk gives one batch size's bits for all)
+    try:
+        for m in (model, every_epoch):
+            fit(m, trainer, data, epochs=3, batch_size=32, seed=0)
+    finally:
+        torch.set_num_threads(threads)
+    assert model.readings is None  # a fit's readings do not outlive it
+    assert len(heard[0]) == len(heard[1]) == 3 * -(-n // 32)
+    for a, b in zip(*heard):  # every batch's keypoints, bit for bit
+        assert torch.equal(a, b), (len(a), (a - b).abs().max())
+    for (k, a), b in zip(model.state_dict().items(), every_epoch.state_dict().values()):
+        assert torch.equal(a, b), k
+    assert model.frozen_readings(data[0], 32) is not None
+    learning = VelocityPolicy.of(filters=(4, 8, 8), hidden=8, freeze_trunk=False, reads="keypoint")
+    assert learning.frozen_readings(data[0], 32) is None  # a trunk that learns is read every batch
+
+
 def test_table_rows_count_outcomes_with_wilson_intervals(tmp_path):
     import pandas as pd
 

@@ -113,12 +113,19 @@ def fit(model, trainer_node, data, epochs: int, batch_size: int, seed: int, labe
     from torch.utils.data import DataLoader, TensorDataset
 
     frames, labels, masks = data
-    ds = TensorDataset(torch.from_numpy(frames), torch.from_numpy(labels).float(), torch.from_numpy(masks))
-    loader = DataLoader(ds, batch_size=batch_size, shuffle=True, generator=torch.Generator().manual_seed(seed))
     L.seed_everything(seed, verbose=False)
     trainer = build(trainer_node, "trainer", max_epochs=int(epochs), callbacks=[epoch_line(label, "train_loss")])
     t0 = time.perf_counter()
-    trainer.fit(model, loader)
+    # a frozen keypoint trunk on the CPU: its readings once, not every epoch (the same bits: frozen_readings)
+    read = model.frozen_readings(frames, batch_size) if trainer.strategy.root_device.type == "cpu" else None
+    model.readings = None if read is None else (min(batch_size, len(frames)), read)
+    index = [] if read is None else [torch.arange(len(frames))]
+    ds = TensorDataset(torch.from_numpy(frames), *index, torch.from_numpy(labels).float(), torch.from_numpy(masks))
+    loader = DataLoader(ds, batch_size=batch_size, shuffle=True, generator=torch.Generator().manual_seed(seed))
+    try:
+        trainer.fit(model, loader)
+    finally:
+        model.readings = None
     return time.perf_counter() - t0
 
 

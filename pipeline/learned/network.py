@@ -18,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 
 import lightning as L
+import numpy as np
 import torch
 from torch import nn
 
@@ -52,6 +53,7 @@ class VelocityPolicy(L.LightningModule):
         for _ in filters[:-1]:
             fh, fw = fh // 2, fw // 2
         self.reads = reads
+        self.readings: tuple[int, torch.Tensor] | None = None  # a fit's (batch, frozen keypoint readings)
         self.keypoint = KeypointHead(int(filters[-1]), (fh, fw)) if reads == "keypoint" else None
         fh, fw = fh // 2, fw // 2
         self.head = nn.Sequential(nn.Linear(2, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, hidden),
@@ -68,10 +70,31 @@ class VelocityPolicy(L.LightningModule):
 
     def normalised(self, images: torch.Tensor) -> torch.Tensor:
         """Velocities in units of `u_max` `(N, HEADS, 2)` (images: uint8 in [0, 255] or float in [0, 1])."""
-        x = self.prepare(images)
         if self.keypoint is not None:
-            return self.head(self.keypoint(self.features[:-1](x))[0]).view(-1, HEADS, 2)
-        return self.head(self.features(x)).view(-1, HEADS, 2)
+            return self.head(self.keypoint_of(images)).view(-1, HEADS, 2)
+        return self.head(self.features(self.prepare(images))).view(-1, HEADS, 2)
+
+    def keypoint_of(self, images: torch.Tensor) -> torch.Tensor:
+        """`reads: keypoint`: the position the keypoint head reads in each image `(N, 2)` (what the head gets)."""
+        return self.keypoint(self.features[:-1](self.prepare(images)))[0]
+
+    def frozen_readings(self, images: np.ndarray, batch: int) -> torch.Tensor | None:
+        """With `reads: keypoint` and `freeze_trunk`, the keypoint positions of `images` `(N, H, W, 3)` read once for
+        a fit instead of every epoch `(N, 2)`, every image read in a batch of `batch` (the trunk in eval mode, as
+        each epoch puts it). A convolution's result for one image depends on its batch's size (oneDNN picks its
+        kernel by it), not on the other images in it: a training batch of `batch` frames gets from these the bits it
+        would compute itself, and a smaller one (an epoch's last) reads its frames again (:meth:`loss`). None for a
+        trunk that learns (`freeze_trunk` false, or no map's trunk loaded: :meth:`load_trunk` freezes it)."""
+        if self.keypoint is None or any(p.requires_grad for p in [*self.features.parameters(),
+                                                                   *self.keypoint.parameters()]):
+            return None
+        n, size = len(images), min(batch, len(images))
+        read = torch.empty(n, 2)
+        self.features.eval()
+        with torch.no_grad():
+            for s in [*range(0, n - size + 1, size), *([n - size] if n % size else [])]:
+                read[s:s + size] = self.keypoint_of(torch.from_numpy(images[s:s + size]))
+        return read
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         return self.normalised(images) * self.u_max
@@ -94,8 +117,14 @@ class VelocityPolicy(L.LightningModule):
             self.features.eval()
 
     def loss(self, batch) -> torch.Tensor:
-        images, labels, mask = batch  # (B, H, W, 3) uint8, (B, HEADS, 2) world units, (B, HEADS) bool
-        err = (self.normalised(images) - labels / self.u_max).pow(2).sum(-1)
+        """`batch`: (B, H, W, 3) uint8 frames, [with `readings` set (a fit's, :meth:`frozen_readings`) their indices
+        `(B,)`,] (B, HEADS, 2) labels in world units, (B, HEADS) bool masks."""
+        images, *index, labels, mask = batch
+        if index and len(images) == self.readings[0]:  # a full batch: the frozen trunk's readings
+            out = self.head(self.readings[1][index[0]]).view(-1, HEADS, 2)
+        else:
+            out = self.normalised(images)
+        err = (out - labels / self.u_max).pow(2).sum(-1)
         m = mask.to(err.dtype)
         return ((err * m).sum(0) / m.sum(0).clamp_min(1.0)).sum()
 
